@@ -1,0 +1,1 @@
+"""bradyscope's product around the measurement library: service, pages, reports, CLI."""
