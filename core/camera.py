@@ -364,7 +364,9 @@ class StereoRig:
         R = self.right.R_cam_from_world
         t = self.right.t_cam_from_world_mm
         new_left = Camera("left", self.right.image_size, self.right.K, self.right.dist)
-        new_right = Camera("right", self.left.image_size, self.left.K, self.left.dist, R.T, -R.T @ t)
+        new_right = Camera(
+            "right", self.left.image_size, self.left.K, self.left.dist, R.T, -R.T @ t
+        )
         return StereoRig(new_left, new_right, dict(self.quality))
 
 
@@ -464,7 +466,9 @@ def read_rig(path: str | Any) -> StereoRig:
     except OSError as exc:
         raise RigFileError(f"cannot read the rig file {p.name}: {exc.strerror}.") from exc
     except UnicodeDecodeError as exc:
-        raise RigFileError(f"{p.name} is not a text file; expected a bradyscope rig JSON file.") from exc
+        raise RigFileError(
+            f"{p.name} is not a text file; expected a bradyscope rig JSON file."
+        ) from exc
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:

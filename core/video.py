@@ -1,0 +1,415 @@
+"""Video input and output: probing, streaming decode, writing, stereo-pair checks.
+
+Frames are streamed: :func:`iter_frames` decodes in a background thread into a
+small bounded queue, so memory does not grow with the length of a video and
+decoding overlaps with whatever the caller does with each frame (OpenCV
+releases the GIL while it decodes).
+
+Gray frames come straight from the decoder's luma plane when the stream is
+planar YUV or gray (no colour conversion at all). For YUV streams that plane
+is in video range (16–235), a fixed affine change of intensity that marker
+and board detection do not depend on.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from core.camera import ImageSize, StereoRig
+from core.errors import InputError
+
+# Pixel formats whose first plane is the luma (or gray) image of width x height.
+_LUMA_FIRST_FORMATS = frozenset(
+    {"I420", "IYUV", "YV12", "NV12", "NV21", "Y800", "GREY", "Y42B", "444P", "422P"}
+)
+
+_IMAGE_SUFFIXES = frozenset(
+    {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
+)
+
+# Codec names for VideoWriter; "lossless" keeps every pixel exactly (FFV1).
+_CODECS = {"lossless": ("FFV1", ".mkv"), "mp4v": ("mp4v", ".mp4"), "mjpg": ("MJPG", ".avi")}
+
+# A container may report a frame count that differs a little from what decodes.
+_FRAME_COUNT_SLACK = 2
+
+
+def _fourcc_to_str(value: float) -> str:
+    v = int(value)
+    return "".join(chr((v >> (8 * i)) & 0xFF) for i in range(4)).rstrip("\x00").strip()
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What a video file says about itself (after one frame was actually decoded).
+
+    Attributes
+    ----------
+    path : Path
+    fps : float
+        Frames per second (Hz) from the container.
+    frame_count : int
+        Number of frames the container reports (a few may be missing at decode
+        time in a damaged file; :func:`iter_frames` with ``strict=True`` tells).
+    image_size : ImageSize
+        ``(width, height)`` in pixels.
+    fourcc : str
+        Codec four-character code, e.g. ``"FFV1"`` or ``"mp4v"``.
+    """
+
+    path: Path
+    fps: float
+    frame_count: int
+    image_size: ImageSize
+    fourcc: str
+
+    @property
+    def duration_s(self) -> float:
+        return self.frame_count / self.fps
+
+
+def _open_capture(path: Path) -> cv2.VideoCapture:
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    if not cap.isOpened():
+        cap.release()
+        raise InputError(
+            f"{path.name} could not be opened as a video; check that it is a complete video file"
+            " (for example MP4, AVI or MKV) and not an image, a document or a truncated upload."
+        )
+    return cap
+
+
+def probe_video(path: str | Path) -> VideoInfo:
+    """Open a video, decode its first frame and return what it says about itself.
+
+    Raises
+    ------
+    InputError
+        The file is missing, is not a video, has no decodable frame, or states
+        no frame rate.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"the video {p.name} does not exist; check the path.")
+    if p.stat().st_size == 0:
+        raise InputError(f"the video {p.name} is empty (0 bytes); record or upload it again.")
+    cap = _open_capture(p)
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        frame_count = round(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        ok, frame = cap.read()
+        fourcc = _fourcc_to_str(cap.get(cv2.CAP_PROP_FOURCC))
+    finally:
+        cap.release()
+    if not ok or frame is None:
+        raise InputError(
+            f"no frame of {p.name} could be decoded; the file is corrupt or not a video."
+        )
+    if not (fps > 0 and np.isfinite(fps)):
+        raise InputError(
+            f"{p.name} states no frame rate; re-export it with a fixed frame rate (constant fps)."
+        )
+    if frame_count <= 0:
+        raise InputError(f"{p.name} reports no frames; the file is corrupt or still being written.")
+    return VideoInfo(
+        path=p,
+        fps=fps,
+        frame_count=frame_count,
+        image_size=ImageSize.of_image(frame),
+        fourcc=fourcc,
+    )
+
+
+def _reader(
+    path: Path,
+    gray: bool,
+    start: int,
+    stop: int | None,
+    out: queue.Queue[Any],
+    halt: threading.Event,
+) -> None:
+    """Decode frames into ``out``; ends with ``None`` (done) or an exception instance."""
+    try:
+        cap = _open_capture(path)
+        try:
+            luma = False
+            if gray:
+                pix = _fourcc_to_str(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
+                if pix in _LUMA_FIRST_FORMATS:
+                    luma = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
+            if start > 0:
+                # Seeking is not frame-exact in every container: grab instead.
+                for _ in range(start):
+                    if not cap.grab():
+                        break
+            index = start
+            width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+            height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            while not halt.is_set() and (stop is None or index < stop):
+                if luma and index == start:
+                    # OpenCV warns once that it hands out the raw planar buffer.
+                    level = cv2.utils.logging.getLogLevel()
+                    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+                    try:
+                        ok, frame = cap.read()
+                    finally:
+                        cv2.utils.logging.setLogLevel(level)
+                else:
+                    ok, frame = cap.read()
+                if not ok or frame is None:
+                    break
+                if gray:
+                    if luma:
+                        if frame.ndim != 2 or frame.shape[0] < height or frame.shape[1] != width:
+                            raise InputError(
+                                f"{path.name} decodes to an unexpected raw layout {frame.shape};"
+                                " re-encode it (for example as MP4)."
+                            )
+                        frame = frame[:height]
+                    elif frame.ndim == 3:
+                        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                while not halt.is_set():
+                    try:
+                        out.put(frame, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                index += 1
+        finally:
+            cap.release()
+        out.put(None)
+    except BaseException as exc:  # handed to the consumer, which re-raises it
+        out.put(exc)
+
+
+def iter_frames(
+    path: str | Path,
+    *,
+    gray: bool = True,
+    start: int = 0,
+    stop: int | None = None,
+    prefetch: int = 8,
+    expected_count: int | None = None,
+) -> Iterator[NDArray[np.uint8]]:
+    """Stream the frames of a video, decoded in a background thread.
+
+    Parameters
+    ----------
+    path : str or Path
+    gray : bool
+        Yield ``(H, W)`` uint8 gray frames (the luma plane when the codec has
+        one); otherwise ``(H, W, 3)`` BGR.
+    start, stop : int
+        Frame range ``[start, stop)`` of the video.
+    prefetch : int
+        Frames decoded ahead (bounded memory).
+    expected_count : int, optional
+        If given, raise :class:`InputError` when the video ends more than two
+        frames before ``min(stop, expected_count)``: it is truncated.
+
+    Yields
+    ------
+    ndarray
+        One frame at a time; frame ``i`` is at ``i / fps`` seconds.
+    """
+    if start < 0 or (stop is not None and stop < start):
+        raise ValueError(f"need 0 <= start <= stop, got start={start}, stop={stop}")
+    if prefetch < 1:
+        raise ValueError(f"prefetch must be >= 1, got {prefetch}")
+    p = Path(path)
+    out: queue.Queue[Any] = queue.Queue(maxsize=prefetch)
+    halt = threading.Event()
+    thread = threading.Thread(
+        target=_reader, args=(p, gray, start, stop, out, halt), name=f"decode-{p.name}", daemon=True
+    )
+    thread.start()
+    n = 0
+    try:
+        while True:
+            item = out.get()
+            if item is None:
+                break
+            if isinstance(item, BaseException):
+                raise item
+            n += 1
+            yield item
+    finally:
+        halt.set()
+        # Drain so the reader can see the halt flag and exit.
+        while thread.is_alive():
+            try:
+                out.get(timeout=0.05)
+            except queue.Empty:
+                pass
+        thread.join()
+    if expected_count is not None:
+        wanted = (expected_count if stop is None else min(stop, expected_count)) - start
+        if n < wanted - _FRAME_COUNT_SLACK:
+            raise InputError(
+                f"{p.name} ends after {start + n} of {start + wanted} frames: the file is truncated;"
+                " upload or copy the complete recording."
+            )
+
+
+class VideoWriter:
+    """Write frames to a video file; a thin, checked wrapper of ``cv2.VideoWriter``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file. Its suffix should match the codec (``.mkv`` for
+        ``"lossless"``, ``.mp4`` for ``"mp4v"``); see :func:`video_suffix`.
+    fps : float
+    image_size : ImageSize
+    codec : {"lossless", "mp4v", "mjpg"}
+        ``"lossless"`` is FFV1 (every pixel kept exactly, large files);
+        ``"mp4v"`` is MPEG-4 part 2 (small files, compression artefacts).
+    is_color : bool
+        Frames are ``(H, W, 3)`` BGR if True, ``(H, W)`` gray otherwise.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        fps: float,
+        image_size: ImageSize,
+        codec: str = "lossless",
+        is_color: bool = False,
+    ) -> None:
+        if codec not in _CODECS:
+            raise ValueError(f"codec must be one of {sorted(_CODECS)}, got {codec!r}")
+        if not fps > 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.path = Path(path)
+        self.image_size = ImageSize(*image_size)
+        self.is_color = is_color
+        self.frames_written = 0
+        fourcc = cv2.VideoWriter_fourcc(*_CODECS[codec][0])
+        self._writer = cv2.VideoWriter(
+            str(self.path), cv2.CAP_FFMPEG, fourcc, float(fps), tuple(self.image_size), is_color
+        )
+        if not self._writer.isOpened():
+            raise InputError(f"cannot write the video {self.path.name} with codec {codec}.")
+
+    def write(self, frame: NDArray[np.uint8]) -> None:
+        """Append one uint8 frame of the writer's size."""
+        expected = (
+            (self.image_size.height, self.image_size.width, 3)
+            if self.is_color
+            else (self.image_size.height, self.image_size.width)
+        )
+        if frame.shape != expected or frame.dtype != np.uint8:
+            raise ValueError(
+                f"frame must be uint8 of shape {expected}, got {frame.dtype} {frame.shape}"
+            )
+        self._writer.write(frame)
+        self.frames_written += 1
+
+    def close(self) -> None:
+        self._writer.release()
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def video_suffix(codec: str) -> str:
+    """The file suffix that goes with a :class:`VideoWriter` codec (``".mkv"``, ``".mp4"``)."""
+    if codec not in _CODECS:
+        raise ValueError(f"codec must be one of {sorted(_CODECS)}, got {codec!r}")
+    return _CODECS[codec][1]
+
+
+def check_stereo_videos(
+    left: VideoInfo, right: VideoInfo, *, rig: StereoRig | None = None
+) -> list[str]:
+    """Check that two videos form a usable stereo pair (and fit the rig).
+
+    Returns
+    -------
+    list of str
+        Warnings that do not stop a measurement (for example slightly
+        different frame counts).
+
+    Raises
+    ------
+    InputError
+        Different frame rates, different image sizes, or a size other than
+        the rig's calibration.
+    """
+    warnings: list[str] = []
+    if abs(left.fps - right.fps) > 1e-3 * max(left.fps, right.fps):
+        raise InputError(
+            f"the left video runs at {left.fps:g} fps but the right at {right.fps:g} fps;"
+            " record both cameras at the same frame rate."
+        )
+    if left.image_size != right.image_size:
+        raise InputError(
+            f"the left video is {left.image_size.width}x{left.image_size.height} but the right is"
+            f" {right.image_size.width}x{right.image_size.height}; both cameras must record at the"
+            " same resolution."
+        )
+    if rig is not None:
+        for info, cam in ((left, rig.left), (right, rig.right)):
+            if info.image_size != cam.image_size:
+                raise InputError(
+                    f"the {cam.name} video is {info.image_size.width}x{info.image_size.height} but"
+                    f" the rig was calibrated at {cam.image_size.width}x{cam.image_size.height};"
+                    " use the calibration made for this camera setting."
+                )
+    if left.frame_count != right.frame_count:
+        diff = abs(left.frame_count - right.frame_count)
+        longer = max(left.frame_count, right.frame_count)
+        if diff > max(0.2 * longer, 50):
+            raise InputError(
+                f"the left video has {left.frame_count} frames and the right {right.frame_count};"
+                " they cannot be recordings of the same test — check that the pair belongs together."
+            )
+        warnings.append(
+            f"the videos have different lengths ({left.frame_count} and {right.frame_count} frames);"
+            " only the common part is measured."
+        )
+    return warnings
+
+
+def list_images(folder: str | Path) -> list[Path]:
+    """The image files of a folder, sorted by file name.
+
+    Raises
+    ------
+    InputError
+        The folder does not exist or holds no image.
+    """
+    p = Path(folder)
+    if not p.is_dir():
+        raise InputError(f"the folder {p} does not exist; check the path.")
+    files = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in _IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(
+            f"the folder {p.name} holds no image (PNG, JPEG, BMP or TIFF); check the path."
+        )
+    return files
+
+
+def read_image(path: str | Path, *, gray: bool = True) -> NDArray[np.uint8]:
+    """Read one image file; :class:`InputError` if it cannot be decoded."""
+    p = Path(path)
+    flag = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+    img = cv2.imread(str(p), flag)
+    if img is None:
+        raise InputError(
+            f"the image {p.name} could not be read; check that it is a valid image file."
+        )
+    return img
