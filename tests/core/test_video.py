@@ -1,0 +1,169 @@
+"""Video probing, streaming decode, writing and stereo-pair checks on real encoded files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.camera import Camera, ImageSize, StereoRig
+from core.errors import InputError
+from core.video import (
+    VideoInfo,
+    VideoWriter,
+    check_stereo_videos,
+    iter_frames,
+    list_images,
+    probe_video,
+    read_image,
+    video_suffix,
+)
+
+SIZE = ImageSize(320, 240)
+
+
+def _frames(n: int) -> list[np.ndarray]:
+    """Frames with a bright square that moves one pixel per frame, so each frame is identifiable."""
+    out = []
+    for i in range(n):
+        img = np.full((SIZE.height, SIZE.width), 20, np.uint8)
+        img[100:120, 10 + i : 30 + i] = 220
+        out.append(img)
+    return out
+
+
+def _write(path, frames, codec="lossless", fps=100.0):
+    with VideoWriter(path, fps=fps, image_size=SIZE, codec=codec) as w:
+        for f in frames:
+            w.write(f)
+    return path
+
+
+@pytest.fixture(scope="module")
+def lossless(tmp_path_factory):
+    path = tmp_path_factory.mktemp("video") / f"clip{video_suffix('lossless')}"
+    return _write(path, _frames(40))
+
+
+def test_lossless_round_trip_is_exact(lossless):
+    info = probe_video(lossless)
+    assert info.fps == pytest.approx(100.0)
+    assert info.frame_count == 40
+    assert info.image_size == SIZE
+    frames = list(iter_frames(lossless, expected_count=info.frame_count))
+    assert len(frames) == 40
+    for got, want in zip(frames, _frames(40), strict=True):
+        assert got.shape == (SIZE.height, SIZE.width) and got.dtype == np.uint8
+        np.testing.assert_array_equal(got, want)
+
+
+def test_mp4v_gray_frames_keep_geometry(tmp_path):
+    path = _write(tmp_path / "clip.mp4", _frames(10), codec="mp4v")
+    frames = list(iter_frames(path))
+    assert len(frames) == 10
+    # The square's left edge is at column 10 + i; compression may change levels, not positions.
+    for i, f in enumerate(frames):
+        cols = np.flatnonzero(f[110] > 120)
+        assert cols[0] == 10 + i and cols[-1] == 29 + i
+
+
+def test_color_and_range(lossless):
+    frames = list(iter_frames(lossless, gray=False, start=5, stop=8))
+    assert len(frames) == 3 and frames[0].shape == (SIZE.height, SIZE.width, 3)
+    np.testing.assert_array_equal(frames[0][..., 0], _frames(40)[5])
+
+
+def test_early_close_stops_the_decoder(lossless):
+    it = iter_frames(lossless, prefetch=2)
+    next(it)
+    it.close()  # must not hang or leak the thread
+    assert list(iter_frames(lossless, start=39)) and len(list(iter_frames(lossless, start=39))) == 1
+
+
+def test_truncated_lossless_video_is_reported(tmp_path, lossless):
+    data = lossless.read_bytes()
+    cut = tmp_path / f"cut{lossless.suffix}"
+    cut.write_bytes(data[: len(data) // 2])
+    info = probe_video(cut)  # the header still claims 40 frames (or the file is unreadable)
+    with pytest.raises(InputError, match="truncated"):
+        list(iter_frames(cut, expected_count=40))
+    assert info.image_size == SIZE
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (b"", "empty"),
+        (b"not a video at all" * 100, "could not be opened"),
+        (None, "does not exist"),
+    ],
+)
+def test_probe_errors(tmp_path, content, match):
+    path = tmp_path / "upload.mp4"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(InputError, match=match):
+        probe_video(path)
+
+
+def test_png_named_mp4_is_rejected(tmp_path):
+    import cv2
+
+    path = tmp_path / "photo.mp4"
+    _, buf = cv2.imencode(".png", _frames(1)[0])
+    path.write_bytes(buf.tobytes())
+    with pytest.raises(InputError, match=r"photo\.mp4"):
+        probe_video(path)
+
+
+def _info(fps=100.0, n=100, size=SIZE) -> VideoInfo:
+    from pathlib import Path
+
+    return VideoInfo(Path("x.mkv"), fps, n, size, "FFV1")
+
+
+def test_check_stereo_videos():
+    assert check_stereo_videos(_info(), _info()) == []
+    with pytest.raises(InputError, match="same frame rate"):
+        check_stereo_videos(_info(fps=100), _info(fps=60))
+    with pytest.raises(InputError, match="same resolution"):
+        check_stereo_videos(_info(), _info(size=ImageSize(240, 320)))
+    warnings = check_stereo_videos(_info(n=100), _info(n=98))
+    assert len(warnings) == 1 and "different lengths" in warnings[0]
+    with pytest.raises(InputError, match="belongs together"):
+        check_stereo_videos(_info(n=1000), _info(n=100))
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    rig = StereoRig(Camera("left", ImageSize(640, 480), K), Camera("right", ImageSize(640, 480), K))
+    with pytest.raises(InputError, match="calibrated at 640x480"):
+        check_stereo_videos(_info(), _info(), rig=rig)
+
+
+def test_writer_rejects_wrong_frames(tmp_path):
+    with VideoWriter(tmp_path / "a.mkv", fps=30, image_size=SIZE) as w:
+        with pytest.raises(ValueError, match="shape"):
+            w.write(np.zeros((SIZE.width, SIZE.height), np.uint8))  # transposed: (W, H)
+    with pytest.raises(ValueError, match="codec"):
+        VideoWriter(tmp_path / "a.mkv", fps=30, image_size=SIZE, codec="h265")
+
+
+def test_images_folder(tmp_path):
+    import cv2
+
+    for name in ("b.png", "a.png", "notes.txt"):
+        if name.endswith(".png"):
+            cv2.imwrite(str(tmp_path / name), _frames(1)[0])
+        else:
+            (tmp_path / name).write_text("x")
+    files = list_images(tmp_path)
+    assert [f.name for f in files] == ["a.png", "b.png"]
+    assert read_image(files[0]).shape == (SIZE.height, SIZE.width)
+    with pytest.raises(InputError, match="holds no image"):
+        list_images(_empty(tmp_path))
+    (tmp_path / "broken.png").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="could not be read"):
+        read_image(tmp_path / "broken.png")
+
+
+def _empty(tmp_path):
+    d = tmp_path / "empty"
+    d.mkdir()
+    return d
