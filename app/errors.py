@@ -1,0 +1,110 @@
+"""The service's error hierarchy: each class carries the HTTP status it maps to.
+
+Raise these anywhere in ``app/`` with one sentence that tells the user what was
+wrong and what to do. The web layer maps them in one exception handler
+(``exc.http_status`` → status, ``str(exc)`` → ``{"detail": ...}``); the command
+line turns them into one line on stderr and exit status 2.
+
+Domain errors from ``core/`` (:class:`core.errors.BradyscopeError`) are not
+subclasses; :func:`http_status_for` gives their status too (bad input → 422).
+"""
+
+from __future__ import annotations
+
+from core.errors import BradyscopeError
+
+
+class AppError(Exception):
+    """A request or command could not be served; ``str(exc)`` is the user-facing sentence."""
+
+    http_status: int = 400
+
+
+class InvalidRequestError(AppError):
+    """The request is well-formed but its content is not acceptable."""
+
+    http_status = 422
+
+
+class AuthenticationError(AppError):
+    """No valid credentials (missing, wrong, expired or revoked)."""
+
+    http_status = 401
+
+
+class PermissionDeniedError(AppError):
+    """Authenticated, but not allowed to do this (role or API-key scope)."""
+
+    http_status = 403
+
+
+class NotFoundError(AppError):
+    """The resource does not exist (or is deleted, or not visible to the caller)."""
+
+    http_status = 404
+
+
+class ConflictError(AppError):
+    """The request conflicts with the current state (duplicate code, result not ready...)."""
+
+    http_status = 409
+
+
+class CalibrationMissingError(ConflictError):
+    """No ready calibration can be used for a session."""
+
+
+class PayloadTooLargeError(AppError):
+    """An upload exceeds the configured size limit."""
+
+    http_status = 413
+
+
+class UnsupportedMediaError(AppError):
+    """An upload is not a video (or rig file) that bradyscope can read."""
+
+    http_status = 415
+
+
+class RateLimitedError(AppError):
+    """Too many attempts (for example logins); try again later."""
+
+    http_status = 429
+
+
+class StorageError(AppError):
+    """A file could not be stored or read under the data directory."""
+
+    http_status = 500
+
+
+class ServiceUnavailableError(AppError):
+    """The database or another dependency is not reachable right now."""
+
+    http_status = 503
+
+
+def http_status_for(exc: BaseException) -> int:
+    """The HTTP status for an application or domain error (500 for anything else)."""
+    if isinstance(exc, AppError):
+        return exc.http_status
+    if isinstance(exc, BradyscopeError):
+        return 422
+    return 500
+
+
+__all__ = [
+    "AppError",
+    "AuthenticationError",
+    "CalibrationMissingError",
+    "ConflictError",
+    "InvalidRequestError",
+    "NotFoundError",
+    "PayloadTooLargeError",
+    "PermissionDeniedError",
+    "RateLimitedError",
+    "ServiceUnavailableError",
+    "StorageError",
+    "UnsupportedMediaError",
+    "http_status_for",
+]

@@ -1,0 +1,563 @@
+"""The database model of the bradyscope service (SQLAlchemy 2.0, typed).
+
+One recording travels through these tables::
+
+    Patient ─< RecordingSession ─< Trial ─< Video (left, right)
+                     │                 └── Job (kind "analyze_trial") ──> Result (one per trial)
+                     └── Rig ─< Calibration ─< Video (board recordings)
+                                      └── Job (kind "calibrate")
+
+Conventions that every caller must keep
+---------------------------------------
+- **Timestamps are timezone-aware UTC** (:class:`UTCDateTime`). Binding a naive
+  ``datetime`` raises ``ValueError``; use :func:`utcnow` or convert with
+  ``dt.astimezone(UTC)``. Values read back are always aware UTC, on SQLite too.
+- **Enumerated columns are plain strings** checked by a named CHECK constraint;
+  the allowed values are the module constants (``ROLES``, ``JOB_STATUSES``...).
+- **Files are stored under the data directory** (see :mod:`app.storage`);
+  ``Video.path`` and ``Result.markers_path`` are *relative* to it.
+- The model class for a clinical session is :class:`RecordingSession` (table
+  ``sessions``), so that it is never confused with SQLAlchemy's ``Session``.
+- Soft deletion: patients and sessions have ``deleted_at``; rows are kept so
+  that audit history stays meaningful. :class:`AuditEvent` has no foreign keys
+  on purpose (it outlives what it describes) and holds no clinical values.
+- Every schema change goes through an Alembic migration in ``migrations/``;
+  ``tests/app/test_migrations.py`` fails on any drift.
+
+Service function
+----------------
+:func:`calibration_for` — the calibration an analysis of a session uses.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any, ClassVar
+
+import sqlalchemy as sa
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    CheckConstraint,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Text,
+    UniqueConstraint,
+    select,
+)
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.orm import Session as DbSession
+from sqlalchemy.types import TypeDecorator
+
+# Allowed values of the enumerated string columns.
+ROLES = ("clinician", "admin")
+SEXES = ("female", "male", "other", "unknown")
+MEDICATION_STATES = ("on", "off", "unknown")
+DBS_STATES = ("on", "off", "none", "unknown")
+HANDS = ("left", "right")
+SIDES = ("left", "right")
+CALIBRATION_SOURCES = ("rig_file", "board_videos")
+CALIBRATION_STATUSES = ("pending", "ready", "failed")
+TRIAL_STATUSES = ("queued", "running", "succeeded", "failed")
+JOB_KINDS = ("analyze_trial", "calibrate")
+JOB_STATUSES = ("queued", "running", "succeeded", "failed")
+ACTOR_TYPES = ("user", "api_client", "system")
+
+# Stable constraint names, so that batch migrations on SQLite can address them.
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+def utcnow() -> datetime:
+    """The current time, timezone-aware UTC."""
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A timestamp stored as UTC and always read back timezone-aware (UTC).
+
+    PostgreSQL stores ``timestamp with time zone``; SQLite stores the UTC
+    wall-clock time as text (which sorts and compares correctly).
+    """
+
+    impl = sa.DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if not isinstance(value, datetime):
+            raise ValueError(f"expected a datetime, got {type(value).__name__}")
+        if value.tzinfo is None or value.utcoffset() is None:
+            raise ValueError(
+                f"naive datetime {value.isoformat()} given; timestamps must be timezone-aware "
+                "(use app.models.utcnow() or dt.astimezone(UTC))"
+            )
+        value = value.astimezone(UTC)
+        if dialect.name == "sqlite":
+            return value.replace(tzinfo=None)
+        return value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            return value.replace(tzinfo=UTC)
+        return value.astimezone(UTC)
+
+
+def _in(column: str, values: tuple[str, ...]) -> str:
+    quoted = ", ".join(f"'{v}'" for v in values)
+    return f"{column} IN ({quoted})"
+
+
+class Base(DeclarativeBase):
+    """Declarative base with the constraint naming convention."""
+
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map: ClassVar[dict[Any, Any]] = {
+        datetime: UTCDateTime(),
+        dict[str, Any]: JSON(),
+        list[str]: JSON(),
+    }
+
+
+# --------------------------------------------------------------------------- people
+
+
+class User(Base):
+    """A person who logs in to the web interface: a clinician or an admin."""
+
+    __tablename__ = "users"
+    __table_args__ = (CheckConstraint(_in("role", ROLES), name="role"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    email: Mapped[str] = mapped_column(String(320), unique=True)
+    """Stored lower-cased; unique."""
+    password_hash: Mapped[str] = mapped_column(String(255))
+    """argon2 hash from :func:`app.passwords.hash_password`."""
+    role: Mapped[str] = mapped_column(String(16), default="clinician")
+    display_name: Mapped[str | None] = mapped_column(String(200))
+    is_active: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    last_login_at: Mapped[datetime | None]
+
+
+class ApiClient(Base):
+    """A hospital system calling the REST API with a Bearer key (see :mod:`app.apikeys`)."""
+
+    __tablename__ = "api_clients"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    key_prefix: Mapped[str] = mapped_column(String(32), unique=True)
+    """The public lookup part of the key (``bsk_<prefix>_<secret>``)."""
+    key_hash: Mapped[str] = mapped_column(String(128))
+    """SHA-256 (hex) of the whole key; see :func:`app.apikeys.hash_api_key`."""
+    scopes: Mapped[list[str]] = mapped_column(JSON, default=list)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    revoked_at: Mapped[datetime | None]
+    last_used_at: Mapped[datetime | None]
+    created_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+
+
+class BrowserSession(Base):
+    """A logged-in browser. ``id`` is the SHA-256 (hex) of the cookie token, never the token."""
+
+    __tablename__ = "browser_sessions"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    csrf_token: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(index=True)
+    last_seen_at: Mapped[datetime] = mapped_column(default=utcnow)
+    ip: Mapped[str | None] = mapped_column(String(45))
+    user_agent: Mapped[str | None] = mapped_column(String(300))
+
+    user: Mapped[User] = relationship()
+
+
+class LoginAttempt(Base):
+    """One login attempt, for throttling. ``email_hash`` = SHA-256 (hex) of the lower-cased email."""
+
+    __tablename__ = "login_attempts"
+    __table_args__ = (
+        Index("ix_login_attempts_email_hash_at", "email_hash", "at"),
+        Index("ix_login_attempts_ip_at", "ip", "at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    at: Mapped[datetime] = mapped_column(default=utcnow)
+    email_hash: Mapped[str] = mapped_column(String(64))
+    ip: Mapped[str | None] = mapped_column(String(45))
+    success: Mapped[bool] = mapped_column(Boolean)
+
+
+# --------------------------------------------------------------------------- patients
+
+
+class Patient(Base):
+    """A patient, known to bradyscope only by a pseudonymous code (e.g. ``PD-0042``)."""
+
+    __tablename__ = "patients"
+    __table_args__ = (CheckConstraint(f"sex IS NULL OR {_in('sex', SEXES)}", name="sex"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    code: Mapped[str] = mapped_column(String(64), unique=True)
+    birth_year: Mapped[int | None] = mapped_column(Integer)
+    sex: Mapped[str | None] = mapped_column(String(16))
+    notes: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    deleted_at: Mapped[datetime | None]
+
+    sessions: Mapped[list[RecordingSession]] = relationship(
+        back_populates="patient", order_by="RecordingSession.recorded_at"
+    )
+
+
+# --------------------------------------------------------------------------- rigs
+
+
+class Rig(Base):
+    """A physical two-camera set-up in a clinic."""
+
+    __tablename__ = "rigs"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    description: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    calibrations: Mapped[list[Calibration]] = relationship(
+        back_populates="rig", order_by="Calibration.version"
+    )
+
+
+class Calibration(Base):
+    """One version of a rig's calibration, valid from ``valid_from`` on.
+
+    ``rig_json`` is the rig file document (INTERFACES.md, ``bradyscope.rig/1``);
+    it is NULL while a board-video calibration is ``pending`` and stays NULL
+    when it ``failed`` (the job's ``error`` says why).
+    """
+
+    __tablename__ = "calibrations"
+    __table_args__ = (
+        UniqueConstraint("rig_id", "version", name="uq_calibrations_rig_id_version"),
+        CheckConstraint(_in("source", CALIBRATION_SOURCES), name="source"),
+        CheckConstraint(_in("status", CALIBRATION_STATUSES), name="status"),
+        CheckConstraint("status != 'ready' OR rig_json IS NOT NULL", name="ready_has_rig"),
+        Index("ix_calibrations_rig_id_valid_from", "rig_id", "valid_from"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    rig_id: Mapped[int] = mapped_column(ForeignKey("rigs.id"))
+    version: Mapped[int] = mapped_column(Integer)
+    """1, 2, 3... per rig; see :func:`next_calibration_version`."""
+    valid_from: Mapped[datetime]
+    rig_json: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    rms_px: Mapped[float | None] = mapped_column(Float)
+    quality: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    source: Mapped[str] = mapped_column(String(16))
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    board: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """Board description for ``board_videos`` (board, cols, rows, square_mm, marker_mm, dictionary)."""
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    created_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+
+    rig: Mapped[Rig] = relationship(back_populates="calibrations")
+    videos: Mapped[list[Video]] = relationship(back_populates="calibration")
+
+
+# --------------------------------------------------------------------------- recordings
+
+
+class RecordingSession(Base):
+    """A clinical session: one patient, one rig, one time, usually two trials (hands)."""
+
+    __tablename__ = "sessions"
+    __table_args__ = (
+        CheckConstraint(_in("medication_state", MEDICATION_STATES), name="medication_state"),
+        CheckConstraint(_in("dbs_state", DBS_STATES), name="dbs_state"),
+        CheckConstraint(
+            "updrs_34_rating IS NULL OR (updrs_34_rating >= 0 AND updrs_34_rating <= 4)",
+            name="updrs_34_rating",
+        ),
+        Index("ix_sessions_patient_id_recorded_at", "patient_id", "recorded_at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    patient_id: Mapped[int] = mapped_column(ForeignKey("patients.id"))
+    rig_id: Mapped[int] = mapped_column(ForeignKey("rigs.id"))
+    calibration_id: Mapped[int | None] = mapped_column(ForeignKey("calibrations.id"))
+    """Override of the calibration lookup; NULL = newest valid one (:func:`calibration_for`)."""
+    recorded_at: Mapped[datetime]
+    clinician_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+    medication_state: Mapped[str] = mapped_column(String(16), default="unknown")
+    dbs_state: Mapped[str] = mapped_column(String(16), default="unknown")
+    notes: Mapped[str | None] = mapped_column(Text)
+    updrs_34_rating: Mapped[int | None] = mapped_column(Integer)
+    """The clinician's own MDS-UPDRS 3.4 (finger tapping) rating, 0–4, if given."""
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    deleted_at: Mapped[datetime | None]
+
+    patient: Mapped[Patient] = relationship(back_populates="sessions")
+    rig: Mapped[Rig] = relationship()
+    calibration: Mapped[Calibration | None] = relationship()
+    trials: Mapped[list[Trial]] = relationship(back_populates="session", order_by="Trial.id")
+
+
+class Trial(Base):
+    """One finger-tapping recording of one hand: two videos, one analysis job, one result."""
+
+    __tablename__ = "trials"
+    __table_args__ = (
+        CheckConstraint(_in("hand", HANDS), name="hand"),
+        CheckConstraint(_in("status", TRIAL_STATUSES), name="status"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[int] = mapped_column(ForeignKey("sessions.id"), index=True)
+    hand: Mapped[str] = mapped_column(String(8))
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    """Mirrors the analysis job: queued, running, succeeded, failed."""
+    offset_frames: Mapped[float | None] = mapped_column(Float)
+    """Known camera offset (right frame j ~ left frame j + K); NULL = estimate it."""
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    deleted_at: Mapped[datetime | None]
+
+    session: Mapped[RecordingSession] = relationship(back_populates="trials")
+    videos: Mapped[list[Video]] = relationship(back_populates="trial", order_by="Video.side")
+    result: Mapped[Result | None] = relationship(back_populates="trial")
+
+
+class Video(Base):
+    """A stored video file of a trial or of a calibration (exactly one of the two)."""
+
+    __tablename__ = "videos"
+    __table_args__ = (
+        CheckConstraint(_in("side", SIDES), name="side"),
+        CheckConstraint(
+            "(trial_id IS NULL) != (calibration_id IS NULL)", name="trial_xor_calibration"
+        ),
+        UniqueConstraint("trial_id", "side", name="uq_videos_trial_id_side"),
+        UniqueConstraint("calibration_id", "side", name="uq_videos_calibration_id_side"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    trial_id: Mapped[int | None] = mapped_column(ForeignKey("trials.id"))
+    calibration_id: Mapped[int | None] = mapped_column(ForeignKey("calibrations.id"))
+    side: Mapped[str] = mapped_column(String(8))
+    path: Mapped[str] = mapped_column(String(500), unique=True)
+    """Relative to the data directory (``app.storage.Storage.absolute(path)``)."""
+    original_filename: Mapped[str | None] = mapped_column(String(255))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    sha256: Mapped[str] = mapped_column(String(64))
+    fps: Mapped[float] = mapped_column(Float)
+    frame_count: Mapped[int] = mapped_column(Integer)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    codec: Mapped[str | None] = mapped_column(String(16))
+    """FOURCC as probed."""
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    trial: Mapped[Trial | None] = relationship(back_populates="videos")
+    calibration: Mapped[Calibration | None] = relationship(back_populates="videos")
+
+
+# --------------------------------------------------------------------------- jobs, results
+
+
+class Job(Base):
+    """A unit of long work for the worker (see :mod:`app.jobs` for the life cycle)."""
+
+    __tablename__ = "jobs"
+    __table_args__ = (
+        CheckConstraint(_in("status", JOB_STATUSES), name="status"),
+        CheckConstraint("progress >= 0 AND progress <= 1", name="progress"),
+        Index("ix_jobs_status_run_after", "status", "run_after"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    """``analyze_trial`` or ``calibrate`` (``JOB_KINDS``)."""
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    trial_id: Mapped[int | None] = mapped_column(ForeignKey("trials.id"), index=True)
+    calibration_id: Mapped[int | None] = mapped_column(ForeignKey("calibrations.id"), index=True)
+    payload: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    """Fraction 0–1 of the current attempt."""
+    stage: Mapped[str | None] = mapped_column(String(64))
+    error: Mapped[str | None] = mapped_column(Text)
+    """User-facing sentence of the last failure (tracebacks go to the log only)."""
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    max_attempts: Mapped[int] = mapped_column(Integer, default=3)
+    run_after: Mapped[datetime] = mapped_column(default=utcnow)
+    """Not claimed before this time (retry back-off)."""
+    lease_owner: Mapped[str | None] = mapped_column(String(100))
+    """Unique token of the claim currently holding the job (worker name + random)."""
+    lease_expires_at: Mapped[datetime | None]
+    heartbeat_at: Mapped[datetime | None]
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+
+    trial: Mapped[Trial | None] = relationship()
+    calibration: Mapped[Calibration | None] = relationship()
+
+
+class Result(Base):
+    """The measurement of a trial: the full ``result.json`` and the markers CSV file.
+
+    ``trial_id`` is UNIQUE: a trial has at most one result, which the worker
+    inserts in the same transaction as it marks the job succeeded.
+    """
+
+    __tablename__ = "results"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    trial_id: Mapped[int] = mapped_column(ForeignKey("trials.id"), unique=True)
+    job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id"))
+    calibration_id: Mapped[int | None] = mapped_column(ForeignKey("calibrations.id"))
+    document: Mapped[dict[str, Any]] = mapped_column(JSON)
+    """``result.json`` (INTERFACES.md, ``bradyscope.result/1``)."""
+    markers_path: Mapped[str | None] = mapped_column(String(500))
+    """``markers.csv``, relative to the data directory."""
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    trial: Mapped[Trial] = relationship(back_populates="result")
+    calibration: Mapped[Calibration | None] = relationship()
+
+
+# --------------------------------------------------------------------------- audit
+
+
+class AuditEvent(Base):
+    """Who did what to which patient's data, when, with what outcome. Append-only.
+
+    No foreign keys (the trail outlives deleted rows) and no clinical values.
+    ``actor_id`` is the user or API-client id as text (NULL for ``system``).
+    """
+
+    __tablename__ = "audit_events"
+    __table_args__ = (
+        CheckConstraint(_in("actor_type", ACTOR_TYPES), name="actor_type"),
+        Index("ix_audit_events_patient_id_at", "patient_id", "at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    actor_type: Mapped[str] = mapped_column(String(16))
+    actor_id: Mapped[str | None] = mapped_column(String(64))
+    action: Mapped[str] = mapped_column(String(64))
+    """A verb such as ``read``, ``create``, ``update``, ``delete``, ``export``, ``login``."""
+    resource_type: Mapped[str] = mapped_column(String(32))
+    resource_id: Mapped[str | None] = mapped_column(String(64))
+    patient_id: Mapped[int | None] = mapped_column(Integer)
+    outcome: Mapped[str] = mapped_column(String(16), default="success")
+    """``success``, ``denied``, ``not_found``, ``error``..."""
+    ip: Mapped[str | None] = mapped_column(String(45))
+    request_id: Mapped[str | None] = mapped_column(String(64))
+
+
+# --------------------------------------------------------------------------- services
+
+
+def next_calibration_version(db: DbSession, rig_id: int) -> int:
+    """The version number for a new calibration of ``rig_id`` (1 for the first).
+
+    Two concurrent inserts of the same version collide on the UNIQUE
+    ``(rig_id, version)`` constraint rather than silently sharing a number.
+    """
+    current = db.scalar(
+        select(sa.func.max(Calibration.version)).where(Calibration.rig_id == rig_id)
+    )
+    return int(current or 0) + 1
+
+
+def calibration_for(db: DbSession, session: RecordingSession) -> Calibration:
+    """The calibration an analysis of ``session`` uses.
+
+    The session's own override (``session.calibration_id``) if set, otherwise
+    the newest ``ready`` calibration of the session's rig whose ``valid_from``
+    is not after ``session.recorded_at`` (ties: the highest version).
+
+    Raises
+    ------
+    app.errors.CalibrationMissingError
+        When the override is not ready, or the rig has no ready calibration
+        valid at the session's time.
+    """
+    from app.errors import CalibrationMissingError
+
+    if session.calibration_id is not None:
+        cal = db.get(Calibration, session.calibration_id)
+        if cal is None or cal.status != "ready":
+            raise CalibrationMissingError(
+                f"calibration {session.calibration_id} chosen for session {session.id} is not "
+                "ready; choose a ready calibration or clear the choice."
+            )
+        return cal
+    cal = db.scalars(
+        select(Calibration)
+        .where(
+            Calibration.rig_id == session.rig_id,
+            Calibration.status == "ready",
+            Calibration.valid_from <= session.recorded_at,
+        )
+        .order_by(Calibration.valid_from.desc(), Calibration.version.desc())
+        .limit(1)
+    ).first()
+    if cal is None:
+        raise CalibrationMissingError(
+            f"rig {session.rig_id} has no ready calibration valid on "
+            f"{session.recorded_at:%Y-%m-%d %H:%M} UTC; upload a calibration for this rig "
+            "first (valid from a date before the session)."
+        )
+    return cal
+
+
+__all__ = [
+    "ACTOR_TYPES",
+    "CALIBRATION_SOURCES",
+    "CALIBRATION_STATUSES",
+    "DBS_STATES",
+    "HANDS",
+    "JOB_KINDS",
+    "JOB_STATUSES",
+    "MEDICATION_STATES",
+    "ROLES",
+    "SEXES",
+    "SIDES",
+    "TRIAL_STATUSES",
+    "ApiClient",
+    "AuditEvent",
+    "Base",
+    "BrowserSession",
+    "Calibration",
+    "Job",
+    "LoginAttempt",
+    "Patient",
+    "RecordingSession",
+    "Result",
+    "Rig",
+    "Trial",
+    "UTCDateTime",
+    "User",
+    "Video",
+    "calibration_for",
+    "next_calibration_version",
+    "utcnow",
+]

@@ -1,0 +1,80 @@
+"""Service configuration from environment variables prefixed ``BRADYSCOPE_``.
+
+Every field below can be set as ``BRADYSCOPE_<FIELD NAME IN CAPITALS>``, e.g.
+``BRADYSCOPE_DATA_DIR=/srv/bradyscope`` or
+``BRADYSCOPE_DATABASE_URL=postgresql+psycopg://bradyscope@db/bradyscope``.
+A ``.env`` file is NOT read implicitly (explicit is safer in a hospital).
+
+Tests build ``Settings(data_dir=tmp_path)`` directly instead of touching the
+environment.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """All service settings. See ``docs/operations.md`` for an explanation of each."""
+
+    model_config = SettingsConfigDict(env_prefix="BRADYSCOPE_", extra="ignore")
+
+    data_dir: Path = Field(
+        default=Path("./data"), description="Database (SQLite) and stored files live here."
+    )
+    database_url: str | None = Field(
+        default=None,
+        description="SQLAlchemy URL; default: SQLite file bradyscope.sqlite3 in data_dir. "
+        "PostgreSQL: postgresql+psycopg://user@host:5432/dbname",
+    )
+    max_upload_bytes: int = Field(default=2 * 1024**3, gt=0, description="Per uploaded file.")
+    upload_chunk_bytes: int = Field(default=1024 * 1024, gt=0)
+    job_lease_s: float = Field(
+        default=60.0, gt=0, description="A job whose worker is silent this long is re-claimed."
+    )
+    job_heartbeat_s: float | None = Field(
+        default=None, gt=0, description="Heartbeat period; default job_lease_s / 4."
+    )
+    job_max_attempts: int = Field(default=3, ge=1, description="Attempts before a job fails.")
+    job_retry_delay_s: float = Field(default=5.0, ge=0, description="Back-off before a retry.")
+    worker_poll_s: float = Field(default=1.0, gt=0, description="Idle worker polling period.")
+    secure_cookies: bool = Field(
+        default=False, description="Set the Secure flag on cookies (enable behind HTTPS)."
+    )
+    session_ttl_s: float = Field(default=8 * 3600.0, gt=0, description="Browser session life.")
+    login_max_failures: int = Field(default=5, ge=1)
+    login_window_s: float = Field(default=15 * 60.0, gt=0)
+    sqlite_busy_timeout_ms: int = Field(default=30_000, ge=0)
+    migration_lock_timeout_s: float = Field(default=300.0, gt=0)
+    log_level: str = Field(default="INFO")
+
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, value: Path) -> Path:
+        return value.expanduser().resolve()
+
+    @property
+    def effective_database_url(self) -> str:
+        """``database_url``, or the default SQLite file in ``data_dir``."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{self.data_dir / 'bradyscope.sqlite3'}"
+
+    @property
+    def is_sqlite(self) -> bool:
+        return self.effective_database_url.startswith("sqlite")
+
+    @property
+    def heartbeat_s(self) -> float:
+        """Heartbeat period of a running job (seconds)."""
+        return self.job_heartbeat_s if self.job_heartbeat_s is not None else self.job_lease_s / 4
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings read from the environment (cached; tests build their own)."""
+    return Settings()
