@@ -1,0 +1,25 @@
+# bradyscope: web app + embedded worker. Scale out with more containers running
+# `bradyscope worker` against the same PostgreSQL (BRADYSCOPE_DATABASE_URL).
+FROM python:3.11-slim-bookworm
+
+# Pango and a font for WeasyPrint's PDF reports.
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends libpango-1.0-0 libpangoft2-1.0-0 fonts-dejavu-core \
+ && rm -rf /var/lib/apt/lists/*
+
+RUN useradd --create-home --uid 10001 bradyscope
+WORKDIR /srv/bradyscope
+COPY pyproject.toml README.md ./
+COPY core core
+COPY app app
+COPY templates templates
+COPY migrations migrations
+# Editable install: templates/ and migrations/ are read from this folder.
+RUN pip install --no-cache-dir -e .
+
+ENV BRADYSCOPE_DATA_DIR=/data
+RUN mkdir -p /data && chown bradyscope /data
+VOLUME ["/data"]
+USER bradyscope
+EXPOSE 8000
+CMD ["bradyscope", "serve", "--host", "0.0.0.0", "--port", "8000"]
