@@ -304,7 +304,7 @@ class Camera:
         import cv2
 
         rvec, _ = cv2.Rodrigues(self.R_cam_from_world)
-        return rvec.reshape(3)
+        return np.asarray(rvec, dtype=np.float64).reshape(3)
 
 
 def skew(v: ArrayLike) -> FloatArray:

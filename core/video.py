@@ -294,7 +294,7 @@ class VideoWriter:
         self.image_size = ImageSize(*image_size)
         self.is_color = is_color
         self.frames_written = 0
-        fourcc = cv2.VideoWriter_fourcc(*_CODECS[codec][0])
+        fourcc = cv2.VideoWriter.fourcc(*_CODECS[codec][0])
         self._writer = cv2.VideoWriter(
             str(self.path), cv2.CAP_FFMPEG, fourcc, float(fps), tuple(self.image_size), is_color
         )
