@@ -412,4 +412,4 @@ def read_image(path: str | Path, *, gray: bool = True) -> NDArray[np.uint8]:
         raise InputError(
             f"the image {p.name} could not be read; check that it is a valid image file."
         )
-    return img
+    return np.asarray(img, dtype=np.uint8)
