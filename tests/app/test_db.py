@@ -1,0 +1,181 @@
+"""Database layer: SQLite pragmas, UTC timestamps, constraints, calibration lookup."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta, timezone
+
+import pytest
+import sqlalchemy as sa
+from sqlalchemy.exc import IntegrityError, StatementError
+
+from app.db import current_revision, get_engine, head_revision
+from app.errors import CalibrationMissingError
+from app.models import (
+    Calibration,
+    Job,
+    Patient,
+    RecordingSession,
+    Result,
+    Rig,
+    Trial,
+    Video,
+    calibration_for,
+    next_calibration_version,
+)
+
+T0 = datetime(2026, 3, 1, 9, 0, tzinfo=UTC)
+RIG_DOC = {"format": "bradyscope.rig/1", "units": "mm", "cameras": []}
+
+
+def test_fixture_database_is_migrated_to_head(app_settings):
+    assert current_revision(app_settings) == head_revision()
+
+
+def test_sqlite_pragmas_are_set_on_every_connection(app_settings):
+    with get_engine(app_settings).connect() as conn:
+        assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+        assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() == 30_000
+
+
+def test_foreign_keys_are_enforced(db_session):
+    db_session.add(Trial(session_id=12345, hand="left"))
+    with pytest.raises(IntegrityError):
+        db_session.flush()
+
+
+def test_timestamps_round_trip_as_aware_utc(db_session):
+    cest = timezone(timedelta(hours=2))
+    db_session.add(Patient(code="PD-1", created_at=datetime(2026, 6, 1, 14, 30, tzinfo=cest)))
+    db_session.commit()
+    db_session.expire_all()
+    got = db_session.scalars(sa.select(Patient)).one().created_at
+    assert got.tzinfo is not None and got.utcoffset() == timedelta(0)
+    assert got == datetime(2026, 6, 1, 12, 30, tzinfo=UTC)
+
+
+def test_naive_timestamps_are_refused(db_session):
+    db_session.add(Patient(code="PD-1", created_at=datetime(2026, 6, 1, 14, 30)))
+    with pytest.raises(StatementError, match="naive datetime"):
+        db_session.flush()
+
+
+@pytest.mark.parametrize(
+    ("model", "values"),
+    [
+        (RecordingSession, {"medication_state": "maybe"}),
+        (RecordingSession, {"updrs_34_rating": 5}),
+        (RecordingSession, {"dbs_state": "yes"}),
+    ],
+)
+def test_check_constraints_reject_bad_enumerations(db_session, model, values):
+    rig = Rig(name="r")
+    patient = Patient(code="PD-1")
+    db_session.add_all([rig, patient])
+    db_session.flush()
+    db_session.add(model(patient_id=patient.id, rig_id=rig.id, recorded_at=T0, **values))
+    with pytest.raises(IntegrityError):
+        db_session.flush()
+
+
+def test_a_trial_has_at_most_one_result(db_session):
+    rig, patient = Rig(name="r"), Patient(code="PD-1")
+    db_session.add_all([rig, patient])
+    db_session.flush()
+    s = RecordingSession(patient_id=patient.id, rig_id=rig.id, recorded_at=T0)
+    db_session.add(s)
+    db_session.flush()
+    trial = Trial(session_id=s.id, hand="left")
+    db_session.add(trial)
+    db_session.flush()
+    db_session.add(Result(trial_id=trial.id, document={"format": "bradyscope.result/1"}))
+    db_session.flush()
+    db_session.add(Result(trial_id=trial.id, document={}))
+    with pytest.raises(IntegrityError):
+        db_session.flush()
+
+
+def test_a_video_belongs_to_exactly_one_trial_or_calibration(db_session):
+    video = dict(
+        side="left", size_bytes=1, sha256="0" * 64, fps=100.0, frame_count=1, width=8, height=8
+    )
+    db_session.add(Video(path="files/videos/00/a.mp4", **video))
+    with pytest.raises(IntegrityError):
+        db_session.flush()
+
+
+def _calibration(db, rig, *, valid_from, status="ready"):
+    cal = Calibration(
+        rig_id=rig.id,
+        version=next_calibration_version(db, rig.id),
+        valid_from=valid_from,
+        rig_json=RIG_DOC if status == "ready" else None,
+        source="rig_file",
+        status=status,
+    )
+    db.add(cal)
+    db.flush()
+    return cal
+
+
+def test_calibration_lookup_picks_newest_ready_valid_at_session_time(db_session):
+    db = db_session
+    rig, other_rig, patient = Rig(name="clinic-A"), Rig(name="clinic-B"), Patient(code="PD-1")
+    db.add_all([rig, other_rig, patient])
+    db.flush()
+    old = _calibration(db, rig, valid_from=T0 - timedelta(days=30))
+    current = _calibration(db, rig, valid_from=T0 - timedelta(days=1))
+    _calibration(db, rig, valid_from=T0 - timedelta(hours=1), status="pending")
+    _calibration(db, rig, valid_from=T0 + timedelta(days=1))  # future: not valid yet
+    _calibration(db, other_rig, valid_from=T0 - timedelta(hours=2))  # another rig
+    assert [c.version for c in (old, current)] == [1, 2]
+
+    session = RecordingSession(patient_id=patient.id, rig_id=rig.id, recorded_at=T0)
+    db.add(session)
+    db.flush()
+    assert calibration_for(db, session).id == current.id
+
+    session.calibration_id = old.id  # explicit override wins
+    assert calibration_for(db, session).id == old.id
+
+    early = RecordingSession(
+        patient_id=patient.id, rig_id=rig.id, recorded_at=T0 - timedelta(days=60)
+    )
+    db.add(early)
+    db.flush()
+    with pytest.raises(CalibrationMissingError, match="no ready calibration"):
+        calibration_for(db, early)
+
+
+def test_calibration_override_must_be_ready(db_session):
+    db = db_session
+    rig, patient = Rig(name="clinic-A"), Patient(code="PD-1")
+    db.add_all([rig, patient])
+    db.flush()
+    pending = _calibration(db, rig, valid_from=T0, status="pending")
+    session = RecordingSession(
+        patient_id=patient.id, rig_id=rig.id, recorded_at=T0, calibration_id=pending.id
+    )
+    db.add(session)
+    db.flush()
+    with pytest.raises(CalibrationMissingError, match="not ready"):
+        calibration_for(db, session)
+
+
+def test_calibration_versions_are_unique_per_rig(db_session):
+    db = db_session
+    rig = Rig(name="clinic-A")
+    db.add(rig)
+    db.flush()
+    _calibration(db, rig, valid_from=T0)
+    db.add(Calibration(rig_id=rig.id, version=1, valid_from=T0, source="rig_file"))
+    with pytest.raises(IntegrityError):
+        db.flush()
+
+
+def test_job_defaults(db_session):
+    job = Job(kind="analyze_trial")
+    db_session.add(job)
+    db_session.flush()
+    assert (job.status, job.progress, job.attempts, job.payload) == ("queued", 0.0, 0, {})
+    assert job.run_after.tzinfo is not None
