@@ -1,0 +1,571 @@
+"""From a stereo recording and a rig to labelled 3D marker trajectories (``analyze``).
+
+Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
+
+1. **Videos** (:mod:`core.video`): both are probed and checked against each
+   other and the rig before any work.
+2. **Detection** (:mod:`core.markers`): both videos are decoded and searched
+   for markers at the same time, one thread per camera (OpenCV decodes in its
+   own thread and releases the GIL), keeping only the few detections of each
+   frame: memory does not grow with the length of the video beyond a few
+   numbers per frame. After a full-frame search, each frame is only searched
+   around the positions predicted from the previous frames; a full-frame
+   search is repeated every ``FULL_SEARCH_EVERY`` frames and whenever fewer
+   markers than recently seen are found.
+3. **Synchronisation** (:mod:`core.sync`): the frame offset from the marker
+   motion, or the one given.
+4. **Matching and triangulation** (:mod:`core.matching`,
+   :mod:`core.triangulation`): every epipolar-consistent pair of a frame is
+   triangulated (linear start, reprojection refinement); pairs that do not
+   reproject are dropped.
+5. **Tracks** (:mod:`core.tracks`): identities, distractor rejection, gap
+   filling, thumb/index labels.
+6. **Metrics** (:mod:`core.metrics`): taps and per-trial measures.
+
+:func:`write_analysis` writes ``markers.csv`` and ``result.json`` exactly as
+INTERFACES.md defines them.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from core.camera import StereoRig
+from core.errors import DetectionError, InputError
+from core.matching import epipolar_distances_px
+from core.progress import ProgressCallback, report
+from core.sync import SyncEstimate, estimate_offset, given_offset
+from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
+from core.triangulation import triangulate
+
+FloatArray = NDArray[np.float64]
+
+RESULT_FORMAT = "bradyscope.result/1"
+CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "reprojection_px")
+
+#: A full-frame marker search at least this often (frames), to pick up new markers.
+FULL_SEARCH_EVERY = 10
+#: Recent full-frame counts (frames) that define how many markers to expect.
+EXPECTED_COUNT_WINDOW = 100
+#: Pairs farther from the epipolar constraint are not stereo candidates (px).
+MAX_EPIPOLAR_PX = 3.0
+#: Stereo candidates with a larger reprojection error are dropped (px).
+MAX_CANDIDATE_REPROJECTION_PX = 2.0
+#: At most this many detections per frame and camera go to matching (brightest/roundest).
+MAX_DETECTIONS_PER_FRAME = 16
+
+# A detector takes (gray image, predicted xy (K, 2) or None, search radius px or None)
+# and returns (xy_px (N, 2), diameter_px (N,), quality (N,)).
+Detector = Callable[
+    [NDArray[np.uint8], FloatArray | None, float | None], tuple[FloatArray, FloatArray, FloatArray]
+]
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """The measurement of one stereo recording.
+
+    Attributes
+    ----------
+    fps : float
+        Frame rate (Hz) of the (left) video.
+    frame_numbers : ndarray, shape (T,)
+        Left video frame numbers ``0 .. T-1``.
+    positions_mm : ndarray, shape (T, M, 3)
+        Marker positions in the rig's world (left-camera) frame (mm); NaN
+        where missing.
+    status : ndarray, shape (T, M)
+        ``"measured"``, ``"interpolated"`` or ``"missing"``.
+    reprojection_px : ndarray, shape (T, M)
+        Reprojection error of measured points (px); NaN otherwise.
+    marker_names : tuple of str
+        ``("thumb", "index")``.
+    sync : dict
+        The ``sync`` object of result.json.
+    metrics : TappingMetrics or None
+        Tapping metrics (``core.metrics``), None when they could not be computed.
+    quality : dict
+        ``tracked_fraction``, ``interpolated_fraction``, ``reprojection_px_median``
+        and more (see ``docs/tracking.md``).
+    warnings : list of str
+        Things a technician should know about this measurement.
+    """
+
+    fps: float
+    frame_numbers: NDArray[np.int_]
+    positions_mm: FloatArray
+    status: NDArray[np.str_]
+    reprojection_px: FloatArray
+    marker_names: tuple[str, ...]
+    sync: dict[str, Any]
+    metrics: Any = None
+    quality: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def time_s(self) -> FloatArray:
+        """Time of each frame (s): ``frame / fps``."""
+        return self.frame_numbers / self.fps
+
+    def result_document(self) -> dict[str, Any]:
+        """``result.json`` as INTERFACES.md defines it (format ``bradyscope.result/1``)."""
+        metrics: dict[str, Any] = {}
+        taps: list[dict[str, Any]] = []
+        extra: dict[str, Any] = {}
+        if self.metrics is not None:
+            res = self.metrics.to_result()
+            metrics = dict(res.get("metrics", {}))
+            taps = list(res.get("taps", []))
+            extra = {k: v for k, v in res.items() if k not in ("metrics", "taps")}
+        quality = dict(self.quality)
+        quality["warnings"] = list(self.warnings)
+        doc: dict[str, Any] = {
+            "format": RESULT_FORMAT,
+            "fps": float(self.fps),
+            "sync": dict(self.sync),
+            "metrics": _json_clean(metrics),
+            "taps": _json_clean(taps),
+            "quality": _json_clean(quality),
+            "markers": list(self.marker_names),
+            "frame_count": len(self.frame_numbers),
+        }
+        for k, v in extra.items():
+            doc.setdefault(k, _json_clean(v))
+        return doc
+
+
+def _json_clean(obj: Any) -> Any:
+    """Numpy scalars to Python, non-finite floats to None (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {str(k): _json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_clean(obj.tolist())
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+# ----------------------------------------------------------------------------- detection
+
+
+def _default_detector(params: Any | None) -> Detector:
+    from core.markers import MarkerParams, detect_markers
+
+    p = params if params is not None else MarkerParams()
+
+    def detect(
+        image: NDArray[np.uint8], search_xy_px: FloatArray | None, radius_px: float | None
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        d = detect_markers(image, params=p, search_xy_px=search_xy_px, search_radius_px=radius_px)
+        q = d.quality if len(d.quality) == len(d) else d.peak
+        return d.xy_px, d.diameter_px, q
+
+    return detect
+
+
+class _CameraDetections:
+    """Per-frame detections of one camera, with predicted search windows.
+
+    Prediction: each detection of the previous frame moves on by the
+    displacement from its nearest neighbour in the frame before (a
+    constant-velocity guess); the search radius covers the marker size and
+    what the velocity guess may miss.
+    """
+
+    def __init__(self, detect: Detector, *, full_every: int = FULL_SEARCH_EVERY) -> None:
+        self.detect = detect
+        self.full_every = full_every
+        self.frames: list[FloatArray] = []
+        self.n_full = 0
+        self._recent_full: list[tuple[int, int]] = []  # (frame, count)
+        self._prev: FloatArray | None = None
+        self._prev2: FloatArray | None = None
+        self._diam = 10.0
+
+    def _expected(self, frame: int) -> int:
+        self._recent_full = [
+            (f, c) for f, c in self._recent_full if frame - f <= EXPECTED_COUNT_WINDOW
+        ]
+        return max((c for _, c in self._recent_full), default=0)
+
+    def _predict(self) -> tuple[FloatArray | None, float]:
+        prev = self._prev
+        if prev is None or len(prev) == 0:
+            return None, 0.0
+        pred = prev.copy()
+        step = np.zeros(len(prev))
+        if self._prev2 is not None and len(self._prev2):
+            d = np.linalg.norm(prev[:, None, :] - self._prev2[None, :, :], axis=2)
+            j = np.argmin(d, axis=1)
+            near = d[np.arange(len(prev)), j] < 4 * self._diam + 40.0
+            vel = np.where(near[:, None], prev - self._prev2[j], 0.0)
+            pred = prev + vel
+            step = np.linalg.norm(vel, axis=1)
+        radius = 1.5 * self._diam + 12.0 + 0.5 * float(step.max(initial=0.0))
+        return pred, radius
+
+    def process(self, image: NDArray[np.uint8]) -> None:
+        frame = len(self.frames)
+        pred, radius = self._predict()
+        expected = self._expected(frame)
+        full = pred is None or frame % self.full_every == 0
+        xy = np.zeros((0, 2))
+        diam = q = np.zeros(0)
+        if not full:
+            xy, diam, q = self.detect(image, pred, radius)
+            if len(xy) < expected:
+                full = True
+        if full:
+            xy, diam, q = self.detect(image, None, None)
+            self.n_full += 1
+            self._recent_full.append((frame, len(xy)))
+        if len(xy) > MAX_DETECTIONS_PER_FRAME:
+            keep = np.argsort(-q, kind="stable")[:MAX_DETECTIONS_PER_FRAME]
+            xy, diam = xy[keep], diam[keep]
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if len(diam):
+            self._diam = 0.9 * self._diam + 0.1 * float(np.median(diam))
+        self.frames.append(xy)
+        self._prev2, self._prev = self._prev, xy
+
+
+def _detect_videos(
+    paths: tuple[Path, Path],
+    expected_counts: tuple[int, int],
+    detect: Detector,
+    progress: ProgressCallback | None,
+) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
+    """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays."""
+    from core.video import iter_frames
+
+    states = [_CameraDetections(detect), _CameraDetections(detect)]
+    errors: list[BaseException] = []
+    halt = threading.Event()
+
+    def work(k: int) -> None:
+        try:
+            for image in iter_frames(paths[k], gray=True, expected_count=expected_counts[k]):
+                if halt.is_set():
+                    return
+                states[k].process(image)
+        except BaseException as exc:  # re-raised in the calling thread
+            errors.append(exc)
+            halt.set()
+
+    total = int(sum(expected_counts))
+    threads = [
+        threading.Thread(target=work, args=(k,), name=f"detect-{k}", daemon=True) for k in (0, 1)
+    ]
+    for t in threads:
+        t.start()
+    report(progress, "detection", 0, total)
+    while any(t.is_alive() for t in threads):
+        for t in threads:
+            t.join(timeout=0.25)
+        report(progress, "detection", min(total, sum(len(s.frames) for s in states)), total)
+    if errors:
+        raise errors[0]
+    info = {"full_searches_left": states[0].n_full, "full_searches_right": states[1].n_full}
+    return states[0].frames, states[1].frames, info
+
+
+def _undistort_all(cam: Any, frames: list[FloatArray]) -> list[FloatArray]:
+    """Undistorted normalized points per frame, with one vectorised call."""
+    counts = [len(f) for f in frames]
+    if sum(counts) == 0:
+        return [np.zeros((0, 2)) for _ in frames]
+    flat = cam.undistort_points(np.concatenate(frames, axis=0))
+    return list(np.split(flat, np.cumsum(counts)[:-1]))
+
+
+def _observations(
+    rig: StereoRig,
+    left_px: list[FloatArray],
+    right_px: list[FloatArray],
+    left_norm: list[FloatArray],
+    right_norm: list[FloatArray],
+    offset: int,
+) -> tuple[list[FrameObservations], int]:
+    """Stereo candidates (every gated pair, triangulated) for each left frame."""
+    n_left = len(left_px)
+    frame_of: list[int] = []
+    li_all: list[int] = []
+    ri_all: list[int] = []
+    for i in range(n_left):
+        j = i - offset
+        if not (0 <= j < len(right_px)) or len(left_px[i]) == 0 or len(right_px[j]) == 0:
+            continue
+        d = epipolar_distances_px(rig, left_norm[i], right_norm[j])
+        with np.errstate(invalid="ignore"):
+            li, ri = np.nonzero(d <= MAX_EPIPOLAR_PX)
+        frame_of.extend([i] * len(li))
+        li_all.extend(li.tolist())
+        ri_all.extend(ri.tolist())
+    frames = np.asarray(frame_of, dtype=int)
+    li_arr = np.asarray(li_all, dtype=np.intp)
+    ri_arr = np.asarray(ri_all, dtype=np.intp)
+    if len(frames):
+        lp = np.array([left_px[f][k] for f, k in zip(frames, li_arr, strict=True)])
+        rp = np.array([right_px[f - offset][k] for f, k in zip(frames, ri_arr, strict=True)])
+        tri = triangulate(rig, lp, rp)
+        ok = tri.valid & (tri.reprojection_px <= MAX_CANDIDATE_REPROJECTION_PX)
+    else:
+        tri = None
+        ok = np.zeros(0, bool)
+    n_rejected = int(np.count_nonzero(~ok))
+    obs: list[FrameObservations] = []
+    bounds = np.searchsorted(frames, np.arange(n_left + 1))
+    for i in range(n_left):
+        j = i - offset
+        rpx = right_px[j] if 0 <= j < len(right_px) else np.zeros((0, 2))
+        sel = np.arange(bounds[i], bounds[i + 1])
+        sel = sel[ok[sel]] if len(sel) else sel
+        if tri is not None and len(sel):
+            obs.append(
+                FrameObservations(
+                    tri.points_mm[sel],
+                    tri.reprojection_px[sel],
+                    li_arr[sel],
+                    ri_arr[sel],
+                    left_px[i],
+                    rpx,
+                )
+            )
+        else:
+            e = FrameObservations.empty()
+            obs.append(
+                FrameObservations(
+                    e.candidates_mm, e.reprojection_px, e.left_index, e.right_index, left_px[i], rpx
+                )
+            )
+    return obs, n_rejected
+
+
+def _compute_metrics(
+    positions_mm: FloatArray, fps: float, status: NDArray[np.str_]
+) -> tuple[Any, list[str]]:
+    """Tapping metrics (core.metrics); None with a warning when unavailable."""
+    try:
+        from core.metrics import compute_metrics
+    except ImportError:  # INTEGRATION POINT: core/metrics.py not in this tree yet
+        return None, ["tapping metrics are not available in this build"]
+    measured = status != MISSING
+    try:
+        return compute_metrics(positions_mm, fps, measured=measured), []
+    except ValueError as exc:
+        return None, [f"tapping metrics could not be computed: {exc}"]
+
+
+def analyze_recording(
+    rig: StereoRig,
+    left_video: str | Path,
+    right_video: str | Path,
+    *,
+    offset_frames: float | None = None,
+    max_gap_s: float = 0.1,
+    swap_labels: bool = False,
+    max_offset_s: float = 0.5,
+    marker_params: Any | None = None,
+    detector: Detector | None = None,
+    progress: ProgressCallback | None = None,
+) -> Analysis:
+    """Measure thumb and index trajectories (and tapping metrics) from a stereo recording.
+
+    Parameters
+    ----------
+    rig : StereoRig
+        Calibration of the two cameras.
+    left_video, right_video : str or Path
+        The two recordings.
+    offset_frames : float, optional
+        Right frame ``j`` was taken with left frame ``j + offset_frames``
+        (``--offset-frames``); estimated from the marker motion when None.
+    max_gap_s : float
+        Gaps up to this long (s) are interpolated, longer ones stay missing.
+    swap_labels : bool
+        Exchange the automatic thumb/index labels.
+    max_offset_s : float
+        Largest offset searched by the automatic synchronisation (s).
+    marker_params : core.markers.MarkerParams, optional
+        Marker size and shape limits for the detector.
+    detector : callable, optional
+        Replaces ``core.markers.detect_markers`` (tests, other marker kinds):
+        ``(image, search_xy_px | None, radius_px | None) -> (xy_px, diameter_px, quality)``.
+    progress : callable, optional
+        ``progress(stage, done, total)``.
+
+    Returns
+    -------
+    Analysis
+
+    Raises
+    ------
+    InputError
+        A video cannot be read, or the two videos do not match each other or the rig.
+    DetectionError
+        No markers (or fewer than two moving markers) were found.
+    """
+    from core.video import check_stereo_videos, probe_video
+
+    if max_gap_s < 0:
+        raise ValueError(f"max_gap_s must be >= 0, got {max_gap_s}")
+    left_info = probe_video(left_video)
+    right_info = probe_video(right_video)
+    warnings = list(check_stereo_videos(left_info, right_info, rig=rig))
+    fps = float(left_info.fps)
+    detect = detector if detector is not None else _default_detector(marker_params)
+
+    left_px, right_px, det_info = _detect_videos(
+        (left_info.path, right_info.path),
+        (left_info.frame_count, right_info.frame_count),
+        detect,
+        progress,
+    )
+    n_left = len(left_px)
+    if n_left == 0 or len(right_px) == 0:
+        raise InputError("a video decoded to no frames; check that the files are complete.")
+    for name, frames in (("left", left_px), ("right", right_px)):
+        seen = sum(1 for f in frames if len(f) > 0)
+        if seen < max(3, 0.05 * len(frames)):
+            raise DetectionError(
+                f"markers were found in only {seen} of {len(frames)} frames of the {name} video;"
+                " check that the markers are in view, lit by the ring light and not over-exposed."
+            )
+
+    report(progress, "synchronisation", 0, 1)
+    left_norm = _undistort_all(rig.left, left_px)
+    right_norm = _undistort_all(rig.right, right_px)
+    if offset_frames is None:
+        max_off = max(1, min(round(max_offset_s * fps), max(n_left, len(right_px)) // 2))
+        sync: SyncEstimate = estimate_offset(rig, left_norm, right_norm, max_offset_frames=max_off)
+        if sync.confidence < 0.2:
+            warnings.append(
+                f"the frame offset between the cameras could not be estimated reliably (confidence"
+                f" {sync.confidence:.2f}, best guess {sync.offset_frames} frames); give it with"
+                " --offset-frames if the cameras are not synchronised"
+            )
+    else:
+        sync = given_offset(float(offset_frames))
+        if abs(sync.offset_frames) >= n_left:
+            raise InputError(
+                f"an offset of {sync.offset_frames} frames leaves no common frames in videos of"
+                f" {n_left} frames; check --offset-frames."
+            )
+    report(progress, "synchronisation", 1, 1)
+
+    report(progress, "triangulation", 0, 1)
+    obs, n_rejected = _observations(
+        rig, left_px, right_px, left_norm, right_norm, sync.offset_frames
+    )
+    report(progress, "triangulation", 1, 1)
+
+    report(progress, "tracking", 0, 1)
+    tracks = track_markers(rig, obs, fps=fps, max_gap_s=max_gap_s, swap_labels=swap_labels)
+    report(progress, "tracking", 1, 1)
+    warnings.extend(tracks.warnings)
+    if not np.any(tracks.status == MEASURED):
+        raise DetectionError(
+            "no marker was seen consistently by both cameras; check that both cameras see the"
+            " thumb and index markers and that the rig file belongs to these cameras."
+        )
+    measured_any = tracks.status == MEASURED
+    if np.count_nonzero(np.all(tracks.status == MISSING, axis=0)):
+        raise DetectionError(
+            "only one moving marker was found; the thumb and the index finger both need a marker"
+            " visible to both cameras."
+        )
+
+    report(progress, "metrics", 0, 1)
+    metrics, metric_warnings = _compute_metrics(tracks.positions_mm, fps, tracks.status)
+    warnings.extend(metric_warnings)
+    report(progress, "metrics", 1, 1)
+
+    reproj = tracks.reprojection_px[measured_any]
+    quality: dict[str, Any] = {
+        "tracked_fraction": float(np.mean(tracks.status != MISSING)),
+        "measured_fraction": float(np.mean(measured_any)),
+        "interpolated_fraction": float(np.mean(tracks.status == INTERPOLATED)),
+        "reprojection_px_median": float(np.median(reproj)) if len(reproj) else None,
+        "reprojection_px_p95": float(np.percentile(reproj, 95)) if len(reproj) else None,
+        "rejected_candidates": n_rejected,
+        "frames_left": n_left,
+        "frames_right": len(right_px),
+        **det_info,
+    }
+    sync_doc = sync.to_result()
+    return Analysis(
+        fps=fps,
+        frame_numbers=np.arange(n_left),
+        positions_mm=tracks.positions_mm,
+        status=tracks.status,
+        reprojection_px=tracks.reprojection_px,
+        marker_names=tracks.marker_names,
+        sync=sync_doc,
+        metrics=metrics,
+        quality=quality,
+        warnings=warnings,
+    )
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+def _fmt(value: float, decimals: int) -> str:
+    return "" if not math.isfinite(value) else f"{value:.{decimals}f}"
+
+
+def write_markers_csv(analysis: Analysis, path_or_file: str | Path | TextIO) -> None:
+    """Write ``markers.csv`` (INTERFACES.md): one row per frame and marker, header first.
+
+    Coordinates with 4 decimals (0.1 µm), reprojection error with 3 (px);
+    missing coordinates and the reprojection error of unmeasured points are empty.
+    """
+    if isinstance(path_or_file, (str, Path)):
+        with open(path_or_file, "w", newline="", encoding="utf-8") as fh:
+            write_markers_csv(analysis, fh)
+        return
+    writer = csv.writer(path_or_file, lineterminator="\n")
+    writer.writerow(CSV_HEADER)
+    pos = analysis.positions_mm
+    for t, frame in enumerate(analysis.frame_numbers):
+        time_s = repr(round(float(frame) / analysis.fps, 6))
+        for m, name in enumerate(analysis.marker_names):
+            st = str(analysis.status[t, m])
+            x, y, z = (float(v) for v in pos[t, m])
+            if st == MISSING:
+                coords = ["", "", ""]
+            else:
+                coords = [_fmt(x, 4), _fmt(y, 4), _fmt(z, 4)]
+            rep = _fmt(float(analysis.reprojection_px[t, m]), 3) if st == MEASURED else ""
+            writer.writerow([int(frame), time_s, name, *coords, st, rep])
+
+
+def write_analysis(analysis: Analysis, out_dir: str | Path) -> None:
+    """Write ``markers.csv`` and ``result.json`` into ``out_dir`` (created if needed)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    buf = io.StringIO()
+    write_markers_csv(analysis, buf)
+    (out / "markers.csv").write_text(buf.getvalue(), encoding="utf-8")
+    doc = analysis.result_document()
+    (out / "result.json").write_text(
+        json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8"
+    )

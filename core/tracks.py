@@ -1,0 +1,616 @@
+"""Marker identities over time: tracking, distractor rejection, gap filling, labelling.
+
+Three steps (see ``docs/tracking.md``):
+
+1. **Tracklets** (:func:`build_tracklets`): frame by frame, every active track
+   predicts its position with a constant-velocity model; tracks and the
+   frame's stereo candidates (every epipolar-consistent pair, triangulated)
+   are assigned globally (Hungarian method on the 3D distance, gated), each
+   detection of either camera used at most once. A track without a stereo
+   candidate may continue on a *single-view* observation: the detection
+   nearest to its projected prediction in one camera. Stereo candidates left
+   over start new tracks. A track ends after a few frames without any
+   observation, or after ``max_single_view_frames`` without a stereo one.
+2. **Identities** (:func:`select_markers`): tracklets with too few stereo
+   points are dropped; the rest are linked into chains (a later tracklet
+   continues an earlier one when they do not overlap in time and its start
+   lies within a motion-dependent distance of the other's end). The two
+   chains that move most (largest 3D spread) are the fingers; static and
+   erratic reflections never build such chains.
+3. **Labels**: of the two, the one with the larger 3D spread over the frames
+   where both are measured is the **index** finger (in the standard
+   finger-tapping posture the index does most of the opening and closing while
+   the thumb stays nearly still). ``swap_labels`` exchanges them.
+
+Gaps of at most ``max_gap_frames`` between measured frames are filled and
+marked ``interpolated`` (:func:`fill_gaps`): a cubic spline through the
+measured neighbours gives the position; where one camera still sees the
+marker, the point is moved onto that camera's ray at the interpolated depth,
+so only the depth is interpolated. Longer gaps stay ``missing`` (NaN).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.interpolate import CubicSpline
+from scipy.optimize import linear_sum_assignment
+
+from core.camera import StereoRig
+
+FloatArray = NDArray[np.float64]
+
+MEASURED = "measured"
+INTERPOLATED = "interpolated"
+MISSING = "missing"
+
+#: Observation kinds in a tracklet.
+STEREO, LEFT_ONLY, RIGHT_ONLY = 0, 1, 2
+
+MARKER_NAMES = ("thumb", "index")
+
+
+@dataclass(frozen=True)
+class FrameObservations:
+    """What one (left) frame offers the tracker.
+
+    Attributes
+    ----------
+    candidates_mm : ndarray, shape (C, 3)
+        Triangulated stereo candidates (mm), outliers already removed.
+    reprojection_px : ndarray, shape (C,)
+        Their reprojection errors (px).
+    left_index, right_index : ndarray, shape (C,)
+        Which detection of each camera a candidate uses.
+    left_px : ndarray, shape (NL, 2)
+        All left detections (px).
+    right_px : ndarray, shape (NR, 2)
+        All right detections of the paired right frame (px); empty when the
+        right video has no frame paired with this one.
+    """
+
+    candidates_mm: FloatArray
+    reprojection_px: FloatArray
+    left_index: NDArray[np.intp]
+    right_index: NDArray[np.intp]
+    left_px: FloatArray
+    right_px: FloatArray
+
+    @classmethod
+    def empty(cls) -> FrameObservations:
+        return cls(
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros(0, np.intp),
+            np.zeros(0, np.intp),
+            np.zeros((0, 2)),
+            np.zeros((0, 2)),
+        )
+
+
+@dataclass(frozen=True)
+class Tracklet:
+    """One uninterrupted track.
+
+    Attributes
+    ----------
+    frames : ndarray, shape (n,)
+        Left frame numbers, increasing.
+    kind : ndarray, shape (n,)
+        ``STEREO``, ``LEFT_ONLY`` or ``RIGHT_ONLY`` per frame.
+    positions_mm : ndarray, shape (n, 3)
+        Triangulated point for stereo frames; for single-view frames the
+        point on that camera's ray closest to the prediction (provisional).
+    reprojection_px : ndarray, shape (n,)
+        NaN for single-view frames.
+    pixels_px : ndarray, shape (n, 2)
+        The single-view detection (NaN for stereo frames).
+    """
+
+    frames: NDArray[np.int_]
+    kind: NDArray[np.int_]
+    positions_mm: FloatArray
+    reprojection_px: FloatArray
+    pixels_px: FloatArray
+
+    @property
+    def stereo(self) -> NDArray[np.bool_]:
+        return self.kind == STEREO
+
+    @property
+    def n_stereo(self) -> int:
+        return int(np.count_nonzero(self.stereo))
+
+    @property
+    def spread_mm(self) -> float:
+        """RMS distance of the stereo points from their mean (mm)."""
+        pts = self.positions_mm[self.stereo]
+        if len(pts) < 2:
+            return 0.0
+        return float(np.sqrt(np.sum(np.var(pts, axis=0))))
+
+
+@dataclass
+class _Track:
+    frames: list[int] = field(default_factory=list)
+    kind: list[int] = field(default_factory=list)
+    pos: list[FloatArray] = field(default_factory=list)
+    reproj: list[float] = field(default_factory=list)
+    px: list[tuple[float, float]] = field(default_factory=list)
+    velocity: FloatArray = field(default_factory=lambda: np.zeros(3))
+    last_stereo: int = -1
+
+    def predict(self, frame: int) -> FloatArray:
+        return self.pos[-1] + self.velocity * (frame - self.frames[-1])
+
+    def add(self, frame: int, kind: int, pos: FloatArray, reproj: float, px: FloatArray) -> None:
+        if self.frames:
+            dt = frame - self.frames[-1]
+            new_v = (pos - self.pos[-1]) / dt
+            # Single-view depth is provisional: let it steer the velocity only gently.
+            w = 1.0 if kind == STEREO else 0.5
+            self.velocity = w * new_v + (1 - w) * self.velocity
+        self.frames.append(frame)
+        self.kind.append(kind)
+        self.pos.append(pos)
+        self.reproj.append(reproj)
+        self.px.append((float(px[0]), float(px[1])))
+        if kind == STEREO:
+            self.last_stereo = frame
+
+    def freeze(self) -> Tracklet:
+        return Tracklet(
+            frames=np.asarray(self.frames, dtype=int),
+            kind=np.asarray(self.kind, dtype=int),
+            positions_mm=np.asarray(self.pos, dtype=np.float64).reshape(-1, 3),
+            reprojection_px=np.asarray(self.reproj, dtype=np.float64),
+            pixels_px=np.asarray(self.px, dtype=np.float64).reshape(-1, 2),
+        )
+
+
+def _closest_on_ray(origin: FloatArray, direction: FloatArray, point: FloatArray) -> FloatArray:
+    s = max(float(np.dot(point - origin, direction)), 1e-6)
+    return origin + s * direction
+
+
+def build_tracklets(
+    rig: StereoRig,
+    observations: Sequence[FrameObservations],
+    *,
+    gate_mm: float,
+    max_coast_frames: int = 2,
+    max_single_view_frames: int = 12,
+) -> list[Tracklet]:
+    """Link stereo candidates (and single-view detections) frame to frame.
+
+    Parameters
+    ----------
+    rig : StereoRig
+    observations : sequence of FrameObservations
+        One per left frame.
+    gate_mm : float
+        Largest distance between a prediction and its observation (mm) after
+        one frame; grows with the number of frames since the last observation.
+    max_coast_frames : int
+        A track ends after this many frames without any observation.
+    max_single_view_frames : int
+        A track ends after this many frames without a stereo observation.
+
+    Returns
+    -------
+    list of Tracklet
+        In order of their first frame.
+    """
+    if gate_mm <= 0:
+        raise ValueError(f"gate_mm must be positive, got {gate_mm}")
+    cams = rig.cameras
+    f_px = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]
+    active: list[_Track] = []
+    done: list[_Track] = []
+    for frame, obs in enumerate(observations):
+        n_c = obs.candidates_mm.shape[0]
+        used = [np.zeros(obs.left_px.shape[0], bool), np.zeros(obs.right_px.shape[0], bool)]
+        assigned = np.zeros(len(active), bool)
+        if active:
+            preds = np.array([tr.predict(frame) for tr in active])
+            gaps = np.array([frame - tr.frames[-1] for tr in active])
+            gates = gate_mm * (1.0 + 0.5 * (gaps - 1))
+        if active and n_c:
+            dist = np.linalg.norm(preds[:, None, :] - obs.candidates_mm[None, :, :], axis=2)
+            big = 1e6
+            cost = np.where(dist <= gates[:, None], dist, big)
+            rows, cols = linear_sum_assignment(cost)
+            order = np.argsort(cost[rows, cols])
+            for r, c in zip(rows[order], cols[order], strict=True):
+                if cost[r, c] >= big:
+                    continue
+                li, ri = obs.left_index[c], obs.right_index[c]
+                if used[0][li] or used[1][ri]:
+                    continue  # a detection already explains a closer track
+                used[0][li] = used[1][ri] = True
+                assigned[r] = True
+                active[r].add(
+                    frame,
+                    STEREO,
+                    obs.candidates_mm[c],
+                    float(obs.reprojection_px[c]),
+                    np.array([np.nan, np.nan]),
+                )
+        # Single-view continuation for tracks without a stereo candidate.
+        for r, tr in enumerate(active):
+            if assigned[r] or tr.last_stereo < 0:
+                continue
+            best: tuple[float, int, int] | None = None
+            for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
+                if dets.shape[0] == 0:
+                    continue
+                proj = cam.project(preds[r][None])[0]
+                if not np.all(np.isfinite(proj)):
+                    continue
+                depth = cam.to_camera(preds[r][None])[0, 2]
+                gate_px = gates[r] * f_px[ci] / max(depth, 1e-6)
+                d = np.linalg.norm(dets - proj, axis=1)
+                d[used[ci]] = np.inf
+                j = int(np.argmin(d))
+                if d[j] <= gate_px and (best is None or d[j] / gate_px < best[0]):
+                    best = (float(d[j] / gate_px), ci, j)
+            if best is not None:
+                _, ci, j = best
+                dets = obs.left_px if ci == 0 else obs.right_px
+                origin, direction = cams[ci].backproject(dets[j][None])
+                if np.all(np.isfinite(direction)):
+                    pos = _closest_on_ray(origin[0], direction[0], preds[r])
+                    used[ci][j] = True
+                    assigned[r] = True
+                    tr.add(frame, LEFT_ONLY if ci == 0 else RIGHT_ONLY, pos, np.nan, dets[j])
+        # End tracks that lost their markers.
+        still: list[_Track] = []
+        for tr in active:
+            if (
+                frame - tr.frames[-1] > max_coast_frames
+                or frame - tr.last_stereo > max_single_view_frames
+            ):
+                done.append(tr)
+            else:
+                still.append(tr)
+        active = still
+        # New tracks from unused stereo candidates (lowest reprojection error first).
+        if n_c:
+            for c in np.argsort(obs.reprojection_px, kind="stable"):
+                li, ri = obs.left_index[c], obs.right_index[c]
+                if used[0][li] or used[1][ri]:
+                    continue
+                used[0][li] = used[1][ri] = True
+                tr = _Track()
+                tr.add(
+                    frame,
+                    STEREO,
+                    obs.candidates_mm[c],
+                    float(obs.reprojection_px[c]),
+                    np.array([np.nan, np.nan]),
+                )
+                active.append(tr)
+    done.extend(active)
+    tracklets = [tr.freeze() for tr in done]
+    tracklets.sort(key=lambda t: int(t.frames[0]))
+    return tracklets
+
+
+def _stereo_ends(t: Tracklet) -> tuple[int, int, FloatArray, FloatArray]:
+    idx = np.flatnonzero(t.stereo)
+    return (
+        int(t.frames[idx[0]]),
+        int(t.frames[idx[-1]]),
+        t.positions_mm[idx[0]],
+        t.positions_mm[idx[-1]],
+    )
+
+
+def select_markers(
+    tracklets: Sequence[Tracklet],
+    *,
+    fps: float,
+    min_stereo_frames: int = 3,
+    min_spread_mm: float = 1.0,
+    link_base_mm: float = 10.0,
+    link_speed_mm_s: float = 600.0,
+    link_max_mm: float = 80.0,
+    max_link_gap_s: float = 2.0,
+) -> tuple[list[list[int]], list[str]]:
+    """Link tracklets into chains and pick the two that move most (the fingers).
+
+    Parameters
+    ----------
+    tracklets : sequence of Tracklet
+    fps : float
+        Frame rate (Hz), to turn gaps into seconds.
+    min_stereo_frames : int
+        Tracklets with fewer stereo points are dropped (flicker, erratic reflections).
+    min_spread_mm : float
+        A chain whose 3D spread is below this is not a finger (mm).
+    link_base_mm, link_speed_mm_s, link_max_mm : float
+        A tracklet continues a chain across a gap of ``g`` s when its first
+        stereo point lies within ``min(link_base_mm + link_speed_mm_s * g,
+        link_max_mm)`` of the chain's last one.
+    max_link_gap_s : float
+        No links across longer gaps (s).
+
+    Returns
+    -------
+    chains : list of list of int
+        Two (or fewer) chains of tracklet indices, in no particular label order.
+    warnings : list of str
+    """
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    warnings: list[str] = []
+    usable = [i for i, t in enumerate(tracklets) if t.n_stereo >= min_stereo_frames]
+    usable.sort(key=lambda i: -tracklets[i].n_stereo)
+    chains: list[list[int]] = []
+    spans: list[list[tuple[int, int]]] = []
+    for i in usable:
+        s0, s1, p0, p1 = _stereo_ends(tracklets[i])
+        best: tuple[float, int] | None = None
+        for c, chain in enumerate(chains):
+            if any(not (s1 < a or s0 > b) for a, b in spans[c]):
+                continue  # overlaps in time with the chain
+            costs = []
+            for j in chain:
+                a0, a1, q0, q1 = _stereo_ends(tracklets[j])
+                if a1 < s0:
+                    gap_s = (s0 - a1) / fps
+                    d = float(np.linalg.norm(p0 - q1))
+                elif s1 < a0:
+                    gap_s = (a0 - s1) / fps
+                    d = float(np.linalg.norm(q0 - p1))
+                else:
+                    continue
+                if gap_s > max_link_gap_s:
+                    continue
+                allow = min(link_base_mm + link_speed_mm_s * gap_s, link_max_mm)
+                if d <= allow:
+                    costs.append(d / allow)
+            if costs and (best is None or min(costs) < best[0]):
+                best = (min(costs), c)
+        if best is None:
+            chains.append([i])
+            spans.append([(s0, s1)])
+        else:
+            chains[best[1]].append(i)
+            spans[best[1]].append((s0, s1))
+
+    def chain_spread(chain: list[int]) -> float:
+        pts = np.concatenate([tracklets[j].positions_mm[tracklets[j].stereo] for j in chain])
+        return float(np.sqrt(np.sum(np.var(pts, axis=0)))) if len(pts) > 1 else 0.0
+
+    scored = sorted(((chain_spread(ch), ch) for ch in chains), key=lambda sc: -sc[0])
+    moving = [ch for s, ch in scored if s >= min_spread_mm]
+    if len(moving) < 2:
+        warnings.append(f"only {len(moving)} moving marker(s) were found; thumb and index need two")
+    return [sorted(ch, key=lambda j: int(tracklets[j].frames[0])) for ch in moving[:2]], warnings
+
+
+def fill_gaps(
+    positions_mm: FloatArray,
+    measured: NDArray[np.bool_],
+    *,
+    max_gap_frames: int,
+    rig: StereoRig | None = None,
+    single_view_camera: NDArray[np.int_] | None = None,
+    single_view_px: FloatArray | None = None,
+    context_frames: int = 6,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Fill short gaps between measured frames of one marker.
+
+    Parameters
+    ----------
+    positions_mm : ndarray, shape (T, 3)
+        Measured positions (other rows are ignored).
+    measured : ndarray, shape (T,)
+        Which rows are measured.
+    max_gap_frames : int
+        Gaps of at most this many frames, with measured frames on both sides,
+        are filled; longer ones and gaps at either end are left alone.
+    rig, single_view_camera, single_view_px : optional
+        ``single_view_camera[t]`` is 0 (left) or 1 (right) when only that
+        camera saw the marker at frame ``t`` (else -1), at pixel
+        ``single_view_px[t]``; the filled point is then put on that
+        camera's ray at the interpolated depth.
+    context_frames : int
+        Measured frames on each side that shape the spline (at least).
+
+    Returns
+    -------
+    positions_mm : ndarray, shape (T, 3)
+        Copy with filled rows.
+    filled : ndarray, shape (T,)
+        Which rows were filled.
+    """
+    pos = np.array(positions_mm, dtype=np.float64, copy=True)
+    meas = np.asarray(measured, dtype=bool)
+    if pos.ndim != 2 or pos.shape[1] != 3 or meas.shape != (pos.shape[0],):
+        raise ValueError(
+            f"positions_mm must be (T, 3) and measured (T,), got {pos.shape}, {meas.shape}"
+        )
+    if max_gap_frames < 0:
+        raise ValueError(f"max_gap_frames must be >= 0, got {max_gap_frames}")
+    filled = np.zeros(len(pos), bool)
+    idx = np.flatnonzero(meas)
+    if len(idx) < 2 or max_gap_frames == 0:
+        return pos, filled
+    holes = np.flatnonzero(np.diff(idx) > 1)
+    for h in holes:
+        a, b = int(idx[h]), int(idx[h + 1])  # measured frames around the gap
+        gap = b - a - 1
+        if gap > max_gap_frames:
+            continue
+        width = max(context_frames, gap)
+        before = idx[max(0, h - width + 1) : h + 1]
+        after = idx[h + 1 : h + 1 + width]
+        # Only nearby measured neighbours (far ones would not describe this motion).
+        before = before[before >= a - 3 * width]
+        after = after[after <= b + 3 * width]
+        knots = np.concatenate([before, after])
+        t_fill = np.arange(a + 1, b)
+        if len(knots) >= 4:
+            spline = CubicSpline(knots, pos[knots], axis=0)
+            est = spline(t_fill)
+        else:
+            w = (t_fill - a) / (b - a)
+            est = pos[a] * (1 - w[:, None]) + pos[b] * w[:, None]
+        if rig is not None and single_view_camera is not None and single_view_px is not None:
+            for k, t in enumerate(t_fill):
+                ci = int(single_view_camera[t])
+                if ci < 0:
+                    continue
+                cam = rig.cameras[ci]
+                depth = cam.to_camera(est[k][None])[0, 2]
+                pt = cam.backproject_depth(single_view_px[t][None], depth)[0]
+                if np.all(np.isfinite(pt)):
+                    est[k] = pt
+        pos[t_fill] = est
+        filled[t_fill] = True
+    return pos, filled
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Labelled marker trajectories of a recording.
+
+    Attributes
+    ----------
+    positions_mm : ndarray, shape (T, M, 3)
+        NaN where missing; marker order as ``marker_names``.
+    status : ndarray, shape (T, M)
+        ``"measured"``, ``"interpolated"`` or ``"missing"``.
+    reprojection_px : ndarray, shape (T, M)
+        NaN unless measured.
+    marker_names : tuple of str
+    warnings : list of str
+    """
+
+    positions_mm: FloatArray
+    status: NDArray[np.str_]
+    reprojection_px: FloatArray
+    marker_names: tuple[str, ...]
+    warnings: list[str]
+
+
+def track_markers(
+    rig: StereoRig,
+    observations: Sequence[FrameObservations],
+    *,
+    fps: float,
+    max_gap_s: float = 0.1,
+    swap_labels: bool = False,
+    gate_mm: float | None = None,
+    max_reprojection_px: float | None = None,
+) -> Tracks:
+    """Thumb and index trajectories from per-frame stereo candidates.
+
+    Parameters
+    ----------
+    rig : StereoRig
+    observations : sequence of FrameObservations
+        One per left frame (``T`` frames).
+    fps : float
+        Frame rate (Hz).
+    max_gap_s : float
+        Gaps up to this long (s) are interpolated; longer ones stay missing.
+    swap_labels : bool
+        Exchange the automatic thumb/index labels.
+    gate_mm : float, optional
+        Tracking gate after one frame (mm); default ``5 mm + 8e4 mm/s² · dt²``
+        (the prediction error of a constant-velocity model at tapping
+        accelerations).
+    max_reprojection_px : float, optional
+        Measured points with a larger reprojection error become gaps; default
+        ``max(1 px, 5 x`` the median of the track).
+
+    Returns
+    -------
+    Tracks
+        ``M = 2`` markers: thumb, index.
+    """
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    if max_gap_s < 0:
+        raise ValueError(f"max_gap_s must be >= 0, got {max_gap_s}")
+    n_frames = len(observations)
+    dt = 1.0 / fps
+    if gate_mm is None:
+        gate_mm = 5.0 + 8e4 * dt * dt
+    max_gap_frames = int(np.floor(max_gap_s * fps + 1e-9))
+    tracklets = build_tracklets(
+        rig,
+        observations,
+        gate_mm=gate_mm,
+        max_single_view_frames=max_gap_frames + 2,
+    )
+    chains, warnings = select_markers(tracklets, fps=fps)
+    m = len(MARKER_NAMES)
+    positions = np.full((n_frames, m, 3), np.nan)
+    status = np.full((n_frames, m), MISSING, dtype=object)
+    reproj = np.full((n_frames, m), np.nan)
+    spreads = []
+    for k, chain in enumerate(chains):
+        pos = np.full((n_frames, 3), np.nan)
+        rep = np.full(n_frames, np.nan)
+        sv_cam = np.full(n_frames, -1, dtype=int)
+        sv_px = np.full((n_frames, 2), np.nan)
+        for j in chain:
+            t = tracklets[j]
+            st = t.stereo
+            pos[t.frames[st]] = t.positions_mm[st]
+            rep[t.frames[st]] = t.reprojection_px[st]
+            sv = ~st
+            sv_cam[t.frames[sv]] = t.kind[sv] - 1
+            sv_px[t.frames[sv]] = t.pixels_px[sv]
+        meas = np.isfinite(rep)
+        # Outlier rejection: points that do not reproject well become gaps.
+        if np.any(meas):
+            limit = max_reprojection_px
+            if limit is None:
+                limit = max(1.0, 5.0 * float(np.median(rep[meas])))
+            bad = meas & (rep > limit)
+            pos[bad] = np.nan
+            rep[bad] = np.nan
+            meas &= ~bad
+        filled_pos, filled = fill_gaps(
+            pos,
+            meas,
+            max_gap_frames=max_gap_frames,
+            rig=rig,
+            single_view_camera=sv_cam,
+            single_view_px=sv_px,
+        )
+        positions[:, k] = np.where(meas[:, None] | filled[:, None], filled_pos, np.nan)
+        status[meas, k] = MEASURED
+        status[filled & ~meas, k] = INTERPOLATED
+        reproj[meas, k] = rep[meas]
+        spreads.append(pos)
+    # Labelling: the index finger moves most in the standard posture.
+    if len(chains) == 2:
+        both = np.all(np.isfinite(spreads[0]), axis=1) & np.all(np.isfinite(spreads[1]), axis=1)
+        if np.count_nonzero(both) >= 2:
+            s = [float(np.sqrt(np.sum(np.var(p[both], axis=0)))) for p in spreads]
+        else:
+            s = [float(np.sqrt(np.nansum(np.nanvar(p, axis=0)))) for p in spreads]
+        order = [0, 1] if s[0] <= s[1] else [1, 0]  # (thumb, index)
+    else:
+        order = [0, 1]
+    if swap_labels:
+        order = order[::-1]
+    positions = positions[:, order]
+    status = status[:, order]
+    reproj = reproj[:, order]
+    return Tracks(
+        positions_mm=positions,
+        status=status.astype(str),
+        reprojection_px=reproj,
+        marker_names=MARKER_NAMES,
+        warnings=warnings,
+    )
