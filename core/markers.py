@@ -1,0 +1,671 @@
+"""Detection of retro-reflective markers with sub-pixel centres.
+
+Under an infrared ring light a retro-reflective sphere appears as a bright,
+anti-aliased disc on a dark background (a short streak when it moves during
+the exposure).  :func:`detect_markers` finds such blobs in a uint8 gray image
+and measures each one:
+
+1. **Candidates.**  Full frame: the image is thresholded at
+   ``background + max(min_contrast / 2, 4 sigma)`` (background and noise
+   ``sigma`` from a histogram of a sub-sampled frame), the binary image is
+   max-pooled 4x4 and labelled with ``cv2.connectedComponentsWithStats``; each
+   component gives a small region of the full-resolution image.  Windowed
+   (``search_xy_px`` given): one region around each predicted position, with
+   its own background.  In a region, the local maxima of the 3x3-smoothed
+   image above the threshold are the seeds, brightest first.
+2. **Measurement** (the same code for both paths, so they agree): a window
+   around the seed, the local background as the median of the window's border,
+   the peak of the smoothed image, and the *core*: the connected half-maximum
+   region containing the seed.  Its second moments give ``diameter_px`` (minor
+   axis), ``roundness`` (minor / major axis) and ``fill`` (area over the area
+   of the moment ellipse).  Implausible blobs are rejected (see
+   :class:`MarkerParams`).  Seeds that fall inside an accepted core are not
+   measured again.
+3. **Sub-pixel centre** on the core dilated by a few pixels (other blobs
+   masked out), by one of three estimators: ``"radial"`` (Parthasarathy's
+   radial-symmetry centre, closed form), ``"centroid"`` (background-subtracted
+   intensity-weighted centroid) or ``"disc_fit"`` (least-squares fit of a
+   Gaussian-blurred disc).  ``bench/bench_markers.py`` compares them;
+   ``docs/markers.md`` has the figures behind the default.
+
+Pixel coordinates are OpenCV's: ``(x, y) = (column, row)``, origin at the
+centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtr
+
+FloatArray = NDArray[np.float64]
+
+CENTRE_METHODS = ("radial", "centroid", "disc_fit")
+
+_POOL = 4  # max-pooling factor of the full-frame candidate mask
+_MARGIN_PX = 3  # support of the centre estimators beyond the half-maximum core
+_MAX_SEEDS_PER_REGION = 64
+_DISC5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+
+
+@dataclass(frozen=True)
+class MarkerParams:
+    """What a plausible marker looks like in the image.
+
+    Parameters
+    ----------
+    diameter_px_min, diameter_px_max : float
+        Accepted range of the blob's diameter (px), measured as the minor axis
+        of its half-maximum region, so a motion streak keeps its width.
+    min_contrast : float
+        Minimal peak above the local background (gray levels, after a 3x3
+        mean) for a blob to count.
+    max_elongation : float
+        Largest major/minor axis ratio of the half-maximum region; 4 lets
+        through a streak about 3.3 diameters long (motion blur) and rejects
+        line-like glints.
+    min_fill : float
+        Smallest ratio of the half-maximum area to the area of its moment
+        ellipse (1 for a disc or a streak); rejects ragged or hollow blobs.
+    search_radius_px : float
+        Default radius (px) of the windowed search around predicted positions.
+    centre_method : str
+        Sub-pixel centre estimator: ``"radial"``, ``"centroid"`` or
+        ``"disc_fit"``.
+    reject_border : bool
+        Reject blobs whose half-maximum region touches the image border (their
+        centre would be biased towards the inside).
+    """
+
+    diameter_px_min: float = 3.0
+    diameter_px_max: float = 40.0
+    min_contrast: float = 20.0
+    max_elongation: float = 4.0
+    min_fill: float = 0.6
+    search_radius_px: float = 25.0
+    centre_method: str = "radial"
+    reject_border: bool = True
+
+    def __post_init__(self) -> None:
+        if not (0 < self.diameter_px_min <= self.diameter_px_max):
+            raise ValueError(
+                "need 0 < diameter_px_min <= diameter_px_max, got "
+                f"{self.diameter_px_min}, {self.diameter_px_max}"
+            )
+        if not self.min_contrast > 0:
+            raise ValueError(f"min_contrast must be > 0, got {self.min_contrast}")
+        if not self.max_elongation >= 1:
+            raise ValueError(f"max_elongation must be >= 1, got {self.max_elongation}")
+        if not 0 <= self.min_fill <= 1:
+            raise ValueError(f"min_fill must be in [0, 1], got {self.min_fill}")
+        if not self.search_radius_px > 0:
+            raise ValueError(f"search_radius_px must be > 0, got {self.search_radius_px}")
+        if self.centre_method not in CENTRE_METHODS:
+            raise ValueError(
+                f"centre_method must be one of {CENTRE_METHODS}, got {self.centre_method!r}"
+            )
+
+
+def params_for(
+    marker_diameter_mm: float,
+    focal_px: float,
+    distance_mm: tuple[float, float],
+    **overrides: Any,
+) -> MarkerParams:
+    """Marker parameters for a sphere of known size seen at a range of distances.
+
+    Parameters
+    ----------
+    marker_diameter_mm : float
+        Diameter of the retro-reflective sphere (mm).
+    focal_px : float
+        Focal length of the camera (px).
+    distance_mm : tuple of float
+        ``(nearest, farthest)`` distance (mm) of the marker from the camera.
+    **overrides
+        Any other :class:`MarkerParams` field.
+
+    Returns
+    -------
+    MarkerParams
+        Diameter limits from the projected sizes with 40 % slack below (small
+        markers lose their anti-aliased rim at half maximum) and 30 % + 2 px
+        above (defocus and blur widen them); search radius of one largest
+        diameter + 10 px.
+    """
+    z_near, z_far = (float(v) for v in distance_mm)
+    if not (marker_diameter_mm > 0 and focal_px > 0 and 0 < z_near <= z_far):
+        raise ValueError(
+            "need marker_diameter_mm > 0, focal_px > 0 and 0 < nearest <= farthest distance, "
+            f"got {marker_diameter_mm}, {focal_px}, {distance_mm}"
+        )
+    d_small_px = focal_px * marker_diameter_mm / z_far
+    d_large_px = focal_px * marker_diameter_mm / z_near
+    values: dict[str, Any] = {
+        "diameter_px_min": max(1.5, 0.6 * d_small_px),
+        "diameter_px_max": 1.3 * d_large_px + 2.0,
+        "search_radius_px": 1.3 * d_large_px + 10.0,
+    }
+    values.update(overrides)
+    return MarkerParams(**values)
+
+
+@dataclass(frozen=True)
+class MarkerDetections:
+    """Markers found in one image; row ``i`` of every array is marker ``i``.
+
+    Attributes
+    ----------
+    xy_px : ndarray, shape (N, 2), float64
+        Sub-pixel centres, OpenCV ``(x, y)``, origin at the centre of the
+        top-left pixel.
+    diameter_px : ndarray, shape (N,)
+        Minor axis of the half-maximum region (px): the width of the marker,
+        also for a motion streak.
+    peak : ndarray, shape (N,)
+        Background-subtracted peak of the 3x3-smoothed image (gray levels).
+    roundness : ndarray, shape (N,)
+        Minor / major axis of the half-maximum region (1 = disc).
+    background : ndarray, shape (N,)
+        Local background level (gray levels).
+    area_px : ndarray, shape (N,)
+        Pixel count of the half-maximum region.
+    fill : ndarray, shape (N,)
+        Half-maximum area over the area of its moment ellipse (1 = disc or
+        streak, lower for ragged shapes).
+    shape_cov_px2 : ndarray, shape (N, 2, 2)
+        Second moments of the half-maximum region (px^2), ``[[xx, xy], [xy,
+        yy]]``; its main axis is the direction of a motion streak.
+    quality : ndarray, shape (N,)
+        Score in [0, 1]: ``roundness * min(fill, 1) * min(1, peak / (3 *
+        min_contrast))``.  Use it to rank candidates, not to reject them.
+    """
+
+    xy_px: FloatArray
+    diameter_px: FloatArray
+    peak: FloatArray
+    roundness: FloatArray
+    background: FloatArray = field(default_factory=lambda: np.zeros(0))
+    area_px: FloatArray = field(default_factory=lambda: np.zeros(0))
+    fill: FloatArray = field(default_factory=lambda: np.zeros(0))
+    shape_cov_px2: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    quality: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+    def __len__(self) -> int:
+        return int(self.xy_px.shape[0])
+
+    @classmethod
+    def empty(cls) -> MarkerDetections:
+        """No marker."""
+        z = np.zeros(0)
+        return cls(np.zeros((0, 2)), z, z.copy(), z.copy(), z.copy(), z.copy(), z.copy(),
+                   np.zeros((0, 2, 2)), z.copy())  # fmt: skip
+
+
+@dataclass
+class _Blob:
+    xy_px: tuple[float, float]
+    diameter_px: float
+    peak: float
+    roundness: float
+    background: float
+    area_px: float
+    fill: float
+    cov: tuple[float, float, float]
+    quality: float
+
+
+@dataclass
+class _Measured:
+    """Outcome of measuring one seed: the core (image coords) and maybe a blob."""
+
+    core_ys: NDArray[np.intp]
+    core_xs: NDArray[np.intp]
+    blob: _Blob | None
+
+
+# --------------------------------------------------------------------------- public
+
+
+def detect_markers(
+    image: NDArray[Any],
+    *,
+    params: MarkerParams = MarkerParams(),
+    search_xy_px: NDArray[Any] | None = None,
+    search_radius_px: float | None = None,
+) -> MarkerDetections:
+    """Find bright round markers and their sub-pixel centres in a gray image.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), uint8
+        Gray frame.
+    params : MarkerParams
+        Size, contrast and shape limits and the centre estimator.
+    search_xy_px : ndarray, shape (K, 2), optional
+        Predicted marker positions (px, OpenCV ``(x, y)``).  When given, only
+        markers whose centre lies within ``search_radius_px`` of one of them
+        are looked for (fast path for tracking).  Rows with NaN are skipped.
+        ``None``: search the full frame.
+    search_radius_px : float, optional
+        Radius (px) of the windowed search; default
+        ``params.search_radius_px``.
+
+    Returns
+    -------
+    MarkerDetections
+        The accepted markers, brightest first within each searched region.
+
+    Raises
+    ------
+    ValueError
+        If ``image`` is not a 2-D uint8 array, or ``search_xy_px`` is not
+        ``(K, 2)``, or ``search_radius_px`` is not positive.
+    """
+    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
+        desc = (
+            f"shape {image.shape}, dtype {image.dtype}"
+            if isinstance(image, np.ndarray)
+            else type(image).__name__
+        )
+        raise ValueError(f"image must be a 2-D uint8 gray array (H, W), got {desc}")
+    if image.shape[0] < 3 or image.shape[1] < 3:
+        raise ValueError(f"image must be at least 3x3 pixels, got shape {image.shape}")
+    if search_radius_px is not None and not search_radius_px > 0:
+        raise ValueError(f"search_radius_px must be > 0, got {search_radius_px}")
+    radius_px = float(params.search_radius_px if search_radius_px is None else search_radius_px)
+
+    measured: list[_Measured] = []
+    if search_xy_px is None:
+        bg, sigma = _background_and_noise(image[::4, ::4])
+        thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
+        for x0, y0, x1, y1 in _full_frame_regions(image, thr, params):
+            measured.extend(_search_region(image, (x0, y0, x1, y1), thr, params, measured))
+    else:
+        pts = np.asarray(search_xy_px, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError(f"search_xy_px must have shape (K, 2), got {pts.shape}")
+        h, w = image.shape
+        reach = radius_px + 0.5 * params.diameter_px_max + _MARGIN_PX + 2
+        for x, y in pts[np.all(np.isfinite(pts), axis=1)]:
+            x0, x1 = max(0, math.floor(x - reach)), min(w, math.ceil(x + reach) + 1)
+            y0, y1 = max(0, math.floor(y - reach)), min(h, math.ceil(y + reach) + 1)
+            if x1 - x0 < 3 or y1 - y0 < 3:
+                continue
+            bg, sigma = _background_and_noise(image[y0:y1, x0:x1])
+            thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
+            found = _search_region(image, (x0, y0, x1, y1), thr, params, measured)
+            for m in found:
+                if m.blob is not None:
+                    bx, by = m.blob.xy_px
+                    if (bx - x) ** 2 + (by - y) ** 2 > radius_px**2:
+                        m.blob = None  # outside the search disc; keep the core as "seen"
+            measured.extend(found)
+    return _to_detections([m.blob for m in measured if m.blob is not None])
+
+
+# ------------------------------------------------------------------- candidates
+
+
+def _background_and_noise(sample: NDArray[np.uint8]) -> tuple[float, float]:
+    """Median and MAD-based sigma (gray levels) from a uint8 sample's histogram."""
+    hist = np.bincount(sample.ravel(), minlength=256).astype(np.int64)
+    n = int(hist.sum())
+    cum = np.cumsum(hist)
+    med = int(np.searchsorted(cum, (n + 1) // 2))
+    # MAD: smallest k with at least half of the values in [med - k, med + k]
+    ks = np.arange(256)
+    hi = cum[np.minimum(med + ks, 255)]
+    lo_idx = med - ks - 1
+    lo = np.where(lo_idx >= 0, cum[np.clip(lo_idx, 0, 255)], 0)
+    k = int(np.searchsorted(hi - lo, (n + 1) // 2))
+    sigma = max(1.4826 * k, 0.7)  # quantisation floor
+    return float(med), float(sigma)
+
+
+def _full_frame_regions(
+    image: NDArray[np.uint8], thr: float, params: MarkerParams
+) -> list[tuple[int, int, int, int]]:
+    """Regions ``(x0, y0, x1, y1)`` (half-open, px) around the bright components."""
+    h, w = image.shape
+    t = min(math.floor(thr), 254)
+    _, binary = cv2.threshold(image, t, 255, cv2.THRESH_BINARY)
+    hp, wp = -(-h // _POOL), -(-w // _POOL)
+    if hp * _POOL != h or wp * _POOL != w:
+        binary = cv2.copyMakeBorder(binary, 0, hp * _POOL - h, 0, wp * _POOL - w,
+                                    cv2.BORDER_CONSTANT, value=0)  # fmt: skip
+    pooled = binary.reshape(hp, _POOL, wp, _POOL).max(axis=(1, 3))
+    n, _, stats, _ = cv2.connectedComponentsWithStats(pooled, connectivity=8)
+    pad = _MARGIN_PX + 3
+    regions = []
+    for i in range(1, n):
+        x, y, bw, bh, _area = (int(v) for v in stats[i])
+        x0, y0 = max(0, x * _POOL - pad), max(0, y * _POOL - pad)
+        x1, y1 = min(w, (x + bw) * _POOL + pad), min(h, (y + bh) * _POOL + pad)
+        regions.append((x0, y0, x1, y1))
+    return regions
+
+
+def _search_region(
+    image: NDArray[np.uint8],
+    region: tuple[int, int, int, int],
+    thr: float,
+    params: MarkerParams,
+    known: list[_Measured],
+) -> list[_Measured]:
+    """Seeds (local maxima above ``thr``) of one region, each measured once."""
+    x0, y0, x1, y1 = region
+    h, w = image.shape
+    # smooth with one pixel of real context so that seeds agree between paths
+    px0, py0, px1, py1 = max(0, x0 - 1), max(0, y0 - 1), min(w, x1 + 1), min(h, y1 + 1)
+    sm_pad = cv2.blur(image[py0:py1, px0:px1].astype(np.float32), (3, 3),
+                      borderType=cv2.BORDER_REPLICATE)  # fmt: skip
+    sm = sm_pad[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
+    dil = cv2.dilate(sm_pad, np.ones((3, 3), np.uint8))[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
+    ys, xs = np.nonzero((sm >= dil) & (sm > thr))
+    if ys.size == 0:
+        return []
+    vals = sm[ys, xs]
+    order = np.lexsort((xs, ys, -vals))[: 4 * _MAX_SEEDS_PER_REGION]
+    seeds_y, seeds_x = ys[order] + y0, xs[order] + x0
+
+    taken = np.zeros((y1 - y0, x1 - x0), dtype=bool)
+
+    def mark(m: _Measured) -> None:
+        cy, cx = m.core_ys - y0, m.core_xs - x0
+        ok = (cy >= 0) & (cy < y1 - y0) & (cx >= 0) & (cx < x1 - x0)
+        taken[cy[ok], cx[ok]] = True
+
+    for m in known:
+        mark(m)
+    out: list[_Measured] = []
+    for sy, sx in zip(seeds_y.tolist(), seeds_x.tolist(), strict=True):
+        if taken[sy - y0, sx - x0]:
+            continue
+        m = _measure(image, sx, sy, params)
+        taken[sy - y0, sx - x0] = True
+        mark(m)
+        if m.blob is not None or m.core_ys.size:
+            out.append(m)
+        if len(out) >= _MAX_SEEDS_PER_REGION:
+            break
+    return out
+
+
+# ------------------------------------------------------------------- measurement
+
+
+def _measure(image: NDArray[np.uint8], sx: int, sy: int, params: MarkerParams) -> _Measured:
+    """Measure the blob around seed pixel ``(sx, sy)``; deterministic given the image."""
+    h, w = image.shape
+    half = math.ceil(0.5 * params.diameter_px_max) + _MARGIN_PX + 2
+    half_limit = math.ceil(params.diameter_px_max * params.max_elongation) + _MARGIN_PX + 2
+    no_core = np.zeros(0, dtype=np.intp)
+    reseeds = 0
+    while True:
+        x0, x1 = max(0, sx - half), min(w, sx + half + 1)
+        y0, y1 = max(0, sy - half), min(h, sy + half + 1)
+        win = image[y0:y1, x0:x1].astype(np.float32)
+        sm = cv2.blur(win, (3, 3), borderType=cv2.BORDER_REPLICATE)
+        ring = np.concatenate((win[0], win[-1], win[1:-1, 0], win[1:-1, -1]))
+        bg = float(np.median(ring))
+        lx, ly = sx - x0, sy - y0
+        peak_val = float(sm[ly, lx])
+        contrast = peak_val - bg
+        if contrast < params.min_contrast:
+            return _Measured(no_core, no_core, None)
+        level = bg + 0.5 * contrast
+        mask = (sm > level).astype(np.uint8)
+        _, labels = cv2.connectedComponents(mask, connectivity=8)
+        lab = labels[ly, lx]
+        core = labels == lab
+        cys, cxs = np.nonzero(core)
+        # measure from the core's maximum (first in raster order), so that every
+        # seed of the same blob gives the same result
+        core_vals = sm[cys, cxs]
+        i_max = int(np.argmax(core_vals))
+        if (cxs[i_max] != lx or cys[i_max] != ly) and reseeds < 2:
+            sx, sy, reseeds = int(cxs[i_max] + x0), int(cys[i_max] + y0), reseeds + 1
+            continue
+        diameter, roundness, fill, cov = _shape(cxs, cys)
+        margin = max(_MARGIN_PX, math.ceil(0.5 * diameter))
+        need = margin + 3 + max(lx - int(cxs.min()), int(cxs.max()) - lx,
+                                ly - int(cys.min()), int(cys.max()) - ly)  # fmt: skip
+        fits_x = (lx >= need or x0 == 0) and (x1 - 1 - lx >= need or x1 == w)
+        fits_y = (ly >= need or y0 == 0) and (y1 - 1 - ly >= need or y1 == h)
+        if fits_x and fits_y:
+            break
+        too_large = cys.size > params.max_elongation * params.diameter_px_max**2
+        if too_large or need > half_limit:  # a glare blob
+            return _Measured(cys + y0, cxs + x0, None)
+        half = need
+
+    core_ys, core_xs = cys + y0, cxs + x0
+    peak = float(core_vals[i_max]) - bg
+    touches_border = (
+        core_ys.min() == 0 or core_xs.min() == 0 or core_ys.max() == h - 1 or core_xs.max() == w - 1
+    )
+    area = float(cys.size)
+    mx, my = float(cxs.mean()), float(cys.mean())
+    measured = _Measured(core_ys, core_xs, None)
+    if (
+        peak < params.min_contrast
+        or not params.diameter_px_min <= diameter <= params.diameter_px_max
+        or roundness * params.max_elongation < 1.0
+        or fill < params.min_fill
+        or (touches_border and params.reject_border)
+    ):
+        return measured
+
+    # support of the centre estimators: the blob down to 10 % of its peak (at most
+    # ``margin`` beyond the core) grown by 2 px; other blobs masked out
+    dev = np.abs(ring - bg)
+    sigma = max(1.4826 * float(np.median(dev)), 0.7)
+    low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).astype(np.uint8)
+    _, low_labels = cv2.connectedComponents(low_mask, connectivity=8)
+    blob = low_labels == low_labels[cys[0], cxs[0]]
+    k = 2 * margin + 1
+    near = cv2.dilate(core.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    support = cv2.dilate((blob & near.astype(bool)).astype(np.uint8), _DISC5).astype(bool)
+    other_cores = (labels > 0) & ~core
+    others = (low_mask.astype(bool) & ~blob) | other_cores
+    if others.any():
+        support &= ~cv2.dilate(others.astype(np.uint8), _DISC5).astype(bool)
+        if other_cores.any():  # a neighbour in the same low-level blob: split by distance
+            d_own = cv2.distanceTransform((~core).astype(np.uint8), cv2.DIST_L2, 3)
+            d_other = cv2.distanceTransform((~other_cores).astype(np.uint8), cv2.DIST_L2, 3)
+            support &= d_own < d_other
+        support |= core
+    ry, rx = np.nonzero(support)
+    by0, by1, bx0, bx1 = ry.min(), ry.max() + 1, rx.min(), rx.max() + 1
+    sub = win[by0:by1, bx0:bx1].astype(np.float64) - bg
+    sup = support[by0:by1, bx0:bx1]
+    cx, cy = _centre(sub, sup, peak, mx - bx0, my - by0, params.centre_method)
+    if not (math.isfinite(cx) and math.isfinite(cy)) or abs(cx - (mx - bx0)) > 0.5 * diameter + 2:
+        cx, cy = _centroid(sub, sup, peak)
+    quality = roundness * min(fill, 1.0) * min(1.0, peak / (3.0 * params.min_contrast))
+    measured.blob = _Blob(
+        xy_px=(cx + bx0 + x0, cy + by0 + y0),
+        diameter_px=diameter,
+        peak=peak,
+        roundness=roundness,
+        background=bg,
+        area_px=area,
+        fill=fill,
+        cov=cov,
+        quality=quality,
+    )
+    return measured
+
+
+def _shape(
+    xs: NDArray[np.intp], ys: NDArray[np.intp]
+) -> tuple[float, float, float, tuple[float, float, float]]:
+    """Minor-axis diameter, roundness, fill and ``(xx, xy, yy)`` moments of a pixel set.
+
+    Each pixel counts as a unit square (hence the 1/12 px^2 added to the
+    variances), so that a tiny blob is not reported as a line.
+    """
+    area = float(xs.size)
+    dx, dy = xs - xs.mean(), ys - ys.mean()
+    cxx = float(np.mean(dx * dx)) + 1.0 / 12
+    cyy = float(np.mean(dy * dy)) + 1.0 / 12
+    cxy = float(np.mean(dx * dy))
+    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
+    disc = math.sqrt(max(0.25 * tr * tr - det, 0.0))
+    lam_max, lam_min = 0.5 * tr + disc, max(0.5 * tr - disc, 1e-12)
+    diameter = 4.0 * math.sqrt(lam_min)
+    roundness = math.sqrt(lam_min / lam_max)
+    fill = area / (4.0 * math.pi * math.sqrt(lam_min * lam_max))
+    return diameter, roundness, fill, (cxx, cxy, cyy)
+
+
+def _to_detections(blobs: list[_Blob | None]) -> MarkerDetections:
+    kept: list[_Blob] = []
+    for b in blobs:
+        if b is None:
+            continue
+        if any((b.xy_px[0] - k.xy_px[0]) ** 2 + (b.xy_px[1] - k.xy_px[1]) ** 2 < 1.0 for k in kept):
+            continue
+        kept.append(b)
+    if not kept:
+        return MarkerDetections.empty()
+    cov = np.array([[[b.cov[0], b.cov[1]], [b.cov[1], b.cov[2]]] for b in kept], dtype=np.float64)
+    return MarkerDetections(
+        xy_px=np.array([b.xy_px for b in kept], dtype=np.float64),
+        diameter_px=np.array([b.diameter_px for b in kept], dtype=np.float64),
+        peak=np.array([b.peak for b in kept], dtype=np.float64),
+        roundness=np.array([b.roundness for b in kept], dtype=np.float64),
+        background=np.array([b.background for b in kept], dtype=np.float64),
+        area_px=np.array([b.area_px for b in kept], dtype=np.float64),
+        fill=np.array([b.fill for b in kept], dtype=np.float64),
+        shape_cov_px2=cov,
+        quality=np.array([b.quality for b in kept], dtype=np.float64),
+    )
+
+
+# ------------------------------------------------------------------ centre estimators
+
+
+def _centre(
+    sub: FloatArray, support: NDArray[np.bool_], peak: float, x0: float, y0: float, method: str
+) -> tuple[float, float]:
+    """Sub-pixel centre in the coordinates of ``sub`` (background already subtracted)."""
+    if method == "radial":
+        return _radial_centre(sub, support)
+    if method == "centroid":
+        return _centroid(sub, support, peak)
+    return _disc_fit(sub, support, peak, x0, y0)
+
+
+def _centroid(sub: FloatArray, support: NDArray[np.bool_], peak: float) -> tuple[float, float]:
+    """Intensity-weighted centroid of ``max(I - bg - 0.1 peak, 0)`` on the support."""
+    wgt = np.where(support, np.maximum(sub - 0.1 * peak, 0.0), 0.0)
+    s = wgt.sum()
+    if s <= 0:
+        return math.nan, math.nan
+    ys = np.arange(sub.shape[0], dtype=np.float64)
+    xs = np.arange(sub.shape[1], dtype=np.float64)
+    return float(wgt.sum(axis=0) @ xs / s), float(wgt.sum(axis=1) @ ys / s)
+
+
+def _radial_centre(sub: FloatArray, support: NDArray[np.bool_]) -> tuple[float, float]:
+    """Radial-symmetry centre (Parthasarathy 2012, Nat. Methods 9:724).
+
+    Gradients at the pixel corners; the centre is the point closest, in the
+    weighted least-squares sense, to all lines through the corners along their
+    gradients, weighted by squared gradient over distance to the gradient
+    centroid.
+    """
+    a = sub[:-1, :-1]
+    b = sub[:-1, 1:]
+    c = sub[1:, :-1]
+    d = sub[1:, 1:]
+    gx = 0.5 * ((b + d) - (a + c))
+    gy = 0.5 * ((c + d) - (a + b))
+    gx = cv2.blur(gx, (3, 3), borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.blur(gy, (3, 3), borderType=cv2.BORDER_REPLICATE)
+    ok = support[:-1, :-1] & support[:-1, 1:] & support[1:, :-1] & support[1:, 1:]
+    g2 = np.where(ok, gx * gx + gy * gy, 0.0)
+    s = g2.sum()
+    if s <= 0:
+        return math.nan, math.nan
+    ys = np.arange(g2.shape[0], dtype=np.float64)[:, None] + 0.5
+    xs = np.arange(g2.shape[1], dtype=np.float64)[None, :] + 0.5
+    xc = float((g2 * xs).sum() / s)
+    yc = float((g2 * ys).sum() / s)
+    dist = np.sqrt((xs - xc) ** 2 + (ys - yc) ** 2)
+    wgt = np.where(ok, g2 / np.maximum(dist, 0.5), 0.0)
+    gn2 = np.maximum(gx * gx + gy * gy, 1e-12)
+    # normal n = (-gy, gx)/|g|; sum w n n^T c = sum w n n^T p
+    nxx = wgt * gy * gy / gn2
+    nyy = wgt * gx * gx / gn2
+    nxy = -wgt * gx * gy / gn2
+    sxx, syy, sxy = nxx.sum(), nyy.sum(), nxy.sum()
+    bx = (nxx * xs + nxy * ys).sum()
+    by = (nxy * xs + nyy * ys).sum()
+    det = sxx * syy - sxy * sxy
+    if det <= 1e-12 * max(sxx * syy, 1e-300):
+        return math.nan, math.nan
+    return float((syy * bx - sxy * by) / det), float((sxx * by - sxy * bx) / det)
+
+
+def _disc_fit(
+    sub: FloatArray, support: NDArray[np.bool_], peak: float, x0: float, y0: float
+) -> tuple[float, float]:
+    """Least-squares fit of a Gaussian-blurred disc ``B + A Phi((R - r) / s)``.
+
+    Levenberg-Marquardt on ``(cx, cy, R, s, A, B)`` started from the
+    centroid; a motion streak is not a disc, but the fit stays symmetric.
+    """
+    ys, xs = np.nonzero(support)
+    z = sub[ys, xs]
+    xs_f, ys_f = xs.astype(np.float64), ys.astype(np.float64)
+    c0 = _centroid(sub, support, peak)
+    if not math.isfinite(c0[0]):
+        c0 = (x0, y0)
+    area = float(np.count_nonzero(sub > 0.5 * peak))
+    p = np.array([c0[0], c0[1], max(math.sqrt(area / math.pi), 1.0), 0.7, peak, 0.0])
+    lam = 1e-3
+
+    def residual(q: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        dx, dy = xs_f - q[0], ys_f - q[1]
+        r = np.sqrt(dx * dx + dy * dy) + 1e-9
+        u = (q[2] - r) / q[3]
+        return q[5] + q[4] * ndtr(u) - z, dx / r, dy / r, u
+
+    res, ux, uy, u = residual(p)
+    cost = float(res @ res)
+    for _ in range(30):
+        phi = np.exp(-0.5 * u * u) * (1.0 / math.sqrt(2 * math.pi))
+        a_phi_s = p[4] * phi / p[3]
+        jac = np.column_stack((a_phi_s * ux, a_phi_s * uy, a_phi_s, -a_phi_s * u, ndtr(u),
+                               np.ones_like(u)))  # fmt: skip
+        jtj = jac.T @ jac
+        jtr = jac.T @ res
+        step_ok = False
+        for _ in range(8):
+            try:
+                delta = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-9), -jtr)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            q = p + delta
+            q[3] = max(q[3], 0.2)
+            q[2] = max(q[2], 0.3)
+            res_q, ux_q, uy_q, u_q = residual(q)
+            cost_q = float(res_q @ res_q)
+            if cost_q < cost:
+                p, res, ux, uy, u, cost = q, res_q, ux_q, uy_q, u_q, cost_q
+                lam = max(lam / 10, 1e-7)
+                step_ok = True
+                break
+            lam *= 10
+        if not step_ok or float(np.abs(delta[:2]).max()) < 1e-5:
+            break
+    return float(p[0]), float(p[1])

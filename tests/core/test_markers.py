@@ -1,0 +1,363 @@
+"""Tests of core.markers on rendered ground truth.
+
+The images are rendered here (not by the simulator): supersampled anti-aliased
+discs at known sub-pixel centres, optionally streaked (linear motion,
+symmetric about the centre) and Gaussian-blurred, with seeded noise and, for
+compression, a real mp4v encode/decode through cv2.VideoWriter/VideoCapture.
+``bench/bench_markers.py`` reuses :func:`render_discs` and :func:`mp4v_roundtrip`.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from core.markers import (
+    CENTRE_METHODS,
+    MarkerDetections,
+    MarkerParams,
+    detect_markers,
+    params_for,
+)
+
+# ----------------------------------------------------------------- ground truth
+
+
+def render_discs(
+    size_wh: tuple[int, int],
+    centres_xy_px: np.ndarray,
+    diameters_px: np.ndarray | float,
+    *,
+    peak: np.ndarray | float = 200.0,
+    background: float = 12.0,
+    blur_sigma_px: float = 0.0,
+    streak_xy_px: np.ndarray | tuple[float, float] = (0.0, 0.0),
+    noise_sigma: float = 0.0,
+    seed: int = 0,
+    supersample: int = 8,
+) -> np.ndarray:
+    """A uint8 (H, W) image of bright discs on a dark background.
+
+    Parameters
+    ----------
+    size_wh : (width, height) in px.
+    centres_xy_px : (N, 2) true centres, OpenCV (x, y), origin at the centre of
+        the top-left pixel.  For a streak, the centre of the motion segment.
+    diameters_px : (N,) or scalar disc diameters (px).
+    peak : (N,) or scalar brightness above the background (gray levels).
+    blur_sigma_px : Gaussian blur (defocus) sigma (px), applied after pixel
+        integration.
+    streak_xy_px : (N, 2) or (2,) motion during the exposure (px), centred on
+        the centre: the disc sweeps from ``c - s/2`` to ``c + s/2``.
+    noise_sigma : sigma of additive Gaussian noise (gray levels), seeded.
+    """
+    width, height = size_wh
+    centres = np.atleast_2d(np.asarray(centres_xy_px, dtype=np.float64))
+    n = centres.shape[0]
+    diam = np.broadcast_to(np.asarray(diameters_px, dtype=np.float64), (n,))
+    peaks = np.broadcast_to(np.asarray(peak, dtype=np.float64), (n,))
+    streaks = np.broadcast_to(np.asarray(streak_xy_px, dtype=np.float64), (n, 2))
+    canvas = np.zeros((height, width), dtype=np.float64)
+    ss = supersample
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    for (cx, cy), d, a, (sx, sy) in zip(centres, diam, peaks, streaks, strict=True):
+        r = 0.5 * d
+        reach = r + 0.5 * math.hypot(sx, sy) + 4 * blur_sigma_px + 3
+        x0, x1 = max(0, math.floor(cx - reach)), min(width, math.ceil(cx + reach) + 1)
+        y0, y1 = max(0, math.floor(cy - reach)), min(height, math.ceil(cy + reach) + 1)
+        xs = (np.arange(x0, x1)[:, None] + offs[None, :]).ravel()  # sub-sample x
+        ys = (np.arange(y0, y1)[:, None] + offs[None, :]).ravel()
+        n_steps = 1 if sx == 0 and sy == 0 else max(2, math.ceil(2 * math.hypot(sx, sy)))
+        cover = np.zeros((ys.size, xs.size))
+        for t in (np.arange(n_steps) + 0.5) / n_steps - 0.5:
+            px, py = cx + t * sx, cy + t * sy
+            cover += ((xs[None, :] - px) ** 2 + (ys[:, None] - py) ** 2) <= r * r
+        cover /= n_steps
+        pix = cover.reshape(y1 - y0, ss, x1 - x0, ss).mean(axis=(1, 3))
+        canvas[y0:y1, x0:x1] += a * pix
+    if blur_sigma_px > 0:
+        canvas = cv2.GaussianBlur(canvas, (0, 0), blur_sigma_px)
+    canvas += background
+    if noise_sigma > 0:
+        canvas += np.random.default_rng(seed).normal(0.0, noise_sigma, canvas.shape)
+    return np.clip(np.rint(canvas), 0, 255).astype(np.uint8)
+
+
+def mp4v_roundtrip(frames: list[np.ndarray], *, fps: float = 100.0) -> list[np.ndarray]:
+    """Encode gray frames with cv2.VideoWriter (mp4v) and decode them back to gray."""
+    height, width = frames[0].shape
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "clip.mp4")
+        writer = cv2.VideoWriter(path, cv2.VideoWriter.fourcc(*"mp4v"), fps, (width, height))
+        if not writer.isOpened():
+            raise RuntimeError("cv2.VideoWriter cannot write mp4v here")
+        for f in frames:
+            writer.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+        writer.release()
+        cap = cv2.VideoCapture(path)
+        out = []
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+        cap.release()
+    if len(out) != len(frames):
+        raise RuntimeError(f"mp4v round trip returned {len(out)} of {len(frames)} frames")
+    return out
+
+
+def random_centres(rng: np.random.Generator, n: int, size_wh: tuple[int, int]) -> np.ndarray:
+    """``n`` sub-pixel centres on a jittered grid, well apart and inside the image."""
+    w, h = size_wh
+    cols = math.ceil(math.sqrt(n * w / h))
+    rows = math.ceil(n / cols)
+    gx, gy = np.meshgrid((np.arange(cols) + 0.5) * w / cols, (np.arange(rows) + 0.5) * h / rows)
+    grid = np.column_stack((gx.ravel(), gy.ravel()))[:n]
+    return grid + rng.uniform(-3, 3, grid.shape)
+
+
+def match(found: MarkerDetections, truth_xy: np.ndarray, tol_px: float = 3.0) -> np.ndarray:
+    """(N_truth, 2) error found - truth of the nearest detection (NaN if none within tol)."""
+    err = np.full(truth_xy.shape, np.nan)
+    if len(found) == 0:
+        return err
+    d = np.linalg.norm(found.xy_px[None, :, :] - truth_xy[:, None, :], axis=2)
+    j = d.argmin(axis=1)
+    ok = d[np.arange(len(truth_xy)), j] < tol_px
+    err[ok] = found.xy_px[j[ok]] - truth_xy[ok]
+    return err
+
+
+SIZE = (320, 256)  # (width, height) px; small images keep the tests fast
+
+
+# ------------------------------------------------------------------- API checks
+
+
+def test_result_shapes_and_dtypes() -> None:
+    truth = np.array([[60.3, 50.7], [200.25, 180.5]])
+    img = render_discs(SIZE, truth, 12.0)
+    det = detect_markers(img)
+    assert len(det) == 2
+    assert det.xy_px.shape == (2, 2) and det.xy_px.dtype == np.float64
+    for name in ("diameter_px", "peak", "roundness", "background", "area_px", "fill", "quality"):
+        arr = getattr(det, name)
+        assert arr.shape == (2,) and arr.dtype == np.float64, name
+    assert det.shape_cov_px2.shape == (2, 2, 2)
+    np.testing.assert_allclose(np.sort(det.diameter_px), [12, 12], atol=1.0)  # px
+    np.testing.assert_allclose(det.peak, 200, atol=5)  # gray levels
+    np.testing.assert_allclose(det.background, 12, atol=1)  # gray levels
+    assert np.all(det.roundness > 0.9) and np.all(det.quality > 0.8)
+
+
+def test_empty_image_gives_empty_detections() -> None:
+    det = detect_markers(np.full((64, 80), 10, np.uint8))
+    assert len(det) == 0 and det.xy_px.shape == (0, 2) and det.shape_cov_px2.shape == (0, 2, 2)
+    noisy = render_discs(SIZE, np.zeros((0, 2)), 10.0, noise_sigma=3.0, seed=4)
+    assert len(detect_markers(noisy)) == 0
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((32, 32, 3), np.uint8),  # colour
+        np.zeros((32, 32), np.float32),  # float
+        np.zeros((32, 32), np.uint16),
+        np.zeros(32, np.uint8),
+        [[0, 1], [2, 3]],
+    ],
+)
+def test_rejects_non_gray_uint8_images(bad: object) -> None:
+    with pytest.raises(ValueError, match="uint8"):
+        detect_markers(bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("pts", [np.zeros((3,)), np.zeros((2, 3)), np.zeros((1, 2, 2))])
+def test_rejects_wrong_search_shape(pts: np.ndarray) -> None:
+    with pytest.raises(ValueError, match=r"\(K, 2\)"):
+        detect_markers(np.zeros((32, 32), np.uint8), search_xy_px=pts)
+
+
+def test_rejects_bad_radius_and_params() -> None:
+    img = np.zeros((32, 32), np.uint8)
+    with pytest.raises(ValueError, match="search_radius_px"):
+        detect_markers(img, search_xy_px=np.zeros((1, 2)), search_radius_px=0.0)
+    with pytest.raises(ValueError, match="diameter_px_min"):
+        MarkerParams(diameter_px_min=10, diameter_px_max=5)
+    with pytest.raises(ValueError, match="centre_method"):
+        MarkerParams(centre_method="magic")
+    with pytest.raises(ValueError):
+        params_for(6.0, 1500.0, (700.0, 300.0))
+
+
+def test_params_for_brackets_the_projected_size() -> None:
+    p = params_for(6.0, 1500.0, (400.0, 700.0))  # 6 mm sphere: 12.9 .. 22.5 px
+    assert p.diameter_px_min < 1500 * 6 / 700 < 1500 * 6 / 400 < p.diameter_px_max
+    assert params_for(6.0, 1500.0, (400.0, 700.0), min_contrast=40).min_contrast == 40
+
+
+# ------------------------------------------------------------------ conventions
+
+
+def test_pixel_centre_convention_x_is_column() -> None:
+    """A disc centred on pixel (row 20, column 10) is reported as x=10, y=20."""
+    img = np.full((40, 60), 10, np.uint8)
+    cv2.circle(img, (10, 20), 5, 220, -1)  # OpenCV draws at (x, y) = (col, row)
+    assert img[20, 10] == 220 and img[10, 20] == 10
+    det = detect_markers(img)
+    assert len(det) == 1
+    np.testing.assert_allclose(det.xy_px[0], [10.0, 20.0], atol=1e-6)  # px, symmetric disc
+
+
+def test_transposed_image_swaps_x_and_y() -> None:
+    truth = np.array([[70.37, 40.81], [150.62, 201.13]])
+    img = render_discs(SIZE, truth, 11.0, blur_sigma_px=0.7)
+    det = detect_markers(img)
+    det_t = detect_markers(np.ascontiguousarray(img.T))
+    a = det.xy_px[np.lexsort(det.xy_px.T[::-1])]
+    b = det_t.xy_px[:, ::-1][np.lexsort(det_t.xy_px[:, ::-1].T[::-1])]
+    np.testing.assert_allclose(a, b, atol=1e-3)  # px (window placement follows raster order)
+    np.testing.assert_allclose(a, truth[np.lexsort(truth.T[::-1])], atol=0.05)  # px
+
+
+# ------------------------------------------------------------------ accuracy
+
+
+@pytest.fixture(scope="module")
+def clean_field() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(1)
+    truth = random_centres(rng, 20, SIZE)
+    diam = rng.uniform(8, 20, len(truth))
+    return render_discs(SIZE, truth, diam, blur_sigma_px=0.6), truth
+
+
+@pytest.mark.parametrize("method", CENTRE_METHODS)
+def test_noise_free_centres_are_exact(method: str, clean_field: tuple) -> None:
+    img, truth = clean_field
+    det = detect_markers(img, params=MarkerParams(centre_method=method))
+    err = match(det, truth)
+    assert len(det) == len(truth) and np.isfinite(err).all()
+    assert np.abs(err).max() <= 0.02, method  # px, noise-free 8-20 px discs
+
+
+@pytest.mark.parametrize("method", CENTRE_METHODS)
+def test_noisy_centres_within_tolerance(method: str) -> None:
+    rng = np.random.default_rng(2)
+    truth = random_centres(rng, 20, SIZE)
+    img = render_discs(SIZE, truth, rng.uniform(8, 20, 20), peak=150, blur_sigma_px=0.8,
+                       noise_sigma=4.0, seed=3)  # fmt: skip
+    err = match(detect_markers(img, params=MarkerParams(centre_method=method)), truth)
+    assert np.isfinite(err).all()
+    rms = math.sqrt(np.mean(np.sum(err**2, axis=1)))
+    assert rms <= 0.08, (method, rms)  # px, noise sigma 4 gray levels on a 150 peak
+
+
+def test_motion_blur_centre_is_the_mid_exposure_position() -> None:
+    rng = np.random.default_rng(5)
+    truth = random_centres(rng, 12, SIZE)
+    streaks = rng.uniform(-14, 14, (12, 2))  # up to ~20 px of motion in one exposure
+    img = render_discs(SIZE, truth, 12.0, streak_xy_px=streaks, blur_sigma_px=0.6,
+                       noise_sigma=2.0, seed=6)  # fmt: skip
+    det = detect_markers(img)
+    err = match(det, truth)
+    assert np.isfinite(err).all()
+    assert np.abs(err).max() <= 0.1  # px, streaks up to 20 px, noise sigma 2
+    # px: the width (a streak's half-maximum width is 0.87 d: its cross profile is the
+    # semicircular chord of the disc), never the length
+    assert np.all((det.diameter_px > 9.5) & (det.diameter_px < 13.5))
+
+
+@pytest.fixture(scope="module")
+def compressed_frames() -> tuple[list[np.ndarray], np.ndarray]:
+    rng = np.random.default_rng(7)
+    truth = [random_centres(rng, 16, (640, 512)) for _ in range(3)]
+    frames = [
+        render_discs((640, 512), t, 13.0, peak=190, blur_sigma_px=0.8, noise_sigma=2.0, seed=i)
+        for i, t in enumerate(truth)
+    ]
+    return mp4v_roundtrip(frames), np.array(truth)
+
+
+def test_mp4v_compressed_centres_within_tolerance(compressed_frames: tuple) -> None:
+    frames, truth = compressed_frames
+    errs = np.concatenate([match(detect_markers(f), t) for f, t in zip(frames, truth, strict=True)])
+    assert np.isfinite(errs).all()  # every marker found after compression
+    rms = math.sqrt(np.mean(np.sum(errs**2, axis=1)))
+    assert rms <= 0.15, rms  # px, mp4v at OpenCV's default quality, noise sigma 2
+
+
+# ------------------------------------------------------------------ distractors
+
+
+def test_elongated_streak_and_huge_glare_are_rejected() -> None:
+    img = render_discs(SIZE, np.array([[80.4, 60.6]]), 12.0, blur_sigma_px=0.6)
+    cv2.line(img, (150, 40), (280, 70), 230, 3)  # thin line-like glint, 130 px long
+    cv2.circle(img, (220, 190), 40, 255, -1)  # saturated glare blob, 80 px wide
+    cv2.circle(img, (60, 200), 1, 200, -1)  # 3 px speck below the size limit? (kept if >= 3)
+    det = detect_markers(img, params=MarkerParams(diameter_px_min=5.0))
+    assert len(det) == 1
+    np.testing.assert_allclose(det.xy_px[0], [80.4, 60.6], atol=0.02)  # px
+
+
+def test_dim_and_ragged_blobs_are_rejected() -> None:
+    img = render_discs(SIZE, np.array([[80.4, 60.6], [200.0, 60.0]]), 12.0, peak=[200, 12])
+    pts = np.array([[150, 150], [170, 150], [150, 170], [190, 190], [150, 190]], np.int32)
+    cv2.polylines(img, [pts], False, 200, 3)  # ragged hook-shaped glint
+    det = detect_markers(img)
+    assert len(det) == 1
+    np.testing.assert_allclose(det.xy_px[0], [80.4, 60.6], atol=0.02)  # px
+
+
+def test_two_markers_close_together_are_both_found() -> None:
+    truth = np.array([[100.3, 100.6], [114.9, 103.2]])  # 12 px discs, ~2.8 px gap
+    img = render_discs(SIZE, truth, 12.0, blur_sigma_px=0.6, noise_sigma=1.0, seed=8)
+    det = detect_markers(img)
+    err = match(det, truth)
+    assert len(det) == 2 and np.isfinite(err).all()
+    assert np.abs(err).max() <= 0.1  # px, the neighbour's halo is masked out
+
+
+def test_markers_touching_the_border() -> None:
+    # fully inside but 1 px from the border: found and exact; cut by the border: rejected
+    truth_in = np.array([[6.7, 128.2], [160.4, 249.1]])
+    truth_cut = np.array([[316.0, 40.0], [100.0, 1.5]])
+    img = render_discs(SIZE, np.vstack((truth_in, truth_cut)), 10.0)
+    det = detect_markers(img)
+    err = match(det, truth_in)
+    assert len(det) == 2 and np.abs(err).max() <= 0.02  # px
+    det_all = detect_markers(img, params=MarkerParams(reject_border=False))
+    assert len(det_all) == 4  # the cut ones are reported when asked for (biased centres)
+
+
+# ------------------------------------------------------------------ windowed search
+
+
+def test_windowed_search_matches_full_frame() -> None:
+    rng = np.random.default_rng(9)
+    truth = random_centres(rng, 12, SIZE)
+    img = render_discs(SIZE, truth, rng.uniform(8, 18, 12), blur_sigma_px=0.7,
+                       noise_sigma=2.0, seed=10)  # fmt: skip
+    full = detect_markers(img)
+    predicted = truth[:5] + rng.uniform(-6, 6, (5, 2))
+    win = detect_markers(img, search_xy_px=predicted, search_radius_px=12.0)
+    assert len(win) == 5
+    for xy in win.xy_px:
+        d = np.linalg.norm(full.xy_px - xy, axis=1)
+        assert d.min() <= 1e-9  # px, same measurement code on the same pixels
+    # a prediction far from any marker finds nothing; NaN rows are skipped
+    empty = detect_markers(img, search_xy_px=np.array([[5.0, 5.0], [np.nan, np.nan]]),
+                           search_radius_px=4.0)  # fmt: skip
+    assert len(empty) == 0
+
+
+def test_windowed_search_respects_the_radius() -> None:
+    truth = np.array([[100.0, 100.0], [130.0, 100.0]])
+    img = render_discs(SIZE, truth, 10.0)
+    det = detect_markers(img, search_xy_px=np.array([[104.0, 100.0]]), search_radius_px=10.0)
+    assert len(det) == 1 and abs(det.xy_px[0, 0] - 100.0) < 0.02  # px
