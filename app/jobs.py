@@ -1,0 +1,415 @@
+"""A durable job queue in the database, with leases, heartbeats and bounded retries.
+
+Life cycle of a :class:`app.models.Job` row::
+
+    queued ──claim──> running ──complete──> succeeded
+      ^                  │ │
+      └──retry (delay)───┘ └──fail (domain error, or attempts used up)──> failed
+
+- **enqueue** (:func:`enqueue`) adds a row in the caller's transaction, so that
+  "trial stored" and "job queued" commit together.
+- **claim** (:func:`claim_next`) takes the oldest claimable job in ONE
+  statement: ``UPDATE jobs ... WHERE id = (SELECT id ... LIMIT 1 [FOR UPDATE
+  SKIP LOCKED]) RETURNING ...``. PostgreSQL skips rows other workers are
+  claiming; SQLite serialises writers, so both are race-free. Claimable means
+  ``queued`` and due, or ``running`` with an **expired lease** (its worker died)
+  and attempts left. Each claim gets a fresh, unique ``lease_owner`` token and
+  increments ``attempts``.
+- **heartbeat** (:func:`heartbeat`) extends the lease and stores progress; it
+  raises :class:`LeaseLostError` when the lease now belongs to someone else.
+- **complete** (:func:`complete`) marks success *inside the transaction that
+  stores the job's effect* (e.g. the Result row), guarded by the lease owner:
+  a stale worker whose job was re-claimed gets :class:`LeaseLostError` and its
+  whole transaction is rolled back. Together with ``results.trial_id UNIQUE``
+  this makes every job's effect happen exactly once.
+- **fail** (:func:`fail`) stores a user-facing sentence (never a traceback);
+  retryable failures go back to ``queued`` after a delay until
+  ``max_attempts`` is reached.
+- **reap** (:func:`reap_expired`) fails jobs whose lease expired with no
+  attempts left (a job that kills its worker every time).
+
+Timestamps come from the worker's clock (UTC): machines sharing a PostgreSQL
+database must keep their clocks synchronised (NTP) to well under the lease.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import and_, or_, select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.models import Calibration, Job, Trial, utcnow
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_ATTEMPTS = 3
+
+
+class LeaseLostError(Exception):
+    """This worker no longer holds the job (it was re-claimed, finished or removed)."""
+
+
+@dataclass(frozen=True)
+class ClaimedJob:
+    """A snapshot of a job as claimed by one worker."""
+
+    id: int
+    kind: str
+    payload: dict[str, Any]
+    trial_id: int | None
+    calibration_id: int | None
+    attempts: int
+    """Including this one (1 on the first attempt)."""
+    max_attempts: int
+    lease_owner: str
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def attempts_left(self) -> int:
+        return self.max_attempts - self.attempts
+
+
+def new_lease_owner(worker_name: str) -> str:
+    """A unique token for one claim by ``worker_name``."""
+    return f"{worker_name[:80]}:{uuid.uuid4().hex[:12]}"
+
+
+def enqueue(
+    db: Session,
+    kind: str,
+    *,
+    trial_id: int | None = None,
+    calibration_id: int | None = None,
+    payload: dict[str, Any] | None = None,
+    max_attempts: int = DEFAULT_MAX_ATTEMPTS,
+) -> Job:
+    """Add a queued job in the caller's transaction (flushed, so ``job.id`` is set).
+
+    The caller commits, together with whatever the job refers to.
+    """
+    if not kind:
+        raise ValueError("kind must be a non-empty string")
+    if max_attempts < 1:
+        raise ValueError(f"max_attempts must be >= 1, got {max_attempts}")
+    job = Job(
+        kind=kind,
+        trial_id=trial_id,
+        calibration_id=calibration_id,
+        payload=dict(payload or {}),
+        max_attempts=max_attempts,
+        status="queued",
+        run_after=utcnow(),
+    )
+    db.add(job)
+    db.flush()
+    return job
+
+
+def _claimable(now: datetime) -> Any:
+    return or_(
+        and_(Job.status == "queued", Job.run_after <= now),
+        and_(
+            Job.status == "running",
+            Job.lease_expires_at < now,
+            Job.attempts < Job.max_attempts,
+        ),
+    )
+
+
+def claim_next(
+    sessions: sessionmaker[Session],
+    *,
+    worker_name: str,
+    lease_s: float,
+    kinds: tuple[str, ...] | list[str] | None = None,
+    now: datetime | None = None,
+) -> ClaimedJob | None:
+    """Claim the oldest claimable job (of ``kinds``, if given); None when there is none.
+
+    Commits its own transaction. The linked trial (if any) becomes ``running``.
+    """
+    if lease_s <= 0:
+        raise ValueError(f"lease_s must be > 0, got {lease_s}")
+    now = now or utcnow()
+    owner = new_lease_owner(worker_name)
+    condition = _claimable(now)
+    if kinds is not None:
+        condition = and_(condition, Job.kind.in_(list(kinds)))
+    candidate = (
+        select(Job.id)
+        .where(condition)
+        .order_by(Job.id)
+        .limit(1)
+        .with_for_update(skip_locked=True)
+        .scalar_subquery()
+    )
+    stmt = (
+        update(Job)
+        .where(Job.id == candidate, condition)
+        .values(
+            status="running",
+            lease_owner=owner,
+            lease_expires_at=now + timedelta(seconds=lease_s),
+            heartbeat_at=now,
+            started_at=now,
+            attempts=Job.attempts + 1,
+            progress=0.0,
+            stage="starting",
+        )
+        .returning(
+            Job.id,
+            Job.kind,
+            Job.payload,
+            Job.trial_id,
+            Job.calibration_id,
+            Job.attempts,
+            Job.max_attempts,
+        )
+        .execution_options(synchronize_session=False)
+    )
+    with sessions() as db, db.begin():
+        row = db.execute(stmt).first()
+        if row is None:
+            return None
+        if row.trial_id is not None:
+            db.execute(
+                update(Trial)
+                .where(Trial.id == row.trial_id)
+                .values(status="running")
+                .execution_options(synchronize_session=False)
+            )
+    claimed = ClaimedJob(
+        id=row.id,
+        kind=row.kind,
+        payload=dict(row.payload or {}),
+        trial_id=row.trial_id,
+        calibration_id=row.calibration_id,
+        attempts=row.attempts,
+        max_attempts=row.max_attempts,
+        lease_owner=owner,
+    )
+    log.info(
+        "claimed job %d (%s), attempt %d of %d, as %s",
+        claimed.id,
+        claimed.kind,
+        claimed.attempts,
+        claimed.max_attempts,
+        owner,
+    )
+    return claimed
+
+
+def _guard(job: ClaimedJob) -> Any:
+    return and_(Job.id == job.id, Job.lease_owner == job.lease_owner, Job.status == "running")
+
+
+def heartbeat(
+    sessions: sessionmaker[Session],
+    job: ClaimedJob,
+    *,
+    lease_s: float,
+    progress: float | None = None,
+    stage: str | None = None,
+) -> None:
+    """Extend the lease of ``job`` (and store progress); commits.
+
+    Raises
+    ------
+    LeaseLostError
+        When the job is no longer running under this claim.
+    """
+    now = utcnow()
+    values: dict[str, Any] = {
+        "heartbeat_at": now,
+        "lease_expires_at": now + timedelta(seconds=lease_s),
+    }
+    if progress is not None:
+        values["progress"] = min(max(float(progress), 0.0), 1.0)
+    if stage is not None:
+        values["stage"] = stage[:64]
+    with sessions() as db, db.begin():
+        result = db.execute(
+            update(Job)
+            .where(_guard(job))
+            .values(**values)
+            .execution_options(synchronize_session=False)
+        )
+        if result.rowcount != 1:  # type: ignore[attr-defined]
+            raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+
+
+def complete(db: Session, job: ClaimedJob) -> None:
+    """Mark ``job`` succeeded in the caller's transaction, if this claim still holds it.
+
+    Call it first in the transaction that stores the job's effect: on
+    PostgreSQL it locks the job row, on SQLite it takes the write lock, so no
+    other worker can re-claim the job before the transaction ends.
+
+    Raises
+    ------
+    LeaseLostError
+        When the job was re-claimed by another worker (or finished): roll back.
+    """
+    now = utcnow()
+    result = db.execute(
+        update(Job)
+        .where(_guard(job))
+        .values(
+            status="succeeded",
+            progress=1.0,
+            stage="done",
+            error=None,
+            finished_at=now,
+            heartbeat_at=now,
+            lease_expires_at=None,
+        )
+        .execution_options(synchronize_session=False)
+    )
+    if result.rowcount != 1:  # type: ignore[attr-defined]
+        raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+
+
+def _mark_targets_failed(db: Session, trial_id: int | None, calibration_id: int | None) -> None:
+    if trial_id is not None:
+        db.execute(
+            update(Trial)
+            .where(Trial.id == trial_id)
+            .values(status="failed")
+            .execution_options(synchronize_session=False)
+        )
+    if calibration_id is not None:
+        db.execute(
+            update(Calibration)
+            .where(Calibration.id == calibration_id, Calibration.status == "pending")
+            .values(status="failed")
+            .execution_options(synchronize_session=False)
+        )
+
+
+def fail(
+    sessions: sessionmaker[Session],
+    job: ClaimedJob,
+    message: str,
+    *,
+    retryable: bool,
+    retry_delay_s: float = 0.0,
+) -> str:
+    """Record a failure of this attempt; returns the job's new status.
+
+    ``message`` is the user-facing sentence kept in ``Job.error``. A retryable
+    failure with attempts left goes back to ``queued`` (due after
+    ``retry_delay_s × attempts``); otherwise the job, its trial and a pending
+    calibration become ``failed``.
+
+    Raises
+    ------
+    LeaseLostError
+        When this claim no longer holds the job (nothing is changed).
+    """
+    now = utcnow()
+    retry = retryable and job.attempts < job.max_attempts
+    with sessions() as db, db.begin():
+        if retry:
+            values: dict[str, Any] = {
+                "status": "queued",
+                "run_after": now + timedelta(seconds=retry_delay_s * job.attempts),
+                "lease_owner": None,
+                "lease_expires_at": None,
+                "stage": "waiting to retry",
+                "error": message,
+            }
+        else:
+            values = {
+                "status": "failed",
+                "finished_at": now,
+                "lease_expires_at": None,
+                "error": message,
+            }
+        result = db.execute(
+            update(Job)
+            .where(_guard(job))
+            .values(**values)
+            .execution_options(synchronize_session=False)
+        )
+        if result.rowcount != 1:  # type: ignore[attr-defined]
+            raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+        if retry:
+            if job.trial_id is not None:
+                db.execute(
+                    update(Trial)
+                    .where(Trial.id == job.trial_id)
+                    .values(status="queued")
+                    .execution_options(synchronize_session=False)
+                )
+        else:
+            _mark_targets_failed(db, job.trial_id, job.calibration_id)
+    return str(values["status"])
+
+
+WORKER_LOST_MESSAGE = (
+    "the worker measuring this recording stopped {attempts} times before finishing; "
+    "the recording may be too large for the server, ask the administrator to check the worker log."
+)
+
+
+def reap_expired(sessions: sessionmaker[Session], *, now: datetime | None = None) -> int:
+    """Fail running jobs whose lease expired with no attempts left; returns how many."""
+    now = now or utcnow()
+    with sessions() as db, db.begin():
+        rows = db.execute(
+            select(Job.id, Job.attempts, Job.trial_id, Job.calibration_id, Job.lease_owner).where(
+                Job.status == "running",
+                Job.lease_expires_at < now,
+                Job.attempts >= Job.max_attempts,
+            )
+        ).all()
+        reaped = 0
+        for row in rows:
+            result = db.execute(
+                update(Job)
+                .where(
+                    Job.id == row.id,
+                    Job.status == "running",
+                    Job.lease_owner == row.lease_owner,
+                    Job.lease_expires_at < now,
+                )
+                .values(
+                    status="failed",
+                    finished_at=now,
+                    lease_expires_at=None,
+                    error=WORKER_LOST_MESSAGE.format(attempts=row.attempts),
+                )
+                .execution_options(synchronize_session=False)
+            )
+            if result.rowcount == 1:  # type: ignore[attr-defined]
+                _mark_targets_failed(db, row.trial_id, row.calibration_id)
+                reaped += 1
+                log.warning("job %d failed: its lease expired after the last attempt", row.id)
+    return reaped
+
+
+def job_status(db: Session, job_id: int) -> dict[str, Any] | None:
+    """The public view of a job (``GET /api/v1/jobs/{id}``), or None if it does not exist."""
+    job = db.get(Job, job_id)
+    if job is None:
+        return None
+    return {
+        "id": job.id,
+        "kind": job.kind,
+        "status": job.status,
+        "progress": job.progress,
+        "stage": job.stage,
+        "error": job.error,
+        "attempts": job.attempts,
+        "max_attempts": job.max_attempts,
+        "trial_id": job.trial_id,
+        "calibration_id": job.calibration_id,
+        "created_at": job.created_at,
+        "started_at": job.started_at,
+        "finished_at": job.finished_at,
+    }

@@ -1,0 +1,483 @@
+"""The job worker: claims jobs from the queue and runs the pipeline on them.
+
+:func:`run_worker` loops: fail jobs whose worker died too often
+(:func:`app.jobs.reap_expired`), claim the next job, run its handler with a
+heartbeat thread keeping the lease alive, then store the outcome:
+
+- the handler's effect and "succeeded" in one transaction guarded by the lease
+  (:meth:`JobContext.finish`), so a job is done exactly once in effect;
+- a :class:`core.errors.BradyscopeError` or :class:`app.errors.AppError`
+  becomes the job's user-facing error, without retry (bad input stays bad);
+- any other exception is logged with its traceback and retried until
+  ``max_attempts``; the user sees a plain sentence, not the traceback;
+- a lost lease (another worker took the job over) drops the attempt silently.
+
+Handlers
+--------
+A handler is ``handler(ctx: JobContext) -> None`` registered per job kind
+(:data:`HANDLERS`; tests pass their own ``handlers=``). The real ones are
+``analyze_trial`` (``core.pipeline.analyze_recording`` → a :class:`Result`)
+and ``calibrate`` (``core.calibration.calibrate_stereo_from_paths`` → a ready
+:class:`Calibration`). ``core`` modules are imported inside the handlers.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from sqlalchemy import delete, select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from app import jobs
+from app.db import get_sessionmaker
+from app.errors import AppError, InvalidRequestError, NotFoundError
+from app.jobs import ClaimedJob, LeaseLostError
+from app.models import Calibration, Result, Trial, Video, calibration_for
+from app.settings import Settings
+from app.storage import Storage
+from core.errors import BradyscopeError
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[["JobContext"], None]
+
+UNEXPECTED_RETRY_MESSAGE = (
+    "an unexpected error interrupted attempt {attempt} of {max_attempts}; it will be retried."
+)
+UNEXPECTED_FINAL_MESSAGE = (
+    "an unexpected error stopped this job after {max_attempts} attempts; ask the administrator "
+    "to look up job {job_id} in the worker log."
+)
+PROGRESS_WRITE_INTERVAL_S = 0.5
+
+
+def default_worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class JobContext:
+    """What a handler gets: the claimed job, settings, storage, and the progress/finish hooks.
+
+    Attributes
+    ----------
+    job : ClaimedJob
+    settings : Settings
+    storage : Storage
+    sessions : sessionmaker
+        For the handler's own reads (keep transactions short).
+    """
+
+    def __init__(
+        self,
+        job: ClaimedJob,
+        *,
+        settings: Settings,
+        storage: Storage,
+        sessions: sessionmaker[Session],
+        stages: tuple[str, ...] = (),
+    ) -> None:
+        self.job = job
+        self.settings = settings
+        self.storage = storage
+        self.sessions = sessions
+        self.stages = stages
+        self.finished = False
+        self._lock = threading.Lock()
+        self._lost = threading.Event()
+        self._stage = "starting"
+        self._fraction = 0.0
+        self._last_write = 0.0
+
+    # ------------------------------------------------------------------ progress
+
+    @property
+    def lost(self) -> bool:
+        """True once the lease was found to belong to another worker."""
+        return self._lost.is_set()
+
+    def _overall(self, stage: str, done: int, total: int) -> float:
+        within = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
+        if stage in self.stages:
+            return (self.stages.index(stage) + within) / len(self.stages)
+        return within
+
+    def progress(self, stage: str, done: int, total: int) -> None:
+        """A ``core.progress.ProgressCallback``: records progress, extends the lease.
+
+        Writes to the database at most every 0.5 s (and on every stage change).
+        Raises :class:`LeaseLostError` when the job was taken over, which stops
+        the pipeline early.
+        """
+        if self.lost:
+            raise LeaseLostError(f"job {self.job.id} was taken over by another worker")
+        with self._lock:
+            changed = stage != self._stage
+            fraction = self._overall(stage, done, total)
+            # With known stages the fraction spans the whole job and never goes back;
+            # otherwise it is the current stage's own fraction.
+            self._fraction = max(self._fraction, fraction) if self.stages else fraction
+            self._stage = stage
+            due = time.monotonic() - self._last_write >= PROGRESS_WRITE_INTERVAL_S
+        if changed or due:
+            self.beat()
+
+    def beat(self) -> None:
+        """Heartbeat now: extend the lease and store the latest progress."""
+        with self._lock:
+            stage, fraction = self._stage, self._fraction
+            self._last_write = time.monotonic()
+        try:
+            jobs.heartbeat(
+                self.sessions,
+                self.job,
+                lease_s=self.settings.job_lease_s,
+                progress=fraction,
+                stage=stage,
+            )
+        except LeaseLostError:
+            self._lost.set()
+            raise
+
+    # ------------------------------------------------------------------ finishing
+
+    def finish(self, write: Callable[[Session], None] | None = None) -> None:
+        """Store the job's effect and mark it succeeded, in one transaction.
+
+        ``write(db)`` adds the effect (rows) to the transaction. If this worker
+        lost the lease meanwhile, nothing is stored and :class:`LeaseLostError`
+        is raised.
+        """
+        if self.finished:
+            raise ValueError(f"job {self.job.id} is already finished")
+        with self.sessions() as db, db.begin():
+            jobs.complete(db, self.job)  # first: locks the job row / takes the write lock
+            if write is not None:
+                write(db)
+        self.finished = True
+
+
+class _Heartbeat(threading.Thread):
+    """Keeps the lease of a running job alive while its handler works."""
+
+    def __init__(self, ctx: JobContext, period_s: float) -> None:
+        super().__init__(name=f"heartbeat-job-{ctx.job.id}", daemon=True)
+        self.ctx = ctx
+        self.period_s = period_s
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        while not self.done.wait(self.period_s):
+            try:
+                self.ctx.beat()
+            except LeaseLostError:
+                log.warning("job %d: lease lost; another worker has taken it over", self.ctx.job.id)
+                return
+            except Exception:  # a database hiccup: keep trying until the lease is lost
+                log.exception("job %d: heartbeat failed", self.ctx.job.id)
+
+
+# --------------------------------------------------------------------------- handlers
+
+
+def _trial_inputs(ctx: JobContext) -> dict[str, Any]:
+    """Everything the analysis of ``ctx.job.trial_id`` needs, read in one short transaction."""
+    with ctx.sessions() as db:
+        trial = db.get(Trial, ctx.job.trial_id) if ctx.job.trial_id is not None else None
+        if trial is None or trial.deleted_at is not None:
+            raise NotFoundError(f"trial {ctx.job.trial_id} was deleted; nothing to analyse.")
+        videos = {v.side: v for v in trial.videos}
+        missing = [side for side in ("left", "right") if side not in videos]
+        if missing:
+            raise InvalidRequestError(
+                f"trial {trial.id} has no {' and no '.join(missing)} video; upload the trial again."
+            )
+        cal = calibration_for(db, trial.session)
+        return {
+            "trial_id": trial.id,
+            "left": ctx.storage.absolute(videos["left"].path),
+            "right": ctx.storage.absolute(videos["right"].path),
+            "offset_frames": (
+                trial.offset_frames
+                if trial.offset_frames is not None
+                else ctx.job.payload.get("offset_frames")
+            ),
+            "calibration": {
+                "id": cal.id,
+                "rig_id": cal.rig_id,
+                "rig_name": cal.rig.name,
+                "version": cal.version,
+                "valid_from": cal.valid_from.isoformat(),
+                "rms_px": cal.rms_px,
+            },
+            "rig_json": cal.rig_json,
+        }
+
+
+def analyze_trial(ctx: JobContext) -> None:
+    """Measure a trial's two videos with the pipeline and store its :class:`Result`.
+
+    The markers CSV is written under ``files/results/`` before the transaction;
+    if the transaction is rejected (lease lost) the file is removed again. An
+    earlier result of the same trial (a re-analysis) is replaced.
+    """
+    from core.camera import rig_from_dict
+    from core.pipeline import analyze_recording, write_markers_csv
+
+    inputs = _trial_inputs(ctx)
+    cal_info = inputs["calibration"]
+    rig = rig_from_dict(
+        inputs["rig_json"],
+        source=f"calibration v{cal_info['version']} of rig {cal_info['rig_name']}",
+    )
+    analysis = analyze_recording(
+        rig,
+        inputs["left"],
+        inputs["right"],
+        offset_frames=inputs["offset_frames"],
+        progress=ctx.progress,
+    )
+    document = dict(analysis.result_document())
+    document.setdefault("calibration", cal_info)
+    with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
+        write_markers_csv(analysis, tmp_path)
+
+    replaced: list[str | None] = []
+
+    def write(db: Session) -> None:
+        old = db.scalars(select(Result).where(Result.trial_id == inputs["trial_id"])).first()
+        if old is not None:
+            replaced.append(old.markers_path)
+            db.execute(delete(Result).where(Result.id == old.id))
+            db.flush()
+        db.add(
+            Result(
+                trial_id=inputs["trial_id"],
+                job_id=ctx.job.id,
+                calibration_id=cal_info["id"],
+                document=document,
+                markers_path=markers_path,
+            )
+        )
+        db.execute(
+            update(Trial)
+            .where(Trial.id == inputs["trial_id"])
+            .values(status="succeeded")
+            .execution_options(synchronize_session=False)
+        )
+
+    try:
+        ctx.finish(write)
+    except BaseException:
+        ctx.storage.delete(markers_path)
+        raise
+    for path in replaced:
+        ctx.storage.delete(path)
+
+
+def calibrate(ctx: JobContext) -> None:
+    """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
+    from core.calibration import calibrate_stereo_from_paths
+
+    from core.boards import BoardSpec
+    from core.camera import rig_to_dict
+
+    with ctx.sessions() as db:
+        cal = db.get(Calibration, ctx.job.calibration_id) if ctx.job.calibration_id else None
+        if cal is None:
+            raise NotFoundError(f"calibration {ctx.job.calibration_id} no longer exists.")
+        videos = {
+            v.side: v for v in db.scalars(select(Video).where(Video.calibration_id == cal.id))
+        }
+        if set(videos) != {"left", "right"}:
+            raise InvalidRequestError(
+                f"calibration {cal.id} needs a left and a right board video; upload both."
+            )
+        board_doc = cal.board or ctx.job.payload.get("board")
+        if not board_doc:
+            raise InvalidRequestError(
+                f"calibration {cal.id} has no board description; give the board's kind, "
+                "cols, rows and square_mm."
+            )
+        left = ctx.storage.absolute(videos["left"].path)
+        right = ctx.storage.absolute(videos["right"].path)
+    board = BoardSpec.from_dict(board_doc)
+    outcome = calibrate_stereo_from_paths(left, right, board, progress=ctx.progress)
+    rig_doc = rig_to_dict(outcome.rig)
+    quality = _calibration_quality(outcome)
+    if quality:
+        rig_doc["quality"] = {**rig_doc.get("quality", {}), **quality}
+    rms_px = quality.get("rms_px")
+
+    def write(db: Session) -> None:
+        db.execute(
+            update(Calibration)
+            .where(Calibration.id == ctx.job.calibration_id)
+            .values(
+                status="ready",
+                rig_json=rig_doc,
+                quality=quality,
+                rms_px=float(rms_px) if rms_px is not None else None,
+            )
+            .execution_options(synchronize_session=False)
+        )
+
+    ctx.finish(write)
+
+
+def _calibration_quality(outcome: Any) -> dict[str, Any]:
+    """A JSON-ready quality dict from a calibration outcome (whatever form it reports)."""
+    for name in ("quality_document", "quality_dict", "to_quality"):
+        method = getattr(outcome, name, None)
+        if callable(method):
+            return dict(method())
+    quality = getattr(outcome, "quality", None)
+    if isinstance(quality, Mapping):
+        return dict(quality)
+    doc: dict[str, Any] = {}
+    for key in ("rms_px", "rms_left_px", "rms_right_px", "n_pairs", "n_frames_used"):
+        value = getattr(outcome, key, None)
+        if isinstance(value, int | float):
+            doc[key] = value
+    return doc
+
+
+HANDLERS: dict[str, Handler] = {"analyze_trial": analyze_trial, "calibrate": calibrate}
+STAGES: dict[str, tuple[str, ...]] = {}
+"""Ordered stage names per job kind, for a progress fraction that spans all stages."""
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+def run_job(
+    job: ClaimedJob,
+    *,
+    settings: Settings,
+    handler: Handler,
+    sessions: sessionmaker[Session] | None = None,
+    storage: Storage | None = None,
+) -> str:
+    """Run one claimed job to its outcome; returns the job's resulting status.
+
+    ``"lost"`` when another worker took the job over.
+    """
+    sessions = sessions or get_sessionmaker(settings)
+    storage = storage or Storage.from_settings(settings)
+    ctx = JobContext(
+        job, settings=settings, storage=storage, sessions=sessions, stages=STAGES.get(job.kind, ())
+    )
+    beat = _Heartbeat(ctx, settings.heartbeat_s)
+    beat.start()
+    try:
+        handler(ctx)
+        if not ctx.finished:
+            ctx.finish()
+        log.info("job %d (%s) succeeded", job.id, job.kind)
+        return "succeeded"
+    except LeaseLostError:
+        log.warning("job %d: abandoned; another worker holds it now", job.id)
+        return "lost"
+    except (BradyscopeError, AppError) as exc:
+        log.info("job %d (%s) failed: %s", job.id, job.kind, exc)
+        return _fail(sessions, job, str(exc), retryable=False, settings=settings)
+    except Exception:
+        log.exception("job %d (%s), attempt %d: unexpected error", job.id, job.kind, job.attempts)
+        if job.attempts < job.max_attempts:
+            message = UNEXPECTED_RETRY_MESSAGE.format(
+                attempt=job.attempts, max_attempts=job.max_attempts
+            )
+        else:
+            message = UNEXPECTED_FINAL_MESSAGE.format(max_attempts=job.max_attempts, job_id=job.id)
+        return _fail(sessions, job, message, retryable=True, settings=settings)
+    finally:
+        beat.done.set()
+        beat.join()
+
+
+def _fail(
+    sessions: sessionmaker[Session],
+    job: ClaimedJob,
+    message: str,
+    *,
+    retryable: bool,
+    settings: Settings,
+) -> str:
+    try:
+        return jobs.fail(
+            sessions,
+            job,
+            message,
+            retryable=retryable,
+            retry_delay_s=settings.job_retry_delay_s,
+        )
+    except LeaseLostError:
+        log.warning("job %d: failure not recorded; another worker holds it now", job.id)
+        return "lost"
+
+
+def run_worker(
+    settings: Settings,
+    *,
+    once: bool = False,
+    stop_event: threading.Event | None = None,
+    handlers: Mapping[str, Handler] | None = None,
+    worker_name: str | None = None,
+    max_jobs: int | None = None,
+) -> int:
+    """Run jobs until stopped; returns the number of jobs run.
+
+    Parameters
+    ----------
+    settings
+        The database must already be migrated (:func:`app.db.migrate`).
+    once
+        Drain the queue: run every job that can be claimed now, then return
+        (tests, cron). Otherwise wait ``settings.worker_poll_s`` when idle.
+    stop_event
+        Set it to stop after the current job (graceful shutdown).
+    handlers
+        Handler per job kind (default :data:`HANDLERS`); only these kinds are claimed.
+    worker_name
+        Shown in ``Job.lease_owner`` (default ``host:pid``).
+    max_jobs
+        Return after this many jobs.
+    """
+    handlers = dict(HANDLERS if handlers is None else handlers)
+    stop_event = stop_event or threading.Event()
+    worker_name = worker_name or default_worker_name()
+    sessions = get_sessionmaker(settings)
+    storage = Storage.from_settings(settings)
+    count = 0
+    log.info("worker %s started (kinds: %s)", worker_name, ", ".join(sorted(handlers)))
+    while not stop_event.is_set() and (max_jobs is None or count < max_jobs):
+        try:
+            jobs.reap_expired(sessions)
+            job = jobs.claim_next(
+                sessions,
+                worker_name=worker_name,
+                lease_s=settings.job_lease_s,
+                kinds=tuple(handlers),
+            )
+        except Exception:
+            if once:
+                raise
+            log.exception("worker %s: cannot reach the job queue; retrying", worker_name)
+            stop_event.wait(settings.worker_poll_s)
+            continue
+        if job is None:
+            if once:
+                break
+            stop_event.wait(settings.worker_poll_s)
+            continue
+        run_job(
+            job, settings=settings, handler=handlers[job.kind], sessions=sessions, storage=storage
+        )
+        count += 1
+    log.info("worker %s stopped after %d job(s)", worker_name, count)
+    return count
