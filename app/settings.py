@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -69,9 +70,24 @@ class Settings(BaseSettings):
         return self.effective_database_url.startswith("sqlite")
 
     @property
+    def display_database(self) -> str:
+        """The database URL with any password hidden (for messages and logs)."""
+        from sqlalchemy.engine import make_url
+
+        try:
+            return make_url(self.effective_database_url).render_as_string(hide_password=True)
+        except Exception:  # malformed URL: SQLAlchemy will report it when connecting
+            return "the configured database"
+
+    @property
     def heartbeat_s(self) -> float:
         """Heartbeat period of a running job (seconds)."""
         return self.job_heartbeat_s if self.job_heartbeat_s is not None else self.job_lease_s / 4
+
+
+def settings_with(**overrides: Any) -> Settings:
+    """Settings from the environment, with the non-None ``overrides`` on top (CLI options)."""
+    return Settings(**{k: v for k, v in overrides.items() if v is not None})
 
 
 @lru_cache(maxsize=1)

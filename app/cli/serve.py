@@ -1,14 +1,127 @@
-"""`bradyscope serve` (INTERFACES.md)."""
+"""`bradyscope serve`: the web application plus an embedded worker (INTERFACES.md).
+
+Start-up order: bring the database to the newest migration (once, under the
+start-up lock), optionally seed the demo (``--demo``), start the embedded
+worker thread(s), then serve HTTP with uvicorn until SIGINT/SIGTERM. Heavier
+sites run ``--workers-in-process 0`` here and separate ``bradyscope worker``
+processes.
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
+import sys
+import threading
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from app.settings import Settings, settings_with
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="(not built yet)")
+    p = sub.add_parser(
+        "serve",
+        help="run the web application and an embedded job worker",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    p.add_argument(
+        "--data-dir", type=Path, default=None, help="overrides BRADYSCOPE_DATA_DIR (default ./data)"
+    )
+    p.add_argument(
+        "--demo",
+        action="store_true",
+        help="create a demo clinician, patient, sessions and rig (credentials are printed)",
+    )
+    p.add_argument(
+        "--workers-in-process",
+        type=int,
+        default=1,
+        metavar="N",
+        help="job worker threads inside this process (default 1; 0 = use 'bradyscope worker')",
+    )
     p.set_defaults(func=run)
 
 
+def format_demo_info(info: Any) -> str:
+    """What ``seed_demo`` returned, as lines for the terminal."""
+    if info is None:
+        return "demo data ready."
+    if isinstance(info, Mapping):
+        return "\n".join(f"  {key}: {value}" for key, value in info.items())
+    if hasattr(info, "__dataclass_fields__"):
+        return "\n".join(f"  {name}: {getattr(info, name)}" for name in info.__dataclass_fields__)
+    return str(info)
+
+
+def start_embedded_workers(
+    settings: Settings, count: int, stop_event: threading.Event
+) -> list[threading.Thread]:
+    """Start ``count`` worker threads that run until ``stop_event`` is set."""
+    from app.worker import default_worker_name, run_worker
+
+    threads = []
+    for i in range(count):
+        thread = threading.Thread(
+            target=run_worker,
+            args=(settings,),
+            kwargs={"stop_event": stop_event, "worker_name": f"{default_worker_name()}:w{i}"},
+            name=f"bradyscope-worker-{i}",
+            daemon=True,
+        )
+        thread.start()
+        threads.append(thread)
+    return threads
+
+
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("bradyscope serve is not built yet")
+    import uvicorn
+
+    from app.db import migrate
+    from app.errors import InvalidRequestError
+
+    if args.workers_in_process < 0:
+        raise InvalidRequestError("--workers-in-process must be 0 or more.")
+    settings = settings_with(data_dir=args.data_dir)
+    logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
+    migrate(settings)
+
+    if args.demo:
+        from app.demo import seed_demo
+
+        info = seed_demo(settings)
+        print("bradyscope demo:\n" + format_demo_info(info), flush=True)
+
+    from app.main import create_app
+
+    app = create_app(settings)
+    stop_event = threading.Event()
+    threads = start_embedded_workers(settings, args.workers_in_process, stop_event)
+    print(
+        f"bradyscope serve: http://{args.host}:{args.port}/  (data: {settings.data_dir}, "
+        f"database: {settings.display_database}, {len(threads)} embedded worker(s))",
+        file=sys.stderr,
+        flush=True,
+    )
+    config = uvicorn.Config(
+        app,
+        host=args.host,
+        port=args.port,
+        log_level="debug" if args.verbose else "info",
+        proxy_headers=True,
+        server_header=False,
+    )
+    try:
+        uvicorn.Server(config).run()
+    finally:
+        stop_event.set()
+        for thread in threads:
+            # A running job finishes its current step; if it takes longer, the
+            # process exits and the job's lease expires so another worker resumes it.
+            thread.join(timeout=10)
+    return 0

@@ -1,14 +1,68 @@
-"""`bradyscope worker` (INTERFACES.md)."""
+"""`bradyscope worker`: run analysis and calibration jobs (INTERFACES.md).
+
+Start as many as the machine has cores, here or on other machines sharing a
+PostgreSQL database (``BRADYSCOPE_DATABASE_URL``) and the data directory
+(``BRADYSCOPE_DATA_DIR``, e.g. on a shared file system). SIGTERM or Ctrl-C stop
+the worker after its current job; a worker killed outright has its job taken
+over by another worker once the job's lease expires.
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+
+from app.settings import Settings, settings_with
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("worker", help="(not built yet)")
+    p = sub.add_parser(
+        "worker",
+        help="run analysis and calibration jobs (more workers, or on other machines)",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+    )
+    p.add_argument(
+        "--data-dir", type=Path, default=None, help="overrides BRADYSCOPE_DATA_DIR (default ./data)"
+    )
+    p.add_argument("--once", action="store_true", help="run the jobs queued now, then exit")
+    p.add_argument("--name", default=None, help="worker name shown in job rows (default host:pid)")
     p.set_defaults(func=run)
 
 
+def install_stop_signals(stop_event: threading.Event) -> None:
+    """First SIGTERM/SIGINT: stop after the current job. Second: stop now."""
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        if stop_event.is_set():
+            raise KeyboardInterrupt
+        print(
+            "bradyscope worker: stopping after the current job (signal again to stop now).",
+            file=sys.stderr,
+        )
+        stop_event.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("bradyscope worker is not built yet")
+    from app.db import migrate
+    from app.worker import run_worker
+
+    settings: Settings = settings_with(data_dir=args.data_dir)
+    logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
+    migrate(settings)
+    stop_event = threading.Event()
+    install_stop_signals(stop_event)
+    print(
+        f"bradyscope worker: polling the job queue of {settings.display_database}.",
+        file=sys.stderr,
+    )
+    count = run_worker(settings, once=args.once, stop_event=stop_event, worker_name=args.name)
+    print(f"bradyscope worker: stopped after {count} job(s).", file=sys.stderr)
+    return 0
