@@ -1,0 +1,446 @@
+"""Exports of one trial for other systems: markers CSV, C3D, TRC and a FHIR R4 Bundle.
+
+- ``markers.csv`` is the long-format table of INTERFACES.md (one row per frame
+  and marker); :func:`read_markers_csv` and :func:`markers_csv` read and write it.
+- C3D (through ezc3d) and TRC carry the same marker trajectories for motion
+  capture tools (Vicon Nexus, Mokka, OpenSim...). Coordinates are in mm in the
+  rig's world frame (the left camera's frame: x right, y down, z away from the
+  camera); missing samples are marked invalid (C3D residual -1, empty TRC cells).
+- :func:`fhir_bundle` builds a FHIR R4 Bundle (a DiagnosticReport, one
+  Observation per metric with UCUM units, the Patient by its pseudonymous
+  code and the PDF report as ``presentedForm``), validated with the R4B models
+  of ``fhir.resources`` (R4B 4.3 is wire-compatible with R4 4.0.1 for these
+  resources).
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import io
+import math
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from app.reports import ReportData
+
+MARKERS_CSV_HEADER = (
+    "frame",
+    "time_s",
+    "marker",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "status",
+    "reprojection_px",
+)
+STATUSES = ("measured", "interpolated", "missing")
+
+# Identifier systems of bradyscope's own codes (URNs: valid URIs that need no web server).
+PATIENT_CODE_SYSTEM = "urn:bradyscope:patient-code"
+METRIC_CODE_SYSTEM = "urn:bradyscope:finger-tapping-metric"
+REPORT_CODE_SYSTEM = "urn:bradyscope:report"
+UCUM_SYSTEM = "http://unitsofmeasure.org"
+LOINC_SYSTEM = "http://loinc.org"
+
+
+@dataclass(frozen=True)
+class MarkerTable:
+    """Marker trajectories of one trial, as read from ``markers.csv``.
+
+    Attributes
+    ----------
+    fps : float
+        Frame rate of the left video (Hz).
+    frames : (T,) int64
+        Left-video frame numbers, consecutive.
+    labels : tuple of M str
+        Marker names in column order (``thumb``, ``index``, ...).
+    positions_mm : (T, M, 3) float64
+        Positions in mm in the rig's world frame; NaN where missing.
+    status : (T, M) str
+        ``measured``, ``interpolated`` or ``missing``.
+    reprojection_px : (T, M) float64
+        Reprojection error of each measured sample (px); NaN when unknown.
+    """
+
+    fps: float
+    frames: NDArray[np.int64]
+    labels: tuple[str, ...]
+    positions_mm: NDArray[np.float64]
+    status: NDArray[np.str_]
+    reprojection_px: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        t = self.frames.shape[0]
+        m = len(self.labels)
+        if self.positions_mm.shape != (t, m, 3):
+            raise ValueError(f"positions_mm must be ({t}, {m}, 3), got {self.positions_mm.shape}")
+        if self.status.shape != (t, m) or self.reprojection_px.shape != (t, m):
+            raise ValueError(
+                f"status and reprojection_px must be ({t}, {m}), got "
+                f"{self.status.shape}, {self.reprojection_px.shape}"
+            )
+        if not self.fps > 0:
+            raise ValueError(f"fps must be positive, got {self.fps}")
+
+    @property
+    def time_s(self) -> NDArray[np.float64]:
+        """(T,) time of each frame in s (frame / fps)."""
+        return self.frames.astype(np.float64) / self.fps
+
+
+def read_markers_csv(
+    source: str | Path | io.TextIOBase, *, fps: float | None = None
+) -> MarkerTable:
+    """Read a ``markers.csv`` (INTERFACES.md) into a :class:`MarkerTable`.
+
+    Parameters
+    ----------
+    source : path or open text file
+    fps : float, optional
+        Frame rate; estimated from ``frame`` and ``time_s`` when not given.
+    """
+    if isinstance(source, str | Path):
+        with open(source, newline="", encoding="utf-8") as fh:
+            return read_markers_csv(fh, fps=fps)  # type: ignore[arg-type]
+    reader = csv.DictReader(source)
+    missing = [c for c in MARKERS_CSV_HEADER[:7] if c not in (reader.fieldnames or ())]
+    if missing:
+        raise ValueError(f"markers.csv lacks the columns {missing}")
+    rows = list(reader)
+    labels: list[str] = []
+    frames_seen: list[int] = []
+    for row in rows:
+        if row["marker"] not in labels:
+            labels.append(row["marker"])
+        frames_seen.append(int(row["frame"]))
+    frame_min = min(frames_seen) if frames_seen else 0
+    frame_max = max(frames_seen) if frames_seen else -1
+    frames = np.arange(frame_min, frame_max + 1, dtype=np.int64)
+    t, m = frames.size, len(labels)
+    pos = np.full((t, m, 3), np.nan)
+    status = np.full((t, m), "missing", dtype="<U12")
+    reproj = np.full((t, m), np.nan)
+    times = np.full(t, np.nan)
+    for row in rows:
+        i = int(row["frame"]) - frame_min
+        j = labels.index(row["marker"])
+        times[i] = float(row["time_s"])
+        st = row["status"]
+        status[i, j] = st
+        if st != "missing" and row["x_mm"] != "":
+            pos[i, j] = (float(row["x_mm"]), float(row["y_mm"]), float(row["z_mm"]))
+        rp = row.get("reprojection_px") or ""
+        if rp != "":
+            reproj[i, j] = float(rp)
+    if fps is None:
+        ok = np.isfinite(times) & (frames != 0)
+        if not ok.any():
+            raise ValueError("cannot infer fps from markers.csv; pass fps=")
+        fps = float(np.median(frames[ok] / times[ok]))
+    return MarkerTable(
+        fps=float(fps),
+        frames=frames,
+        labels=tuple(labels),
+        positions_mm=pos,
+        status=status,
+        reprojection_px=reproj,
+    )
+
+
+def _num(value: float, digits: int) -> str:
+    return "" if not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def markers_csv(table: MarkerTable) -> str:
+    """The ``markers.csv`` text of ``table`` (INTERFACES.md long format, header included)."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(MARKERS_CSV_HEADER)
+    time_s = table.time_s
+    for i, frame in enumerate(table.frames):
+        for j, name in enumerate(table.labels):
+            x, y, z = table.positions_mm[i, j]
+            st = str(table.status[i, j])
+            if st == "missing" or not np.isfinite(table.positions_mm[i, j]).all():
+                st, x, y, z = "missing", math.nan, math.nan, math.nan
+            writer.writerow(
+                (
+                    int(frame),
+                    f"{time_s[i]:.6g}",
+                    name,
+                    _num(x, 3),
+                    _num(y, 3),
+                    _num(z, 3),
+                    st,
+                    _num(float(table.reprojection_px[i, j]), 3),
+                )
+            )
+    return out.getvalue()
+
+
+def write_c3d(path: str | Path, table: MarkerTable) -> Path:
+    """Write the trajectories as a C3D file (ezc3d), in mm, frame rate ``table.fps``.
+
+    Missing samples get residual -1 (C3D's "invalid"); others residual 0 for
+    measured and 1 for interpolated samples... so readers can tell them apart.
+    The first frame number in the header is the first left-video frame + 1.
+    """
+    import ezc3d
+
+    path = Path(path)
+    c3d = ezc3d.c3d()
+    t, m = table.frames.size, len(table.labels)
+    pts = np.zeros((4, m, t))
+    pts[:3] = np.transpose(table.positions_mm, (2, 1, 0))
+    pts[3] = 1.0
+    invalid = ~np.isfinite(table.positions_mm).all(axis=2).T  # (M, T)
+    pts[:3, invalid] = 0.0
+    residuals = np.where(table.status.T == "interpolated", 1.0, 0.0)
+    residuals[invalid] = -1.0
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [float(table.fps)]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = list(table.labels)
+    c3d["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+    c3d["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = [
+        f"{name} fingertip marker, bradyscope rig frame (left camera)" for name in table.labels
+    ]
+    c3d["data"]["points"] = pts
+    meta = c3d["data"]["meta_points"]
+    meta["residuals"] = residuals[np.newaxis]
+    meta["camera_masks"] = np.zeros((7, m, t), dtype=bool)
+    c3d.add_parameter("MANUFACTURER", "COMPANY", "bradyscope")
+    c3d.write(str(path))
+    return path
+
+
+def write_trc(path: str | Path, table: MarkerTable) -> Path:
+    """Write the trajectories as an OpenSim TRC file (tab separated, mm).
+
+    Frame numbers start at 1 as the format expects; ``Time`` is the left-video
+    time in s. Missing samples are empty cells.
+    """
+    path = Path(path)
+    t, m = table.frames.size, len(table.labels)
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
+        "OrigDataStartFrame\tOrigNumFrames",
+        f"{table.fps:.6g}\t{table.fps:.6g}\t{t}\t{m}\tmm\t{table.fps:.6g}\t"
+        f"{int(table.frames[0]) + 1 if t else 1}\t{t}",
+        "Frame#\tTime\t" + "\t".join(f"{name}\t\t" for name in table.labels).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{k}\tY{k}\tZ{k}" for k in range(1, m + 1)),
+        "",
+    ]
+    time_s = table.time_s
+    for i in range(t):
+        cells = [str(i + 1), f"{time_s[i]:.6f}"]
+        for j in range(m):
+            cells.extend(_num(float(v), 4) for v in table.positions_mm[i, j])
+        lines.append("\t".join(cells))
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def read_trc(path: str | Path) -> tuple[float, tuple[str, ...], NDArray[np.float64]]:
+    """Read a TRC file written by :func:`write_trc`: ``(fps, labels, positions_mm (T, M, 3))``."""
+    lines = Path(path).read_text(encoding="utf-8").splitlines()
+    fps = float(lines[2].split("\t")[0])
+    labels = tuple(c for c in lines[3].split("\t")[2:] if c)
+    rows = [ln.split("\t") for ln in lines[6:] if ln.strip()]
+    m = len(labels)
+    pos = np.full((len(rows), m, 3), np.nan)
+    for i, cells in enumerate(rows):
+        values = [float(c) if c != "" else np.nan for c in cells[2 : 2 + 3 * m]]
+        values += [np.nan] * (3 * m - len(values))
+        pos[i] = np.asarray(values).reshape(m, 3)
+    return fps, labels, pos
+
+
+# --------------------------------------------------------------------------- FHIR
+
+
+def _observation(
+    key: str,
+    value: float,
+    *,
+    patient_ref: str,
+    effective: str,
+    hand: str,
+) -> dict[str, Any]:
+    from app.reports import METRICS
+
+    spec = METRICS.get(key)
+    label = spec.label if spec else key.replace("_", " ")
+    ucum = spec.ucum if spec else "1"
+    unit = spec.unit if spec else ""
+    obs: dict[str, Any] = {
+        "resourceType": "Observation",
+        "status": "final",
+        "category": [
+            {
+                "coding": [
+                    {
+                        "system": "http://terminology.hl7.org/CodeSystem/observation-category",
+                        "code": "exam",
+                        "display": "Exam",
+                    }
+                ]
+            }
+        ],
+        "code": {
+            "coding": [{"system": METRIC_CODE_SYSTEM, "code": key, "display": label}],
+            "text": f"{label} ({hand} hand)",
+        },
+        "subject": {"reference": patient_ref},
+        "effectiveDateTime": effective,
+        "bodySite": {"text": f"{hand} hand, thumb and index finger"},
+        "method": {"text": "Stereo-video finger tapping (MDS-UPDRS 3.4 task), bradyscope"},
+    }
+    if math.isfinite(value):
+        obs["valueQuantity"] = {
+            "value": round(float(value), 6),
+            "unit": unit or ucum,
+            "system": UCUM_SYSTEM,
+            "code": ucum,
+        }
+    else:
+        obs["dataAbsentReason"] = {
+            "coding": [
+                {
+                    "system": "http://terminology.hl7.org/CodeSystem/data-absent-reason",
+                    "code": "not-performed",
+                    "display": "Not Performed",
+                }
+            ]
+        }
+    if spec:
+        obs["note"] = [{"text": spec.definition}]
+    return obs
+
+
+def _iso(value: datetime) -> str:
+    if value.tzinfo is None:
+        value = value.replace(tzinfo=UTC)
+    return value.isoformat(timespec="seconds")
+
+
+def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
+    """A FHIR R4 ``collection`` Bundle for one trial.
+
+    Contents: the Patient (only its pseudonymous code as identifier), one
+    Observation per numeric metric (UCUM units, code system
+    ``urn:bradyscope:finger-tapping-metric``), and a DiagnosticReport that
+    references them and carries the PDF report as ``presentedForm``. The
+    result is validated with ``fhir.resources.R4B`` before it is returned.
+
+    Returns
+    -------
+    dict
+        JSON-ready Bundle.
+    """
+    from fhir.resources.R4B.bundle import Bundle
+
+    def urn() -> str:
+        return f"urn:uuid:{uuid.uuid4()}"
+
+    patient_url = urn()
+    effective = _iso(data.recorded_at)
+    issued = _iso(data.generated_at)
+    entries: list[dict[str, Any]] = [
+        {
+            "fullUrl": patient_url,
+            "resource": {
+                "resourceType": "Patient",
+                "identifier": [{"system": PATIENT_CODE_SYSTEM, "value": data.patient_code}],
+            },
+        }
+    ]
+    obs_urls: list[str] = []
+    metrics: Mapping[str, Any] = data.result.get("metrics", {}) if data.result else {}
+    for key, value in metrics.items():
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        url = urn()
+        obs_urls.append(url)
+        entries.append(
+            {
+                "fullUrl": url,
+                "resource": _observation(
+                    key, float(value), patient_ref=patient_url, effective=effective, hand=data.hand
+                ),
+            }
+        )
+    report: dict[str, Any] = {
+        "resourceType": "DiagnosticReport",
+        "status": "final",
+        "category": [
+            {
+                "coding": [
+                    {
+                        "system": "http://terminology.hl7.org/CodeSystem/v2-0074",
+                        "code": "NRS",
+                        "display": "Nursing Service Measures",
+                    }
+                ],
+                "text": "Movement analysis",
+            }
+        ],
+        "code": {
+            "coding": [
+                {
+                    "system": REPORT_CODE_SYSTEM,
+                    "code": "finger-tapping",
+                    "display": "Instrumented finger tapping (MDS-UPDRS 3.4)",
+                }
+            ],
+            "text": f"Instrumented finger tapping, {data.hand} hand",
+        },
+        "subject": {"reference": patient_url},
+        "effectiveDateTime": effective,
+        "issued": issued,
+        "result": [{"reference": u} for u in obs_urls],
+        "conclusion": _conclusion(data),
+    }
+    if pdf_bytes is not None:
+        report["presentedForm"] = [
+            {
+                "contentType": "application/pdf",
+                "language": "en",
+                "data": base64.b64encode(pdf_bytes).decode("ascii"),
+                "title": f"bradyscope finger-tapping report {data.patient_code}",
+                "creation": issued,
+            }
+        ]
+    entries.append({"fullUrl": urn(), "resource": report})
+    doc: dict[str, Any] = {
+        "resourceType": "Bundle",
+        "type": "collection",
+        "timestamp": issued,
+        "identifier": {"system": "urn:bradyscope:trial", "value": str(data.trial_id)},
+        "entry": entries,
+    }
+    Bundle.model_validate(doc)  # raises pydantic.ValidationError if the bundle is malformed
+    return doc
+
+
+def _conclusion(data: ReportData) -> str:
+    m = data.result.get("metrics", {}) if data.result else {}
+    parts = [f"{data.hand.capitalize()} hand, medication {data.medication_state}."]
+    if isinstance(m.get("tap_count"), int | float):
+        parts.append(f"{int(m['tap_count'])} taps")
+    if isinstance(m.get("frequency_hz"), int | float):
+        parts.append(f"at {m['frequency_hz']:.2f} Hz")
+    if isinstance(m.get("amplitude_mm_mean"), int | float):
+        parts.append(f"mean amplitude {m['amplitude_mm_mean']:.1f} mm")
+    if isinstance(m.get("amplitude_decrement_mm_per_tap"), int | float):
+        parts.append(f"decrement {m['amplitude_decrement_mm_per_tap']:+.2f} mm/tap")
+    return " ".join(parts[:1]) + " " + ", ".join(parts[1:]) + "." if len(parts) > 1 else parts[0]

@@ -1,0 +1,429 @@
+"""Plots of one trial and of a patient's trends, drawn with matplotlib as inline SVG.
+
+Every function returns an ``<svg>`` element as a string, ready to be placed in
+an HTML page or in the report (WeasyPrint renders inline SVG in the PDF).
+Text stays text (``svg.fonttype = "none"``) so the PDF's words are searchable,
+and element ids are prefixed per plot so that several plots can share a page.
+
+Lengths are in mm, times in s, velocities in mm/s, as everywhere in bradyscope.
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import date, datetime
+from typing import Any
+
+import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from numpy.typing import ArrayLike, NDArray
+
+matplotlib.use("Agg")
+
+# A calm, colour-blind-safe palette (Okabe–Ito) used by the pages too.
+COLOURS = {
+    "aperture": "#0b5d8c",
+    "interpolated": "#9aa5b1",
+    "tap": "#0b5d8c",
+    "hesitation": "#e69f00",
+    "halt": "#c0392b",
+    "opening": "#009e73",
+    "closing": "#cc79a7",
+    "thumb": "#d55e00",
+    "index": "#0072b2",
+    "left": "#0072b2",
+    "right": "#d55e00",
+    "trend": "#555555",
+}
+
+_RC = {
+    "svg.fonttype": "none",
+    "svg.hashsalt": "bradyscope",
+    "font.family": "DejaVu Sans",
+    "font.size": 9.0,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "axes.grid": True,
+    "grid.color": "#e3e7eb",
+    "grid.linewidth": 0.6,
+    "axes.edgecolor": "#6b7785",
+    "axes.labelcolor": "#1f2933",
+    "xtick.color": "#3e4c59",
+    "ytick.color": "#3e4c59",
+    "legend.frameon": False,
+    "legend.fontsize": 8.0,
+}
+
+_counter = itertools.count()
+
+
+@dataclass(frozen=True)
+class PlotEvent:
+    """An interruption of the tapping rhythm to be marked on the aperture plot.
+
+    Attributes
+    ----------
+    kind : ``"hesitation"`` or ``"halt"``.
+    t_start_s, t_end_s : float
+        Start and end of the pause in seconds from the first frame.
+    """
+
+    kind: str
+    t_start_s: float
+    t_end_s: float
+
+
+@dataclass(frozen=True)
+class TrendPoint:
+    """One session's value of one metric for one hand, for the trend plots.
+
+    Attributes
+    ----------
+    recorded_at : date or datetime of the session.
+    hand : ``"left"`` or ``"right"``.
+    medication_state : ``"on"``, ``"off"`` or ``"unknown"``.
+    value : float (NaN or None when the trial has no value).
+    """
+
+    recorded_at: date | datetime
+    hand: str
+    medication_state: str
+    value: float | None
+
+
+def _figure(width_in: float, height_in: float) -> Figure:
+    with matplotlib.rc_context(_RC):
+        fig = Figure(figsize=(width_in, height_in), layout="constrained")
+    return fig
+
+
+_ID_RE = re.compile(r'id="([^"]+)"')
+
+
+def _to_svg(fig: Figure, *, title: str, name: str) -> str:
+    """Serialise ``fig`` as an inline ``<svg>`` with unique ids and an accessible title."""
+    buf = io.StringIO()
+    with matplotlib.rc_context(_RC):
+        fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
+    svg = buf.getvalue()
+    start = svg.find("<svg")
+    if start < 0:  # pragma: no cover - matplotlib always writes an <svg>
+        raise ValueError("matplotlib did not produce an SVG document")
+    svg = svg[start:]
+    prefix = f"{name}{next(_counter)}-"
+    ids = set(_ID_RE.findall(svg))
+    for old in sorted(ids, key=len, reverse=True):
+        svg = svg.replace(f'id="{old}"', f'id="{prefix}{old}"')
+        svg = svg.replace(f"#{old})", f"#{prefix}{old})")
+        svg = svg.replace(f'href="#{old}"', f'href="#{prefix}{old}"')
+    # Let the SVG scale with its container; keep the viewBox for the aspect ratio.
+    svg = re.sub(r'<svg([^>]*?)\swidth="[^"]*"\sheight="[^"]*"', r"<svg\1", svg, count=1)
+    safe_title = (
+        title.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
+    )
+    svg = svg.replace(
+        "<svg",
+        f'<svg role="img" aria-label="{safe_title}" class="plot plot-{name}" data-plot="{name}"',
+        1,
+    )
+    head_end = svg.find(">") + 1
+    svg = svg[:head_end] + f"<title>{safe_title}</title>" + svg[head_end:]
+    return svg
+
+
+def _empty(fig: Figure, message: str) -> None:
+    ax = fig.add_subplot()
+    ax.set_axis_off()
+    ax.text(0.5, 0.5, message, ha="center", va="center", color="#52606d", transform=ax.transAxes)
+
+
+def aperture_plot(
+    time_s: ArrayLike,
+    aperture_mm: ArrayLike,
+    *,
+    taps: Sequence[Mapping[str, Any]] = (),
+    events: Sequence[PlotEvent] = (),
+    interpolated: ArrayLike | None = None,
+) -> str:
+    """Aperture (thumb–index distance) over time with taps, hesitations and halts marked.
+
+    Parameters
+    ----------
+    time_s : (T,) float
+        Time of each frame in seconds.
+    aperture_mm : (T,) float
+        Thumb–index distance in mm; NaN where a marker is missing.
+    taps : sequence of tap dicts (``result.json`` ``taps``)
+        Each tap's peak (``t_max_aperture_s``) is marked with a dot and its
+        number; its start ``t_start_s`` with a faint tick.
+    events : sequence of PlotEvent
+        Hesitations (shaded amber) and halts (shaded red).
+    interpolated : (T,) bool, optional
+        Frames whose position was gap-filled; drawn in grey.
+
+    Returns
+    -------
+    str
+        An ``<svg>`` element.
+    """
+    t = np.asarray(time_s, dtype=np.float64)
+    a = np.asarray(aperture_mm, dtype=np.float64)
+    if t.ndim != 1 or a.shape != t.shape:
+        raise ValueError(f"time_s and aperture_mm must be (T,) arrays, got {t.shape}, {a.shape}")
+    fig = _figure(7.2, 2.6)
+    if t.size == 0 or not np.isfinite(a).any():
+        _empty(fig, "No aperture could be measured in this trial.")
+        return _to_svg(fig, title="Aperture over time: no data", name="aperture")
+    with matplotlib.rc_context(_RC):
+        ax = fig.add_subplot()
+        for ev in events:
+            colour = COLOURS["halt"] if ev.kind == "halt" else COLOURS["hesitation"]
+            ax.axvspan(ev.t_start_s, ev.t_end_s, color=colour, alpha=0.22, lw=0)
+        measured = a.copy()
+        if interpolated is not None:
+            interp = np.asarray(interpolated, dtype=bool)
+            if interp.shape != t.shape:
+                raise ValueError(f"interpolated must be (T,)={t.shape}, got {interp.shape}")
+            gap = a.copy()
+            # Keep one neighbour on each side so interpolated stretches join the line.
+            grown = interp | np.roll(interp, 1) | np.roll(interp, -1)
+            gap[~grown] = np.nan
+            measured[interp] = np.nan
+            if interp.any():
+                ax.plot(t, gap, color=COLOURS["interpolated"], lw=1.2, label="interpolated")
+        ax.plot(t, measured, color=COLOURS["aperture"], lw=1.2, label="aperture")
+        if taps:
+            t_peak = np.array([float(tp["t_max_aperture_s"]) for tp in taps])
+            a_peak = np.interp(t_peak, t[np.isfinite(a)], a[np.isfinite(a)])
+            ax.plot(t_peak, a_peak, "o", ms=3.5, color=COLOURS["tap"], label="tap peak")
+            for tp, x, y in zip(taps, t_peak, a_peak, strict=True):
+                ax.annotate(
+                    str(int(tp.get("index", 0)) + 1),
+                    (x, y),
+                    xytext=(0, 3),
+                    textcoords="offset points",
+                    ha="center",
+                    fontsize=6.5,
+                    color="#3e4c59",
+                )
+            for tp in taps:
+                ax.axvline(float(tp["t_start_s"]), color="#cbd2d9", lw=0.5, zorder=0)
+        kinds = {ev.kind for ev in events}
+        if "hesitation" in kinds:
+            ax.fill_between([], [], color=COLOURS["hesitation"], alpha=0.3, label="hesitation")
+        if "halt" in kinds:
+            ax.fill_between([], [], color=COLOURS["halt"], alpha=0.3, label="halt")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("thumb–index distance (mm)")
+        ax.set_xlim(float(t[0]), float(t[-1]))
+        ax.set_ylim(bottom=min(0.0, float(np.nanmin(a))), top=float(np.nanmax(a)) * 1.12)
+        fig.legend(loc="outside upper right", ncols=5)
+    n_h = sum(ev.kind == "hesitation" for ev in events)
+    n_halt = sum(ev.kind == "halt" for ev in events)
+    title = f"Aperture over time: {len(taps)} taps, {n_h} hesitation(s), {n_halt} halt(s) marked"
+    return _to_svg(fig, title=title, name="aperture")
+
+
+def tap_amplitude_plot(
+    taps: Sequence[Mapping[str, Any]],
+    *,
+    decrement_mm_per_tap: float | None = None,
+) -> str:
+    """Amplitude of each tap with the decrement line.
+
+    Parameters
+    ----------
+    taps : sequence of tap dicts with ``amplitude_mm``.
+    decrement_mm_per_tap : float, optional
+        Slope of the decrement line (``amplitude_decrement_mm_per_tap``). The
+        line passes through the mean tap; without a slope it is fitted here.
+    """
+    fig = _figure(3.6, 2.6)
+    amp = np.array([float(tp["amplitude_mm"]) for tp in taps], dtype=np.float64)
+    if amp.size == 0:
+        _empty(fig, "No taps were found.")
+        return _to_svg(fig, title="Tap amplitude: no taps", name="amplitude")
+    n = np.arange(1, amp.size + 1, dtype=np.float64)
+    with matplotlib.rc_context(_RC):
+        ax = fig.add_subplot()
+        ax.bar(n, amp, width=0.7, color="#9ec5e0", edgecolor=COLOURS["aperture"], lw=0.6)
+        slope = decrement_mm_per_tap
+        if slope is None or not math.isfinite(slope):
+            slope = float(np.polyfit(n, amp, 1)[0]) if amp.size >= 2 else 0.0
+        intercept = float(np.mean(amp) - slope * np.mean(n))
+        ax.plot(
+            n,
+            intercept + slope * n,
+            color=COLOURS["halt"],
+            lw=1.4,
+            label=f"decrement {slope:+.2f} mm/tap",
+        )
+        ax.set_xlabel("tap number")
+        ax.set_ylabel("amplitude (mm)")
+        ax.set_ylim(0, float(np.max(amp)) * 1.2)
+        ax.legend(loc="lower left", facecolor="white", frameon=True, edgecolor="none")
+        ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
+    return _to_svg(
+        fig,
+        title=f"Amplitude of {amp.size} taps with decrement line {slope:+.2f} mm per tap",
+        name="amplitude",
+    )
+
+
+def velocity_plot(taps: Sequence[Mapping[str, Any]]) -> str:
+    """Peak opening and closing velocity of each tap (mm/s)."""
+    fig = _figure(3.6, 2.6)
+    if not taps:
+        _empty(fig, "No taps were found.")
+        return _to_svg(fig, title="Opening and closing velocity: no taps", name="velocity")
+    n = np.arange(1, len(taps) + 1)
+    v_open = np.array([float(tp.get("opening_velocity_mm_s_max", np.nan)) for tp in taps])
+    v_close = np.array([float(tp.get("closing_velocity_mm_s_max", np.nan)) for tp in taps])
+    with matplotlib.rc_context(_RC):
+        ax = fig.add_subplot()
+        ax.plot(n, v_open, "o-", ms=3, lw=1.2, color=COLOURS["opening"], label="opening")
+        ax.plot(n, v_close, "s-", ms=3, lw=1.2, color=COLOURS["closing"], label="closing")
+        ax.set_xlabel("tap number")
+        ax.set_ylabel("peak velocity (mm/s)")
+        finite = np.concatenate([v_open, v_close])
+        finite = finite[np.isfinite(finite)]
+        ax.set_ylim(0, float(finite.max()) * 1.2 if finite.size else 1.0)
+        ax.legend(loc="lower left", ncols=2, facecolor="white", frameon=True, edgecolor="none")
+        ax.set_xticks(n[:: max(1, math.ceil(len(taps) / 10))])
+    return _to_svg(fig, title="Peak opening and closing velocity per tap", name="velocity")
+
+
+def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> str:
+    """Paths of the fingertips: front view (x–y), side view (z–y) and a 3D view.
+
+    Parameters
+    ----------
+    positions_mm : (T, M, 3) float
+        Marker positions in the rig's frame (left camera: x right, y down,
+        z away from the camera), NaN where missing.
+    labels : sequence of M str
+        Marker names (``thumb``, ``index``, ...).
+    """
+    p = np.asarray(positions_mm, dtype=np.float64)
+    if p.ndim != 3 or p.shape[2] != 3 or p.shape[1] != len(labels):
+        raise ValueError(f"positions_mm must be (T, {len(labels)}, 3), got {p.shape}")
+    fig = _figure(7.2, 2.6)
+    if not np.isfinite(p).any():
+        _empty(fig, "No fingertip positions were measured.")
+        return _to_svg(fig, title="Fingertip paths: no data", name="paths")
+    with matplotlib.rc_context(_RC):
+        ax_front = fig.add_subplot(1, 3, 1)
+        ax_side = fig.add_subplot(1, 3, 2)
+        ax_3d = fig.add_subplot(1, 3, 3, projection="3d")
+        for m, name in enumerate(labels):
+            colour = COLOURS.get(name, "#555555")
+            x, y, z = p[:, m, 0], p[:, m, 1], p[:, m, 2]
+            ax_front.plot(x, y, lw=0.8, color=colour, label=name)
+            ax_side.plot(z, y, lw=0.8, color=colour, label=name)
+            ax_3d.plot(x, z, y, lw=0.6, color=colour, label=name)
+        for ax in (ax_front, ax_side):
+            ax.invert_yaxis()  # y points down in the camera frame; show "up" as up
+            ax.set_aspect("equal", adjustable="datalim")
+        ax_front.set_xlabel("x (mm)")
+        ax_front.set_ylabel("y (mm)")
+        ax_front.set_title("front (camera) view", fontsize=8.5)
+        ax_side.set_xlabel("z, depth (mm)")
+        ax_side.set_ylabel("y (mm)")
+        ax_side.set_title("side view", fontsize=8.5)
+        ax_3d.set_xlabel("x", fontsize=7)
+        ax_3d.set_ylabel("z", fontsize=7)
+        ax_3d.set_zlabel("y", fontsize=7)
+        finite = p[np.isfinite(p).all(axis=2)]
+        centre = (np.nanmax(finite, axis=0) + np.nanmin(finite, axis=0)) / 2
+        half = max(float(np.max(np.ptp(finite, axis=0))) / 2, 1.0)
+        ax_3d.set_xlim(centre[0] - half, centre[0] + half)
+        ax_3d.set_ylim(centre[2] - half, centre[2] + half)
+        ax_3d.set_zlim(centre[1] + half, centre[1] - half)
+        ax_3d.set_box_aspect((1, 1, 1))
+        ax_3d.tick_params(labelsize=6)
+        ax_3d.set_title("3D", fontsize=8.5)
+        ax_front.legend(loc="best")
+    return _to_svg(fig, title="Fingertip paths in front, side and 3D views (mm)", name="paths")
+
+
+def trend_plot(
+    points: Sequence[TrendPoint],
+    *,
+    label: str,
+    unit: str,
+) -> str:
+    """One metric over sessions, per hand, with medication on and off drawn apart.
+
+    Left and right hands have their own colour; "on" medication is a solid line
+    with filled dots, "off" a dashed line with open dots, "unknown" grey
+    crosses, so that progression and treatment effect are both visible.
+    """
+    fig = _figure(3.6, 2.3)
+    usable = [p for p in points if p.value is not None and math.isfinite(float(p.value))]
+    if not usable:
+        _empty(fig, f"No {label.lower()} measured yet.")
+        return _to_svg(fig, title=f"{label} over time: no data", name="trend")
+    styles = {
+        "on": {"ls": "-", "marker": "o", "mfc": None},
+        "off": {"ls": "--", "marker": "o", "mfc": "white"},
+        "unknown": {"ls": ":", "marker": "x", "mfc": None},
+    }
+    with matplotlib.rc_context(_RC):
+        ax = fig.add_subplot()
+        for hand in ("left", "right"):
+            for med, style in styles.items():
+                series = sorted(
+                    (p for p in usable if p.hand == hand and p.medication_state == med),
+                    key=lambda p: _as_datetime(p.recorded_at),
+                )
+                if not series:
+                    continue
+                xs = [_as_datetime(p.recorded_at) for p in series]
+                ys = [float(p.value) for p in series]  # type: ignore[arg-type]
+                colour = COLOURS[hand]
+                ax.plot(
+                    xs,
+                    ys,
+                    ls=style["ls"],
+                    marker=style["marker"],
+                    ms=4,
+                    lw=1.1,
+                    color=colour,
+                    mfc=style["mfc"] or colour,
+                    label=f"{hand}, {med}",
+                )
+        ax.set_ylabel(f"{label} ({unit})" if unit else label)
+        ax.legend(loc="best", fontsize=7)
+        fig.autofmt_xdate(rotation=30)
+    return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend")
+
+
+def _as_datetime(value: date | datetime) -> datetime:
+    if isinstance(value, datetime):
+        return value.replace(tzinfo=None)
+    return datetime(value.year, value.month, value.day)
+
+
+def aperture_from_positions(positions_mm: ArrayLike, *, labels: Sequence[str]) -> NDArray[Any]:
+    """Thumb–index distance (mm) per frame, NaN where either marker is missing.
+
+    Parameters
+    ----------
+    positions_mm : (T, M, 3) float
+    labels : M marker names; must contain ``thumb`` and ``index``.
+    """
+    p = np.asarray(positions_mm, dtype=np.float64)
+    if p.ndim != 3 or p.shape[2] != 3:
+        raise ValueError(f"positions_mm must be (T, M, 3), got {p.shape}")
+    try:
+        i_thumb, i_index = list(labels).index("thumb"), list(labels).index("index")
+    except ValueError as exc:
+        raise ValueError(f"labels must contain 'thumb' and 'index', got {labels}") from exc
+    result: NDArray[Any] = np.linalg.norm(p[:, i_index] - p[:, i_thumb], axis=1)
+    return result

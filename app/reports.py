@@ -1,0 +1,525 @@
+"""The trial report: one Jinja2 template rendered as HTML and as PDF.
+
+- :func:`build_report_data` gathers everything a report shows about one trial
+  from the database (patient code, session, calibration, ``result.json``,
+  marker trajectories) into a :class:`ReportData`.
+- :func:`render_report_html` renders ``templates/report.html`` (a standalone
+  page: inline CSS and inline SVG plots, no external resource).
+- :func:`render_report_pdf` renders the same HTML with WeasyPrint; its URL
+  fetcher refuses every URL, so a report can never reach the network.
+
+:data:`METRICS` is the catalogue of metrics (label, display unit, UCUM code,
+decimals, one-line definition) shared by pages, reports and FHIR exports.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app import plots
+from app.exports import MarkerTable, read_markers_csv
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    """How a metric is labelled, formatted and coded.
+
+    Attributes
+    ----------
+    label : str
+        Short name for tables.
+    unit : str
+        Unit as displayed (``mm``, ``Hz``, ``mm/s``, ``mm/tap``; empty for ratios and counts).
+    ucum : str
+        UCUM code for FHIR (``mm``, ``Hz``, ``mm/s``, ``mm/{tap}``, ``1``).
+    decimals : int
+        Digits after the decimal point when displayed.
+    definition : str
+        One sentence a clinician can read.
+    """
+
+    label: str
+    unit: str
+    ucum: str
+    decimals: int
+    definition: str
+
+
+METRICS: dict[str, MetricSpec] = {
+    "tap_count": MetricSpec(
+        "Taps", "", "1", 0, "Number of complete taps (close–open–close cycles) found in the trial."
+    ),
+    "frequency_hz": MetricSpec(
+        "Tapping frequency", "Hz", "Hz", 2, "Taps per second over the trial (1 / mean interval)."
+    ),
+    "amplitude_mm_mean": MetricSpec(
+        "Mean amplitude",
+        "mm",
+        "mm",
+        1,
+        "Mean peak-to-trough opening: largest thumb–index distance in a tap minus the "
+        "distance at its start.",
+    ),
+    "amplitude_mm_cv": MetricSpec(
+        "Amplitude variability",
+        "",
+        "1",
+        3,
+        "Coefficient of variation of the tap amplitudes (standard deviation / mean).",
+    ),
+    "amplitude_decrement_mm_per_tap": MetricSpec(
+        "Amplitude decrement",
+        "mm/tap",
+        "mm/{tap}",
+        2,
+        "Slope of a straight line fitted to amplitude against tap number; negative means "
+        "the taps shrink (sequence effect).",
+    ),
+    "amplitude_ratio_last_first_third": MetricSpec(
+        "Amplitude ratio, last/first third",
+        "",
+        "1",
+        2,
+        "Mean amplitude of the last third of the taps divided by that of the first third.",
+    ),
+    "opening_velocity_mm_s_max": MetricSpec(
+        "Peak opening velocity",
+        "mm/s",
+        "mm/s",
+        0,
+        "Typical peak speed at which thumb and index separate during a tap.",
+    ),
+    "closing_velocity_mm_s_max": MetricSpec(
+        "Peak closing velocity",
+        "mm/s",
+        "mm/s",
+        0,
+        "Typical peak speed at which thumb and index come together during a tap.",
+    ),
+    "inter_tap_interval_cv": MetricSpec(
+        "Rhythm variability",
+        "",
+        "1",
+        3,
+        "Coefficient of variation of the time between successive taps.",
+    ),
+    "hesitation_count": MetricSpec(
+        "Hesitations",
+        "",
+        "1",
+        0,
+        "Brief interruptions of the tapping rhythm (a pause clearly longer than the usual interval).",
+    ),
+    "halt_count": MetricSpec(
+        "Halts",
+        "",
+        "1",
+        0,
+        "Longer freezes of the movement; a pause is counted once, as hesitation or halt.",
+    ),
+}
+
+# Metrics shown in trend plots (key, label, unit).
+TREND_METRICS: tuple[tuple[str, str, str], ...] = (
+    ("amplitude_mm_mean", "Mean amplitude", "mm"),
+    ("frequency_hz", "Tapping frequency", "Hz"),
+    ("opening_velocity_mm_s_max", "Peak opening velocity", "mm/s"),
+    ("amplitude_decrement_mm_per_tap", "Amplitude decrement", "mm/tap"),
+    ("hesitation_count", "Hesitations and halts", "count"),
+)
+
+
+def format_metric(key: str, value: Any) -> str:
+    """``value`` formatted with the metric's decimals (no unit); "–" when absent."""
+    if value is None or isinstance(value, bool):
+        return "–"
+    if not isinstance(value, int | float):
+        return str(value)
+    if not math.isfinite(float(value)):
+        return "–"
+    spec = METRICS.get(key)
+    decimals = spec.decimals if spec else (0 if isinstance(value, int) else 3)
+    text = f"{float(value):.{decimals}f}"
+    if key == "amplitude_decrement_mm_per_tap" and float(value) > 0:
+        text = "+" + text
+    return text
+
+
+@dataclass(frozen=True)
+class MetricRow:
+    """One line of the metrics table."""
+
+    key: str
+    label: str
+    value: str
+    value_first_10: str | None
+    unit: str
+    definition: str
+
+
+def metric_rows(result: Mapping[str, Any] | None) -> list[MetricRow]:
+    """Rows of the metrics table: known metrics in catalogue order, then any other number."""
+    metrics: Mapping[str, Any] = (result or {}).get("metrics", {}) or {}
+    first10 = metrics.get("metrics_first_10")
+    first10 = first10 if isinstance(first10, Mapping) else {}
+    keys = [k for k in METRICS if k in metrics]
+    keys += [
+        k
+        for k, v in metrics.items()
+        if k not in METRICS and isinstance(v, int | float) and not isinstance(v, bool)
+    ]
+    rows = []
+    for key in keys:
+        spec = METRICS.get(key)
+        rows.append(
+            MetricRow(
+                key=key,
+                label=spec.label if spec else key.replace("_", " "),
+                value=format_metric(key, metrics.get(key)),
+                value_first_10=format_metric(key, first10[key]) if key in first10 else None,
+                unit=spec.unit if spec else "",
+                definition=spec.definition if spec else "",
+            )
+        )
+    return rows
+
+
+def result_events(result: Mapping[str, Any] | None) -> list[plots.PlotEvent]:
+    """Hesitations and halts of ``result.json`` (``metrics.events``, or a top-level ``events``)."""
+    result = result or {}
+    raw = (result.get("metrics") or {}).get("events")
+    if raw is None:
+        raw = result.get("events")
+    events = []
+    for ev in raw or []:
+        if not isinstance(ev, Mapping):
+            continue
+        kind = str(ev.get("kind", ev.get("type", "hesitation")))
+        start = ev.get("t_start_s", ev.get("start_s"))
+        end = ev.get("t_end_s", ev.get("end_s"))
+        if start is None and "t_s" in ev:
+            start = ev["t_s"]
+        if end is None and start is not None:
+            end = float(start) + float(ev.get("duration_s", 0.0))
+        if start is None:
+            continue
+        events.append(
+            plots.PlotEvent(
+                kind="halt" if kind == "halt" else "hesitation",
+                t_start_s=float(start),
+                t_end_s=float(end),  # type: ignore[arg-type]
+            )
+        )
+    return events
+
+
+@dataclass(frozen=True)
+class CalibrationInfo:
+    """The calibration a trial was measured with, for the quality panel."""
+
+    rig_name: str
+    version: int | None
+    valid_from: datetime | None
+    rms_px: float | None
+    verdict: str | None = None
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ReportData:
+    """Everything the report of one trial shows.
+
+    Attributes
+    ----------
+    trial_id : int
+    patient_code : str
+        The pseudonymous code; the report holds no other identifying data.
+    hand : ``"left"`` or ``"right"``
+    recorded_at : datetime (UTC)
+    medication_state, dbs_state : str
+    updrs_34_rating : int or None
+        The clinician's own MDS-UPDRS 3.4 rating, if given.
+    clinician : str or None
+    notes : str or None
+    result : dict
+        ``result.json`` (INTERFACES.md).
+    markers : MarkerTable or None
+        Trajectories from ``markers.csv`` (None when the file is gone).
+    calibration : CalibrationInfo or None
+    generated_at : datetime (UTC)
+    """
+
+    trial_id: int
+    patient_code: str
+    hand: str
+    recorded_at: datetime
+    medication_state: str
+    result: dict[str, Any]
+    dbs_state: str = "unknown"
+    updrs_34_rating: int | None = None
+    clinician: str | None = None
+    notes: str | None = None
+    session_id: int | None = None
+    patient_id: int | None = None
+    markers: MarkerTable | None = None
+    calibration: CalibrationInfo | None = None
+    generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
+
+
+def quality_verdict(
+    quality: Mapping[str, Any] | None, rms_px: float | None
+) -> tuple[str, list[str]]:
+    """``("good" | "poor", reasons)`` for a calibration, from ``core.calibration.quality_verdict``.
+
+    When the calibration module does not offer a verdict, the rig's RMS
+    reprojection error alone decides (good at or below 0.5 px).
+    """
+    doc = dict(quality or {})
+    if rms_px is not None:
+        doc.setdefault("rms_px", rms_px)
+    try:
+        from core.calibration import quality_verdict as core_verdict
+    except ImportError:
+        core_verdict = None
+    if core_verdict is not None:
+        verdict, reasons = core_verdict(doc)
+        return str(verdict), [str(r) for r in reasons]
+    rms = doc.get("rms_px")
+    if rms is None:
+        return "unknown", ["the calibration reports no RMS reprojection error"]
+    if float(rms) <= 0.5:
+        return "good", [f"RMS reprojection error {float(rms):.2f} px (at most 0.5 px is good)"]
+    return "poor", [f"RMS reprojection error {float(rms):.2f} px is above 0.5 px; recalibrate"]
+
+
+def build_report_data(
+    db: Any,
+    trial_id: int,
+    *,
+    settings: Any = None,
+    data_dir: str | Path | None = None,
+) -> ReportData:
+    """Collect the report of trial ``trial_id`` from the database.
+
+    Parameters
+    ----------
+    db : sqlalchemy.orm.Session
+    trial_id : int
+    settings : app.settings.Settings, optional
+        Gives the data directory that ``Result.markers_path`` is relative to.
+    data_dir : path, optional
+        The data directory directly (wins over ``settings``); default: the
+        environment's settings.
+
+    Raises
+    ------
+    app.errors.NotFoundError
+        The trial does not exist, is deleted, or has no result yet.
+    """
+    from app.errors import NotFoundError
+    from app.models import Calibration, Trial, User
+
+    trial = db.get(Trial, trial_id)
+    if trial is None or trial.deleted_at is not None:
+        raise NotFoundError(f"trial {trial_id} does not exist.")
+    if trial.result is None:
+        raise NotFoundError(
+            f"trial {trial_id} has no result yet (status {trial.status}); wait for its analysis."
+        )
+    session = trial.session
+    patient = session.patient
+    result = trial.result
+    if data_dir is None:
+        if settings is None:
+            from app.settings import get_settings
+
+            settings = get_settings()
+        data_dir = settings.data_dir
+    markers = None
+    if result.markers_path:
+        path = Path(data_dir) / result.markers_path
+        if path.is_file():
+            markers = read_markers_csv(path, fps=float(result.document.get("fps") or 0) or None)
+    cal_info = None
+    cal = db.get(Calibration, result.calibration_id) if result.calibration_id else None
+    if cal is None:
+        cal = session.calibration
+    if cal is not None:
+        verdict, reasons = quality_verdict(cal.quality, cal.rms_px)
+        cal_info = CalibrationInfo(
+            rig_name=cal.rig.name,
+            version=cal.version,
+            valid_from=cal.valid_from,
+            rms_px=cal.rms_px,
+            verdict=verdict,
+            reasons=tuple(reasons),
+        )
+    else:
+        cal_info = CalibrationInfo(
+            rig_name=session.rig.name, version=None, valid_from=None, rms_px=None
+        )
+    clinician = None
+    if session.clinician_user_id is not None:
+        user = db.get(User, session.clinician_user_id)
+        if user is not None:
+            clinician = user.display_name or user.email
+    return ReportData(
+        trial_id=trial.id,
+        patient_code=patient.code,
+        patient_id=patient.id,
+        session_id=session.id,
+        hand=trial.hand,
+        recorded_at=session.recorded_at,
+        medication_state=session.medication_state,
+        dbs_state=session.dbs_state,
+        updrs_34_rating=session.updrs_34_rating,
+        clinician=clinician,
+        notes=session.notes,
+        result=dict(result.document),
+        markers=markers,
+        calibration=cal_info,
+    )
+
+
+@dataclass(frozen=True)
+class QualityRow:
+    label: str
+    value: str
+    warn: bool = False
+
+
+def quality_rows(data: ReportData) -> list[QualityRow]:
+    """Lines of the quality panel: calibration, reprojection, tracking, sync."""
+    q = data.result.get("quality", {}) or {}
+    rows: list[QualityRow] = []
+    cal = data.calibration
+    if cal is not None:
+        name = cal.rig_name + (f", calibration v{cal.version}" if cal.version else "")
+        if cal.valid_from is not None:
+            name += f" (valid from {cal.valid_from:%Y-%m-%d})"
+        rows.append(QualityRow("Calibration used", name))
+        rms = "–" if cal.rms_px is None else f"{cal.rms_px:.2f} px"
+        if cal.verdict:
+            rms += f" — {cal.verdict}"
+        rows.append(QualityRow("Calibration RMS error", rms, warn=cal.verdict == "poor"))
+    reproj = q.get("reprojection_px_median")
+    if reproj is not None:
+        rows.append(
+            QualityRow(
+                "Marker reprojection error (median)", f"{float(reproj):.2f} px", float(reproj) > 1.0
+            )
+        )
+    tracked = q.get("tracked_fraction")
+    if tracked is not None:
+        rows.append(
+            QualityRow("Frames measured", f"{100 * float(tracked):.1f} %", float(tracked) < 0.9)
+        )
+    interp = q.get("interpolated_fraction")
+    if interp is not None:
+        rows.append(
+            QualityRow("Frames interpolated", f"{100 * float(interp):.1f} %", float(interp) > 0.05)
+        )
+    sync = data.result.get("sync") or {}
+    if "offset_frames" in sync:
+        fps = float(data.result.get("fps") or 0)
+        offset = float(sync["offset_frames"])
+        text = f"{offset:+.2f} frames"
+        if fps > 0:
+            text += f" ({1000 * offset / fps:+.1f} ms)"
+        method = sync.get("method")
+        if method:
+            text += f", {'estimated' if method == 'auto' else 'given'}"
+        rows.append(QualityRow("Camera synchronisation offset", text))
+    fps = data.result.get("fps")
+    if fps:
+        rows.append(QualityRow("Frame rate", f"{float(fps):.1f} Hz"))
+    return rows
+
+
+def report_plots(data: ReportData) -> dict[str, str]:
+    """The trial's plots as inline SVG: ``aperture``, ``amplitude``, ``velocity``, ``paths``."""
+    taps: Sequence[Mapping[str, Any]] = data.result.get("taps") or []
+    metrics = data.result.get("metrics") or {}
+    out: dict[str, str] = {}
+    if data.markers is not None and {"thumb", "index"} <= set(data.markers.labels):
+        aperture = plots.aperture_from_positions(
+            data.markers.positions_mm, labels=data.markers.labels
+        )
+        i_t, i_i = data.markers.labels.index("thumb"), data.markers.labels.index("index")
+        interp = (data.markers.status[:, i_t] == "interpolated") | (
+            data.markers.status[:, i_i] == "interpolated"
+        )
+        out["aperture"] = plots.aperture_plot(
+            data.markers.time_s,
+            aperture,
+            taps=taps,
+            events=result_events(data.result),
+            interpolated=interp,
+        )
+        keep = [i for i, name in enumerate(data.markers.labels) if name in ("thumb", "index")]
+        out["paths"] = plots.fingertip_paths_plot(
+            data.markers.positions_mm[:, keep],
+            labels=[data.markers.labels[i] for i in keep],
+        )
+    else:
+        out["aperture"] = plots.aperture_plot(np.zeros(0), np.zeros(0))
+        out["paths"] = plots.fingertip_paths_plot(
+            np.full((0, 2, 3), np.nan), labels=["thumb", "index"]
+        )
+    decrement = metrics.get("amplitude_decrement_mm_per_tap")
+    out["amplitude"] = plots.tap_amplitude_plot(
+        taps, decrement_mm_per_tap=float(decrement) if isinstance(decrement, int | float) else None
+    )
+    out["velocity"] = plots.velocity_plot(taps)
+    return out
+
+
+def report_context(data: ReportData) -> dict[str, Any]:
+    """The template context shared by the report and the trial page."""
+    return {
+        "data": data,
+        "metric_rows": metric_rows(data.result),
+        "quality_rows": quality_rows(data),
+        "warnings": list((data.result.get("quality") or {}).get("warnings") or []),
+        "taps": data.result.get("taps") or [],
+        "events": result_events(data.result),
+        "plots": report_plots(data),
+        "metric_specs": METRICS,
+    }
+
+
+def render_report_html(data: ReportData) -> str:
+    """The standalone HTML report of one trial (inline CSS and SVG; no external resource)."""
+    from app.web.templating import jinja_env
+
+    template = jinja_env.get_template("report.html")
+    return template.render(**report_context(data))
+
+
+def _refusing_fetcher() -> Any:
+    """A WeasyPrint URL fetcher that refuses every URL except inline ``data:`` URLs."""
+    from weasyprint.urls import URLFetcher
+
+    class RefusingURLFetcher(URLFetcher):  # type: ignore[misc]
+        def fetch(self, url: str, headers: Any = None) -> Any:
+            if url.startswith("data:"):
+                return super().fetch(url, headers)
+            raise ValueError(f"the PDF renderer does not fetch URLs (refused {url[:80]!r})")
+
+    return RefusingURLFetcher(allowed_protocols=("data",), fail_on_errors=False)
+
+
+def render_report_pdf(data: ReportData) -> bytes:
+    """The report of one trial as PDF bytes (WeasyPrint; no URL is ever fetched)."""
+    import weasyprint
+
+    html = render_report_html(data)
+    document = weasyprint.HTML(string=html, base_url=None, url_fetcher=_refusing_fetcher())
+    return bytes(document.write_pdf())

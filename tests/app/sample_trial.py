@@ -1,0 +1,153 @@
+"""A synthetic finger-tapping trial with known truth, for plot, report and export tests.
+
+The thumb rests at a fixed point; the index finger moves along a fixed
+direction so that the aperture (thumb–index distance minus the closed
+distance) follows one raised-cosine bump per tap with a known amplitude that
+shrinks linearly (the decrement), and a known pause (hesitation) after tap 12.
+Everything in ``result`` is computed from these known values, not measured.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+import numpy as np
+
+from app.exports import MarkerTable
+from app.reports import CalibrationInfo, ReportData
+
+FPS = 100.0  # Hz
+CLOSED_MM = 18.0  # thumb–index distance with the fingers together (marker offset)
+
+
+def synthetic_trial(
+    *,
+    n_taps: int = 20,
+    amplitude0_mm: float = 52.0,
+    decrement_mm_per_tap: float = -0.8,
+    frequency_hz: float = 2.5,
+    pause_after_tap: int = 12,
+    pause_s: float = 0.6,
+    seed: int = 0,
+) -> tuple[MarkerTable, dict]:
+    """(markers, result.json document) of a synthetic trial; see the module docstring."""
+    rng = np.random.default_rng(seed)
+    period_s = 1.0 / frequency_hz
+    amplitudes = amplitude0_mm + decrement_mm_per_tap * np.arange(n_taps)
+    starts = []
+    t = 0.3
+    for k in range(n_taps):
+        starts.append(t)
+        t += period_s
+        if k == pause_after_tap - 1:
+            t += pause_s
+    end_s = t + 0.3
+    n_frames = int(np.ceil(end_s * FPS))
+    time_s = np.arange(n_frames) / FPS
+    aperture = np.zeros(n_frames)
+    for a_k, t0 in zip(amplitudes, starts, strict=True):
+        inside = (time_s >= t0) & (time_s < t0 + period_s)
+        phase = (time_s[inside] - t0) / period_s
+        aperture[inside] = 0.5 * a_k * (1 - np.cos(2 * np.pi * phase))
+    thumb = np.array([10.0, -30.0, 600.0])
+    direction = np.array([0.6, -0.8, 0.0])
+    pos = np.empty((n_frames, 2, 3))
+    pos[:, 0] = thumb
+    pos[:, 1] = thumb + (CLOSED_MM + aperture)[:, None] * direction
+    pos += rng.normal(scale=0.02, size=pos.shape)  # mm, seeded marker jitter
+    status = np.full((n_frames, 2), "measured", dtype="<U12")
+    status[200:204, 1] = "interpolated"
+    pos[-1, 0] = np.nan
+    status[-1, 0] = "missing"
+    reproj = np.where(status == "measured", 0.1, np.nan)
+    markers = MarkerTable(
+        fps=FPS,
+        frames=np.arange(n_frames, dtype=np.int64),
+        labels=("thumb", "index"),
+        positions_mm=pos,
+        status=status,
+        reprojection_px=reproj,
+    )
+    v_peak = np.pi * amplitudes * frequency_hz  # mm/s, peak slope of a raised cosine
+    taps = [
+        {
+            "index": k,
+            "t_start_s": round(starts[k], 4),
+            "t_max_aperture_s": round(starts[k] + period_s / 2, 4),
+            "t_end_s": round(starts[k] + period_s, 4),
+            "amplitude_mm": float(amplitudes[k]),
+            "opening_velocity_mm_s_max": float(v_peak[k]),
+            "closing_velocity_mm_s_max": float(v_peak[k]),
+        }
+        for k in range(n_taps)
+    ]
+    intervals = np.diff(starts)
+    thirds = n_taps // 3
+    pause_start = starts[pause_after_tap - 1] + period_s
+    metrics = {
+        "tap_count": n_taps,
+        "frequency_hz": float(1.0 / np.mean(intervals)),
+        "amplitude_mm_mean": float(np.mean(amplitudes)),
+        "amplitude_mm_cv": float(np.std(amplitudes) / np.mean(amplitudes)),
+        "amplitude_decrement_mm_per_tap": decrement_mm_per_tap,
+        "amplitude_ratio_last_first_third": float(
+            np.mean(amplitudes[-thirds:]) / np.mean(amplitudes[:thirds])
+        ),
+        "opening_velocity_mm_s_max": float(np.median(v_peak)),
+        "closing_velocity_mm_s_max": float(np.median(v_peak)),
+        "inter_tap_interval_cv": float(np.std(intervals) / np.mean(intervals)),
+        "hesitation_count": 1,
+        "halt_count": 0,
+        "metrics_first_10": {
+            "amplitude_mm_mean": float(np.mean(amplitudes[:10])),
+            "frequency_hz": frequency_hz,
+        },
+        "events": [
+            {
+                "kind": "hesitation",
+                "tap_index": pause_after_tap - 1,
+                "t_start_s": pause_start,
+                "t_end_s": pause_start + pause_s,
+            }
+        ],
+    }
+    result = {
+        "format": "bradyscope.result/1",
+        "fps": FPS,
+        "sync": {"offset_frames": 1.25, "method": "auto"},
+        "metrics": metrics,
+        "taps": taps,
+        "quality": {
+            "tracked_fraction": float(np.mean(status == "measured")),
+            "interpolated_fraction": float(np.mean(status == "interpolated")),
+            "reprojection_px_median": 0.1,
+            "warnings": ["The thumb marker was lost in the last frame."],
+        },
+    }
+    return markers, result
+
+
+def sample_report_data(*, patient_code: str = "PD-0042", hand: str = "right") -> ReportData:
+    """A ReportData around :func:`synthetic_trial`."""
+    markers, result = synthetic_trial()
+    return ReportData(
+        trial_id=7,
+        patient_code=patient_code,
+        hand=hand,
+        recorded_at=datetime(2025, 3, 14, 9, 30, tzinfo=UTC),
+        medication_state="off",
+        dbs_state="none",
+        updrs_34_rating=2,
+        clinician="Dr. Demo",
+        notes="12 h after last levodopa dose.",
+        result=result,
+        markers=markers,
+        calibration=CalibrationInfo(
+            rig_name="clinic-A",
+            version=3,
+            valid_from=datetime(2025, 1, 2, tzinfo=UTC),
+            rms_px=0.21,
+            verdict="good",
+        ),
+        generated_at=datetime(2025, 3, 14, 10, 0, tzinfo=UTC),
+    )

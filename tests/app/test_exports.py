@@ -1,0 +1,161 @@
+"""Exports: markers CSV round trip, C3D read back by an independent reader, TRC, FHIR."""
+
+from __future__ import annotations
+
+import base64
+import io
+
+import numpy as np
+import pytest
+from sample_trial import sample_report_data, synthetic_trial
+
+from app import exports
+
+
+@pytest.fixture(scope="module")
+def markers():
+    return synthetic_trial()[0]
+
+
+def test_markers_csv_has_the_interfaces_header_and_round_trips(markers):
+    text = exports.markers_csv(markers)
+    lines = text.splitlines()
+    assert lines[0] == "frame,time_s,marker,x_mm,y_mm,z_mm,status,reprojection_px"
+    assert lines[1].startswith("0,0,thumb,")
+    assert len(lines) == 1 + markers.frames.size * 2  # one row per frame and marker
+    back = exports.read_markers_csv(io.StringIO(text))
+    assert back.labels == markers.labels
+    assert back.fps == pytest.approx(markers.fps)
+    np.testing.assert_allclose(back.positions_mm, markers.positions_mm, atol=5e-4)  # mm, 3 decimals
+    np.testing.assert_array_equal(back.status, markers.status)
+    # Missing samples have empty coordinates, as INTERFACES.md says.
+    assert lines[-2].split(",")[3:7] == ["", "", "", "missing"]
+
+
+def test_markers_csv_rejects_a_table_without_the_columns():
+    with pytest.raises(ValueError, match="lacks the columns"):
+        exports.read_markers_csv(io.StringIO("frame,x\n0,1\n"))
+
+
+def test_marker_table_checks_shapes(markers):
+    with pytest.raises(ValueError, match="positions_mm"):
+        exports.MarkerTable(
+            fps=100.0,
+            frames=markers.frames,
+            labels=("thumb",),
+            positions_mm=markers.positions_mm,
+            status=markers.status,
+            reprojection_px=markers.reprojection_px,
+        )
+
+
+@pytest.mark.filterwarnings("ignore:No analog data found:UserWarning")
+def test_c3d_reads_back_with_an_independent_reader(tmp_path, markers):
+    import c3d  # the pure-Python reader, independent of ezc3d which wrote the file
+
+    path = exports.write_c3d(tmp_path / "trial.c3d", markers)
+    with open(path, "rb") as fh:
+        reader = c3d.Reader(fh)
+        assert reader.point_rate == pytest.approx(markers.fps)
+        labels = [s.strip() for s in reader.point_labels]
+        assert labels == list(markers.labels)
+        assert reader.get("POINT:UNITS").string_value.strip() == "mm"
+        frames = [points.copy() for _, points, _ in reader.read_frames()]
+    pts = np.stack(frames)  # (T, M, 5): x, y, z, residual, camera mask
+    assert pts.shape[:2] == markers.positions_mm.shape[:2]
+    valid = np.isfinite(markers.positions_mm).all(axis=2)
+    # float32 storage of ~600 mm coordinates: resolution ~6e-5 mm.
+    np.testing.assert_allclose(pts[valid][:, :3], markers.positions_mm[valid], atol=1e-3)  # mm
+    # Missing samples are flagged invalid (residual -1), not written as zeros.
+    assert (pts[~valid][:, 3] < 0).all()
+    assert (pts[valid][:, 3] >= 0).all()
+
+
+@pytest.mark.filterwarnings("ignore:No analog data found:UserWarning")
+def test_c3d_convention_the_axes_are_not_permuted(tmp_path, markers):
+    import c3d
+
+    path = exports.write_c3d(tmp_path / "trial.c3d", markers)
+    with open(path, "rb") as fh:
+        first = next(iter(c3d.Reader(fh).read_frames()))[1]
+    # The synthetic thumb rests at (10, -30, 600) mm: x, y, z must arrive in that order.
+    np.testing.assert_allclose(first[0, :3], [10.0, -30.0, 600.0], atol=0.1)  # mm, jitter 0.02
+
+
+def test_trc_round_trip_and_header(tmp_path, markers):
+    path = exports.write_trc(tmp_path / "trial.trc", markers)
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("PathFileType\t4\t(X/Y/Z)\ttrial.trc")
+    header = dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=True))
+    assert header["Units"] == "mm"
+    assert int(header["NumFrames"]) == markers.frames.size
+    assert int(header["NumMarkers"]) == 2
+    assert float(header["DataRate"]) == pytest.approx(markers.fps)
+    fps, labels, pos = exports.read_trc(path)
+    assert labels == markers.labels and fps == pytest.approx(markers.fps)
+    np.testing.assert_allclose(pos, markers.positions_mm, atol=5e-5)  # mm, 4 decimals
+    # Frame numbers start at 1; time is frame / fps.
+    assert lines[6].split("\t")[:2] == ["1", "0.000000"]
+
+
+def test_fhir_bundle_validates_and_carries_every_metric_and_the_pdf():
+    from fhir.resources.R4B.bundle import Bundle
+    from fhir.resources.R4B.diagnosticreport import DiagnosticReport
+    from fhir.resources.R4B.observation import Observation
+
+    data = sample_report_data(patient_code="PD-0099")
+    pdf = b"%PDF-1.7 fake bytes for the attachment test"
+    doc = exports.fhir_bundle(data, pdf)
+    bundle = Bundle.model_validate(doc)
+    assert bundle.type == "collection"
+    resources = [e["resource"] for e in doc["entry"]]
+    kinds = [r["resourceType"] for r in resources]
+    numeric = {
+        k: v
+        for k, v in data.result["metrics"].items()
+        if isinstance(v, int | float) and not isinstance(v, bool)
+    }
+    assert kinds.count("Observation") == len(numeric) == 11
+    assert kinds.count("DiagnosticReport") == 1 and kinds.count("Patient") == 1
+    patient = resources[kinds.index("Patient")]
+    assert patient["identifier"][0]["value"] == "PD-0099"
+    units = {}
+    for res in resources:
+        if res["resourceType"] == "Observation":
+            obs = Observation.model_validate(res)
+            key = res["code"]["coding"][0]["code"]
+            q = res["valueQuantity"]
+            assert q["system"] == "http://unitsofmeasure.org"
+            assert q["value"] == pytest.approx(numeric[key], rel=1e-6)
+            units[key] = q["code"]
+            assert obs.subject.reference == doc["entry"][0]["fullUrl"]
+    assert units["amplitude_mm_mean"] == "mm"
+    assert units["frequency_hz"] == "Hz"
+    assert units["opening_velocity_mm_s_max"] == "mm/s"
+    assert units["amplitude_decrement_mm_per_tap"] == "mm/{tap}"
+    assert units["tap_count"] == units["amplitude_mm_cv"] == "1"
+    report = DiagnosticReport.model_validate(resources[kinds.index("DiagnosticReport")])
+    assert len(report.result) == 11
+    form = report.presentedForm[0]
+    assert form.contentType == "application/pdf"
+    assert base64.b64decode(doc["entry"][-1]["resource"]["presentedForm"][0]["data"]) == pdf
+    # Every reference resolves inside the bundle.
+    urls = {e["fullUrl"] for e in doc["entry"]}
+    assert {r.reference for r in report.result} <= urls
+    assert report.subject.reference in urls
+
+
+def test_fhir_bundle_rejects_a_malformed_resource(monkeypatch):
+    import pydantic
+
+    data = sample_report_data()
+    original = exports._observation
+
+    def without_status(*args, **kwargs):
+        obs = original(*args, **kwargs)
+        del obs["status"]  # required by FHIR R4
+        return obs
+
+    monkeypatch.setattr(exports, "_observation", without_status)
+    with pytest.raises(pydantic.ValidationError, match="status"):
+        exports.fhir_bundle(data, None)

@@ -1,0 +1,136 @@
+"""Plots: valid inline SVG, the marks clinicians rely on, unique ids, shape errors."""
+
+from __future__ import annotations
+
+import re
+from datetime import UTC, datetime
+
+import numpy as np
+import pytest
+from sample_trial import CLOSED_MM, synthetic_trial
+
+from app import plots
+from app.reports import result_events
+
+
+@pytest.fixture(scope="module")
+def trial():
+    return synthetic_trial()
+
+
+def _n_drawn_paths(svg: str) -> int:
+    return len(re.findall(r"<path [^>]*d=\"M", svg))
+
+
+def test_aperture_from_positions_is_the_thumb_index_distance(trial):
+    markers, result = trial
+    a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
+    assert a.shape == (markers.frames.size,)
+    # Before the first tap the fingers are closed: distance = CLOSED_MM (+ jitter).
+    np.testing.assert_allclose(a[:20], CLOSED_MM, atol=0.1)  # mm, 0.02 mm jitter per axis
+    peak = result["taps"][0]
+    i = round(peak["t_max_aperture_s"] * markers.fps)
+    np.testing.assert_allclose(a[i], CLOSED_MM + peak["amplitude_mm"], atol=0.1)  # mm
+    assert np.isnan(a[-1])  # the thumb is missing in the last frame
+    # Convention: the marker order must not matter.
+    swapped = plots.aperture_from_positions(
+        markers.positions_mm[:, ::-1], labels=("index", "thumb")
+    )
+    np.testing.assert_array_equal(swapped, a)
+
+
+def test_aperture_from_positions_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="T, M, 3"):
+        plots.aperture_from_positions(np.zeros((5, 2)), labels=("thumb", "index"))
+    with pytest.raises(ValueError, match="thumb"):
+        plots.aperture_from_positions(np.zeros((5, 2, 3)), labels=("a", "b"))
+
+
+def test_aperture_plot_marks_every_tap_and_the_hesitation(trial):
+    markers, result = trial
+    a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
+    svg = plots.aperture_plot(markers.time_s, a, taps=result["taps"], events=result_events(result))
+    assert svg.startswith("<svg") and svg.rstrip().endswith("</svg>")
+    assert "<title>Aperture over time: 20 taps, 1 hesitation(s), 0 halt(s) marked</title>" in svg
+    # Every tap is numbered on the plot (text stays text: svg.fonttype = none).
+    labels = set(re.findall(r">(\d+)</text>", svg))
+    assert {str(k) for k in range(1, 21)} <= labels
+    assert "hesitation" in svg
+    # Without events nothing is shaded and the legend has no hesitation entry.
+    plain = plots.aperture_plot(markers.time_s, a, taps=result["taps"])
+    assert "hesitation" not in plain.split("</title>", 1)[1]
+    assert _n_drawn_paths(svg) > _n_drawn_paths(plain)
+
+
+def test_aperture_plot_halts_are_marked_apart():
+    t = np.arange(300) / 100.0
+    a = 20 + 10 * np.sin(2 * np.pi * 2 * t)
+    svg = plots.aperture_plot(t, a, events=[plots.PlotEvent("halt", 1.0, 1.8)])
+    assert "halt" in svg.split("</title>", 1)[1]
+    assert plots.COLOURS["halt"] in svg
+
+
+def test_empty_inputs_give_a_message_not_an_error():
+    svg = plots.aperture_plot(np.zeros(0), np.zeros(0))
+    assert "No aperture could be measured" in svg
+    assert "No taps were found." in plots.tap_amplitude_plot([])
+    assert "No taps were found." in plots.velocity_plot([])
+    assert "No fingertip positions" in plots.fingertip_paths_plot(
+        np.full((3, 2, 3), np.nan), labels=["thumb", "index"]
+    )
+    assert "No mean amplitude measured yet." in plots.trend_plot(
+        [], label="Mean amplitude", unit="mm"
+    )
+
+
+def test_shape_errors_are_value_errors():
+    with pytest.raises(ValueError):
+        plots.aperture_plot(np.zeros(5), np.zeros(4))
+    with pytest.raises(ValueError):
+        plots.aperture_plot(np.zeros(5), np.zeros(5), interpolated=np.zeros(4, bool))
+    with pytest.raises(ValueError):
+        plots.fingertip_paths_plot(np.zeros((5, 2, 3)), labels=["thumb"])
+
+
+def test_amplitude_plot_draws_the_given_decrement(trial):
+    _, result = trial
+    svg = plots.tap_amplitude_plot(result["taps"], decrement_mm_per_tap=-0.8)
+    assert "decrement -0.80 mm/tap" in svg
+    # Without a slope it is fitted from the amplitudes (exactly linear here).
+    fitted = plots.tap_amplitude_plot(result["taps"])
+    assert "decrement -0.80 mm/tap" in fitted
+
+
+def test_ids_are_unique_when_plots_share_a_page(trial):
+    markers, result = trial
+    page = "".join(
+        [
+            plots.tap_amplitude_plot(result["taps"]),
+            plots.tap_amplitude_plot(result["taps"]),
+            plots.velocity_plot(result["taps"]),
+            plots.fingertip_paths_plot(markers.positions_mm, labels=markers.labels),
+        ]
+    )
+    ids = re.findall(r'id="([^"]+)"', page)
+    assert ids and len(ids) == len(set(ids))
+    # Every local reference points at an id on the page.
+    refs = set(re.findall(r"url\(#([^)]+)\)", page)) | set(re.findall(r'href="#([^"]+)"', page))
+    assert refs <= set(ids)
+
+
+def test_trend_plot_separates_hands_and_medication():
+    pts = [
+        plots.TrendPoint(
+            datetime(2024, m, 1, tzinfo=UTC), hand, med, 50.0 - m + (5 if med == "on" else 0)
+        )
+        for m in (1, 4, 7, 10)
+        for hand in ("left", "right")
+        for med in ("on", "off")
+    ]
+    svg = plots.trend_plot(pts, label="Mean amplitude", unit="mm")
+    for name in ("left, on", "left, off", "right, on", "right, off"):
+        assert name in svg
+    assert "Mean amplitude (mm)" in svg
+    # One series with a single medication state has a single legend entry.
+    only_on = plots.trend_plot([p for p in pts if p.medication_state == "on"], label="A", unit="mm")
+    assert "left, off" not in only_on

@@ -1,0 +1,210 @@
+"""The report: one template as HTML and PDF; the PDF's words and plots are checked."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from sample_trial import sample_report_data
+
+from app.reports import format_metric, metric_rows, render_report_html, render_report_pdf
+
+needs_poppler = pytest.mark.skipif(
+    shutil.which("pdftotext") is None or shutil.which("pdftoppm") is None,
+    reason="poppler-utils (pdftotext, pdftoppm) is not installed",
+)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return sample_report_data(patient_code="PD-0042")
+
+
+@pytest.fixture(scope="module")
+def pdf_path(data, tmp_path_factory):
+    path = tmp_path_factory.mktemp("report") / "report.pdf"
+    path.write_bytes(render_report_pdf(data))
+    return path
+
+
+def _expected_values(data) -> list[str]:
+    metrics = data.result["metrics"]
+    return [format_metric(k, v) for k, v in metrics.items() if isinstance(v, int | float)]
+
+
+def test_format_metric_uses_the_catalogue_decimals():
+    assert format_metric("amplitude_mm_mean", 44.44) == "44.4"
+    assert format_metric("frequency_hz", 2.3214) == "2.32"
+    assert format_metric("tap_count", 20) == "20"
+    assert format_metric("amplitude_decrement_mm_per_tap", 0.5) == "+0.50"
+    assert format_metric("frequency_hz", float("nan")) == "–"
+    assert format_metric("frequency_hz", None) == "–"
+
+
+def test_metric_rows_follow_the_catalogue_and_show_first_10(data):
+    rows = metric_rows(data.result)
+    assert [r.key for r in rows][:3] == ["tap_count", "frequency_hz", "amplitude_mm_mean"]
+    amp = next(r for r in rows if r.key == "amplitude_mm_mean")
+    assert amp.unit == "mm" and amp.definition
+    assert amp.value_first_10 == format_metric("amplitude_mm_mean", 48.4)
+    assert all(r.key not in ("events", "metrics_first_10") for r in rows)
+
+
+def test_html_report_is_standalone_and_complete(data):
+    html = render_report_html(data)
+    assert "PD-0042" in html
+    for value in _expected_values(data):
+        assert f">{value}<" in html, value
+    for name in ("aperture", "amplitude", "velocity", "paths"):
+        assert f'data-plot="{name}"' in html, name
+    # No external resource: no src/href to anything but in-page fragments.
+    assert not re.search(r'(?:src|href)="(?!#)', html)
+    assert "@import" not in html and "url(http" not in html
+    assert "The thumb marker was lost in the last frame." in html  # warnings in the quality panel
+    assert "clinic-A, calibration v3" in html and "0.21 px" in html
+    assert "+1.25 frames (+12.5 ms), estimated" in html
+
+
+def test_user_text_is_escaped(data):
+    evil = dataclasses.replace(data, notes="<script>alert(1)</script>")
+    html = render_report_html(evil)
+    assert "<script>alert(1)</script>" not in html
+    assert "&lt;script&gt;" in html
+
+
+def test_pdf_renderer_fetches_no_url(data, monkeypatch):
+    import app.reports as reports
+
+    fetched: list[str] = []
+    original = reports._refusing_fetcher
+
+    def spying():
+        fetcher = original()
+        fetch = fetcher.fetch
+
+        def spy(url, headers=None):
+            fetched.append(url)
+            return fetch(url, headers)
+
+        fetcher.fetch = spy
+        return fetcher
+
+    monkeypatch.setattr(reports, "_refusing_fetcher", spying)
+    html_with_remote = render_report_html(data).replace(
+        "</body>", '<img src="http://127.0.0.1:9/tracker.png" alt=""></body>'
+    )
+    monkeypatch.setattr(reports, "render_report_html", lambda d: html_with_remote)
+    pdf = reports.render_report_pdf(data)
+    assert pdf.startswith(b"%PDF")
+    assert fetched == ["http://127.0.0.1:9/tracker.png"]  # asked, and refused (no exception)
+    with pytest.raises(ValueError, match="does not fetch"):
+        original().fetch("http://example.org/x.css")
+
+
+def _pdf_words(pdf: Path, page: int) -> list[tuple[str, float, float, float, float]]:
+    out = subprocess.run(
+        ["pdftotext", "-bbox", "-f", str(page), "-l", str(page), str(pdf), "-"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    pattern = (
+        r'<word xMin="([\d.]+)" yMin="([\d.]+)" xMax="([\d.]+)" yMax="([\d.]+)">([^<]*)</word>'
+    )
+    return [
+        (w, float(a), float(b), float(c), float(d)) for a, b, c, d, w in re.findall(pattern, out)
+    ]
+
+
+def _plot_regions(pdf: Path) -> dict[str, tuple[int, tuple[float, float, float, float]]]:
+    """Page and box (pt) of each plot: the band just above its caption's first word."""
+    n_pages = int(
+        re.search(
+            r"Pages:\s+(\d+)",
+            subprocess.run(
+                ["pdfinfo", str(pdf)], check=True, capture_output=True, text=True
+            ).stdout,
+        ).group(1)
+    )
+    captions = {
+        "Aperture": "aperture",
+        "Amplitude": "amplitude",
+        "Peak": "velocity",
+        "Fingertip": "paths",
+    }
+    regions = {}
+    in_movement = False  # captions follow the "Movement" heading; earlier words are tables
+    for page in range(1, n_pages + 1):
+        for word, x0, y0, _x1, _y1 in _pdf_words(pdf, page):
+            in_movement = in_movement or word == "Movement"
+            name = captions.get(word)
+            if in_movement and name and name not in regions:
+                width = 240.0 if name in ("amplitude", "velocity") else 490.0
+                regions[name] = (page, (x0, y0 - 130.0, x0 + width, y0 - 8.0))
+    return regions
+
+
+def _coloured_fraction(
+    pdf: Path, page: int, box: tuple[float, float, float, float], tmp: Path
+) -> float:
+    """Fraction of clearly coloured (data-drawing) pixels of ``box`` on ``page`` at 72 dpi."""
+    stem = tmp / f"p{page}"
+    subprocess.run(
+        [
+            "pdftoppm",
+            "-r",
+            "72",
+            "-png",
+            "-f",
+            str(page),
+            "-l",
+            str(page),
+            "-singlefile",
+            str(pdf),
+            str(stem),
+        ],
+        check=True,
+    )
+    img = np.asarray(Image.open(f"{stem}.png").convert("RGB")).astype(int)
+    x0, y0, x1, y1 = (round(v) for v in box)
+    crop = img[max(y0, 0) : y1, x0:x1]
+    saturation = crop.max(axis=2) - crop.min(axis=2)
+    return float(np.mean(saturation > 60))
+
+
+@needs_poppler
+def test_pdf_text_holds_the_patient_code_and_every_metric_value(pdf_path, data):
+    text = subprocess.run(
+        ["pdftotext", "-layout", str(pdf_path), "-"], check=True, capture_output=True, text=True
+    ).stdout
+    assert "PD-0042" in text
+    for value in _expected_values(data):
+        assert re.search(rf"(?<![\d.]){re.escape(value)}(?![\d])", text), value
+    assert "Measurement quality" in text and "Definitions" in text
+
+
+@needs_poppler
+def test_pdf_plots_are_drawn_not_blank(pdf_path, tmp_path):
+    regions = _plot_regions(pdf_path)
+    assert set(regions) == {"aperture", "amplitude", "velocity", "paths"}
+    for name, (page, box) in regions.items():
+        fraction = _coloured_fraction(pdf_path, page, box, tmp_path)
+        assert fraction > 0.002, f"{name} plot looks blank ({fraction:.4f} coloured)"
+
+
+@needs_poppler
+def test_blank_plot_check_catches_a_report_without_data(data, tmp_path):
+    """The blank-plot check must fail on a report whose plots have no data."""
+    empty = dataclasses.replace(data, markers=None, result={**data.result, "taps": []})
+    pdf = tmp_path / "empty.pdf"
+    pdf.write_bytes(render_report_pdf(empty))
+    regions = _plot_regions(pdf)
+    assert set(regions) == {"aperture", "amplitude", "velocity", "paths"}
+    for name, (page, box) in regions.items():
+        assert _coloured_fraction(pdf, page, box, tmp_path) < 0.0005, name
