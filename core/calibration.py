@@ -1,0 +1,1007 @@
+"""Stereo calibration from board recordings: detection, view selection, fit, quality.
+
+The path from two recordings to a rig (``calibrate_stereo_from_paths``):
+
+1. **Sampling and detection** (:func:`collect_views`): at most
+   ``max_candidates`` evenly spaced frame pairs of the two synchronous videos
+   (or every pair of two image folders) are searched for the board with
+   :func:`core.boards.detect_board`; other frames are decoded but not searched.
+2. **Frame selection** (:func:`select_views`): blurred views are dropped
+   (edge width well above the recording's median), then views are picked by
+   farthest-point sampling in a pose descriptor (where the board is in both
+   images, how large, how tilted), so near-duplicate poses are skipped and
+   coverage and tilt variety are preferred, up to ``max_views``. Up to
+   ``max_held_out`` further distinct views are kept aside to check the result.
+3. **Fit** (:func:`calibrate_stereo`): intrinsics of each camera
+   (``cv2.calibrateCamera``, OpenCV's 5-coefficient lens model), the
+   left/right corner numbering reconciled (a chessboard's half-turn
+   ambiguity), views whose board pose disagrees with the others or whose
+   reprojection error is far above the median rejected, then a joint
+   refinement of both cameras' intrinsics and the stereo extrinsics
+   (``cv2.stereoCalibrate`` started from the per-camera intrinsics, which are
+   left free), repeated once after outlier rejection.
+4. **Quality** (stored in ``rig.quality``): see :func:`quality_verdict` and
+   docs/calibration.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from core.boards import BoardDetection, BoardSpec, detect_board
+from core.camera import Camera, ImageSize, StereoRig
+from core.errors import CalibrationError, DetectionError, InputError
+from core.progress import ProgressCallback, report
+
+FloatArray = NDArray[np.float64]
+
+#: Fewest usable stereo views a calibration accepts.
+MIN_VIEWS = 6
+#: A view is an outlier if its RMS reprojection error exceeds both this (px)...
+_OUTLIER_FLOOR_PX = 1.0
+#: ...and this multiple of the median view error.
+_OUTLIER_FACTOR = 4.0
+#: A view is blurred if its edge width exceeds both this (px) and this factor x the median.
+_BLUR_FLOOR_PX = 1.5
+_BLUR_FACTOR = 1.6
+#: Pose-descriptor distance under which two views count as the same pose.
+_DUPLICATE_DISTANCE = 0.03
+#: A calibration whose final RMS exceeds this (px) is refused: the board spec is wrong.
+_FAIL_RMS_PX = 3.0
+#: Coverage grid (columns, rows) over the image.
+_COVERAGE_GRID = (10, 8)
+
+
+# -- data ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StereoView:
+    """The board detections of one synchronous frame pair.
+
+    Attributes
+    ----------
+    frame : int
+        Left frame number (video) or image index (folders), from 0.
+    left, right : BoardDetection or None
+        ``None`` where the board was not found.
+    edge_width_px : float
+        Blur estimate of the view (NaN if not measured): larger is blurrier.
+    """
+
+    frame: int
+    left: BoardDetection | None
+    right: BoardDetection | None
+    edge_width_px: float = float("nan")
+
+    @property
+    def both(self) -> bool:
+        return self.left is not None and self.right is not None
+
+
+@dataclass(frozen=True)
+class ViewCollection:
+    """Everything detection found in a pair of recordings.
+
+    Attributes
+    ----------
+    views : list of StereoView
+        One per searched frame pair (detected or not).
+    image_size : ImageSize
+        Common ``(width, height)`` of both cameras.
+    frames_total : int
+        Frame pairs in the recordings.
+    source : str
+        ``"video"`` or ``"images"``.
+    """
+
+    views: list[StereoView]
+    image_size: ImageSize
+    frames_total: int
+    source: str
+
+    @property
+    def frames_tried(self) -> int:
+        return len(self.views)
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A calibrated rig and its quality report (also in ``rig.quality``).
+
+    Attributes
+    ----------
+    rig : StereoRig
+    quality : dict
+        JSON-serialisable quality figures (``rms_px`` and friends).
+    """
+
+    rig: StereoRig
+    quality: dict[str, Any] = field(default_factory=dict)
+
+
+# -- input ----------------------------------------------------------------------
+
+
+def _frame_source(path: str | Path, side: str) -> tuple[str, Any]:
+    """``("images", [paths])`` or ``("video", VideoInfo)`` for a calibrate input."""
+    from core.video import list_images, probe_video
+
+    p = Path(path)
+    if p.is_dir():
+        return "images", list_images(p)
+    if not p.exists():
+        raise InputError(
+            f"the {side} input {p} does not exist; give a video file or a folder of images."
+        )
+    return "video", probe_video(p)
+
+
+def _sample_indices(n_frames: int, max_candidates: int) -> list[int]:
+    if n_frames <= max_candidates:
+        return list(range(n_frames))
+    return sorted({round(v) for v in np.linspace(0, n_frames - 1, max_candidates)})
+
+
+def _iter_pairs(
+    kind: str, left: Any, right: Any, indices: Sequence[int]
+) -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
+    from core.video import iter_frames, read_image
+
+    if kind == "images":
+        for i in indices:
+            yield i, read_image(left[i]), read_image(right[i])
+        return
+    wanted = set(indices)
+    stop = max(indices) + 1 if indices else 0
+    frames_l = iter_frames(left.path, gray=True, stop=stop)
+    frames_r = iter_frames(right.path, gray=True, stop=stop)
+    try:
+        for i, (fl, fr) in enumerate(zip(frames_l, frames_r, strict=False)):
+            if i in wanted:
+                yield i, fl, fr
+    finally:
+        frames_l.close()
+        frames_r.close()
+
+
+def collect_views(
+    left: str | Path,
+    right: str | Path,
+    board: BoardSpec,
+    *,
+    max_candidates: int = 240,
+    progress: ProgressCallback | None = None,
+) -> ViewCollection:
+    """Search evenly spaced frame pairs of two recordings for the board.
+
+    Parameters
+    ----------
+    left, right : str or Path
+        Synchronous videos, or folders of images paired in sorted file-name order.
+    board : BoardSpec
+    max_candidates : int, keyword-only
+        Frame pairs searched at most (evenly spaced over the recording).
+    progress : callable, optional
+        ``progress("detection", done, total)``.
+
+    Raises
+    ------
+    InputError
+        Unreadable input, a folder and a video mixed, different image sizes,
+        or different numbers of images.
+    """
+    if max_candidates < 1:
+        raise ValueError(f"max_candidates must be >= 1, got {max_candidates}")
+    from core.video import check_stereo_videos, read_image
+
+    kind_l, src_l = _frame_source(left, "left")
+    kind_r, src_r = _frame_source(right, "right")
+    if kind_l != kind_r:
+        raise InputError(
+            "one input is a video and the other a folder of images; give two videos or two folders."
+        )
+    if kind_l == "images":
+        if len(src_l) != len(src_r):
+            raise InputError(
+                f"the left folder holds {len(src_l)} images but the right {len(src_r)}; the images"
+                " are paired in file-name order, so both folders need the same number."
+            )
+        size_l = ImageSize.of_image(read_image(src_l[0]))
+        size_r = ImageSize.of_image(read_image(src_r[0]))
+        if size_l != size_r:
+            raise InputError(
+                f"the left images are {size_l.width}x{size_l.height} but the right are"
+                f" {size_r.width}x{size_r.height}; both cameras must record at the same resolution."
+            )
+        n_total = len(src_l)
+    else:
+        check_stereo_videos(src_l, src_r)
+        size_l = src_l.image_size
+        n_total = min(src_l.frame_count, src_r.frame_count)
+    indices = _sample_indices(n_total, max_candidates)
+    views: list[StereoView] = []
+    for done, (i, img_l, img_r) in enumerate(_iter_pairs(kind_l, src_l, src_r, indices)):
+        if ImageSize.of_image(img_l) != size_l or ImageSize.of_image(img_r) != size_l:
+            a, b = ImageSize.of_image(img_l), ImageSize.of_image(img_r)
+            raise InputError(
+                f"frame pair {i} is {a.width}x{a.height} (left) and {b.width}x{b.height} (right),"
+                f" not {size_l.width}x{size_l.height}; all images must have one size."
+            )
+        det_l = detect_board(img_l, board)
+        det_r = detect_board(img_r, board)
+        width = np.nan
+        if det_l is not None and det_r is not None:
+            width = max(edge_width_px(img_l, det_l), edge_width_px(img_r, det_r))
+        views.append(StereoView(i, det_l, det_r, float(width)))
+        report(progress, "detection", done + 1, len(indices))
+    return ViewCollection(views, size_l, n_total, kind_l)
+
+
+def edge_width_px(image: NDArray[np.uint8], detection: BoardDetection) -> float:
+    """Blur estimate of a board view: the width (px) of its sharpest black/white edges.
+
+    ``contrast / max gradient`` over the board region, the worse of the x and
+    y directions (motion blur widens the edges across the motion). A sharp,
+    well-sampled edge gives about 1-1.5 px; blur of ``sigma`` px adds about
+    ``2.5 sigma``.
+    """
+    pts = detection.corners_px
+    x0, y0 = np.floor(pts.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(pts.max(axis=0)).astype(int) + 1
+    h, w = image.shape[:2]
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return float("nan")
+    roi = image[y0:y1, x0:x1].astype(np.float32)
+    gx = np.abs(cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3)) / 8.0
+    gy = np.abs(cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
+    lo, hi = np.percentile(roi, [5, 95])
+    contrast = float(hi - lo)
+    g = min(float(np.percentile(gx, 99.5)), float(np.percentile(gy, 99.5)))
+    if contrast <= 0 or g <= 0:
+        return float("nan")
+    return contrast / g
+
+
+# -- view selection ---------------------------------------------------------------
+
+
+def _pose_descriptor(det: BoardDetection, size: ImageSize) -> FloatArray | None:
+    """Where, how large and how tilted the board is: (5,) or None if degenerate."""
+    w, h = size
+    pts = det.corners_px
+    centre = pts.mean(axis=0) / np.array([w, h])
+    hull = cv2.convexHull(pts.astype(np.float32))
+    area = float(cv2.contourArea(hull)) / (w * h)
+    f0 = float(np.hypot(w, h))
+    K0 = np.array([[f0, 0, w / 2], [0, f0, h / 2], [0, 0, 1]])
+    H, _ = cv2.findHomography(det.object_points_mm[:, :2], pts, 0)
+    if H is None:
+        return None
+    M = np.linalg.inv(K0) @ H
+    r1, r2 = M[:, 0], M[:, 1]
+    normal = np.cross(r1 / np.linalg.norm(r1), r2 / np.linalg.norm(r2))
+    normal /= np.linalg.norm(normal)
+    if normal[2] < 0:
+        normal = -normal
+    return np.array([centre[0], centre[1], 2.0 * np.sqrt(area), 1.5 * normal[0], 1.5 * normal[1]])
+
+
+@dataclass(frozen=True)
+class ViewSelection:
+    """Indices (into the collection's views) chosen for the fit and for the check."""
+
+    used: list[int]
+    held_out: list[int]
+    blurred: list[int]
+    duplicates: int
+
+
+def select_views(
+    collection: ViewCollection,
+    *,
+    max_views: int = 40,
+    max_held_out: int = 10,
+) -> ViewSelection:
+    """Choose varied, sharp stereo views: farthest-point sampling of pose descriptors.
+
+    The first pick is the view with the largest board; each next pick is the
+    view farthest (in the descriptor of both cameras) from those already
+    chosen. Views closer than ``_DUPLICATE_DISTANCE`` to a chosen one are
+    near-duplicates and never picked. After ``max_views``, up to
+    ``max_held_out`` further views are picked the same way for the check.
+    """
+    if max_views < MIN_VIEWS:
+        raise ValueError(f"max_views must be >= {MIN_VIEWS}, got {max_views}")
+    size = collection.image_size
+    candidates: list[int] = []
+    descs: list[FloatArray] = []
+    widths = np.array([v.edge_width_px for v in collection.views if v.both])
+    median_width = float(np.nanmedian(widths)) if np.any(np.isfinite(widths)) else np.nan
+    blurred: list[int] = []
+    for i, v in enumerate(collection.views):
+        if not v.both:
+            continue
+        assert v.left is not None and v.right is not None
+        if (
+            np.isfinite(v.edge_width_px)
+            and v.edge_width_px > _BLUR_FLOOR_PX
+            and v.edge_width_px > _BLUR_FACTOR * median_width
+        ):
+            blurred.append(i)
+            continue
+        dl = _pose_descriptor(v.left, size)
+        dr = _pose_descriptor(v.right, size)
+        if dl is None or dr is None:
+            continue
+        # Partial ChArUco views count for less: scale by the fraction of corners seen.
+        candidates.append(i)
+        descs.append(np.concatenate([dl, dr]))
+    if not candidates:
+        return ViewSelection([], [], blurred, 0)
+    D = np.array(descs)
+    n_corners = np.array(
+        [
+            min(len(collection.views[i].left or ()), len(collection.views[i].right or ()))
+            for i in candidates
+        ],
+        dtype=np.float64,
+    )
+    weight = np.sqrt(n_corners / n_corners.max())
+    chosen: list[int] = []
+    min_dist = np.full(len(candidates), np.inf)
+    first = int(np.argmax(D[:, 2] + D[:, 7] + weight))
+    order: list[int] = []
+    nxt = first
+    duplicates = 0
+    while True:
+        order.append(nxt)
+        d = np.linalg.norm(D - D[nxt], axis=1)
+        min_dist = np.minimum(min_dist, d)
+        score = min_dist * weight
+        score[order] = -1.0
+        best = int(np.argmax(score))
+        if score[best] < 0:
+            break
+        if min_dist[best] < _DUPLICATE_DISTANCE:
+            duplicates = int(np.sum(score >= 0))
+            break
+        if len(order) >= max_views + max_held_out:
+            break
+        nxt = best
+    chosen = [candidates[k] for k in order]
+    used = sorted(chosen[:max_views])
+    held = sorted(chosen[max_views:])
+    return ViewSelection(used, held, blurred, duplicates)
+
+
+# -- fitting -----------------------------------------------------------------------
+
+
+def _cv_obj(det: BoardDetection, ids: NDArray[np.int64] | None = None) -> NDArray[np.float32]:
+    obj = det.object_points_mm if ids is None else det.object_points_mm[np.isin(det.ids, ids)]
+    return obj.astype(np.float32).reshape(-1, 1, 3)
+
+
+def _cv_img(det: BoardDetection, ids: NDArray[np.int64] | None = None) -> NDArray[np.float32]:
+    px = det.corners_px if ids is None else det.corners_px[np.isin(det.ids, ids)]
+    return px.astype(np.float32).reshape(-1, 1, 2)
+
+
+def _common(left: BoardDetection, right: BoardDetection) -> NDArray[np.int64]:
+    return np.intersect1d(left.ids, right.ids)
+
+
+def _calibrate_camera(
+    dets: Sequence[BoardDetection],
+    size: ImageSize,
+    *,
+    K: FloatArray | None = None,
+    dist: FloatArray | None = None,
+) -> tuple[float, FloatArray, FloatArray, list[FloatArray], list[FloatArray], FloatArray]:
+    """``cv2.calibrateCamera``: rms, K, dist (5,), rvecs, tvecs, per-view RMS (px)."""
+    obj = [_cv_obj(d) for d in dets]
+    img = [_cv_img(d) for d in dets]
+    flags = 0
+    if K is not None:
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    K0 = None if K is None else K.copy()
+    d0 = None if dist is None else dist.copy()
+    rms, K_out, d_out, rvecs, tvecs, _si, _se, per_view = cv2.calibrateCameraExtended(
+        obj, img, tuple(size), K0, d0, flags=flags, criteria=criteria
+    )
+    return (
+        float(rms),
+        np.asarray(K_out, dtype=np.float64),
+        np.asarray(d_out, dtype=np.float64).reshape(-1)[:5],
+        [np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs],
+        [np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs],
+        np.asarray(per_view, dtype=np.float64).reshape(-1),
+    )
+
+
+def _relative_pose(
+    rl: FloatArray, tl: FloatArray, rr: FloatArray, tr: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    Rl, _ = cv2.Rodrigues(rl)
+    Rr, _ = cv2.Rodrigues(rr)
+    R = Rr @ Rl.T
+    return R, tr - R @ tl
+
+
+def _rotation_angle(Ra: FloatArray, Rb: FloatArray) -> float:
+    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def _reconcile_numbering(
+    lefts: list[BoardDetection],
+    rights: list[BoardDetection],
+    board: BoardSpec,
+    K_l: FloatArray,
+    d_l: FloatArray,
+    K_r: FloatArray,
+    d_r: FloatArray,
+) -> tuple[list[BoardDetection], list[bool]]:
+    """Make the right numbering agree with the left; flag views whose relative pose disagrees.
+
+    For each view the left and right board poses give a left-to-right
+    transform, which must be the same in every view. A chessboard's right
+    detection may be numbered a half turn off; that numbering is tried too
+    and the one that agrees with the consensus is kept. Views that agree in
+    neither numbering (a mis-detection, a sub-board) are flagged.
+
+    Returns
+    -------
+    rights : list of BoardDetection
+        Right detections, renumbered where needed.
+    consistent : list of bool
+    """
+    candidates: list[list[tuple[BoardDetection, FloatArray, FloatArray]]] = []
+    for dl, dr in zip(lefts, rights, strict=True):
+        opts = [dr] if board.kind == "charuco" else [dr, dr.flipped(board)]
+        view_opts = []
+        ok_l, rl, tl = cv2.solvePnP(
+            _cv_obj(dl), _cv_img(dl), K_l, d_l, flags=cv2.SOLVEPNP_ITERATIVE
+        )
+        for o in opts:
+            ok_r, rr, tr = cv2.solvePnP(
+                _cv_obj(o), _cv_img(o), K_r, d_r, flags=cv2.SOLVEPNP_ITERATIVE
+            )
+            if ok_l and ok_r:
+                R, t = _relative_pose(rl.reshape(3), tl.reshape(3), rr.reshape(3), tr.reshape(3))
+                view_opts.append((o, R, t))
+        candidates.append(view_opts)
+    all_opts = [(R, t) for opts in candidates for (_, R, t) in opts]
+    if not all_opts:
+        return rights, [False] * len(rights)
+    scale = float(np.median([np.linalg.norm(t) for _, t in all_opts])) or 1.0
+
+    def agree(a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> bool:
+        return (
+            _rotation_angle(a[0], b[0]) < np.deg2rad(3.0)
+            and np.linalg.norm(a[1] - b[1]) < 0.05 * scale
+        )
+
+    support = [sum(agree(a, b) for b in all_opts) for a in all_opts]
+    ref = all_opts[int(np.argmax(support))]
+    out: list[BoardDetection] = []
+    consistent: list[bool] = []
+    for dr, opts in zip(rights, candidates, strict=True):
+        good = [o for (o, R, t) in opts if agree((R, t), ref)]
+        if good:
+            out.append(good[0])
+            consistent.append(True)
+        else:
+            out.append(dr)
+            consistent.append(False)
+    return out, consistent
+
+
+@dataclass
+class _StereoFit:
+    rms: float
+    K_l: FloatArray
+    d_l: FloatArray
+    K_r: FloatArray
+    d_r: FloatArray
+    R: FloatArray
+    T: FloatArray
+    per_view: FloatArray  # (n, 2) RMS px, left and right
+
+
+def _stereo_calibrate(
+    lefts: Sequence[BoardDetection],
+    rights: Sequence[BoardDetection],
+    size: ImageSize,
+    K_l: FloatArray,
+    d_l: FloatArray,
+    K_r: FloatArray,
+    d_r: FloatArray,
+    *,
+    fix_intrinsic: bool = False,
+) -> _StereoFit:
+    obj, img_l, img_r = [], [], []
+    for dl, dr in zip(lefts, rights, strict=True):
+        ids = _common(dl, dr)
+        obj.append(_cv_obj(dl, ids))
+        img_l.append(_cv_img(dl, ids))
+        img_r.append(_cv_img(dr, ids))
+    flags = cv2.CALIB_FIX_INTRINSIC if fix_intrinsic else cv2.CALIB_USE_INTRINSIC_GUESS
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    out = cv2.stereoCalibrateExtended(
+        obj,
+        img_l,
+        img_r,
+        K_l.copy(),
+        d_l.copy(),
+        K_r.copy(),
+        d_r.copy(),
+        tuple(size),
+        None,
+        None,
+        flags=flags,
+        criteria=criteria,
+    )
+    rms, K1, D1, K2, D2, R, T, _E, _F, _rv, _tv, per_view = out
+    return _StereoFit(
+        float(rms),
+        np.asarray(K1, dtype=np.float64),
+        np.asarray(D1, dtype=np.float64).reshape(-1)[:5],
+        np.asarray(K2, dtype=np.float64),
+        np.asarray(D2, dtype=np.float64).reshape(-1)[:5],
+        np.asarray(R, dtype=np.float64),
+        np.asarray(T, dtype=np.float64).reshape(3),
+        np.asarray(per_view, dtype=np.float64).reshape(-1, 2),
+    )
+
+
+def _outliers(per_view_rms: FloatArray) -> NDArray[np.bool_]:
+    """Views whose RMS (px) is above both the floor and a multiple of the median."""
+    worst = per_view_rms if per_view_rms.ndim == 1 else per_view_rms.max(axis=1)
+    med = float(np.median(worst))
+    return (worst > _OUTLIER_FLOOR_PX) & (worst > _OUTLIER_FACTOR * med)
+
+
+def _rig_from_fit(fit: _StereoFit, size: ImageSize, quality: dict[str, Any]) -> StereoRig:
+    left = Camera("left", size, _clean_K(fit.K_l), fit.d_l)
+    right = Camera("right", size, _clean_K(fit.K_r), fit.d_r, _orthonormal(fit.R), fit.T)
+    return StereoRig(left, right, quality)
+
+
+def _clean_K(K: FloatArray) -> FloatArray:
+    out = np.array(K, dtype=np.float64)
+    out[0, 1] = out[1, 0] = out[2, 0] = out[2, 1] = 0.0
+    out[2, 2] = 1.0
+    return out
+
+
+def _orthonormal(R: FloatArray) -> FloatArray:
+    U, _, Vt = np.linalg.svd(R)
+    out = U @ Vt
+    if np.linalg.det(out) < 0:
+        out = -out
+    return out
+
+
+def calibrate_stereo(
+    collection: ViewCollection,
+    board: BoardSpec,
+    *,
+    max_views: int = 40,
+    max_held_out: int = 10,
+    progress: ProgressCallback | None = None,
+) -> CalibrationResult:
+    """Calibrate a stereo rig from detected board views.
+
+    Parameters
+    ----------
+    collection : ViewCollection
+        From :func:`collect_views`.
+    board : BoardSpec
+        The board that was filmed (its ``square_mm`` sets the rig's scale).
+    max_views : int, keyword-only
+        Stereo views used in the fit at most.
+    max_held_out : int, keyword-only
+        Further distinct views kept aside to check the board-square length.
+    progress : callable, optional
+        ``progress("calibration", step, total)``.
+
+    Raises
+    ------
+    DetectionError
+        The board was found in too few frames of either camera.
+    CalibrationError
+        Too few usable common views, or a fit too poor to be the board asked for.
+    """
+    views = collection.views
+    n_tried = collection.frames_tried
+    n_left = sum(v.left is not None for v in views)
+    n_right = sum(v.right is not None for v in views)
+    for side, n in (("left", n_left), ("right", n_right)):
+        if n < MIN_VIEWS:
+            raise DetectionError(
+                f"the board ({board.describe()}) was found in {n} of {n_tried} {side} frames;"
+                f" at least {MIN_VIEWS} are needed — check --cols/--rows (and for a chessboard that"
+                " the whole board is in view) and that the recording shows the board."
+            )
+    report(progress, "calibration", 0, 4)
+    selection = select_views(collection, max_views=max_views, max_held_out=max_held_out)
+    n_both = sum(v.both for v in views)
+    if len(selection.used) < MIN_VIEWS:
+        raise CalibrationError(
+            f"only {len(selection.used)} sharp, distinct views show the board in both cameras"
+            f" ({n_both} frame pairs in all); at least {MIN_VIEWS} are needed — move the board"
+            " slowly through the region both cameras see, holding it still at varied angles."
+        )
+    size = collection.image_size
+    used = list(selection.used)
+    lefts = [views[i].left for i in used]
+    rights = [views[i].right for i in used]
+    assert all(d is not None for d in lefts) and all(d is not None for d in rights)
+    lefts_d: list[BoardDetection] = [d for d in lefts if d is not None]
+    rights_d: list[BoardDetection] = [d for d in rights if d is not None]
+
+    # 1. Intrinsics of each camera, with outlier views removed.
+    rejected: list[int] = []
+    _, K_l, d_l, *_rest_l, pv_l = _calibrate_camera(lefts_d, size)
+    _, K_r, d_r, *_rest_r, pv_r = _calibrate_camera(rights_d, size)
+    report(progress, "calibration", 1, 4)
+    # 2. Consistent numbering and a consistent left-to-right transform.
+    rights_d, consistent = _reconcile_numbering(lefts_d, rights_d, board, K_l, d_l, K_r, d_r)
+    bad = ~np.array(consistent) | _outliers(np.column_stack([pv_l, pv_r]))
+    if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
+        rejected += [used[k] for k in np.flatnonzero(bad)]
+        keep = np.flatnonzero(~bad)
+        used = [used[k] for k in keep]
+        lefts_d = [lefts_d[k] for k in keep]
+        rights_d = [rights_d[k] for k in keep]
+        _, K_l, d_l, *_ = _calibrate_camera(lefts_d, size, K=K_l, dist=d_l)
+        _, K_r, d_r, *_ = _calibrate_camera(rights_d, size, K=K_r, dist=d_r)
+    report(progress, "calibration", 2, 4)
+    # 3. Joint refinement, once more without outliers.
+    fit = _stereo_calibrate(lefts_d, rights_d, size, K_l, d_l, K_r, d_r)
+    bad = _outliers(fit.per_view)
+    if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
+        rejected += [used[k] for k in np.flatnonzero(bad)]
+        keep = np.flatnonzero(~bad)
+        used = [used[k] for k in keep]
+        lefts_d = [lefts_d[k] for k in keep]
+        rights_d = [rights_d[k] for k in keep]
+        fit = _stereo_calibrate(lefts_d, rights_d, size, fit.K_l, fit.d_l, fit.K_r, fit.d_r)
+    report(progress, "calibration", 3, 4)
+    if not np.isfinite(fit.rms) or fit.rms > _FAIL_RMS_PX:
+        raise CalibrationError(
+            f"the board corners do not fit one rig (reprojection error {fit.rms:.1f} px);"
+            f" check that --cols/--rows/--square-mm describe the board filmed ({board.describe()})."
+        )
+    rig = _rig_from_fit(fit, size, {})
+    # 4. Quality.
+    held = [views[i] for i in selection.held_out]
+    quality = _quality(
+        rig,
+        board,
+        fit,
+        used=used,
+        lefts=lefts_d,
+        rights=rights_d,
+        held_out=held,
+        collection=collection,
+        selection=selection,
+        rejected=rejected,
+    )
+    rig = StereoRig(rig.left, rig.right, quality)
+    report(progress, "calibration", 4, 4)
+    return CalibrationResult(rig=rig, quality=quality)
+
+
+def calibrate_stereo_from_paths(
+    left: str | Path,
+    right: str | Path,
+    board: BoardSpec,
+    *,
+    max_views: int = 40,
+    max_candidates: int = 240,
+    progress: ProgressCallback | None = None,
+) -> CalibrationResult:
+    """Calibrate a stereo rig from two board recordings.
+
+    Parameters
+    ----------
+    left, right : str or Path
+        Synchronous videos of the board, or folders of images paired in
+        sorted file-name order.
+    board : BoardSpec
+        The board filmed.
+    max_views : int, keyword-only
+        Stereo views used in the fit at most (the rest of the sharp, distinct
+        views check the result).
+    max_candidates : int, keyword-only
+        Frame pairs searched for the board at most (evenly spaced).
+    progress : callable, optional
+        ``progress(stage, done, total)`` with stages ``"detection"`` and ``"calibration"``.
+
+    Returns
+    -------
+    CalibrationResult
+        ``result.rig`` (with ``rig.quality``) is ready for ``core.camera.write_rig``.
+
+    Raises
+    ------
+    InputError, DetectionError, CalibrationError
+        With one sentence that says what to do.
+    """
+    collection = collect_views(left, right, board, max_candidates=max_candidates, progress=progress)
+    return calibrate_stereo(collection, board, max_views=max_views, progress=progress)
+
+
+# -- quality ------------------------------------------------------------------------
+
+
+def epipolar_errors_px(rig: StereoRig, left_px: FloatArray, right_px: FloatArray) -> FloatArray:
+    """Symmetric epipolar distance (px) of matched distorted pixels ``(N, 2)`` each, ``(N,)``.
+
+    Points are undistorted to ideal pixels of each camera; the result is the
+    mean of the right point's distance to the left point's epipolar line and
+    vice versa.
+    """
+    ul = rig.left.undistort_pixels(left_px)
+    ur = rig.right.undistort_pixels(right_px)
+    F = rig.fundamental_matrix()
+    hl = np.column_stack([ul, np.ones(len(ul))])
+    hr = np.column_stack([ur, np.ones(len(ur))])
+    lines_r = hl @ F.T  # epipolar lines in the right image
+    lines_l = hr @ F  # in the left image
+    num = np.abs(np.sum(hr * lines_r, axis=1))
+    d_r = num / np.hypot(lines_r[:, 0], lines_r[:, 1])
+    d_l = num / np.hypot(lines_l[:, 0], lines_l[:, 1])
+    return np.asarray(0.5 * (d_l + d_r), dtype=np.float64)
+
+
+def _pair_points(
+    dl: BoardDetection, dr: BoardDetection
+) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+    ids = _common(dl, dr)
+    return ids, dl.corners_px[np.isin(dl.ids, ids)], dr.corners_px[np.isin(dr.ids, ids)]
+
+
+def square_lengths_mm(
+    rig: StereoRig, board: BoardSpec, pairs: Sequence[tuple[BoardDetection, BoardDetection]]
+) -> FloatArray:
+    """Triangulated lengths (mm) of every board square side seen in both images of the pairs.
+
+    Adjacent corners (same row or same column of the corner grid) are
+    triangulated with :func:`core.triangulation.triangulate`; each length
+    should equal ``board.square_mm``.
+    """
+    from core.triangulation import triangulate
+
+    cols, _rows = board.corner_grid
+    out: list[FloatArray] = []
+    for dl, dr in pairs:
+        ids, pl, pr = _pair_points(dl, dr)
+        if len(ids) < 2:
+            continue
+        pts = triangulate(rig, pl, pr).points_mm
+        index = {int(k): n for n, k in enumerate(ids)}
+        for n, k in enumerate(ids):
+            k = int(k)
+            for nb in (k + 1 if (k + 1) % cols else None, k + cols):
+                if nb is not None and nb in index:
+                    out.append(np.array([np.linalg.norm(pts[index[nb]] - pts[n])]))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def image_coverage(
+    points_px: FloatArray, size: ImageSize, *, grid: tuple[int, int] = _COVERAGE_GRID
+) -> float:
+    """Fraction of the cells of a ``grid`` (columns, rows) over the image that hold a point."""
+    if len(points_px) == 0:
+        return 0.0
+    w, h = size
+    gc, gr = grid
+    cx = np.clip((points_px[:, 0] + 0.5) / w * gc, 0, gc - 1).astype(int)
+    cy = np.clip((points_px[:, 1] + 0.5) / h * gr, 0, gr - 1).astype(int)
+    return float(len(set(zip(cx.tolist(), cy.tolist(), strict=True)))) / (gc * gr)
+
+
+def _round(x: float, nd: int = 4) -> float | None:
+    return round(float(x), nd) if np.isfinite(x) else None
+
+
+def _quality(
+    rig: StereoRig,
+    board: BoardSpec,
+    fit: _StereoFit,
+    *,
+    used: list[int],
+    lefts: list[BoardDetection],
+    rights: list[BoardDetection],
+    held_out: list[StereoView],
+    collection: ViewCollection,
+    selection: ViewSelection,
+    rejected: list[int],
+) -> dict[str, Any]:
+    views = collection.views
+    per_view = [
+        {"frame": views[i].frame, "left_rms_px": _round(e[0]), "right_rms_px": _round(e[1])}
+        for i, e in zip(used, fit.per_view, strict=True)
+    ]
+    epi_used = np.concatenate(
+        [
+            epipolar_errors_px(rig, *_pair_points(dl, dr)[1:])
+            for dl, dr in zip(lefts, rights, strict=True)
+        ]
+    )
+    # Held-out views: renumber right detections the way the fit expects.
+    held_pairs: list[tuple[BoardDetection, BoardDetection]] = []
+    for v in held_out:
+        assert v.left is not None and v.right is not None
+        held_pairs.append((v.left, _best_numbering(rig, board, v.left, v.right)))
+    method = "held_out"
+    if len(held_pairs) < 3:
+        # No spare views: check the square length on the fitted views themselves.
+        method = "fitted_views"
+        held_pairs = list(zip(lefts, rights, strict=True))
+    lengths = square_lengths_mm(rig, board, held_pairs)
+    err = lengths - board.square_mm
+    epi_held = (
+        np.concatenate(
+            [epipolar_errors_px(rig, *_pair_points(dl, dr)[1:]) for dl, dr in held_pairs]
+        )
+        if held_pairs
+        else np.zeros(0)
+    )
+    pts_l = np.concatenate([d.corners_px for d in lefts])
+    pts_r = np.concatenate([d.corners_px for d in rights])
+    size = collection.image_size
+    return {
+        "rms_px": _round(fit.rms),
+        "rms_px_left": _round(float(np.sqrt(np.mean(fit.per_view[:, 0] ** 2)))),
+        "rms_px_right": _round(float(np.sqrt(np.mean(fit.per_view[:, 1] ** 2)))),
+        "view_rms_px_max": _round(float(fit.per_view.max())),
+        "per_view": per_view,
+        "epipolar_px_mean": _round(float(np.mean(epi_used))),
+        "epipolar_px_max": _round(float(np.max(epi_used))),
+        "epipolar_px_mean_check": _round(float(np.mean(epi_held))) if len(epi_held) else None,
+        "square_mm": board.square_mm,
+        "square_mm_measured": _round(float(np.mean(lengths))) if len(lengths) else None,
+        "square_error_mm_mean": _round(float(np.mean(err))) if len(err) else None,
+        "square_error_mm_rms": _round(float(np.sqrt(np.mean(err**2)))) if len(err) else None,
+        "square_check_views": len(held_pairs),
+        "square_check_method": method,
+        "coverage_left": _round(image_coverage(pts_l, size), 3),
+        "coverage_right": _round(image_coverage(pts_r, size), 3),
+        "views_used": len(used),
+        "views_rejected": len(rejected),
+        "views_rejected_frames": [views[i].frame for i in rejected],
+        "views_blurred": len(selection.blurred),
+        "views_duplicate": selection.duplicates,
+        "views_held_out": len(selection.held_out),
+        "views_both_detected": sum(v.both for v in views),
+        "frames_tried": collection.frames_tried,
+        "frames_total": collection.frames_total,
+        "frames_left_detected": sum(v.left is not None for v in views),
+        "frames_right_detected": sum(v.right is not None for v in views),
+        "baseline_mm": _round(rig.baseline_mm),
+        "board": board.to_dict(),
+        "source": collection.source,
+        "method": "opencv calibrateCamera + stereoCalibrate (intrinsics free), 5-coefficient lens model",
+    }
+
+
+def _best_numbering(
+    rig: StereoRig, board: BoardSpec, dl: BoardDetection, dr: BoardDetection
+) -> BoardDetection:
+    """The right numbering (as given or a half turn off) with the smaller epipolar error."""
+    if board.kind == "charuco":
+        return dr
+    options = [dr, dr.flipped(board)]
+    errs = [float(np.mean(epipolar_errors_px(rig, *_pair_points(dl, o)[1:]))) for o in options]
+    return options[int(np.argmin(errs))]
+
+
+# -- verdict ------------------------------------------------------------------------
+
+#: (good if <=, acceptable if <=) thresholds; see docs/calibration.md.
+VERDICT_THRESHOLDS: dict[str, tuple[float, float]] = {
+    "rms_px": (0.5, 1.0),
+    "epipolar_px_mean": (0.3, 0.7),
+    "square_error_relative": (0.002, 0.005),
+}
+#: (good if >=, acceptable if >=).
+VERDICT_MINIMA: dict[str, tuple[float, float]] = {
+    "coverage": (0.5, 0.3),
+    "views_used": (15, MIN_VIEWS + 2),
+}
+
+
+def quality_verdict(quality: dict[str, Any]) -> tuple[str, list[str]]:
+    """Judge a calibration from its quality figures.
+
+    Returns
+    -------
+    verdict : {"good", "acceptable", "poor"}
+        The worst of the figures' verdicts.
+    reasons : list of str
+        One sentence per figure that is not good (empty when all are good).
+        Figures missing from ``quality`` are not judged.
+    """
+    levels = {"good": 0, "acceptable": 1, "poor": 2}
+    worst = 0
+    reasons: list[str] = []
+
+    def judge(
+        value: float | None, good: float, ok: float, higher_is_better: bool, text: str
+    ) -> None:
+        nonlocal worst
+        if value is None or not np.isfinite(value):
+            return
+        if higher_is_better:
+            level = 0 if value >= good else 1 if value >= ok else 2
+        else:
+            level = 0 if value <= good else 1 if value <= ok else 2
+        if level:
+            worst = max(worst, level)
+            reasons.append(text)
+
+    rms = quality.get("rms_px")
+    g, a = VERDICT_THRESHOLDS["rms_px"]
+    judge(
+        rms,
+        g,
+        a,
+        False,
+        f"reprojection error {rms} px is above {g} px: blurred or mis-detected views, or a board that is not flat.",
+    )
+    epi = quality.get("epipolar_px_mean")
+    g, a = VERDICT_THRESHOLDS["epipolar_px_mean"]
+    judge(
+        epi,
+        g,
+        a,
+        False,
+        f"epipolar error {epi} px is above {g} px: the two cameras' geometry is uncertain.",
+    )
+    sq_err = quality.get("square_error_mm_rms")
+    sq = quality.get("square_mm")
+    if sq_err is not None and sq:
+        rel = float(sq_err) / float(sq)
+        g, a = VERDICT_THRESHOLDS["square_error_relative"]
+        judge(
+            rel,
+            g,
+            a,
+            False,
+            f"board squares measure {sq_err} mm RMS off their true {sq} mm ({100 * rel:.2f} %, above"
+            f" {100 * g:.1f} %): 3D lengths will be off by as much.",
+        )
+    cov_vals = [quality.get(k) for k in ("coverage_left", "coverage_right")]
+    cov_known = [float(c) for c in cov_vals if c is not None]
+    if cov_known:
+        cov = min(cov_known)
+        g, a = VERDICT_MINIMA["coverage"]
+        judge(
+            cov,
+            g,
+            a,
+            True,
+            f"the board covered only {100 * cov:.0f} % of the image (below {100 * g:.0f} %):"
+            " move it into the corners and edges too.",
+        )
+    n = quality.get("views_used")
+    g, a = VERDICT_MINIMA["views_used"]
+    judge(
+        n, g, a, True, f"only {n} views were used (below {g:g}): record more, varied board poses."
+    )
+    verdict = {v: k for k, v in levels.items()}[worst]
+    return verdict, reasons
