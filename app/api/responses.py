@@ -1,0 +1,34 @@
+"""Documented error answers shared by the routes (OpenAPI ``responses=``)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import Path, Query
+
+from app.schemas import MAX_ID, ErrorResponse
+
+
+def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` entries for the given error statuses, all ``ErrorResponse``."""
+    text = {
+        400: "The request body is malformed.",
+        401: "No valid API key or browser session.",
+        403: "The key lacks the scope, or the browser request lacks its CSRF token.",
+        404: "No such resource (or it was deleted).",
+        409: "Conflicts with the current state (duplicate, or not ready yet).",
+        413: "An uploaded file is larger than the limit.",
+        415: "The upload is not multipart/form-data, or a file is not a readable video.",
+        422: "The request is well-formed but its content is invalid.",
+        429: "Too many attempts; wait and retry.",
+        503: "This feature is not available in this installation yet.",
+    }
+    return {s: {"model": ErrorResponse, "description": text[s]} for s in statuses}
+
+
+# Every authenticated route can answer these.
+AUTH = (401, 403, 422)
+
+IdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="Numeric id.")]
+Limit = Annotated[int, Query(ge=1, le=200, description="Items per page.")]
+Offset = Annotated[int, Query(ge=0, le=10_000_000, description="Items to skip.")]

@@ -1,0 +1,103 @@
+"""A trial's result and its exports: result.json, markers.csv, report.html/.pdf, FHIR."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
+
+from app.api.responses import AUTH, IdPath, errors
+from app.auth import Actor, SessionDep, require_scope
+from app.services import results as service
+
+router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
+
+ResultReader = Annotated[Actor, Depends(require_scope("results:read"))]
+EXPORT_ERRORS = errors(*AUTH, 404, 409)
+
+
+@router.get(
+    "/result",
+    response_model=dict[str, Any],
+    responses=EXPORT_ERRORS,
+    summary="The result.json document (format bradyscope.result/1)",
+)
+def get_result(trial_id: IdPath, actor: ResultReader, db: SessionDep) -> dict[str, Any]:
+    return service.get_result(db, actor, trial_id)
+
+
+@router.get(
+    "/markers.csv",
+    response_class=FileResponse,
+    responses={
+        200: {"content": {"text/csv": {"schema": {"type": "string"}}}, "description": "CSV"},
+        **EXPORT_ERRORS,
+    },
+    summary="The markers.csv document (one row per frame and marker)",
+)
+def get_markers_csv(
+    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> FileResponse:
+    path = service.markers_csv_path(db, actor, trial_id, request.app.state.storage)
+    return FileResponse(
+        path, media_type="text/csv; charset=utf-8", filename=f"trial-{trial_id}-markers.csv"
+    )
+
+
+@router.get(
+    "/report.html",
+    response_class=HTMLResponse,
+    responses={
+        200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "HTML"},
+        **EXPORT_ERRORS,
+        **errors(503),
+    },
+    summary="The trial's report as a standalone HTML page",
+)
+def get_report_html(
+    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> HTMLResponse:
+    return HTMLResponse(service.report_html(db, actor, trial_id, request.app.state.settings))
+
+
+@router.get(
+    "/report.pdf",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/pdf": {"schema": {"type": "string", "format": "binary"}}},
+            "description": "PDF",
+        },
+        **EXPORT_ERRORS,
+        **errors(503),
+    },
+    summary="The trial's report as PDF",
+)
+def get_report_pdf(
+    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> Response:
+    pdf = service.report_pdf(db, actor, trial_id, request.app.state.settings)
+    return Response(
+        pdf,
+        media_type="application/pdf",
+        headers={"Content-Disposition": f'attachment; filename="trial-{trial_id}-report.pdf"'},
+    )
+
+
+@router.get(
+    "/fhir",
+    response_class=JSONResponse,
+    responses={
+        200: {
+            "content": {"application/fhir+json": {"schema": {"type": "object"}}},
+            "description": "A FHIR R4 Bundle (DiagnosticReport + Observations, PDF attached).",
+        },
+        **EXPORT_ERRORS,
+        **errors(503),
+    },
+    summary="The trial's result as a FHIR R4 Bundle",
+)
+def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request) -> Response:
+    bundle = service.fhir_bundle(db, actor, trial_id, request.app.state.settings)
+    return JSONResponse(bundle, media_type="application/fhir+json")

@@ -1,0 +1,89 @@
+"""Trials (upload two videos of one hand) and jobs (the analysis' progress)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request, status
+from starlette.concurrency import run_in_threadpool
+
+from app.api.responses import AUTH, IdPath, errors
+from app.api.uploads import BINARY, multipart_body, run_upload
+from app.auth import Actor, CurrentActor, SessionDep, require_scope
+from app.schemas import JobRead, TrialCreated, TrialRead
+from app.services import recordings
+
+router = APIRouter(tags=["trials"])
+
+Uploader = Annotated[Actor, Depends(require_scope("recordings:write"))]
+Reader = Annotated[Actor, Depends(require_scope("patients:read"))]
+
+TRIAL_BODY = multipart_body(
+    {
+        "hand": {"type": "string", "enum": ["left", "right"]},
+        "left_video": {**BINARY, "description": "Video of the left camera."},
+        "right_video": {**BINARY, "description": "Video of the right camera."},
+        "offset_frames": {
+            "type": "number",
+            "description": "Known offset: right frame j was taken with left frame j + K."
+            " Omit it to estimate the offset from the marker motion.",
+        },
+    },
+    ["hand", "left_video", "right_video"],
+    "One finger-tapping recording of one hand by the two cameras of the session's rig.",
+)
+
+
+@router.post(
+    "/sessions/{session_id}/trials",
+    status_code=status.HTTP_201_CREATED,
+    response_model=TrialCreated,
+    responses=errors(*AUTH, 400, 404, 409, 413, 415),
+    openapi_extra=TRIAL_BODY,
+    summary="Upload a trial (two videos); queues its analysis",
+)
+async def create_trial(
+    session_id: IdPath, request: Request, actor: Uploader, db: SessionDep
+) -> TrialCreated:
+    await run_in_threadpool(recordings.check_trial_target, db, actor, session_id)
+
+    def use_case(upload: Any) -> TrialCreated:
+        out = recordings.create_trial(db, actor, session_id, upload)
+        return TrialCreated(id=out.trial.id, job_id=out.job_id or 0, warnings=out.warnings)
+
+    return await run_upload(
+        request,
+        file_fields=recordings.TRIAL_FILE_FIELDS,
+        text_fields=recordings.TRIAL_TEXT_FIELDS,
+        use_case=use_case,
+    )
+
+
+@router.get(
+    "/sessions/{session_id}/trials",
+    response_model=list[TrialRead],
+    responses=errors(*AUTH, 404),
+    summary="List a session's trials",
+)
+def list_trials(session_id: IdPath, actor: Reader, db: SessionDep) -> list[TrialRead]:
+    return [TrialRead(**v) for v in recordings.list_trials(db, actor, session_id)]
+
+
+@router.get(
+    "/trials/{trial_id}",
+    response_model=TrialRead,
+    responses=errors(*AUTH, 404),
+    summary="Read a trial (videos, status, job)",
+)
+def get_trial(trial_id: IdPath, actor: Reader, db: SessionDep) -> TrialRead:
+    return TrialRead(**recordings.get_trial(db, actor, trial_id))
+
+
+@router.get(
+    "/jobs/{job_id}",
+    response_model=JobRead,
+    responses=errors(*AUTH, 404),
+    summary="A job's status, progress (0-1), stage and error",
+)
+def get_job(job_id: IdPath, actor: CurrentActor, db: SessionDep) -> JobRead:
+    return JobRead.model_validate(recordings.get_job(db, actor, job_id))

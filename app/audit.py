@@ -1,0 +1,113 @@
+"""The audit trail: who read, changed or exported which patient's data, when, with what outcome.
+
+Every use case that touches patient data calls :func:`audit` on the session of
+its own unit of work, so the event is committed together with the change (or
+read) it describes, and rolled back with it. A refused or failed request is
+recorded by :func:`audit_failure` in a separate short transaction (the
+request's own one is rolled back).
+
+Audit rows hold identifiers and verbs only, never clinical values (no
+metrics, notes, ratings, names); ``app.models.AuditEvent`` has no foreign keys
+so that the trail outlives what it describes. The table is append-only: no
+code path updates or deletes its rows.
+"""
+
+from __future__ import annotations
+
+from contextvars import ContextVar
+from typing import TYPE_CHECKING, Any, Literal
+
+from sqlalchemy.orm import Session
+
+from app.models import AuditEvent
+
+if TYPE_CHECKING:
+    from app.auth import Actor
+
+# Set per request by ``app.main.SecurityHeadersMiddleware``.
+request_id_var: ContextVar[str | None] = ContextVar("request_id", default=None)
+client_ip_var: ContextVar[str | None] = ContextVar("client_ip", default=None)
+
+Action = Literal[
+    "list", "read", "create", "update", "delete", "export", "login", "logout", "access"
+]
+Outcome = Literal["success", "denied", "not_found", "invalid", "error"]
+
+
+def _event(
+    actor: Actor | None,
+    action: str,
+    resource_type: str,
+    resource_id: Any,
+    patient_id: int | None,
+    outcome: str,
+) -> AuditEvent:
+    return AuditEvent(
+        actor_type=actor.type if actor is not None else "system",
+        actor_id=str(actor.id) if actor is not None else None,
+        action=action,
+        resource_type=resource_type,
+        resource_id=None if resource_id is None else str(resource_id),
+        patient_id=patient_id,
+        outcome=outcome,
+        ip=client_ip_var.get(),
+        request_id=request_id_var.get(),
+    )
+
+
+def audit(
+    db: Session,
+    actor: Actor | None,
+    action: Action | str,
+    resource_type: str,
+    resource_id: Any = None,
+    patient_id: int | None = None,
+    outcome: Outcome | str = "success",
+) -> AuditEvent:
+    """Add one audit event to ``db``'s current transaction (committed with the use case).
+
+    Parameters
+    ----------
+    db : Session
+        The session of the use case; the caller commits.
+    actor : Actor or None
+        Who acts (``None`` = the system, e.g. the worker).
+    action : str
+        ``list``, ``read``, ``create``, ``update``, ``delete``, ``export``...
+    resource_type : str
+        ``patient``, ``session``, ``trial``, ``result``, ``rig``, ``calibration``...
+    resource_id : int or str, optional
+        The resource's id (stored as text); ``None`` for lists.
+    patient_id : int, optional
+        The patient whose data this is, when there is one.
+    outcome : str
+        ``success`` (default), ``denied``, ``not_found``, ``invalid``, ``error``.
+
+    Returns
+    -------
+    AuditEvent
+        The pending row.
+    """
+    event = _event(actor, action, resource_type, resource_id, patient_id, outcome)
+    db.add(event)
+    return event
+
+
+def audit_failure(
+    db: Session,
+    actor: Actor | None,
+    action: Action | str,
+    resource_type: str,
+    resource_id: Any = None,
+    patient_id: int | None = None,
+    outcome: Outcome | str = "denied",
+) -> None:
+    """Record a refused or failed request in its own short transaction, and commit it.
+
+    Uses a new session on ``db``'s connection pool, so the request's own
+    transaction can still be rolled back. Call it before the request wrote
+    anything (SQLite allows one writer at a time).
+    """
+    with Session(bind=db.get_bind()) as own:
+        own.add(_event(actor, action, resource_type, resource_id, patient_id, outcome))
+        own.commit()

@@ -1,0 +1,505 @@
+"""Authentication and authorisation: API keys for hospital systems, sessions for browsers.
+
+Two kinds of callers, one :class:`Actor`:
+
+- **API clients** send ``Authorization: Bearer bsk_<prefix>_<secret>``
+  (:mod:`app.apikeys`). The key is looked up by its prefix and compared by
+  hash; a revoked key is refused (401). Each client holds *scopes*; a route
+  names the scope it needs with :func:`require_scope` (403 without it).
+- **Browsers** log in with e-mail and password (argon2, :mod:`app.passwords`)
+  and get a server-side session: the cookie holds a random token, the
+  database only its SHA-256 (``BrowserSession.id``). The cookie is HttpOnly,
+  SameSite=Lax, and Secure when ``settings.secure_cookies``. Every
+  state-changing browser request (POST, PUT, PATCH, DELETE) must carry the
+  session's CSRF token, in the ``X-CSRF-Token`` header or a ``csrf_token``
+  form field (403 otherwise). Users have every data scope; admins also
+  ``admin``.
+- **Login throttling**: after ``settings.login_max_failures`` failed attempts
+  for one e-mail address within ``settings.login_window_s`` (or four times as
+  many from one IP address), further attempts are refused with 429 until the
+  window has passed, even with the right password.
+
+Dependencies (``Annotated`` aliases for route signatures): :data:`SessionDep`,
+:data:`CurrentActor`, :data:`CurrentUser`, :data:`OptionalUser`, and
+``require_scope("patients:read")``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import timedelta
+from typing import Annotated, Any, Literal
+
+from fastapi import Depends, Request, Response
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.apikeys import SCOPES, parse_api_key, verify_api_key
+from app.audit import audit, audit_failure
+from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
+from app.models import ApiClient, BrowserSession, LoginAttempt, User, utcnow
+from app.passwords import DUMMY_HASH, hash_password, needs_rehash, verify_password
+
+SESSION_COOKIE = "bradyscope_session"
+CSRF_HEADER = "X-CSRF-Token"
+CSRF_FORM_FIELD = "csrf_token"
+ADMIN_SCOPE = "admin"
+# Scopes of browser users by role (API clients have their own list).
+ROLE_SCOPES: dict[str, frozenset[str]] = {
+    "clinician": frozenset(SCOPES),
+    "admin": frozenset((*SCOPES, ADMIN_SCOPE)),
+}
+IP_FAILURE_FACTOR = 4  # one IP may fail this many times more than one e-mail address
+_SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "TRACE"})
+_TOUCH_INTERVAL = timedelta(minutes=1)  # last_used/last_seen are updated at most this often
+
+
+@dataclass(frozen=True)
+class Actor:
+    """Who makes a request: an API client or a logged-in browser user.
+
+    Attributes
+    ----------
+    type : {"api_client", "user"}
+    id : int
+        ``ApiClient.id`` or ``User.id``.
+    name : str
+        Client name or user e-mail (for logs; never shown to other users).
+    scopes : frozenset of str
+    role : str or None
+        The user's role (``clinician``/``admin``); ``None`` for API clients.
+    csrf_token : str or None
+        The browser session's CSRF token (``None`` for API clients).
+    """
+
+    type: Literal["api_client", "user"]
+    id: int
+    name: str
+    scopes: frozenset[str] = field(default_factory=frozenset)
+    role: str | None = None
+    csrf_token: str | None = None
+
+    def has_scope(self, scope: str) -> bool:
+        return scope in self.scopes or ADMIN_SCOPE in self.scopes
+
+    @property
+    def user_id(self) -> int | None:
+        """The user's id for ``created_by_user_id`` columns (``None`` for API clients)."""
+        return self.id if self.type == "user" else None
+
+
+# --------------------------------------------------------------------------- database session
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    """One database session per request (the use case commits; the rest is rolled back)."""
+    factory = request.app.state.session_factory
+    with factory() as db:
+        yield db
+
+
+SessionDep = Annotated[Session, Depends(get_db)]
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _sha256(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def email_hash(email: str) -> str:
+    """SHA-256 (hex) of the normalised e-mail address, as stored in ``LoginAttempt``."""
+    return _sha256(normalise_email(email))
+
+
+def normalise_email(email: str) -> str:
+    return email.strip().lower()
+
+
+def _client_ip(request: Request) -> str | None:
+    return request.client.host[:45] if request.client else None
+
+
+def _settings(request: Request) -> Any:
+    return request.app.state.settings
+
+
+# --------------------------------------------------------------------------- API keys
+
+
+def authenticate_api_key(db: Session, token: str) -> Actor:
+    """The API client owning ``token``; :class:`AuthenticationError` if unknown or revoked."""
+    prefix = parse_api_key(token)
+    if prefix is None:
+        raise AuthenticationError(
+            "The API key is malformed; send 'Authorization: Bearer bsk_...' with the key"
+            " printed by 'bradyscope admin create-api-key'."
+        )
+    client = db.scalar(select(ApiClient).where(ApiClient.key_prefix == prefix))
+    if client is None or not verify_api_key(token, client.key_hash):
+        raise AuthenticationError("The API key is not valid; ask the administrator for a key.")
+    if client.revoked_at is not None:
+        raise AuthenticationError("The API key was revoked; ask the administrator for a new one.")
+    now = utcnow()
+    if client.last_used_at is None or now - client.last_used_at > _TOUCH_INTERVAL:
+        client.last_used_at = now  # committed with the request's use case, if any
+    return Actor(
+        type="api_client",
+        id=client.id,
+        name=client.name,
+        scopes=frozenset(client.scopes or ()),
+    )
+
+
+# --------------------------------------------------------------------------- browser sessions
+
+
+def _browser_session(db: Session, token: str) -> BrowserSession | None:
+    row = db.get(BrowserSession, _sha256(token))
+    if row is None:
+        return None
+    now = utcnow()
+    if row.expires_at <= now:
+        db.delete(row)
+        db.commit()
+        return None
+    if now - row.last_seen_at > _TOUCH_INTERVAL:
+        row.last_seen_at = now
+    return row
+
+
+def authenticate_session_cookie(db: Session, token: str) -> Actor | None:
+    """The logged-in user of a session cookie, or ``None`` if absent, expired or inactive."""
+    row = _browser_session(db, token)
+    if row is None:
+        return None
+    user = db.get(User, row.user_id)
+    if user is None or not user.is_active:
+        return None
+    return Actor(
+        type="user",
+        id=user.id,
+        name=user.email,
+        scopes=ROLE_SCOPES.get(user.role, frozenset()),
+        role=user.role,
+        csrf_token=row.csrf_token,
+    )
+
+
+async def _csrf_token_of(request: Request) -> str | None:
+    token = request.headers.get(CSRF_HEADER)
+    if token:
+        return token
+    content_type = request.headers.get("content-type", "")
+    # Pages post forms; their body was already parsed by FastAPI (cached). The
+    # API's streaming upload routes are never read here: the header is required.
+    if not request.url.path.startswith("/api/") and content_type.startswith(
+        ("application/x-www-form-urlencoded", "multipart/form-data")
+    ):
+        form = await request.form()
+        value = form.get(CSRF_FORM_FIELD)
+        return value if isinstance(value, str) else None
+    return None
+
+
+async def check_csrf(request: Request, actor: Actor) -> None:
+    """Refuse (403) a state-changing browser request without its session's CSRF token."""
+    if actor.type != "user" or request.method in _SAFE_METHODS:
+        return
+    sent = await _csrf_token_of(request)
+    if not sent or actor.csrf_token is None or not hmac.compare_digest(sent, actor.csrf_token):
+        raise PermissionDeniedError(
+            "The form's security token is missing or out of date; reload the page and retry."
+        )
+
+
+# --------------------------------------------------------------------------- dependencies
+
+
+def _authenticate(request: Request, db: SessionDep) -> Actor:
+    # Synchronous (FastAPI runs it in the thread pool): it queries the database.
+    authorization = request.headers.get("authorization")
+    if authorization:
+        scheme, _, token = authorization.partition(" ")
+        if scheme.lower() != "bearer" or not token.strip():
+            raise AuthenticationError(
+                "Use 'Authorization: Bearer <api key>' to call the bradyscope API."
+            )
+        return authenticate_api_key(db, token.strip())
+    cookie = request.cookies.get(SESSION_COOKIE)
+    actor = authenticate_session_cookie(db, cookie) if cookie else None
+    if actor is None:
+        raise AuthenticationError(
+            "Authentication required: send an API key ('Authorization: Bearer ...') or log in."
+        )
+    return actor
+
+
+async def get_actor(request: Request, actor: Annotated[Actor, Depends(_authenticate)]) -> Actor:
+    """The caller of an API route: an API client (Bearer) or a browser user (cookie + CSRF).
+
+    Raises
+    ------
+    AuthenticationError
+        No, malformed, unknown, revoked or expired credentials (401).
+    PermissionDeniedError
+        A browser's state-changing request without the CSRF token (403).
+    """
+    await check_csrf(request, actor)
+    return actor
+
+
+CurrentActor = Annotated[Actor, Depends(get_actor)]
+
+
+def _authenticate_user(request: Request, db: SessionDep) -> Actor:
+    cookie = request.cookies.get(SESSION_COOKIE)
+    actor = authenticate_session_cookie(db, cookie) if cookie else None
+    if actor is None:
+        raise AuthenticationError("Please log in.")
+    return actor
+
+
+async def get_current_user(
+    request: Request, actor: Annotated[Actor, Depends(_authenticate_user)]
+) -> Actor:
+    """The logged-in browser user (cookie session, CSRF-checked); 401 otherwise.
+
+    HTML pages answer a 401 with a redirect to ``/login`` (see ``app.main``).
+    """
+    await check_csrf(request, actor)
+    return actor
+
+
+CurrentUser = Annotated[Actor, Depends(get_current_user)]
+
+
+def get_optional_user(request: Request, db: SessionDep) -> Actor | None:
+    """The logged-in browser user, or ``None`` (for the login page itself)."""
+    cookie = request.cookies.get(SESSION_COOKIE)
+    return authenticate_session_cookie(db, cookie) if cookie else None
+
+
+OptionalUser = Annotated[Actor | None, Depends(get_optional_user)]
+
+
+def require_scope(*scopes: str) -> Callable[..., Any]:
+    """A dependency returning the :class:`Actor` if it holds *every* one of ``scopes``.
+
+    Example::
+
+        @router.get("/patients")
+        def list_patients(actor: Annotated[Actor, Depends(require_scope("patients:read"))]): ...
+
+    A refusal is recorded in the audit trail (outcome ``denied``) and answered 403.
+    """
+    unknown = set(scopes) - set(SCOPES) - {ADMIN_SCOPE}
+    if unknown:
+        raise ValueError(f"unknown scopes {sorted(unknown)}; known: {[*SCOPES, ADMIN_SCOPE]}")
+
+    def dependency(actor: CurrentActor, db: SessionDep, request: Request) -> Actor:
+        missing = [s for s in scopes if not actor.has_scope(s)]
+        if missing:
+            audit_failure(db, actor, "access", "route", request.url.path[:64], outcome="denied")
+            raise PermissionDeniedError(
+                f"This {'API key' if actor.type == 'api_client' else 'account'} lacks the"
+                f" scope {', '.join(missing)}; ask the administrator to grant it."
+            )
+        return actor
+
+    dependency.__name__ = f"require_{'_'.join(s.replace(':', '_') for s in scopes)}"
+    return dependency
+
+
+# --------------------------------------------------------------------------- login / logout
+
+
+def _check_throttle(db: Session, settings: Any, e_hash: str, ip: str | None) -> None:
+    since = utcnow() - timedelta(seconds=float(settings.login_window_s))
+    last_success = db.scalar(
+        select(func.max(LoginAttempt.at)).where(
+            LoginAttempt.email_hash == e_hash, LoginAttempt.success.is_(True)
+        )
+    )
+    window_start = max(since, last_success) if last_success is not None else since
+    failures = db.scalar(
+        select(func.count())
+        .select_from(LoginAttempt)
+        .where(
+            LoginAttempt.email_hash == e_hash,
+            LoginAttempt.success.is_(False),
+            LoginAttempt.at > window_start,
+        )
+    )
+    ip_failures = 0
+    if ip is not None:
+        ip_failures = (
+            db.scalar(
+                select(func.count())
+                .select_from(LoginAttempt)
+                .where(
+                    LoginAttempt.ip == ip, LoginAttempt.success.is_(False), LoginAttempt.at > since
+                )
+            )
+            or 0
+        )
+    limit = int(settings.login_max_failures)
+    if (failures or 0) >= limit or ip_failures >= limit * IP_FAILURE_FACTOR:
+        minutes = max(1, round(float(settings.login_window_s) / 60))
+        raise RateLimitedError(
+            f"Too many failed logins; wait {minutes} minutes before trying again"
+            " or ask an administrator to reset the password."
+        )
+
+
+@dataclass(frozen=True)
+class LoginResult:
+    """A successful login: the cookie token (give it to the browser only) and the session."""
+
+    token: str
+    csrf_token: str
+    user: User
+    actor: Actor
+
+
+def login_user(
+    db: Session,
+    *,
+    settings: Any,
+    email: str,
+    password: str,
+    ip: str | None = None,
+    user_agent: str | None = None,
+    replace_token: str | None = None,
+) -> LoginResult:
+    """Check e-mail and password (throttled) and open a browser session; commits.
+
+    Parameters
+    ----------
+    db : Session
+    settings : app.settings.Settings
+        For ``login_max_failures``, ``login_window_s`` and ``session_ttl_s``.
+    email, password : str
+    ip, user_agent : str, optional
+        Recorded with the attempt and the session.
+    replace_token : str, optional
+        The browser's previous session token: that session is ended (no
+        session fixation).
+
+    Raises
+    ------
+    RateLimitedError
+        Too many recent failures for this e-mail address or IP (429).
+    AuthenticationError
+        Wrong e-mail or password, or an inactive account (401).
+    """
+    e_hash = email_hash(email)
+    _check_throttle(db, settings, e_hash, ip)
+    user = db.scalar(select(User).where(User.email == normalise_email(email)))
+    # Verify against a dummy hash for unknown users: same time, no account enumeration.
+    ok = verify_password(user.password_hash if user else DUMMY_HASH, password)
+    ok = ok and user is not None and user.is_active
+    db.add(LoginAttempt(email_hash=e_hash, ip=ip, success=bool(ok)))
+    if not ok or user is None:
+        audit(db, None, "login", "user", user.id if user else None, outcome="denied")
+        db.commit()
+        raise AuthenticationError("The e-mail address or the password is wrong.")
+    if replace_token:
+        old = db.get(BrowserSession, _sha256(replace_token))
+        if old is not None:
+            db.delete(old)
+    if needs_rehash(user.password_hash):
+        user.password_hash = hash_password(password)
+    token = secrets.token_urlsafe(32)
+    csrf_token = secrets.token_urlsafe(32)
+    now = utcnow()
+    db.add(
+        BrowserSession(
+            id=_sha256(token),
+            user_id=user.id,
+            csrf_token=csrf_token,
+            created_at=now,
+            expires_at=now + timedelta(seconds=float(settings.session_ttl_s)),
+            last_seen_at=now,
+            ip=ip,
+            user_agent=(user_agent or "")[:300] or None,
+        )
+    )
+    user.last_login_at = now
+    actor = Actor(
+        type="user",
+        id=user.id,
+        name=user.email,
+        scopes=ROLE_SCOPES.get(user.role, frozenset()),
+        role=user.role,
+        csrf_token=csrf_token,
+    )
+    audit(db, actor, "login", "user", user.id)
+    db.commit()
+    return LoginResult(token=token, csrf_token=csrf_token, user=user, actor=actor)
+
+
+def set_session_cookie(response: Response, token: str, *, settings: Any) -> None:
+    """Give the browser its session cookie (HttpOnly, SameSite=Lax, Secure behind HTTPS)."""
+    response.set_cookie(
+        SESSION_COOKIE,
+        token,
+        max_age=int(settings.session_ttl_s),
+        path="/",
+        httponly=True,
+        samesite="lax",
+        secure=bool(settings.secure_cookies),
+    )
+
+
+def logout_user(db: Session, response: Response, *, token: str | None, settings: Any) -> None:
+    """End the browser session of ``token`` (if any), clear the cookie; commits."""
+    if token:
+        row = db.get(BrowserSession, _sha256(token))
+        if row is not None:
+            db.delete(row)
+            audit(
+                db,
+                Actor(type="user", id=row.user_id, name=""),
+                "logout",
+                "user",
+                row.user_id,
+            )
+            db.commit()
+    response.delete_cookie(
+        SESSION_COOKIE,
+        path="/",
+        httponly=True,
+        samesite="lax",
+        secure=bool(settings.secure_cookies),
+    )
+
+
+def login_from_request(
+    db: Session, request: Request, response: Response, *, email: str, password: str
+) -> LoginResult:
+    """:func:`login_user` for a request, setting the session cookie on ``response``."""
+    settings = _settings(request)
+    result = login_user(
+        db,
+        settings=settings,
+        email=email,
+        password=password,
+        ip=_client_ip(request),
+        user_agent=request.headers.get("user-agent"),
+        replace_token=request.cookies.get(SESSION_COOKIE),
+    )
+    set_session_cookie(response, result.token, settings=settings)
+    return result
+
+
+def logout_from_request(db: Session, request: Request, response: Response) -> None:
+    """:func:`logout_user` for a request (its cookie), clearing the cookie on ``response``."""
+    logout_user(
+        db, response, token=request.cookies.get(SESSION_COOKIE), settings=_settings(request)
+    )

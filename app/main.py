@@ -1,0 +1,237 @@
+"""The web application: ``create_app()`` wires settings, database, routers and security.
+
+One exception handler turns every :class:`app.errors.AppError` into its HTTP
+status and ``{"detail": "..."}``; a small ASGI middleware adds a request id and
+the security headers (a Content-Security-Policy without any external source,
+``nosniff``, no framing, no referrer, HSTS when the site is served over HTTPS).
+The database schema is *not* migrated here: the ``serve``/``worker``/``admin``
+commands migrate once at start-up, under a lock, before any web worker starts.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import uuid
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, RedirectResponse, Response
+from sqlalchemy.orm import sessionmaker
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.audit import client_ip_var, request_id_var
+from app.errors import AppError
+from app.storage import Storage
+from core.errors import BradyscopeError
+
+log = logging.getLogger(__name__)
+
+API_PREFIX = "/api/v1"
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+
+# No external source anywhere: pages, scripts, styles, fonts and images come
+# from this server. Inline <style>/style="" are allowed because matplotlib's
+# inline SVG plots use them; scripts stay strictly same-origin.
+CONTENT_SECURITY_POLICY = (
+    "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; font-src 'self'; connect-src 'self'; object-src 'none'; "
+    "base-uri 'none'; form-action 'self'; frame-ancestors 'none'"
+)
+_REQUEST_ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+class SecurityHeadersMiddleware:
+    """Pure ASGI middleware: request id, security headers, no caching of patient data.
+
+    Parameters
+    ----------
+    app : ASGIApp
+    hsts : bool
+        Send ``Strict-Transport-Security`` (only when the site is served over HTTPS).
+    """
+
+    def __init__(self, app: ASGIApp, *, hsts: bool) -> None:
+        self.app = app
+        self.hsts = hsts
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        incoming = ""
+        for name, value in scope.get("headers", []):
+            if name == b"x-request-id":
+                incoming = value.decode("latin-1")
+                break
+        request_id = incoming if _REQUEST_ID_RE.match(incoming) else uuid.uuid4().hex
+        scope.setdefault("state", {})["request_id"] = request_id
+        token = request_id_var.set(request_id)
+        client = scope.get("client")
+        ip_token = client_ip_var.set(client[0][:45] if client else None)
+        path: str = scope.get("path", "")
+        is_static = path.startswith("/static/")
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                present = {name.lower() for name, _ in headers}
+
+                def add(name: str, value: str) -> None:
+                    key = name.lower().encode("latin-1")
+                    if key not in present:
+                        headers.append((key, value.encode("latin-1")))
+
+                add("x-request-id", request_id)
+                add("content-security-policy", CONTENT_SECURITY_POLICY)
+                add("x-content-type-options", "nosniff")
+                add("x-frame-options", "DENY")
+                add("referrer-policy", "no-referrer")
+                add("cross-origin-opener-policy", "same-origin")
+                add("cross-origin-resource-policy", "same-origin")
+                add("permissions-policy", "camera=(), microphone=(), geolocation=()")
+                if not is_static:
+                    add("cache-control", "no-store")
+                if self.hsts:
+                    add("strict-transport-security", "max-age=63072000; includeSubDomains")
+                message["headers"] = headers
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_headers)
+        finally:
+            request_id_var.reset(token)
+            client_ip_var.reset(ip_token)
+
+
+def _error(status: int, detail: str, **extra: Any) -> JSONResponse:
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return JSONResponse({"detail": detail, **extra}, status_code=status, headers=headers)
+
+
+def _wants_html_page(request: Request) -> bool:
+    """A browser navigating to a page (not an API call): answer 401 with the login page."""
+    return (
+        request.method in ("GET", "HEAD")
+        and not request.url.path.startswith(API_PREFIX)
+        and "text/html" in request.headers.get("accept", "")
+    )
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(AppError)
+    async def app_error(request: Request, exc: AppError) -> Response:
+        status = int(getattr(exc, "http_status", 400))
+        if status == 401 and _wants_html_page(request):
+            target = quote(
+                request.url.path + (f"?{request.url.query}" if request.url.query else "")
+            )
+            return RedirectResponse(f"/login?next={target}", status_code=303)
+        if status >= 500:
+            log.error("request %s failed: %s", request_id_var.get(), exc, exc_info=exc)
+        return _error(status, str(exc) or type(exc).__name__)
+
+    @app.exception_handler(BradyscopeError)
+    async def domain_error(request: Request, exc: BradyscopeError) -> JSONResponse:
+        return _error(422, str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        issues = [
+            {
+                "loc": [str(part) for part in err.get("loc", ())],
+                "msg": str(err.get("msg", "")),
+                "type": str(err.get("type", "")),
+            }
+            for err in exc.errors()
+        ]
+        parts = [f"{'.'.join(i['loc'][1:] or i['loc'])}: {i['msg']}" for i in issues[:5]]
+        detail = "The request is invalid: " + "; ".join(parts) + "."
+        return _error(422, detail, errors=issues)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        response = _error(exc.status_code, detail)
+        for name, value in (exc.headers or {}).items():
+            response.headers[name] = value
+        return response
+
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, exc: Exception) -> JSONResponse:
+        request_id = request_id_var.get()
+        log.exception("unhandled error in request %s", request_id)
+        return _error(500, f"Internal error; quote request id {request_id} to the administrator.")
+
+
+def create_app(settings: Any = None) -> FastAPI:
+    """Build the bradyscope web application.
+
+    Parameters
+    ----------
+    settings : app.settings.Settings, optional
+        Defaults to the settings read from the ``BRADYSCOPE_*`` environment.
+
+    Returns
+    -------
+    FastAPI
+        With the REST API under ``/api/v1``, the browser pages, ``/static`` and
+        ``/health``. The database must already be migrated.
+    """
+    from app import db as app_db
+    from app.settings import get_settings
+
+    if settings is None:
+        settings = get_settings()
+    engine = app_db.make_engine(settings)
+    session_factory = sessionmaker(bind=engine, expire_on_commit=False)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        engine.dispose()
+
+    app = FastAPI(
+        title="bradyscope",
+        version="1",
+        summary="3D finger-tapping measurement: REST API for hospital systems.",
+        description=(
+            "Authenticate with `Authorization: Bearer <api key>` (keys are created with"
+            ' `bradyscope admin create-api-key`). Errors are `{"detail": "..."}` with a 4xx'
+            " status. Every read, change or export of patient data is audited."
+        ),
+        docs_url=None,  # Swagger UI loads from a CDN, which the CSP forbids
+        redoc_url=None,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.session_factory = session_factory
+    app.state.storage = Storage.from_settings(settings)
+
+    _install_error_handlers(app)
+    app.add_middleware(
+        SecurityHeadersMiddleware, hsts=bool(getattr(settings, "secure_cookies", False))
+    )
+
+    from app.api import api_router
+
+    app.include_router(api_router, prefix=API_PREFIX)
+
+    @app.get("/health", tags=["service"], summary="Liveness check (no authentication)")
+    def health() -> dict[str, str]:
+        return {"status": "ok"}
+
+    from app.web import router as web_router
+
+    app.include_router(web_router)
+    if STATIC_DIR.is_dir():
+        app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app

@@ -1,0 +1,286 @@
+"""Request and response bodies of the REST API (pydantic 2): ``XCreate``, ``XRead``, ``XUpdate``.
+
+Field names carry their units (``size_bytes``, ``fps``, ``rms_px``) like the
+database columns and ``result.json``. Timestamps are ISO 8601; a timestamp
+sent without a time zone is taken as UTC, and every timestamp returned is UTC.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any, Generic, Literal, TypeVar
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+)
+
+T = TypeVar("T")
+
+MedicationState = Literal["on", "off", "unknown"]
+DbsState = Literal["on", "off", "none", "unknown"]
+Hand = Literal["left", "right"]
+Sex = Literal["female", "male", "other", "unknown"]
+JobStatus = Literal["queued", "running", "succeeded", "failed"]
+
+
+MAX_ID = 2**31 - 1  # ids are 32-bit integers in PostgreSQL
+
+
+def _as_utc(value: datetime) -> datetime:
+    if not 1900 <= value.year <= 2200:
+        raise ValueError("the date must lie between the years 1900 and 2200")
+    if value.tzinfo is None or value.utcoffset() is None:
+        return value.replace(tzinfo=UTC)
+    return value.astimezone(UTC)
+
+
+def _no_nul(value: str) -> str:
+    if "\x00" in value:
+        raise ValueError("text must not contain NUL characters")
+    return value
+
+
+UtcDateTime = Annotated[datetime, AfterValidator(_as_utc)]
+PatientCode = Annotated[
+    str,
+    StringConstraints(
+        strip_whitespace=True, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$"
+    ),
+    Field(
+        description="Pseudonymous patient code (letters, digits, '.', '_', '-'), e.g. PD-0042;"
+        " never a name or a hospital number.",
+        examples=["PD-0042"],
+    ),
+]
+ShortText = Annotated[
+    str, StringConstraints(strip_whitespace=True, max_length=2000), AfterValidator(_no_nul)
+]
+Name = Annotated[
+    str,
+    StringConstraints(strip_whitespace=True, min_length=1, max_length=100),
+    AfterValidator(_no_nul),
+]
+Id = Annotated[int, Field(ge=1, le=MAX_ID)]
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+
+# --------------------------------------------------------------------------- common
+
+
+class ErrorIssue(BaseModel):
+    """One problem of an invalid request (location, message, kind)."""
+
+    loc: list[str]
+    msg: str
+    type: str
+
+
+class ErrorResponse(BaseModel):
+    """Every error: one sentence saying what was wrong and what to do."""
+
+    detail: str = Field(examples=["The patient 17 does not exist."])
+    errors: list[ErrorIssue] | None = Field(
+        default=None, description="For 422 validation errors: each invalid field."
+    )
+
+
+class Created(BaseModel):
+    """The id of a newly created resource."""
+
+    id: int
+
+
+class Page(BaseModel, Generic[T]):
+    """One page of a list; ask for the next with ``offset + limit``."""
+
+    items: list[T]
+    total: int = Field(description="Number of matching items in all pages.")
+    limit: int
+    offset: int
+
+
+# --------------------------------------------------------------------------- patients
+
+
+class PatientCreate(_In):
+    code: PatientCode
+    birth_year: int | None = Field(default=None, ge=1900, le=2100)
+    sex: Sex | None = None
+    notes: ShortText | None = None
+
+
+class PatientUpdate(_In):
+    """Fields to change; omitted fields stay as they are."""
+
+    code: PatientCode | None = None
+    birth_year: int | None = Field(default=None, ge=1900, le=2100)
+    sex: Sex | None = None
+    notes: ShortText | None = None
+
+
+class PatientRead(_Out):
+    id: int
+    code: str
+    birth_year: int | None
+    sex: str | None
+    notes: str | None
+    created_at: datetime
+
+
+# --------------------------------------------------------------------------- rigs, calibrations
+
+
+class RigCreate(_In):
+    name: Name = Field(examples=["clinic-A"])
+    description: ShortText | None = None
+
+
+class RigRead(_Out):
+    id: int
+    name: str
+    description: str | None
+    created_at: datetime
+
+
+class CalibrationCreated(BaseModel):
+    """A new calibration; ``job_id`` is set when board videos have to be computed first."""
+
+    id: int
+    job_id: int | None = None
+    status: Literal["pending", "ready", "failed"]
+
+
+class CalibrationRead(_Out):
+    id: int
+    rig_id: int
+    version: int = Field(description="1, 2, 3... per rig.")
+    valid_from: datetime = Field(description="Sessions recorded from this time on use it.")
+    status: Literal["pending", "ready", "failed"]
+    source: Literal["rig_file", "board_videos"]
+    rms_px: float | None = Field(description="Reprojection RMS of the calibration, pixels.")
+    quality: dict[str, Any] | None
+    board: dict[str, Any] | None
+    created_at: datetime
+    job_id: int | None = None
+    error: str | None = Field(default=None, description="Why a board calibration failed.")
+
+
+# --------------------------------------------------------------------------- sessions
+
+
+class SessionCreate(_In):
+    patient_id: Id
+    rig_id: Id
+    recorded_at: UtcDateTime = Field(description="When the recording was made (UTC if no zone).")
+    medication_state: MedicationState = "unknown"
+    dbs_state: DbsState = "unknown"
+    notes: ShortText | None = None
+    updrs_34_rating: int | None = Field(
+        default=None, ge=0, le=4, description="The clinician's MDS-UPDRS 3.4 rating (0-4)."
+    )
+    calibration_id: Id | None = Field(
+        default=None, description="Use this calibration instead of the newest valid one."
+    )
+
+
+class SessionUpdate(_In):
+    """Fields to change; omitted fields stay as they are."""
+
+    medication_state: MedicationState | None = None
+    dbs_state: DbsState | None = None
+    notes: ShortText | None = None
+    updrs_34_rating: int | None = Field(default=None, ge=0, le=4)
+    calibration_id: Id | None = None
+
+
+class SessionRead(_Out):
+    id: int
+    patient_id: int
+    rig_id: int
+    calibration_id: int | None
+    recorded_at: datetime
+    medication_state: str
+    dbs_state: str
+    notes: str | None
+    updrs_34_rating: int | None
+    created_at: datetime
+
+
+# --------------------------------------------------------------------------- trials, jobs
+
+
+class VideoRead(_Out):
+    side: Literal["left", "right"]
+    original_filename: str | None
+    size_bytes: int
+    sha256: str
+    fps: float
+    frame_count: int
+    width: int = Field(description="Pixels.")
+    height: int = Field(description="Pixels.")
+    codec: str | None
+
+
+class TrialCreated(BaseModel):
+    """The accepted trial and the analysis job measuring it."""
+
+    id: int
+    job_id: int
+    warnings: list[str] = Field(default_factory=list, description="About the recording, if any.")
+
+
+class TrialRead(_Out):
+    id: int
+    session_id: int
+    hand: Literal["left", "right"]
+    status: JobStatus
+    offset_frames: float | None
+    created_at: datetime
+    job_id: int | None = None
+    has_result: bool = False
+    videos: list[VideoRead] = Field(default_factory=list)
+
+
+class JobRead(_Out):
+    id: int
+    kind: str
+    status: JobStatus
+    progress: float = Field(ge=0.0, le=1.0, description="Fraction 0-1 of the current attempt.")
+    stage: str | None
+    error: str | None = Field(description="Why the job failed, in plain words.")
+    trial_id: int | None
+    calibration_id: int | None
+    created_at: datetime
+    finished_at: datetime | None
+
+
+# --------------------------------------------------------------------------- auth
+
+
+class LoginRequest(_In):
+    email: Annotated[
+        str,
+        StringConstraints(strip_whitespace=True, min_length=3, max_length=320),
+        AfterValidator(_no_nul),
+    ]
+    password: Annotated[str, StringConstraints(min_length=1, max_length=1024)]
+
+
+class LoginResponse(BaseModel):
+    """The session cookie is set; send ``csrf_token`` as ``X-CSRF-Token`` on changes."""
+
+    user_id: int
+    email: str
+    role: str
+    csrf_token: str

@@ -1,0 +1,55 @@
+"""Lookups shared by the use cases: load a visible row or audit the miss and raise 404."""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+from sqlalchemy.orm import Session
+
+from app.audit import audit_failure
+from app.auth import Actor
+from app.errors import NotFoundError
+from app.models import Patient, RecordingSession, Rig, Trial
+
+T = TypeVar("T")
+
+
+def not_found(
+    db: Session, actor: Actor, action: str, resource_type: str, resource_id: Any, what: str
+) -> NotFoundError:
+    """Audit a miss (outcome ``not_found``) and return the error to raise."""
+    audit_failure(db, actor, action, resource_type, resource_id, outcome="not_found")
+    return NotFoundError(f"{what} {resource_id} does not exist; check the id.")
+
+
+def load_patient(db: Session, actor: Actor, patient_id: int, action: str) -> Patient:
+    patient = db.get(Patient, patient_id)
+    if patient is None or patient.deleted_at is not None:
+        raise not_found(db, actor, action, "patient", patient_id, "The patient")
+    return patient
+
+
+def load_session(db: Session, actor: Actor, session_id: int, action: str) -> RecordingSession:
+    row = db.get(RecordingSession, session_id)
+    if row is None or row.deleted_at is not None or row.patient.deleted_at is not None:
+        raise not_found(db, actor, action, "session", session_id, "The session")
+    return row
+
+
+def load_trial(db: Session, actor: Actor, trial_id: int, action: str) -> Trial:
+    row = db.get(Trial, trial_id)
+    if (
+        row is None
+        or row.deleted_at is not None
+        or row.session.deleted_at is not None
+        or row.session.patient.deleted_at is not None
+    ):
+        raise not_found(db, actor, action, "trial", trial_id, "The trial")
+    return row
+
+
+def load_rig(db: Session, actor: Actor, rig_id: int, action: str) -> Rig:
+    rig = db.get(Rig, rig_id)
+    if rig is None:
+        raise not_found(db, actor, action, "rig", rig_id, "The rig")
+    return rig

@@ -1,0 +1,105 @@
+"""Patients: create, list (search + pagination), read, update, soft delete.
+
+Deletion rule: a patient is never removed from the database. ``DELETE`` sets
+``deleted_at`` (the patient, its sessions and trials then answer 404 and
+disappear from lists), the audit trail keeps referring to its id, and its
+code stays reserved so that it cannot be given to somebody else by mistake.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from app.audit import audit
+from app.auth import Actor
+from app.errors import ConflictError
+from app.models import Patient, utcnow
+from app.schemas import PatientCreate, PatientUpdate
+from app.services.common import load_patient
+
+
+def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
+    query = select(Patient).where(func.lower(Patient.code) == code.lower())
+    if exclude_id is not None:
+        query = query.where(Patient.id != exclude_id)
+    return db.scalars(query.limit(1)).first()
+
+
+def _conflict(existing: Patient) -> ConflictError:
+    if existing.deleted_at is not None:
+        return ConflictError(
+            f"The code {existing.code} belonged to a deleted patient and stays reserved;"
+            " choose another code."
+        )
+    return ConflictError(f"A patient with the code {existing.code} exists already.")
+
+
+def create_patient(db: Session, actor: Actor, data: PatientCreate) -> Patient:
+    """Create a patient (409 if the code exists, case-insensitively)."""
+    existing = _code_taken(db, data.code)
+    if existing is not None:
+        raise _conflict(existing)
+    patient = Patient(**data.model_dump())
+    db.add(patient)
+    try:
+        db.flush()
+    except IntegrityError as exc:  # a concurrent request took the code
+        db.rollback()
+        raise ConflictError(f"A patient with the code {data.code} exists already.") from exc
+    audit(db, actor, "create", "patient", patient.id, patient.id)
+    db.commit()
+    return patient
+
+
+def list_patients(
+    db: Session, actor: Actor, *, q: str | None, limit: int, offset: int
+) -> tuple[list[Patient], int]:
+    """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total."""
+    query = select(Patient).where(Patient.deleted_at.is_(None))
+    if q:
+        escaped = q.strip().lower().replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        query = query.where(func.lower(Patient.code).like(f"%{escaped}%", escape="\\"))
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    items = list(db.scalars(query.order_by(Patient.code, Patient.id).limit(limit).offset(offset)))
+    audit(db, actor, "list", "patient")
+    db.commit()
+    return items, int(total)
+
+
+def get_patient(db: Session, actor: Actor, patient_id: int) -> Patient:
+    patient = load_patient(db, actor, patient_id, "read")
+    audit(db, actor, "read", "patient", patient.id, patient.id)
+    db.commit()
+    return patient
+
+
+def update_patient(db: Session, actor: Actor, patient_id: int, data: PatientUpdate) -> Patient:
+    """Change the given fields; ``code`` cannot be cleared, other fields can (``null``)."""
+    patient = load_patient(db, actor, patient_id, "update")
+    changes = data.model_dump(exclude_unset=True)
+    if changes.get("code") is None:
+        changes.pop("code", None)
+    if "code" in changes:
+        existing = _code_taken(db, changes["code"], exclude_id=patient.id)
+        if existing is not None:
+            raise _conflict(existing)
+    for name, value in changes.items():
+        setattr(patient, name, value)
+    try:
+        db.flush()
+    except IntegrityError as exc:
+        db.rollback()
+        raise ConflictError("Another patient took this code meanwhile; choose another.") from exc
+    audit(db, actor, "update", "patient", patient.id, patient.id)
+    db.commit()
+    return patient
+
+
+def delete_patient(db: Session, actor: Actor, patient_id: int) -> None:
+    """Soft-delete a patient (see the module's deletion rule)."""
+    patient = load_patient(db, actor, patient_id, "delete")
+    patient.deleted_at = utcnow()
+    audit(db, actor, "delete", "patient", patient.id, patient.id)
+    db.commit()

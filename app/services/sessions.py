@@ -1,0 +1,96 @@
+"""Clinical sessions: create, list per patient, read, update, soft delete.
+
+A deleted session (``deleted_at`` set) and its trials answer 404 and vanish
+from lists; rows, files and the audit trail are kept.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.audit import audit
+from app.auth import Actor
+from app.errors import InvalidRequestError
+from app.models import Calibration, RecordingSession, Rig, utcnow
+from app.schemas import SessionCreate, SessionUpdate
+from app.services.common import load_patient, load_session, not_found
+
+
+def _check_calibration(db: Session, calibration_id: int, rig_id: int) -> None:
+    cal = db.get(Calibration, calibration_id)
+    if cal is None or cal.rig_id != rig_id:
+        raise InvalidRequestError(
+            f"The calibration {calibration_id} is not a calibration of rig {rig_id};"
+            " choose one listed under /rigs/{rig_id}/calibrations."
+        )
+
+
+def create_session(db: Session, actor: Actor, data: SessionCreate) -> RecordingSession:
+    patient = load_patient(db, actor, data.patient_id, "create")
+    if db.get(Rig, data.rig_id) is None:
+        raise not_found(db, actor, "create", "rig", data.rig_id, "The rig")
+    if data.calibration_id is not None:
+        _check_calibration(db, data.calibration_id, data.rig_id)
+    row = RecordingSession(
+        **data.model_dump(),
+        clinician_user_id=actor.user_id,
+    )
+    db.add(row)
+    db.flush()
+    audit(db, actor, "create", "session", row.id, patient.id)
+    db.commit()
+    return row
+
+
+def list_sessions(
+    db: Session, actor: Actor, *, patient_id: int, limit: int, offset: int
+) -> tuple[list[RecordingSession], int]:
+    """The patient's sessions, newest first, and their total."""
+    patient = load_patient(db, actor, patient_id, "list")
+    query = select(RecordingSession).where(
+        RecordingSession.patient_id == patient.id, RecordingSession.deleted_at.is_(None)
+    )
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    items = list(
+        db.scalars(
+            query.order_by(RecordingSession.recorded_at.desc(), RecordingSession.id.desc())
+            .limit(limit)
+            .offset(offset)
+        )
+    )
+    audit(db, actor, "list", "session", None, patient.id)
+    db.commit()
+    return items, int(total)
+
+
+def get_session(db: Session, actor: Actor, session_id: int) -> RecordingSession:
+    row = load_session(db, actor, session_id, "read")
+    audit(db, actor, "read", "session", row.id, row.patient_id)
+    db.commit()
+    return row
+
+
+def update_session(
+    db: Session, actor: Actor, session_id: int, data: SessionUpdate
+) -> RecordingSession:
+    """Change the given fields; states cannot be cleared, notes/rating/calibration can."""
+    row = load_session(db, actor, session_id, "update")
+    changes = data.model_dump(exclude_unset=True)
+    for required in ("medication_state", "dbs_state"):
+        if changes.get(required, "") is None:
+            changes.pop(required)
+    if changes.get("calibration_id") is not None:
+        _check_calibration(db, changes["calibration_id"], row.rig_id)
+    for name, value in changes.items():
+        setattr(row, name, value)
+    audit(db, actor, "update", "session", row.id, row.patient_id)
+    db.commit()
+    return row
+
+
+def delete_session(db: Session, actor: Actor, session_id: int) -> None:
+    row = load_session(db, actor, session_id, "delete")
+    row.deleted_at = utcnow()
+    audit(db, actor, "delete", "session", row.id, row.patient_id)
+    db.commit()
