@@ -51,6 +51,8 @@ _POOL = 4  # max-pooling factor of the full-frame candidate mask
 _MARGIN_PX = 3  # support of the centre estimators beyond the half-maximum core
 _MAX_SEEDS_PER_REGION = 64
 _DISC5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+_ONES3 = np.ones((3, 3), np.uint8)
+_ELLIPSES: dict[int, NDArray[np.uint8]] = {}
 
 
 @dataclass(frozen=True)
@@ -222,10 +224,11 @@ class _Blob:
 
 @dataclass
 class _Measured:
-    """Outcome of measuring one seed: the core (image coords) and maybe a blob."""
+    """Outcome of measuring one seed: its core (a mask at ``(x0, y0)``) and maybe a blob."""
 
-    core_ys: NDArray[np.intp]
-    core_xs: NDArray[np.intp]
+    core: NDArray[np.uint8] | None
+    x0: int
+    y0: int
     blob: _Blob | None
 
 
@@ -297,7 +300,7 @@ def detect_markers(
             y0, y1 = max(0, math.floor(y - reach)), min(h, math.ceil(y + reach) + 1)
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
-            bg, sigma = _background_and_noise(image[y0:y1, x0:x1])
+            bg, sigma = _background_and_noise(image[y0:y1:2, x0:x1:2])
             thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
             found = _search_region(image, (x0, y0, x1, y1), thr, params, measured)
             for m in found:
@@ -339,7 +342,8 @@ def _full_frame_regions(
     if hp * _POOL != h or wp * _POOL != w:
         binary = cv2.copyMakeBorder(binary, 0, hp * _POOL - h, 0, wp * _POOL - w,
                                     cv2.BORDER_CONSTANT, value=0)  # fmt: skip
-    pooled = binary.reshape(hp, _POOL, wp, _POOL).max(axis=(1, 3))
+    # max-pooling: the mean of a 4x4 cell is > 0 when any of its pixels is set
+    pooled = cv2.resize(binary, (wp, hp), interpolation=cv2.INTER_AREA)
     n, _, stats, _ = cv2.connectedComponentsWithStats(pooled, connectivity=8)
     pad = _MARGIN_PX + 3
     regions = []
@@ -351,6 +355,19 @@ def _full_frame_regions(
     return regions
 
 
+def _smooth(image: NDArray[np.uint8], x0: int, y0: int, x1: int, y1: int) -> NDArray[np.float32]:
+    """3x3 mean of ``image[y0:y1, x0:x1]`` computed with one pixel of real context.
+
+    The values do not depend on the rectangle (only on the image), so the
+    full-frame and the windowed paths see the same numbers.
+    """
+    h, w = image.shape
+    px0, py0, px1, py1 = max(0, x0 - 1), max(0, y0 - 1), min(w, x1 + 1), min(h, y1 + 1)
+    sm = cv2.boxFilter(image[py0:py1, px0:px1], cv2.CV_32F, (3, 3),
+                       borderType=cv2.BORDER_REPLICATE)  # fmt: skip
+    return sm[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
+
+
 def _search_region(
     image: NDArray[np.uint8],
     region: tuple[int, int, int, int],
@@ -358,39 +375,41 @@ def _search_region(
     params: MarkerParams,
     known: list[_Measured],
 ) -> list[_Measured]:
-    """Seeds (local maxima above ``thr``) of one region, each measured once."""
+    """Seeds (local maxima above ``thr``) of one region, each blob measured once."""
     x0, y0, x1, y1 = region
-    h, w = image.shape
-    # smooth with one pixel of real context so that seeds agree between paths
-    px0, py0, px1, py1 = max(0, x0 - 1), max(0, y0 - 1), min(w, x1 + 1), min(h, y1 + 1)
-    sm_pad = cv2.blur(image[py0:py1, px0:px1].astype(np.float32), (3, 3),
-                      borderType=cv2.BORDER_REPLICATE)  # fmt: skip
-    sm = sm_pad[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
-    dil = cv2.dilate(sm_pad, np.ones((3, 3), np.uint8))[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
+    sm = _smooth(image, x0, y0, x1, y1)
+    dil = cv2.dilate(sm, _ONES3)
     ys, xs = np.nonzero((sm >= dil) & (sm > thr))
     if ys.size == 0:
         return []
     vals = sm[ys, xs]
     order = np.lexsort((xs, ys, -vals))[: 4 * _MAX_SEEDS_PER_REGION]
-    seeds_y, seeds_x = ys[order] + y0, xs[order] + x0
+    seeds_y, seeds_x = (ys[order] + y0).tolist(), (xs[order] + x0).tolist()
 
-    taken = np.zeros((y1 - y0, x1 - x0), dtype=bool)
+    taken = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
 
     def mark(m: _Measured) -> None:
-        cy, cx = m.core_ys - y0, m.core_xs - x0
-        ok = (cy >= 0) & (cy < y1 - y0) & (cx >= 0) & (cx < x1 - x0)
-        taken[cy[ok], cx[ok]] = True
+        if m.core is None:
+            return
+        ch, cw = m.core.shape
+        ax0, ay0 = max(x0, m.x0), max(y0, m.y0)
+        ax1, ay1 = min(x1, m.x0 + cw), min(y1, m.y0 + ch)
+        if ax0 < ax1 and ay0 < ay1:
+            taken[ay0 - y0 : ay1 - y0, ax0 - x0 : ax1 - x0] |= m.core[
+                ay0 - m.y0 : ay1 - m.y0, ax0 - m.x0 : ax1 - m.x0
+            ]
 
     for m in known:
         mark(m)
     out: list[_Measured] = []
-    for sy, sx in zip(seeds_y.tolist(), seeds_x.tolist(), strict=True):
+    cache = (sm, x0, y0)
+    for sy, sx in zip(seeds_y, seeds_x, strict=True):
         if taken[sy - y0, sx - x0]:
             continue
-        m = _measure(image, sx, sy, params)
-        taken[sy - y0, sx - x0] = True
+        m = _measure(image, sx, sy, params, cache)
+        taken[sy - y0, sx - x0] = 1
         mark(m)
-        if m.blob is not None or m.core_ys.size:
+        if m.core is not None:
             out.append(m)
         if len(out) >= _MAX_SEEDS_PER_REGION:
             break
@@ -400,59 +419,71 @@ def _search_region(
 # ------------------------------------------------------------------- measurement
 
 
-def _measure(image: NDArray[np.uint8], sx: int, sy: int, params: MarkerParams) -> _Measured:
-    """Measure the blob around seed pixel ``(sx, sy)``; deterministic given the image."""
+def _measure(
+    image: NDArray[np.uint8],
+    sx: int,
+    sy: int,
+    params: MarkerParams,
+    cache: tuple[NDArray[np.float32], int, int] | None = None,
+) -> _Measured:
+    """Measure the blob around seed pixel ``(sx, sy)``; deterministic given the image.
+
+    ``cache`` is a smoothed region ``(sm, x0, y0)`` to slice from when the
+    window lies inside it (same values as :func:`_smooth` would give).
+    """
     h, w = image.shape
-    half = math.ceil(0.5 * params.diameter_px_max) + _MARGIN_PX + 2
+    half = math.ceil(0.5 * params.diameter_px_max) + 3
     half_limit = math.ceil(params.diameter_px_max * params.max_elongation) + _MARGIN_PX + 2
-    no_core = np.zeros(0, dtype=np.intp)
     reseeds = 0
     while True:
         x0, x1 = max(0, sx - half), min(w, sx + half + 1)
         y0, y1 = max(0, sy - half), min(h, sy + half + 1)
-        win = image[y0:y1, x0:x1].astype(np.float32)
-        sm = cv2.blur(win, (3, 3), borderType=cv2.BORDER_REPLICATE)
+        sm = None
+        if cache is not None:
+            csm, cx0, cy0 = cache
+            if cx0 <= x0 and cy0 <= y0 and x1 <= cx0 + csm.shape[1] and y1 <= cy0 + csm.shape[0]:
+                sm = csm[y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0]
+        if sm is None:
+            sm = _smooth(image, x0, y0, x1, y1)
+        win = image[y0:y1, x0:x1]
         ring = np.concatenate((win[0], win[-1], win[1:-1, 0], win[1:-1, -1]))
-        bg = float(np.median(ring))
+        ring.sort()
+        n_ring = ring.size
+        bg = 0.5 * (float(ring[(n_ring - 1) // 2]) + float(ring[n_ring // 2]))
         lx, ly = sx - x0, sy - y0
-        peak_val = float(sm[ly, lx])
-        contrast = peak_val - bg
+        contrast = float(sm[ly, lx]) - bg
         if contrast < params.min_contrast:
-            return _Measured(no_core, no_core, None)
-        level = bg + 0.5 * contrast
-        mask = (sm > level).astype(np.uint8)
-        _, labels = cv2.connectedComponents(mask, connectivity=8)
-        lab = labels[ly, lx]
-        core = labels == lab
-        cys, cxs = np.nonzero(core)
+            return _Measured(None, x0, y0, None)
+        mask = (sm > bg + 0.5 * contrast).view(np.uint8)
+        n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        lab = int(labels[ly, lx])
+        core = (labels == lab).view(np.uint8)
         # measure from the core's maximum (first in raster order), so that every
         # seed of the same blob gives the same result
-        core_vals = sm[cys, cxs]
-        i_max = int(np.argmax(core_vals))
-        if (cxs[i_max] != lx or cys[i_max] != ly) and reseeds < 2:
-            sx, sy, reseeds = int(cxs[i_max] + x0), int(cys[i_max] + y0), reseeds + 1
+        _, peak_val, _, (mx_l, my_l) = cv2.minMaxLoc(sm, mask=core)
+        if (mx_l != lx or my_l != ly) and reseeds < 2:
+            sx, sy, reseeds = mx_l + x0, my_l + y0, reseeds + 1
             continue
-        diameter, roundness, fill, cov = _shape(cxs, cys)
+        bx, by, bw, bh, area = (int(v) for v in stats[lab])
+        mom = cv2.moments(core, binaryImage=True)
+        diameter, roundness, fill, cov = _shape(mom)
         margin = max(_MARGIN_PX, math.ceil(0.5 * diameter))
-        need = margin + 3 + max(lx - int(cxs.min()), int(cxs.max()) - lx,
-                                ly - int(cys.min()), int(cys.max()) - ly)  # fmt: skip
+        need = margin + 3 + max(lx - bx, bx + bw - 1 - lx, ly - by, by + bh - 1 - ly)
         fits_x = (lx >= need or x0 == 0) and (x1 - 1 - lx >= need or x1 == w)
         fits_y = (ly >= need or y0 == 0) and (y1 - 1 - ly >= need or y1 == h)
         if fits_x and fits_y:
             break
-        too_large = cys.size > params.max_elongation * params.diameter_px_max**2
+        too_large = area > params.max_elongation * params.diameter_px_max**2
         if too_large or need > half_limit:  # a glare blob
-            return _Measured(cys + y0, cxs + x0, None)
+            return _Measured(core, x0, y0, None)
         half = need
 
-    core_ys, core_xs = cys + y0, cxs + x0
-    peak = float(core_vals[i_max]) - bg
+    peak = peak_val - bg
     touches_border = (
-        core_ys.min() == 0 or core_xs.min() == 0 or core_ys.max() == h - 1 or core_xs.max() == w - 1
-    )
-    area = float(cys.size)
-    mx, my = float(cxs.mean()), float(cys.mean())
-    measured = _Measured(core_ys, core_xs, None)
+        (bx == 0 and x0 == 0) or (by == 0 and y0 == 0)
+        or (bx + bw == x1 - x0 and x1 == w) or (by + bh == y1 - y0 and y1 == h)
+    )  # fmt: skip
+    measured = _Measured(core, x0, y0, None)
     if (
         peak < params.min_contrast
         or not params.diameter_px_min <= diameter <= params.diameter_px_max
@@ -462,40 +493,41 @@ def _measure(image: NDArray[np.uint8], sx: int, sy: int, params: MarkerParams) -
     ):
         return measured
 
-    # support of the centre estimators: the blob down to 10 % of its peak (at most
-    # ``margin`` beyond the core) grown by 2 px; other blobs masked out
-    dev = np.abs(ring - bg)
-    sigma = max(1.4826 * float(np.median(dev)), 0.7)
-    low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).astype(np.uint8)
-    _, low_labels = cv2.connectedComponents(low_mask, connectivity=8)
-    blob = low_labels == low_labels[cys[0], cxs[0]]
-    k = 2 * margin + 1
-    near = cv2.dilate(core.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    support = cv2.dilate((blob & near.astype(bool)).astype(np.uint8), _DISC5).astype(bool)
-    other_cores = (labels > 0) & ~core
-    others = (low_mask.astype(bool) & ~blob) | other_cores
-    if others.any():
-        support &= ~cv2.dilate(others.astype(np.uint8), _DISC5).astype(bool)
-        if other_cores.any():  # a neighbour in the same low-level blob: split by distance
-            d_own = cv2.distanceTransform((~core).astype(np.uint8), cv2.DIST_L2, 3)
-            d_other = cv2.distanceTransform((~other_cores).astype(np.uint8), cv2.DIST_L2, 3)
-            support &= d_own < d_other
+    # support of the centre estimators: the blob down to 10 % of its peak, at most
+    # ``margin`` beyond the core, grown by 2 px; other blobs masked out
+    sigma = max((float(ring[(3 * n_ring) // 4]) - float(ring[n_ring // 4])) / 1.349, 0.7)
+    low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).view(np.uint8)
+    near = cv2.dilate(core, _ellipse(2 * margin + 1))
+    support = cv2.dilate(low_mask & near, _DISC5)
+    outside = low_mask & (1 - near)
+    if n_lab > 2 or outside.any():
+        others = outside | ((labels > 0).view(np.uint8) & (1 - core))
+        support &= 1 - cv2.dilate(others, _DISC5)
+        if n_lab > 2:  # a neighbour above this blob's half maximum: split by distance
+            other_cores = ((labels > 0) & (labels != lab)).view(np.uint8)
+            d_own = cv2.distanceTransform(1 - core, cv2.DIST_L2, 3)
+            d_other = cv2.distanceTransform(1 - other_cores, cv2.DIST_L2, 3)
+            support &= (d_own < d_other).view(np.uint8)
         support |= core
-    ry, rx = np.nonzero(support)
-    by0, by1, bx0, bx1 = ry.min(), ry.max() + 1, rx.min(), rx.max() + 1
-    sub = win[by0:by1, bx0:bx1].astype(np.float64) - bg
-    sup = support[by0:by1, bx0:bx1]
-    cx, cy = _centre(sub, sup, peak, mx - bx0, my - by0, params.centre_method)
-    if not (math.isfinite(cx) and math.isfinite(cy)) or abs(cx - (mx - bx0)) > 0.5 * diameter + 2:
+    e = margin + 3
+    sx0, sy0 = max(0, bx - e), max(0, by - e)
+    sx1, sy1 = min(x1 - x0, bx + bw + e), min(y1 - y0, by + bh + e)
+    sub = win[sy0:sy1, sx0:sx1].astype(np.float64) - bg
+    sup = support[sy0:sy1, sx0:sx1].view(bool)
+    mx, my = mom["m10"] / mom["m00"] - sx0, mom["m01"] / mom["m00"] - sy0
+    cx, cy = _centre(sub, sup, peak, mx, my, params.centre_method)
+    if not (math.isfinite(cx) and math.isfinite(cy)) or math.hypot(cx - mx, cy - my) > 0.5 * (
+        diameter + 4
+    ):
         cx, cy = _centroid(sub, sup, peak)
     quality = roundness * min(fill, 1.0) * min(1.0, peak / (3.0 * params.min_contrast))
     measured.blob = _Blob(
-        xy_px=(cx + bx0 + x0, cy + by0 + y0),
+        xy_px=(cx + sx0 + x0, cy + sy0 + y0),
         diameter_px=diameter,
         peak=peak,
         roundness=roundness,
         background=bg,
-        area_px=area,
+        area_px=float(area),
         fill=fill,
         cov=cov,
         quality=quality,
@@ -503,19 +535,24 @@ def _measure(image: NDArray[np.uint8], sx: int, sy: int, params: MarkerParams) -
     return measured
 
 
-def _shape(
-    xs: NDArray[np.intp], ys: NDArray[np.intp]
-) -> tuple[float, float, float, tuple[float, float, float]]:
-    """Minor-axis diameter, roundness, fill and ``(xx, xy, yy)`` moments of a pixel set.
+def _ellipse(k: int) -> NDArray[np.uint8]:
+    kernel = _ELLIPSES.get(k)
+    if kernel is None:
+        kernel = _ELLIPSES[k] = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    return kernel
 
-    Each pixel counts as a unit square (hence the 1/12 px^2 added to the
-    variances), so that a tiny blob is not reported as a line.
+
+def _shape(mom: dict[str, float]) -> tuple[float, float, float, tuple[float, float, float]]:
+    """Minor-axis diameter, roundness, fill and ``(xx, xy, yy)`` moments of a binary blob.
+
+    ``mom`` are ``cv2.moments`` of the mask.  Each pixel counts as a unit
+    square (hence the 1/12 px^2 added to the variances), so that a tiny blob is
+    not reported as a line.
     """
-    area = float(xs.size)
-    dx, dy = xs - xs.mean(), ys - ys.mean()
-    cxx = float(np.mean(dx * dx)) + 1.0 / 12
-    cyy = float(np.mean(dy * dy)) + 1.0 / 12
-    cxy = float(np.mean(dx * dy))
+    area = mom["m00"]
+    cxx = mom["mu20"] / area + 1.0 / 12
+    cyy = mom["mu02"] / area + 1.0 / 12
+    cxy = mom["mu11"] / area
     tr, det = cxx + cyy, cxx * cyy - cxy * cxy
     disc = math.sqrt(max(0.25 * tr * tr - det, 0.0))
     lam_max, lam_min = 0.5 * tr + disc, max(0.5 * tr - disc, 1e-12)
