@@ -244,7 +244,8 @@ def heartbeat(
 
 
 def complete(db: Session, job: ClaimedJob) -> None:
-    """Mark ``job`` succeeded in the caller's transaction, if this claim still holds it.
+    """Mark ``job`` (and its trial) succeeded in the caller's transaction, if this claim
+    still holds it.
 
     Call it first in the transaction that stores the job's effect: on
     PostgreSQL it locks the job row, on SQLite it takes the write lock, so no
@@ -272,6 +273,13 @@ def complete(db: Session, job: ClaimedJob) -> None:
     )
     if result.rowcount != 1:  # type: ignore[attr-defined]
         raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+    if job.trial_id is not None:
+        db.execute(
+            update(Trial)
+            .where(Trial.id == job.trial_id)
+            .values(status="succeeded")
+            .execution_options(synchronize_session=False)
+        )
 
 
 def _mark_targets_failed(db: Session, trial_id: int | None, calibration_id: int | None) -> None:

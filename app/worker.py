@@ -264,12 +264,6 @@ def analyze_trial(ctx: JobContext) -> None:
                 markers_path=markers_path,
             )
         )
-        db.execute(
-            update(Trial)
-            .where(Trial.id == inputs["trial_id"])
-            .values(status="succeeded")
-            .execution_options(synchronize_session=False)
-        )
 
     try:
         ctx.finish(write)
@@ -282,9 +276,8 @@ def analyze_trial(ctx: JobContext) -> None:
 
 def calibrate(ctx: JobContext) -> None:
     """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
-    from core.calibration import calibrate_stereo_from_paths
-
     from core.boards import BoardSpec
+    from core.calibration import calibrate_stereo_from_paths
     from core.camera import rig_to_dict
 
     with ctx.sessions() as db:

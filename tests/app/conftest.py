@@ -161,3 +161,175 @@ def pg_settings(tmp_path: Path, pg_empty_url: str) -> Settings:
     settings = make_test_settings(data_dir, database_url=pg_empty_url)
     migrate(settings)
     return settings
+
+
+# --------------------------------------------------------------------------- worker processes
+
+WORKER_SCRIPT = r'''
+"""A bradyscope worker process whose 'analyze_trial' handler blocks on a gate file."""
+import os
+import sys
+import time
+from pathlib import Path
+
+from app.models import Result
+from app.settings import Settings
+from app.worker import run_worker
+
+data_dir, db_url, lease_s, max_jobs = sys.argv[1], sys.argv[2] or None, float(sys.argv[3]), int(sys.argv[4])
+settings = Settings(
+    data_dir=data_dir, database_url=db_url, job_lease_s=lease_s, job_heartbeat_s=lease_s / 5,
+    worker_poll_s=0.05, job_retry_delay_s=0.0,
+)
+gate = Path(data_dir) / "gate"
+log = Path(data_dir) / "executions.log"
+
+
+def note(ctx, what):
+    with open(log, "a") as fh:  # O_APPEND: one short line per write is atomic
+        fh.write(f"{ctx.job.id} {os.getpid()} {what}\n")
+
+
+def handler(ctx):
+    note(ctx, "start")
+    while not gate.exists():
+        ctx.progress("waiting for gate", 0, 1)  # extends the lease; raises if lost
+        time.sleep(0.01)
+    def write(db):
+        if ctx.job.trial_id is not None:
+            db.add(Result(trial_id=ctx.job.trial_id, job_id=ctx.job.id,
+                          document={"pid": os.getpid()}))
+    ctx.finish(write)
+    note(ctx, "done")
+
+
+run_worker(settings, handlers={"analyze_trial": handler}, once=max_jobs == 0,
+           max_jobs=max_jobs or None, worker_name=f"test-{os.getpid()}")
+'''
+
+
+@pytest.fixture(scope="session")
+def worker_script(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Path of a Python script running a worker whose ``analyze_trial`` handler waits for
+    the file ``<data_dir>/gate``, logs ``"<job id> <pid> start|done"`` lines to
+    ``<data_dir>/executions.log`` and stores a Result ``{"pid": pid}`` for the job's trial.
+
+    Arguments: ``DATA_DIR DATABASE_URL('' = SQLite) LEASE_S MAX_JOBS(0 = drain the queue and exit)``.
+    """
+    path = tmp_path_factory.mktemp("worker") / "gated_worker.py"
+    path.write_text(WORKER_SCRIPT)
+    return path
+
+
+def _wait_for(condition, *, timeout_s: float, what: str):  # type: ignore[no-untyped-def]
+    """Poll ``condition()`` until it returns a truthy value (deadline, not a timing sleep)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def kill9_takeover(settings: Settings, script: Path, *, lease_s: float = 1.0) -> None:
+    """Kill -9 a worker mid-job; a second worker must complete the job with one Result."""
+    import signal
+    import subprocess
+    import sys
+    from datetime import UTC, datetime
+
+    import sqlalchemy as sa
+
+    from app import jobs
+    from app.models import Job, Patient, RecordingSession, Result, Rig, Trial
+
+    sm = get_sessionmaker(settings)
+    with sm() as db, db.begin():
+        rig, patient = Rig(name="kill-rig"), Patient(code="PD-KILL")
+        db.add_all([rig, patient])
+        db.flush()
+        session = RecordingSession(
+            patient_id=patient.id, rig_id=rig.id, recorded_at=datetime(2026, 2, 1, tzinfo=UTC)
+        )
+        db.add(session)
+        db.flush()
+        trial = Trial(session_id=session.id, hand="left")
+        db.add(trial)
+        db.flush()
+        trial_id = trial.id
+        job_id = jobs.enqueue(db, "analyze_trial", trial_id=trial_id).id
+
+    def job() -> Job:
+        with sm() as db:
+            return db.get(Job, job_id)
+
+    args = [
+        sys.executable,
+        str(script),
+        str(settings.data_dir),
+        settings.database_url or "",
+        str(lease_s),
+        "1",
+    ]
+    first = subprocess.Popen(args)
+    try:
+        running = _wait_for(
+            lambda: (j := job()).status == "running" and j,
+            timeout_s=60,
+            what="the first worker to claim the job",
+        )
+        first_owner = running.lease_owner
+        assert first_owner.startswith(f"test-{first.pid}:")
+        # Its heartbeat keeps the lease alive beyond the lease period.
+        _wait_for(
+            lambda: job().heartbeat_at > running.heartbeat_at, timeout_s=30, what="a heartbeat"
+        )
+        assert jobs.claim_next(sm, worker_name="thief", lease_s=lease_s) is None
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait(timeout=30)
+    assert first.returncode == -signal.SIGKILL
+    (settings.data_dir / "gate").touch()
+
+    second = subprocess.Popen(args)
+    try:
+        assert second.wait(timeout=60) == 0
+    finally:
+        if second.poll() is None:
+            second.kill()
+    done = job()
+    assert done.status == "succeeded", done.error
+    assert done.attempts == 2
+    assert done.lease_owner.startswith(f"test-{second.pid}:")
+    with sm() as db:
+        results = db.scalars(sa.select(Result).where(Result.trial_id == trial_id)).all()
+        assert [r.document for r in results] == [{"pid": second.pid}]
+        assert db.get(Trial, trial_id).status == "succeeded"
+    lines = (settings.data_dir / "executions.log").read_text().split()
+    assert lines == [
+        str(job_id),
+        str(first.pid),
+        "start",
+        str(job_id),
+        str(second.pid),
+        "start",
+        str(job_id),
+        str(second.pid),
+        "done",
+    ]
+
+
+@pytest.fixture
+def wait_for():  # type: ignore[no-untyped-def]
+    """``wait_for(condition, *, timeout_s, what)``: poll a condition until true (or fail)."""
+    return _wait_for
+
+
+@pytest.fixture
+def kill9_scenario():  # type: ignore[no-untyped-def]
+    """``kill9_scenario(settings, worker_script)``: see :func:`kill9_takeover`."""
+    return kill9_takeover
