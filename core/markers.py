@@ -383,7 +383,7 @@ def _search_region(
     if ys.size == 0:
         return []
     vals = sm[ys, xs]
-    order = np.lexsort((xs, ys, -vals))[: 4 * _MAX_SEEDS_PER_REGION]
+    order = np.lexsort((xs, ys, -vals))
     seeds_y, seeds_x = (ys[order] + y0).tolist(), (xs[order] + x0).tolist()
 
     taken = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
