@@ -1,0 +1,230 @@
+"""Accuracy and speed of core.markers.detect_markers against ground truth and peers.
+
+Run from the repository root::
+
+    python bench/bench_markers.py            # about a minute on one idle core
+    python bench/bench_markers.py --quick    # fewer frames
+
+Accuracy: discs rendered at known sub-pixel centres (supersampled, see
+``tests/core/test_markers.py::render_discs``), diameters 8-20 px, in five
+scenarios; every centre estimator of ``core.markers`` and the plain OpenCV
+peer (global threshold + ``cv2.connectedComponentsWithStats`` centroids) are
+scored on the same images.  Errors are Euclidean centre errors (px).
+
+Speed: a 1280x1024 mp4v clip with three moving markers, noise and two glints
+is written with ``cv2.VideoWriter`` and decoded with ``cv2.VideoCapture`` (the
+baseline, measured in the same run); detection is timed on the decoded frames
+(full frame, and windowed around the true positions plus a 2 px prediction
+error) and reported in ms/frame and as a ratio to the decode time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+import zlib
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests" / "core"))
+
+from test_markers import mp4v_roundtrip, random_centres, render_discs  # noqa: E402
+
+from core.markers import CENTRE_METHODS, MarkerParams, detect_markers  # noqa: E402
+
+PEER_THRESHOLD = 60  # gray levels: half way between the background (~12) and dim markers
+
+
+def peer_detect(image: np.ndarray) -> np.ndarray:
+    """Plain OpenCV: fixed global threshold, connected components, binary centroids."""
+    _, binary = cv2.threshold(image, PEER_THRESHOLD, 255, cv2.THRESH_BINARY)
+    _n, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    area = stats[1:, cv2.CC_STAT_AREA]
+    keep = (area >= 5) & (area <= 1500)
+    return centroids[1:][keep]
+
+
+def add_glints(img: np.ndarray, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Distractors: Gaussian glints (small and round), thin line glints, a big glare."""
+    out = img.astype(np.float64)
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    for _ in range(n):
+        cx, cy = rng.uniform(20, w - 20), rng.uniform(20, h - 20)
+        s = rng.uniform(0.8, 1.2)
+        out += rng.uniform(60, 150) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+    out = np.clip(out, 0, 255).astype(np.uint8)
+    for _ in range(n):
+        x0, y0 = int(rng.uniform(0, w)), int(rng.uniform(0, h))
+        ang = rng.uniform(0, np.pi)
+        x1, y1 = int(x0 + 60 * math.cos(ang)), int(y0 + 60 * math.sin(ang))
+        cv2.line(out, (x0, y0), (x1, y1), int(rng.uniform(120, 250)), 2)
+    cv2.circle(out, (int(rng.uniform(60, w - 60)), int(rng.uniform(60, h - 60))), 35, 255, -1)
+    return out
+
+
+def scenario_frames(
+    name: str, n_frames: int, n_markers: int, size: tuple[int, int]
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
+    truths, frames = [], []
+    for i in range(n_frames):
+        truth = random_centres(rng, n_markers, size)
+        diam = rng.uniform(8, 20, n_markers)
+        kw: dict = {"blur_sigma_px": 0.6}
+        if name == "noisy":
+            kw = {"peak": rng.uniform(80, 200, n_markers), "blur_sigma_px": 0.8, "noise_sigma": 4}
+        elif name == "motion blur":
+            kw = {"blur_sigma_px": 1.2, "noise_sigma": 2,
+                  "streak_xy_px": rng.uniform(-12, 12, (n_markers, 2))}  # fmt: skip
+        elif name == "mp4v":
+            kw = {"peak": 190, "blur_sigma_px": 0.8, "noise_sigma": 2}
+        elif name == "mp4v+blur+noise+glints":
+            kw = {"peak": rng.uniform(100, 200, n_markers), "blur_sigma_px": 1.0,
+                  "noise_sigma": 3, "streak_xy_px": rng.uniform(-8, 8, (n_markers, 2))}  # fmt: skip
+        img = render_discs(size, truth, diam, seed=i, **kw)
+        if "glints" in name:
+            img = add_glints(img, rng, 4)
+        truths.append(truth)
+        frames.append(img)
+    if name.startswith("mp4v"):
+        frames = mp4v_roundtrip(frames)
+    return frames, truths
+
+
+def score(found: list[np.ndarray], truths: list[np.ndarray], tol_px: float = 3.0) -> dict:
+    errs, n_true, n_false = [], 0, 0
+    for xy, truth in zip(found, truths, strict=True):
+        n_true += len(truth)
+        if len(xy) == 0:
+            continue
+        d = np.linalg.norm(xy[None, :, :] - truth[:, None, :], axis=2)
+        hit = d.min(axis=1) < tol_px
+        errs.extend(d.min(axis=1)[hit].tolist())
+        n_false += int(np.sum(d.min(axis=0) >= tol_px))
+    e = np.array(errs) if errs else np.array([np.nan])
+    return {
+        "found": len(errs) / n_true,
+        "false": n_false / len(truths),
+        "rms": math.sqrt(float(np.mean(e**2))),
+        "p95": float(np.percentile(e, 95)),
+        "max": float(e.max()),
+    }
+
+
+def accuracy(n_frames: int) -> None:
+    size = (640, 512)
+    print(f"\n## Accuracy: {n_frames} frames x 24 markers (640x512, d = 8-20 px) per scenario")
+    print("error = |found - true| (px), found = share of true markers within 3 px,")
+    print("false = detections per frame farther than 3 px from every true marker\n")
+    print(f"| {'scenario':24s} | {'method':9s} | found | false/frame | RMS px | P95 px | max px |")
+    print("|---|---|---|---|---|---|---|")
+    for name in ("clean", "noisy", "motion blur", "mp4v", "mp4v+blur+noise+glints"):
+        frames, truths = scenario_frames(name, n_frames, 24, size)
+        methods: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+            m: (lambda img, m=m: detect_markers(img, params=MarkerParams(centre_method=m)).xy_px)
+            for m in CENTRE_METHODS
+        }
+        methods["peer"] = peer_detect
+        for m, fn in methods.items():
+            s = score([fn(f) for f in frames], truths)
+            print(f"| {name:24s} | {m:9s} | {s['found']:.3f} | {s['false']:.2f} "
+                  f"| {s['rms']:.4f} | {s['p95']:.4f} | {s['max']:.4f} |")  # fmt: skip
+
+
+def timed(fn: Callable[[], object], repeat: int) -> float:
+    fn()
+    best = math.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def speed(n_frames: int) -> None:
+    size = (1280, 1024)
+    rng = np.random.default_rng(11)
+    t = np.arange(n_frames) / 100.0
+    base = np.array([[500.0, 400.0], [700.0, 450.0], [620.0, 700.0]])
+    truths = [base + 60 * np.column_stack((np.sin(2 * np.pi * 3 * ti + np.arange(3)),
+                                          np.cos(2 * np.pi * 2 * ti + np.arange(3))))
+              for ti in t]  # fmt: skip
+    frames = []
+    for i, truth in enumerate(truths):
+        img = render_discs(size, truth, 14.0, peak=180, blur_sigma_px=0.8, noise_sigma=2,
+                           streak_xy_px=(4.0, 2.0), seed=i)  # fmt: skip
+        cv2.circle(img, (200, 150), 2, 160, -1)  # static glints
+        cv2.circle(img, (1000, 800), 3, 140, -1)
+        frames.append(img)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "speed.mp4")
+        writer = cv2.VideoWriter(path, cv2.VideoWriter.fourcc(*"mp4v"), 100.0, size)
+        for f in frames:
+            writer.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+        writer.release()
+
+        def decode() -> list[np.ndarray]:
+            cap = cv2.VideoCapture(path)
+            out = []
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+            cap.release()
+            return out
+
+        decoded = decode()
+        t_decode = timed(decode, 3) / len(decoded)
+    assert len(decoded) == n_frames
+    preds = [tr + rng.uniform(-2, 2, tr.shape) for tr in truths]
+    radius = 1.5 * 14 + 12  # px, what the pipeline asks for with 14 px markers
+
+    def run(fn: Callable[[np.ndarray, int], object]) -> float:
+        return timed(lambda: [fn(f, i) for i, f in enumerate(decoded)], 3) / len(decoded)
+
+    rows = [("decode mp4v 1280x1024 (cv2.VideoCapture + gray)", t_decode)]
+    rows.append(
+        ("peer: threshold + connectedComponentsWithStats", run(lambda f, i: peer_detect(f)))
+    )
+    for m in CENTRE_METHODS:
+        p = MarkerParams(centre_method=m)
+        rows.append((f"detect_markers full frame, {m}",
+                     run(lambda f, i, p=p: detect_markers(f, params=p))))  # fmt: skip
+        rows.append((f"detect_markers windowed (3 markers), {m}",
+                     run(lambda f, i, p=p: detect_markers(f, params=p, search_xy_px=preds[i],
+                                                          search_radius_px=radius))))  # fmt: skip
+    n_found = np.mean([len(detect_markers(f, search_xy_px=preds[i], search_radius_px=radius))
+                       for i, f in enumerate(decoded)])  # fmt: skip
+    print(f"\n## Speed: {n_frames}-frame 1280x1024 mp4v clip, 3 moving 14 px markers + 2 glints")
+    print(
+        f"(best of 3 passes; windowed search radius {radius:.0f} px; "
+        f"{n_found:.2f} markers found per frame)\n"
+    )
+    print("| step | ms/frame | x decode |")
+    print("|---|---|---|")
+    for label, sec in rows:
+        print(f"| {label} | {1e3 * sec:.3f} | {sec / t_decode:.2f} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer frames")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    print(f"OpenCV {cv2.__version__}, numpy {np.__version__}, cv2 threads 1")
+    accuracy(2 if args.quick else 6)
+    speed(30 if args.quick else 100)
+
+
+if __name__ == "__main__":
+    main()
