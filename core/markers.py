@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -368,8 +368,8 @@ def _smooth(image: NDArray[np.uint8], x0: int, y0: int, x1: int, y1: int) -> NDA
     """
     h, w = image.shape
     px0, py0, px1, py1 = max(0, x0 - 1), max(0, y0 - 1), min(w, x1 + 1), min(h, y1 + 1)
-    sm = cv2.boxFilter(image[py0:py1, px0:px1], cv2.CV_32F, (3, 3),
-                       borderType=cv2.BORDER_REPLICATE)  # fmt: skip
+    sm = cast(NDArray[np.float32], cv2.boxFilter(image[py0:py1, px0:px1], cv2.CV_32F, (3, 3),
+                                                 borderType=cv2.BORDER_REPLICATE))  # fmt: skip
     return sm[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
 
 
@@ -502,12 +502,12 @@ def _measure(
     # ``margin`` beyond the core, grown by 2 px; other blobs masked out
     sigma = max((float(ring[(3 * n_ring) // 4]) - float(ring[n_ring // 4])) / 1.349, 0.7)
     low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).view(np.uint8)
-    near = cv2.dilate(core, _ellipse(2 * margin + 1))
-    support = cv2.dilate(low_mask & near, _DISC5)
+    near = cast(NDArray[np.uint8], cv2.dilate(core, _ellipse(2 * margin + 1)))
+    support = cast(NDArray[np.uint8], cv2.dilate(low_mask & near, _DISC5))
     outside = low_mask & (1 - near)
     if n_lab > 2 or outside.any():
         others = outside | ((labels > 0).view(np.uint8) & (1 - core))
-        support &= 1 - cv2.dilate(others, _DISC5)
+        support &= 1 - cast(NDArray[np.uint8], cv2.dilate(others, _DISC5))
         if n_lab > 2:  # a neighbour above this blob's half maximum: split by distance
             other_cores = ((labels > 0) & (labels != lab)).view(np.uint8)
             d_own = cv2.distanceTransform(1 - core, cv2.DIST_L2, 3)
@@ -543,7 +543,9 @@ def _measure(
 def _ellipse(k: int) -> NDArray[np.uint8]:
     kernel = _ELLIPSES.get(k)
     if kernel is None:
-        kernel = _ELLIPSES[k] = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        kernel = _ELLIPSES[k] = np.asarray(
+            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dtype=np.uint8
+        )
     return kernel
 
 
@@ -630,8 +632,8 @@ def _radial_centre(sub: FloatArray, support: NDArray[np.bool_]) -> tuple[float, 
     d = sub[1:, 1:]
     gx = 0.5 * ((b + d) - (a + c))
     gy = 0.5 * ((c + d) - (a + b))
-    gx = cv2.blur(gx, (3, 3), borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.blur(gy, (3, 3), borderType=cv2.BORDER_REPLICATE)
+    gx = np.asarray(cv2.blur(gx, (3, 3), borderType=cv2.BORDER_REPLICATE), dtype=np.float64)
+    gy = np.asarray(cv2.blur(gy, (3, 3), borderType=cv2.BORDER_REPLICATE), dtype=np.float64)
     ok = support[:-1, :-1] & support[:-1, 1:] & support[1:, :-1] & support[1:, 1:]
     g2 = np.where(ok, gx * gx + gy * gy, 0.0)
     s = g2.sum()
