@@ -1,14 +1,224 @@
-"""`bradyscope simulate` (INTERFACES.md)."""
+"""`bradyscope simulate`: write a simulated stereo recording with its ground truth (INTERFACES.md).
+
+Writes ``left.<ext>``, ``right.<ext>``, ``rig.json`` and ``truth.json`` into
+``-o DIR``; with ``--boards`` also ``DIR/calibration/`` (chessboard and
+ChArUco recordings of the same rig). See ``docs/simulator.md``.
+"""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from core.errors import InputError
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected WIDTHxHEIGHT such as 1280x1024, got {text!r}"
+        ) from None
+    if w < 16 or h < 16:
+        raise argparse.ArgumentTypeError(f"the image must be at least 16x16 pixels, got {text!r}")
+    return w, h
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected tap numbers separated by commas such as 4,9, got {text!r}"
+        ) from None
+
+
+def _halts(text: str) -> tuple[tuple[int, float], ...]:
+    out = []
+    try:
+        for item in text.split(","):
+            if item.strip():
+                tap, dur = item.split(":")
+                out.append((int(tap), float(dur)))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected TAP:SECONDS pairs separated by commas such as 12:0.8,20:1.0, got {text!r}"
+        ) from None
+    return tuple(out)
+
+
+def _occlusion(text: str) -> tuple[str, str, float, float]:
+    parts = text.split(":")
+    try:
+        cam, marker, t0, dur = parts
+        return cam, marker, float(t0), float(dur)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected CAMERA:MARKER:START_S:DURATION_S such as left:index:2.0:0.5, got {text!r}"
+        ) from None
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("simulate", help="(not built yet)")
+    p = sub.add_parser(
+        "simulate",
+        help="write a simulated stereo recording of finger tapping with its ground truth",
+        description=(
+            "Simulate a finger-tapping trial filmed by two cameras: writes left/right videos,"
+            " rig.json (the true rig) and truth.json (true 3D trajectories, taps, amplitudes,"
+            " frequency, decrement, pauses) into DIR."
+        ),
+    )
+    p.add_argument("-o", "--out", required=True, type=Path, metavar="DIR", help="output folder")
+    p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same output)")
+    g = p.add_argument_group("tapping")
+    g.add_argument("--duration", type=float, default=10.0, metavar="S", help="length (s)")
+    g.add_argument("--fps", type=float, default=100.0, help="frame rate (Hz)")
+    g.add_argument(
+        "--amplitude", type=float, default=50.0, metavar="MM", help="opening of the first tap (mm)"
+    )
+    g.add_argument(
+        "--frequency", type=float, default=3.0, metavar="HZ", help="taps per second while moving"
+    )
+    g.add_argument(
+        "--decrement",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="amplitude change per tap (mm, negative = shrinking)",
+    )
+    g.add_argument("--jitter", type=float, default=0.03, help="rhythm variability (CV of cycles)")
+    g.add_argument(
+        "--amplitude-jitter",
+        type=float,
+        default=0.0,
+        help="amplitude variability around the trend (CV)",
+    )
+    g.add_argument(
+        "--hesitation-taps",
+        type=_int_list,
+        default=(),
+        metavar="K,K",
+        help="taps preceded by a brief pause, e.g. 4,9",
+    )
+    g.add_argument(
+        "--hesitation-s", type=float, default=0.25, metavar="S", help="length of a hesitation (s)"
+    )
+    g.add_argument(
+        "--halts",
+        type=_halts,
+        default=(),
+        metavar="K:S,K:S",
+        help="freezes before taps, e.g. 12:0.8 (tap 12, 0.8 s; at least 0.3 s)",
+    )
+    g.add_argument("--drift", type=float, default=5.0, metavar="MM", help="slow hand drift (mm)")
+    g.add_argument("--hand", choices=("right", "left"), default="right")
+    g.add_argument(
+        "--hand-marker", action="store_true", help="add a third marker on the back of the hand"
+    )
+    g = p.add_argument_group("imaging")
+    g.add_argument(
+        "--size", type=_size, default=(1280, 1024), metavar="WxH", help="image size, e.g. 1280x1024"
+    )
+    g.add_argument("--marker-mm", type=float, default=5.0, help="marker diameter (mm)")
+    g.add_argument(
+        "--noise", type=float, default=2.0, metavar="SIGMA", help="sensor noise (gray levels)"
+    )
+    g.add_argument("--exposure-ms", type=float, default=3.0, help="exposure time (ms)")
+    g.add_argument(
+        "--offset",
+        type=float,
+        default=0.0,
+        metavar="K",
+        help="right frame j shows the instant of left frame j+K (may be fractional)",
+    )
+    g.add_argument(
+        "--distractors-static", type=int, default=0, metavar="N", help="static spurious reflections"
+    )
+    g.add_argument(
+        "--distractors-moving",
+        type=int,
+        default=0,
+        metavar="N",
+        help="glints moving with the hand (ring, watch)",
+    )
+    g.add_argument(
+        "--occlusion",
+        type=_occlusion,
+        action="append",
+        default=[],
+        metavar="CAM:MARKER:T0:DUR",
+        help="hide a marker in one camera, e.g. left:index:2.0:0.5 (repeatable)",
+    )
+    g.add_argument(
+        "--codec",
+        choices=("lossless", "mp4v"),
+        default="lossless",
+        help="lossless FFV1 (.mkv, default) or compressed MPEG-4 (.mp4)",
+    )
+    p.add_argument(
+        "--boards",
+        action="store_true",
+        help="also write calibration recordings of the same rig into DIR/calibration",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("bradyscope simulate is not built yet")
+    from app.cli.progress import progress_bar
+    from core.camera import ImageSize
+    from core.simulation.kinematics import TappingScenario, simulate_tapping
+    from core.simulation.rig import default_rig
+    from core.simulation.session import ImagingScenario, simulate_session
+
+    try:
+        tapping = TappingScenario(
+            duration_s=args.duration,
+            fps=args.fps,
+            amplitude_mm=args.amplitude,
+            frequency_hz=args.frequency,
+            decrement_mm_per_tap=args.decrement,
+            rhythm_jitter=args.jitter,
+            amplitude_jitter=args.amplitude_jitter,
+            hesitations=args.hesitation_taps,
+            hesitation_s=args.hesitation_s,
+            halts=args.halts,
+            drift_mm=args.drift,
+            hand=args.hand,
+            hand_marker=args.hand_marker,
+        )
+        imaging = ImagingScenario(
+            image_size=ImageSize(*args.size),
+            marker_diameter_mm=args.marker_mm,
+            noise_sigma=args.noise,
+            exposure_s=args.exposure_ms / 1000.0,
+            distractors_static=args.distractors_static,
+            distractors_moving=args.distractors_moving,
+            occlusions=tuple(args.occlusion),
+            offset_frames=args.offset,
+            codec=args.codec,
+        )
+        # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
+        simulate_tapping(tapping, seed=args.seed)
+        for _, marker, _, _ in imaging.occlusions:
+            if marker not in tapping.marker_names:
+                raise ValueError(
+                    f"an occlusion names marker {marker!r}; markers are {', '.join(tapping.marker_names)}"
+                )
+        rig = default_rig(image_size=imaging.image_size)
+    except ValueError as exc:
+        raise InputError(f"invalid scenario: {exc}; see bradyscope simulate --help.") from exc
+    with progress_bar() as progress:
+        simulate_session(
+            args.out, seed=args.seed, tapping=tapping, imaging=imaging, rig=rig, progress=progress
+        )
+    if args.boards:
+        try:
+            from core.simulation.boards import write_board_recordings
+        except ImportError as exc:
+            raise InputError(
+                "calibration-board recordings are not available in this version of bradyscope"
+                f" ({exc}); run without --boards."
+            ) from exc
+        write_board_recordings(rig, args.out / "calibration", seed=args.seed)
+    return 0

@@ -264,6 +264,27 @@ class TappingModel:
             thumb_closed_local_mm=self.thumb_closed_local_mm,
             hand_marker=self.scenario.hand_marker,
         )  # (N, M, 3)
+        return self._to_world(t, local)
+
+    def hand_points_mm(self, t_s: ArrayLike, local_points_mm: ArrayLike) -> FloatArray:
+        """World positions ``(N, P, 3)`` of points fixed to the hand (moving with its drift).
+
+        Parameters
+        ----------
+        t_s : array_like, shape (N,)
+        local_points_mm : array_like, shape (P, 3)
+            Points in the hand frame (mm): origin at the index MCP joint, u
+            distal along the index, v dorsal ("up"), w = u x v.
+        """
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        pts = np.asarray(local_points_mm, dtype=np.float64)
+        if t.ndim != 1 or pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(
+                f"need t_s (N,) and local_points_mm (P, 3), got {t.shape}, {pts.shape}"
+            )
+        return self._to_world(t, np.broadcast_to(pts, (len(t), *pts.shape)))
+
+    def _to_world(self, t: FloatArray, local: FloatArray) -> FloatArray:
         # Rigid drift: rotation about the MCP joint (hand frame axes), then translation.
         d = self.drift
         phase = 2 * np.pi * d.freqs_hz[None] * t[:, None, None] + d.phases[None]

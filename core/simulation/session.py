@@ -1,0 +1,573 @@
+"""A simulated stereo recording of the finger-tapping test: two videos, rig.json, truth.json.
+
+Timing conventions (INTERFACES.md):
+
+- Frame ``i`` of the left video is at ``t = i / fps``; its exposure is centred
+  on that instant.
+- With ``offset_frames = K``, right frame ``j`` shows the same instant as left
+  frame ``j + K``: it is exposed around ``t = (j + K) / fps``. ``K`` may be
+  fractional (unsynchronised cameras) or negative.
+- Both videos have the same number of frames; the truth is sampled at the
+  left frames.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from core.camera import FloatArray, ImageSize, StereoRig, write_rig
+from core.progress import ProgressCallback, report
+from core.simulation.kinematics import (
+    TappingModel,
+    TappingScenario,
+    TappingTruth,
+    simulate_tapping,
+)
+from core.simulation.render import (
+    DISC,
+    GLINT,
+    SensorNoise,
+    SphereLayer,
+    draw_spheres,
+    make_background,
+    to_uint8,
+)
+from core.simulation.rig import default_rig
+from core.video import VideoWriter, video_suffix
+
+TRUTH_FORMAT = "bradyscope.truth/1"
+CAMERA_NAMES = ("left", "right")
+_MAX_BLUR_SAMPLES = 16
+_BLUR_SAMPLE_SPACING_PX = 0.5
+_SHOT_NOISE_GAIN = 0.025  # gray levels per electron: sigma = sqrt(0.025 * signal)
+
+
+@dataclass(frozen=True)
+class ImagingScenario:
+    """How the two cameras see the scene.
+
+    Attributes
+    ----------
+    image_size : ImageSize
+        ``(width, height)`` of both videos.
+    marker_diameter_mm : float
+        Diameter of the retro-reflective marker spheres (mm).
+    marker_peak : float
+        Brightness of a marker's centre above the background (gray levels).
+    noise_sigma : float
+        Standard deviation of the sensor's read noise (gray levels); shot
+        noise on the markers comes on top.
+    exposure_s : float
+        Exposure time (s), centred on the frame time; 0 = no motion blur.
+    distractors_static : int
+        Number of static spurious reflections (fixed points of the room, seen
+        by both cameras).
+    distractors_moving : int
+        Number of moving glints fixed to the back of the hand or the wrist
+        (a ring, a watch): they follow the hand's slow drift and wobble on
+        their own, twinkling; they do not follow the tapping.
+    occlusions : tuple of (camera, marker, t_start_s, duration_s)
+        The marker is invisible in that camera (``"left"`` or ``"right"``)
+        for frames exposed at ``t_start_s <= t < t_start_s + duration_s``
+        (times on the left camera's clock).
+    offset_frames : float
+        ``K``: right frame ``j`` shows the instant of left frame ``j + K``.
+    codec : {"lossless", "mp4v"}
+        ``"lossless"`` (FFV1 in .mkv) keeps every pixel; ``"mp4v"`` (.mp4)
+        adds compression artefacts.
+    background_level, background_texture : float
+        Mean gray level of the dark background and the amplitude of its texture.
+    psf_sigma_px : float
+        Lens blur (px).
+    """
+
+    image_size: ImageSize = ImageSize(1280, 1024)  # noqa: RUF009 (immutable NamedTuple)
+    marker_diameter_mm: float = 5.0
+    marker_peak: float = 230.0
+    noise_sigma: float = 2.0
+    exposure_s: float = 0.003
+    distractors_static: int = 0
+    distractors_moving: int = 0
+    occlusions: tuple[tuple[str, str, float, float], ...] = ()
+    offset_frames: float = 0.0
+    codec: str = "lossless"
+    background_level: float = 14.0
+    background_texture: float = 5.0
+    psf_sigma_px: float = 0.5
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "image_size", ImageSize(*(int(v) for v in self.image_size)))
+        object.__setattr__(
+            self,
+            "occlusions",
+            tuple((str(c), str(m), float(t0), float(d)) for c, m, t0, d in self.occlusions),
+        )
+        if self.image_size.width < 16 or self.image_size.height < 16:
+            raise ValueError(f"image_size must be at least 16 x 16 px, got {self.image_size}")
+        if not 0 < self.marker_diameter_mm <= 30:
+            raise ValueError(
+                f"marker_diameter_mm must be in (0, 30], got {self.marker_diameter_mm}"
+            )
+        if not 0 < self.marker_peak <= 255:
+            raise ValueError(f"marker_peak must be in (0, 255], got {self.marker_peak}")
+        if not 0 <= self.noise_sigma <= 50:
+            raise ValueError(f"noise_sigma must be in [0, 50], got {self.noise_sigma}")
+        if not 0 <= self.exposure_s <= 0.1:
+            raise ValueError(f"exposure_s must be in [0, 0.1], got {self.exposure_s}")
+        if self.distractors_static < 0 or self.distractors_moving < 0:
+            raise ValueError("distractor counts must be >= 0")
+        for cam, _, _, dur in self.occlusions:
+            if cam not in CAMERA_NAMES:
+                raise ValueError(f"occlusion camera must be 'left' or 'right', got {cam!r}")
+            if not dur > 0:
+                raise ValueError(f"occlusion duration must be positive, got {dur}")
+        if not np.isfinite(self.offset_frames):
+            raise ValueError(f"offset_frames must be finite, got {self.offset_frames}")
+        video_suffix(self.codec)  # raises ValueError for an unknown codec
+        if not 0 <= self.psf_sigma_px <= 5:
+            raise ValueError(f"psf_sigma_px must be in [0, 5], got {self.psf_sigma_px}")
+
+
+@dataclass(frozen=True)
+class SimulatedSession:
+    """Paths of a simulated recording and its ground truth (the parsed ``truth.json``)."""
+
+    left_video: Path
+    right_video: Path
+    rig_path: Path
+    truth_path: Path
+    truth: dict[str, Any] = field(repr=False)
+
+
+@dataclass(frozen=True)
+class _StaticDistractor:
+    position_mm: FloatArray  # (3,)
+    radius_mm: float
+    peak: float
+    profile: str
+
+
+@dataclass(frozen=True)
+class _MovingDistractor:
+    local_mm: FloatArray  # (3,) hand frame
+    radius_mm: float
+    peak: float
+    wobble_amp_mm: FloatArray  # (3,)
+    wobble_hz: FloatArray  # (3,)
+    wobble_phase: FloatArray  # (3,)
+    twinkle_hz: float
+    twinkle_phase: float
+
+    def positions_mm(self, model: TappingModel, t_s: FloatArray) -> FloatArray:
+        """World positions ``(N, 3)``."""
+        base = model.hand_points_mm(t_s, self.local_mm[None])[:, 0]
+        wobble = self.wobble_amp_mm * np.sin(
+            2 * np.pi * self.wobble_hz * t_s[:, None] + self.wobble_phase
+        )
+        return base + wobble
+
+    def brightness(self, t_s: FloatArray) -> FloatArray:
+        """Peak gray level ``(N,)``: a glint that comes and goes as the hand turns."""
+        s = np.sin(2 * np.pi * self.twinkle_hz * t_s + self.twinkle_phase)
+        return self.peak * np.clip(0.5 + 1.2 * s, 0.0, 1.0)
+
+
+class _ThreadedWriter:
+    """A :class:`VideoWriter` fed through a small queue so encoding overlaps rendering."""
+
+    def __init__(self, writer: VideoWriter) -> None:
+        self._writer = writer
+        self._queue: queue.Queue[NDArray[np.uint8] | None] = queue.Queue(maxsize=4)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name=f"write-{writer.path.name}")
+        self._thread.daemon = True
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            frame = self._queue.get()
+            if frame is None:
+                return
+            if self._error is None:
+                try:
+                    self._writer.write(frame)
+                except BaseException as exc:  # re-raised in the caller's thread
+                    self._error = exc
+
+    def write(self, frame: NDArray[np.uint8]) -> None:
+        if self._error is not None:
+            raise self._error
+        self._queue.put(frame)
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._thread.join()
+        self._writer.close()
+        if self._error is not None:
+            raise self._error
+
+
+def _choose_static(
+    n: int, rig: StereoRig, marker_px: list[FloatArray], rng: np.random.Generator
+) -> list[_StaticDistractor]:
+    """Static reflections in the room behind the hand, visible to both cameras, off the markers' paths."""
+    out: list[_StaticDistractor] = []
+    centre = np.array([0.0, 0.0, 0.0])
+    for k in range(n):
+        best = None
+        for _ in range(200):
+            z = rng.uniform(650.0, 1100.0)
+            p = centre + np.array([rng.uniform(-0.45, 0.45) * z, rng.uniform(-0.35, 0.35) * z, z])
+            ok = True
+            for cam, mpx in zip(rig.cameras, marker_px, strict=True):
+                q = cam.project(p[None])[0]
+                if not cam.in_image(q[None], margin_px=15)[0]:
+                    ok = False
+                    break
+                if np.min(np.linalg.norm(mpx - q, axis=1)) < 30.0:  # px from any marker position
+                    ok = False
+                    break
+            best = p
+            if ok:
+                break
+        assert best is not None
+        out.append(
+            _StaticDistractor(
+                position_mm=best,
+                radius_mm=float(rng.uniform(1.0, 2.5)),
+                peak=float(rng.uniform(90.0, 230.0)),
+                profile=DISC if k % 2 == 0 else GLINT,
+            )
+        )
+    return out
+
+
+# Candidate anchor points in the hand frame (mm) for rings and watch glints:
+# the back of the hand and the wrist, away from the tapping fingertips.
+_MOVING_ANCHORS_MM = np.array(
+    [
+        [-120.0, 10.0, 5.0],  # watch on the wrist
+        [-70.0, 18.0, -10.0],  # back of the hand
+        [-15.0, -5.0, 30.0],  # ring on the middle finger's base
+        [-100.0, -10.0, 20.0],  # wrist, palm side
+    ]
+)
+
+
+def _choose_moving(n: int, rng: np.random.Generator) -> list[_MovingDistractor]:
+    out = []
+    for k in range(n):
+        anchor = _MOVING_ANCHORS_MM[k % len(_MOVING_ANCHORS_MM)] + rng.uniform(-8, 8, 3)
+        out.append(
+            _MovingDistractor(
+                local_mm=anchor,
+                radius_mm=float(rng.uniform(0.8, 1.6)),
+                peak=float(rng.uniform(150.0, 250.0)),
+                wobble_amp_mm=rng.uniform(1.0, 4.0, 3),
+                wobble_hz=rng.uniform(0.4, 1.3, 3),
+                wobble_phase=rng.uniform(0, 2 * np.pi, 3),
+                twinkle_hz=float(rng.uniform(0.15, 0.6)),
+                twinkle_phase=float(rng.uniform(0, 2 * np.pi)),
+            )
+        )
+    return out
+
+
+def _blur_samples(
+    model: TappingModel,
+    camera_times: FloatArray,
+    exposure_s: float,
+    focal_px: float,
+) -> NDArray[np.int64]:
+    """Sub-samples per frame so that a marker moves <= 0.5 px between them."""
+    if exposure_s <= 0:
+        return np.ones(len(camera_times), dtype=np.int64)
+    a = model.positions_mm(camera_times - exposure_s / 2)
+    b = model.positions_mm(camera_times + exposure_s / 2)
+    z = np.maximum(np.minimum(a[..., 2], b[..., 2]), 50.0)
+    disp_px = np.max(np.linalg.norm(b - a, axis=2) * focal_px / z, axis=1)
+    n = np.ceil(disp_px / _BLUR_SAMPLE_SPACING_PX).astype(np.int64) + 1
+    return np.clip(n, 1, _MAX_BLUR_SAMPLES)
+
+
+def simulate_session(
+    out_dir: str | Path,
+    *,
+    seed: int,
+    tapping: TappingScenario | None = None,
+    imaging: ImagingScenario | None = None,
+    rig: StereoRig | None = None,
+    progress: ProgressCallback | None = None,
+) -> SimulatedSession:
+    """Render a stereo recording of a simulated tapping trial with its ground truth.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Created if needed; receives ``left.<ext>``, ``right.<ext>``, ``rig.json``
+        and ``truth.json`` (``<ext>`` is ``mkv`` for lossless, ``mp4`` for mp4v).
+    seed : int
+        Everything random derives from it: same seed, same truth.json bytes and
+        same decoded frames.
+    tapping : TappingScenario, optional
+        Default: ``TappingScenario()`` (10 s at 100 fps, 3 Hz, 50 mm).
+    imaging : ImagingScenario, optional
+        Default: ``ImagingScenario(image_size=rig's image size)``.
+    rig : StereoRig, optional
+        Default: :func:`~core.simulation.rig.default_rig` for the image size.
+    progress : callable, optional
+        ``progress("simulation", frames_done, frames_total)``.
+
+    Returns
+    -------
+    SimulatedSession
+    """
+    tapping = TappingScenario() if tapping is None else tapping
+    if imaging is None:
+        imaging = (
+            ImagingScenario() if rig is None else ImagingScenario(image_size=rig.left.image_size)
+        )
+    if rig is None:
+        rig = default_rig(image_size=imaging.image_size)
+    for cam in rig.cameras:
+        if cam.image_size != imaging.image_size:
+            raise ValueError(
+                f"the rig's {cam.name} camera is {tuple(cam.image_size)} but imaging.image_size is"
+                f" {tuple(imaging.image_size)}"
+            )
+    names = tapping.marker_names
+    for _, marker, _, _ in imaging.occlusions:
+        if marker not in names:
+            raise ValueError(f"occlusion marker must be one of {names}, got {marker!r}")
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    truth = simulate_tapping(tapping, seed=seed)
+    model = truth.model
+    fps = tapping.fps
+    n_frames = len(truth.t_s)
+    offsets = {"left": 0.0, "right": float(imaging.offset_frames)}
+    times: dict[str, FloatArray] = {
+        c: (np.arange(n_frames, dtype=np.float64) + offsets[c]) / fps for c in CAMERA_NAMES
+    }
+
+    rngs = {
+        name: np.random.default_rng([int(seed), 0x51A, i])
+        for i, name in enumerate(
+            ("bg-left", "bg-right", "noise-left", "noise-right", "shot-left", "shot-right", "scene")
+        )
+    }
+    marker_px = [cam.project(truth.positions_mm[:, :2].reshape(-1, 3))[::7] for cam in rig.cameras]
+    marker_px = [p[np.all(np.isfinite(p), axis=1)] for p in marker_px]
+    statics = _choose_static(imaging.distractors_static, rig, marker_px, rngs["scene"])
+    movings = _choose_moving(imaging.distractors_moving, rngs["scene"])
+
+    radius_mm = imaging.marker_diameter_mm / 2.0
+    marker_peaks = imaging.marker_peak * np.array([1.0, 0.96, 0.92][: len(names)])
+    backgrounds = {
+        c: make_background(
+            imaging.image_size,
+            rng=rngs[f"bg-{c}"],
+            level=imaging.background_level,
+            texture=imaging.background_texture,
+        )
+        for c in CAMERA_NAMES
+    }
+    noises = {
+        c: SensorNoise(imaging.image_size, sigma=imaging.noise_sigma, rng=rngs[f"noise-{c}"])
+        for c in CAMERA_NAMES
+    }
+    occluded = {
+        c: np.zeros((n_frames, len(names)), dtype=bool) for c in CAMERA_NAMES
+    }  # per camera frame
+    for cam_name, marker, t0, dur in imaging.occlusions:
+        t = times[cam_name]
+        occluded[cam_name][:, names.index(marker)] |= (t >= t0) & (t < t0 + dur)
+    cameras = {"left": rig.left, "right": rig.right}
+    n_sub = {
+        c: _blur_samples(model, times[c], imaging.exposure_s, float(cameras[c].K[0, 0]))
+        for c in CAMERA_NAMES
+    }
+    static_layer = (
+        SphereLayer(
+            np.array([d.position_mm for d in statics])[None],
+            np.array([d.radius_mm for d in statics]),
+            np.array([d.peak for d in statics]),
+        )
+        if statics
+        else None
+    )
+    static_profiles = np.array([d.profile for d in statics])
+
+    suffix = video_suffix(imaging.codec)
+    paths = {c: out / f"{c}{suffix}" for c in CAMERA_NAMES}
+    writers = {
+        c: _ThreadedWriter(
+            VideoWriter(paths[c], fps=fps, image_size=imaging.image_size, codec=imaging.codec)
+        )
+        for c in CAMERA_NAMES
+    }
+    try:
+        for j in range(n_frames):
+            for c in CAMERA_NAMES:
+                cam = cameras[c]
+                S = int(n_sub[c][j])
+                t_mid = times[c][j]
+                sub_t = t_mid + imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
+                frame = backgrounds[c].copy()
+                noises[c].add_to(frame)
+                if static_layer is not None:
+                    for profile in (DISC, GLINT):
+                        sel = static_profiles == profile
+                        if np.any(sel):
+                            draw_spheres(
+                                frame,
+                                cam,
+                                SphereLayer(
+                                    static_layer.centres_mm[:, sel],
+                                    static_layer.radius_mm[sel],
+                                    static_layer.peak[sel],
+                                    profile,
+                                ),
+                                psf_sigma_px=imaging.psf_sigma_px,
+                            )
+                if movings:
+                    centres = np.stack([d.positions_mm(model, sub_t) for d in movings], axis=1)
+                    peaks = np.array([d.brightness(np.array([t_mid]))[0] for d in movings])
+                    draw_spheres(
+                        frame,
+                        cam,
+                        SphereLayer(
+                            centres, np.array([d.radius_mm for d in movings]), peaks, GLINT
+                        ),
+                        psf_sigma_px=imaging.psf_sigma_px,
+                    )
+                peaks = np.where(occluded[c][j], 0.0, marker_peaks)
+                draw_spheres(
+                    frame,
+                    cam,
+                    SphereLayer(
+                        model.positions_mm(sub_t), np.full(len(names), radius_mm), peaks, DISC
+                    ),
+                    psf_sigma_px=imaging.psf_sigma_px,
+                    shot_noise=(rngs[f"shot-{c}"], _SHOT_NOISE_GAIN)
+                    if imaging.noise_sigma > 0
+                    else None,
+                )
+                writers[c].write(to_uint8(frame))
+            if (j + 1) % 10 == 0 or j + 1 == n_frames:
+                report(progress, "simulation", j + 1, n_frames)
+    finally:
+        errors = []
+        for w in writers.values():
+            try:
+                w.close()
+            except BaseException as exc:  # keep closing the other writer
+                errors.append(exc)
+        if errors:
+            raise errors[0]
+
+    rig_path = out / "rig.json"
+    write_rig(rig, rig_path)
+    doc = _truth_document(
+        truth,
+        seed=seed,
+        imaging=imaging,
+        paths=paths,
+        occluded=occluded,
+        statics=statics,
+        movings=movings,
+        model=model,
+    )
+    truth_path = out / "truth.json"
+    truth_path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return SimulatedSession(paths["left"], paths["right"], rig_path, truth_path, doc)
+
+
+def _frame_intervals(mask: NDArray[np.bool_]) -> list[list[int]]:
+    """``[first, last]`` frame ranges (inclusive) where ``mask`` is True."""
+    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    return [[int(a), int(b) - 1] for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def _truth_document(
+    truth: TappingTruth,
+    *,
+    seed: int,
+    imaging: ImagingScenario,
+    paths: dict[str, Path],
+    occluded: dict[str, NDArray[np.bool_]],
+    statics: list[_StaticDistractor],
+    movings: list[_MovingDistractor],
+    model: TappingModel,
+) -> dict[str, Any]:
+    kin = truth.to_dict()
+    names = list(truth.marker_names)
+    occlusions = []
+    for cam_name, marker, t0, dur in imaging.occlusions:
+        occlusions.append(
+            {
+                "camera": cam_name,
+                "marker": marker,
+                "t_start_s": t0,
+                "duration_s": dur,
+                # Frame numbers of that camera's own video.
+                "frames": _frame_intervals(occluded[cam_name][:, names.index(marker)]),
+            }
+        )
+    imaging_doc = asdict(imaging)
+    imaging_doc["image_size"] = list(imaging.image_size)
+    imaging_doc["occlusions"] = [list(o) for o in imaging.occlusions]
+    doc: dict[str, Any] = {
+        "format": TRUTH_FORMAT,
+        "units": "mm",
+        "seed": int(seed),
+        "videos": {"left": paths["left"].name, "right": paths["right"].name},
+        "rig": "rig.json",
+        "world_frame": "left camera (x right, y down, z forward, mm)",
+        "fps": truth.fps,
+        "frame_count": kin.pop("frame_count"),
+        "offset_frames": float(imaging.offset_frames),
+        "offset_convention": "right frame j shows the same instant as left frame j + offset_frames",
+        "frame_time": "frame i of the left video is exposed around t = i / fps s",
+        "marker_names": names,
+        "marker_diameter_mm": imaging.marker_diameter_mm,
+    }
+    kin.pop("fps")
+    kin.pop("marker_names")
+    doc.update(kin)
+    doc["occlusions"] = occlusions
+    t = truth.t_s
+    doc["distractors"] = {
+        "static": [
+            {
+                "position_mm": d.position_mm.tolist(),
+                "radius_mm": d.radius_mm,
+                "peak": d.peak,
+                "profile": d.profile,
+            }
+            for d in statics
+        ],
+        "moving": [
+            {
+                "attached_to": "hand",
+                "radius_mm": d.radius_mm,
+                "peak": d.peak,
+                "profile": GLINT,
+                "positions_mm": d.positions_mm(model, t).tolist(),
+                "brightness": d.brightness(t).tolist(),
+            }
+            for d in movings
+        ],
+    }
+    doc["imaging"] = imaging_doc
+    return doc
