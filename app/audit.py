@@ -3,8 +3,8 @@
 Every use case that touches patient data calls :func:`audit` on the session of
 its own unit of work, so the event is committed together with the change (or
 read) it describes, and rolled back with it. A refused or failed request is
-recorded by :func:`audit_failure` in a separate short transaction (the
-request's own one is rolled back).
+recorded by :func:`audit_failure`, which rolls the request's pending changes
+back and commits the event alone.
 
 Audit rows hold identifiers and verbs only, never clinical values (no
 metrics, notes, ratings, names); ``app.models.AuditEvent`` has no foreign keys
@@ -102,12 +102,13 @@ def audit_failure(
     patient_id: int | None = None,
     outcome: Outcome | str = "denied",
 ) -> None:
-    """Record a refused or failed request in its own short transaction, and commit it.
+    """Record a refused or failed request, and commit it.
 
-    Uses a new session on ``db``'s connection pool, so the request's own
-    transaction can still be rolled back. Call it before the request wrote
-    anything (SQLite allows one writer at a time).
+    The request's pending changes are rolled back first (a refused request
+    changes nothing), then the event is committed on the same session, so no
+    second connection competes for SQLite's single writer. Call it before the
+    use case wrote anything of its own.
     """
-    with Session(bind=db.get_bind()) as own:
-        own.add(_event(actor, action, resource_type, resource_id, patient_id, outcome))
-        own.commit()
+    db.rollback()
+    db.add(_event(actor, action, resource_type, resource_id, patient_id, outcome))
+    db.commit()

@@ -232,7 +232,12 @@ class _Receiver:
         if self._skip:
             return
         if self._incoming is not None:
-            self._incoming = None  # complete; published later by the use case
+            # Complete: make the bytes readable at temp_path for the checks; the
+            # use case publishes (fsync + rename) the accepted ones.
+            fh = getattr(self._incoming, "_fh", None)
+            if fh is not None and not fh.closed:
+                fh.flush()
+            self._incoming = None
         else:
             self.result.fields[self._name] = self._text.decode("utf-8", "replace")
 
@@ -355,15 +360,17 @@ async def _drain(stream: Any) -> None:
 # -- content checks ---------------------------------------------------------
 
 
-def validate_video(path: Path, *, label: str) -> Any:
+def validate_video(path: Path, *, label: str, filename: str = "") -> Any:
     """Decide whether ``path`` is a usable video by decoding it.
 
     Parameters
     ----------
     path : Path
-        The staged file.
+        The received file.
     label : str
-        How the file is named in messages ("the left video").
+        How the file is named in messages ("The left video").
+    filename : str
+        The client's file name, shown instead of the temporary file's name.
 
     Returns
     -------
@@ -374,33 +381,34 @@ def validate_video(path: Path, *, label: str) -> Any:
     ------
     UnsupportedUpload
         If the file is empty, not a video, has no frames, or its first or last
-        frame cannot be decoded (a truncated file).
+        frames cannot be decoded (a truncated or corrupt file). A container may
+        announce up to two frames more than it holds (``core.video``'s slack);
+        such a file is accepted.
     """
     from core.video import iter_frames, probe_video
 
+    def why(exc: BaseException) -> str:
+        return _sentence(exc).replace(path.name, filename or "the file")
+
     if path.stat().st_size == 0:
-        raise UnsupportedUpload(f"{label} is empty; upload the recorded video file.")
+        raise UnsupportedUpload(f"{label} is empty (0 bytes); upload the recorded video file.")
     try:
         info = probe_video(path)
     except BradyscopeError as exc:
-        raise UnsupportedUpload(f"{label} is not a usable video: {_sentence(exc)}") from exc
-    # Decode the first frame and the last few: a truncated file fails here even
-    # when its header looks fine. A container may count up to two frames more
-    # than decode (core.video's slack), so the tail window covers them.
+        raise UnsupportedUpload(f"{label} is not a usable video: {why(exc)}") from exc
+    # Decode the first frame and the last ones: a truncated file fails here even
+    # when its header looks fine.
     tail_start = max(0, info.frame_count - 3)
-    for start, stop, where in ((0, 1, "first"), (tail_start, info.frame_count, "last")):
+    for start, stop in ((0, 1), (tail_start, info.frame_count)):
         frames = iter_frames(path, start=start, stop=stop, prefetch=1, expected_count=stop)
         try:
             decoded = sum(1 for _ in frames)
         except BradyscopeError as exc:
-            raise UnsupportedUpload(
-                f"{label} could not be decoded to its {where} frame ({_sentence(exc)})"
-                " The file is probably truncated or corrupt; upload it again."
-            ) from exc
+            raise UnsupportedUpload(f"{label} is damaged or incomplete: {why(exc)}") from exc
         if decoded == 0:
             raise UnsupportedUpload(
-                f"{label} could not be decoded to its {where} frame (frame {stop - 1});"
-                " the file is probably truncated or corrupt, upload it again."
+                f"{label} is damaged or incomplete: frame {stop - 1} cannot be decoded;"
+                " upload the complete recording again."
             )
     return info
 

@@ -64,8 +64,8 @@ def _video_row(upload: ParsedUpload, name: str, info: Any, side: str) -> Video:
 def _validate_pair(upload: ParsedUpload, *, rig: Any = None) -> tuple[Any, Any, list[str]]:
     left_file = upload.require_file("left_video")
     right_file = upload.require_file("right_video")
-    left = validate_video(left_file.path, label="The left video")
-    right = validate_video(right_file.path, label="The right video")
+    left = validate_video(left_file.path, label="The left video", filename=left_file.filename)
+    right = validate_video(right_file.path, label="The right video", filename=right_file.filename)
     warnings = validate_stereo_pair(left, right, rig=rig)
     return left, right, warnings
 

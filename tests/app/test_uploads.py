@@ -1,0 +1,313 @@
+"""Uploads: accepted ones are stored completely; rejected ones leave nothing behind.
+
+Every rejection is checked three ways: a 4xx with a clear sentence, no Trial /
+Video / Job row, and no file under the data directory (stored or temporary).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from api_support import (  # noqa: F401 - fixtures
+    Api,
+    api,
+    seed_recording_target,
+    trial_files,
+    video_pair,
+    write_video,
+)
+from sqlalchemy import select
+
+from app.models import Job, Trial, Video
+from core.camera import ImageSize
+
+
+def _png_bytes() -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.full((64, 64), 128, np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def _assert_nothing_left(api: Api) -> None:
+    assert api.recording_rows() == (0, 0, 0)
+    assert api.stored_files() == []
+
+
+def test_trial_upload_stores_videos_and_queues_one_job(api: Api, video_pair) -> None:
+    seeded = seed_recording_target(api)
+    left, right = video_pair
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "right"},
+        files=trial_files(left, right),
+        headers=api.headers,
+    )
+    assert r.status_code == 201, r.text
+    body = r.json()
+    with api.sessions() as db:
+        trial = db.get(Trial, body["id"])
+        assert trial is not None and trial.hand == "right" and trial.status == "queued"
+        videos = {v.side: v for v in db.scalars(select(Video).where(Video.trial_id == trial.id))}
+        job = db.get(Job, body["job_id"])
+        assert job is not None and job.kind == "analyze_trial" and job.trial_id == trial.id
+    assert set(videos) == {"left", "right"}
+    for side, source in (("left", left), ("right", right)):
+        stored = api.settings.data_dir / videos[side].path
+        data = Path(source).read_bytes()
+        assert stored.read_bytes() == data  # stored byte for byte
+        assert videos[side].sha256 == hashlib.sha256(data).hexdigest()
+        assert videos[side].size_bytes == len(data)
+        assert (videos[side].width, videos[side].height) == (160, 128)  # px, as written
+        assert videos[side].frame_count == 12
+        assert videos[side].original_filename == f"{side}.mp4"
+        # server-generated path: the client's name never reaches the file system
+        assert f"{side}.mp4" not in videos[side].path
+    assert not list((api.settings.data_dir / "tmp").iterdir())
+
+
+@pytest.mark.parametrize(
+    ("case", "status", "words"),
+    [
+        ("empty", 415, "empty"),
+        ("png_renamed", 415, "video"),
+        ("text_renamed", 415, "video"),
+        ("truncated", 415, "left video"),
+        ("truncated_mkv", 415, "incomplete"),
+        ("corrupt", 415, "left video"),
+        ("missing_right", 422, "right_video"),
+        ("bad_hand", 422, "hand"),
+        ("size_mismatch", 422, "160x128"),
+    ],
+)
+def test_rejected_trial_upload_leaves_nothing(
+    api: Api, video_pair, tmp_path: Path, case: str, status: int, words: str
+) -> None:
+    seeded = seed_recording_target(api)
+    left, right = video_pair
+    good = Path(left).read_bytes()
+    data = {"hand": "left"}
+    if case == "empty":
+        files = trial_files(b"", right)
+    elif case == "png_renamed":
+        files = trial_files(_png_bytes(), right)
+    elif case == "text_renamed":
+        files = trial_files(b"this is not a video, just text\n" * 50, right)
+    elif case == "truncated":
+        files = trial_files(good[: len(good) // 2], right)
+    elif case == "truncated_mkv":  # header intact, frames cut off: found by decoding the end
+        whole = write_video(tmp_path / "l.mkv", codec="lossless", noise=True).read_bytes()
+        files = trial_files(whole[: int(len(whole) * 0.6)], right, names=("l.mkv", "r.mp4"))
+    elif case == "corrupt":
+        rng = np.random.default_rng(7)
+        files = trial_files(rng.integers(0, 256, len(good), dtype=np.uint8).tobytes(), right)
+    elif case == "missing_right":
+        files = {"left_video": trial_files(left, right)["left_video"]}
+    elif case == "bad_hand":
+        files, data = trial_files(left, right), {"hand": "both"}
+    elif case == "size_mismatch":
+        other = write_video(tmp_path / "big.mp4", size=ImageSize(192, 128))
+        files = trial_files(left, other)
+    else:  # pragma: no cover
+        raise AssertionError(case)
+    seeded_files = api.stored_files()  # nothing is stored for a rig-file calibration
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials", data=data, files=files, headers=api.headers
+    )
+    assert r.status_code == status, r.text
+    detail = r.json()["detail"]
+    assert words in detail and detail.endswith(".")
+    assert api.recording_rows() == (0, 0, 0)
+    assert api.stored_files() == seeded_files == []
+
+
+def test_oversized_upload_is_refused_with_413_and_leaves_nothing(
+    app_settings, db_sessionmaker, video_pair
+) -> None:
+    from api_support import make_api_key
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+
+    settings = app_settings.model_copy(update={"max_upload_bytes": 20_000})
+    left, right = video_pair
+    big = bytes(200_000)  # 10x the limit
+    key = make_api_key(db_sessionmaker)
+    with TestClient(create_app(settings)) as client:
+        api = Api(client.app, client, settings, db_sessionmaker, key)
+        seeded = seed_recording_target(api)
+        # declared length above the limit: refused before reading the body
+        r = client.post(
+            f"/api/v1/sessions/{seeded.session_id}/trials",
+            data={"hand": "left"},
+            files=trial_files(big, big),
+            headers=api.headers,
+        )
+        assert r.status_code == 413, r.text
+        assert "limit" in r.json()["detail"]
+        # streamed without a length (chunked): refused at the limit while streaming
+        boundary = "xyzBOUNDARY"
+        body = (
+            (
+                f'--{boundary}\r\nContent-Disposition: form-data; name="hand"\r\n\r\nleft\r\n'
+                f'--{boundary}\r\nContent-Disposition: form-data; name="left_video"; '
+                'filename="l.mp4"\r\nContent-Type: video/mp4\r\n\r\n'
+            ).encode()
+            + big
+            + f"\r\n--{boundary}--\r\n".encode()
+        )
+
+        def chunks():
+            for i in range(0, len(body), 8192):
+                yield body[i : i + 8192]
+
+        r = client.post(
+            f"/api/v1/sessions/{seeded.session_id}/trials",
+            content=chunks(),
+            headers={**api.headers, "Content-Type": f"multipart/form-data; boundary={boundary}"},
+        )
+        assert r.status_code == 413, r.text
+        assert "left video" in r.json()["detail"]
+        _assert_nothing_left(api)
+
+
+def test_upload_that_is_not_multipart_is_refused(api: Api) -> None:
+    seeded = seed_recording_target(api)
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        json={"hand": "left"},
+        headers=api.headers,
+    )
+    assert r.status_code == 415
+    assert "multipart/form-data" in r.json()["detail"]
+    _assert_nothing_left(api)
+
+
+def test_malformed_multipart_body_is_refused(api: Api) -> None:
+    seeded = seed_recording_target(api)
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        content=b'--b\r\nContent-Disposition: form-data; name="left_video"; filename="x"\r\n\r\nabc',
+        headers={**api.headers, "Content-Type": "multipart/form-data; boundary=b"},
+    )
+    assert r.status_code == 400, r.text
+    _assert_nothing_left(api)
+
+
+def test_upload_for_unknown_session_is_404_before_reading(api: Api, video_pair) -> None:
+    left, right = video_pair
+    r = api.client.post(
+        "/api/v1/sessions/999/trials",
+        data={"hand": "left"},
+        files=trial_files(left, right),
+        headers=api.headers,
+    )
+    assert r.status_code == 404
+    _assert_nothing_left(api)
+
+
+def test_ten_concurrent_uploads_all_succeed(api: Api, video_pair) -> None:
+    seeded = seed_recording_target(api)
+    left, right = video_pair
+    files = trial_files(left, right)
+
+    async def upload_all() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=api.app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            return await asyncio.gather(
+                *(
+                    client.post(
+                        f"/api/v1/sessions/{seeded.session_id}/trials",
+                        data={"hand": "left" if i % 2 else "right"},
+                        files=files,
+                        headers=api.headers,
+                        timeout=60,
+                    )
+                    for i in range(10)
+                )
+            )
+
+    responses = asyncio.run(upload_all())
+    assert [r.status_code for r in responses] == [201] * 10, [r.text for r in responses]
+    assert len({r.json()["id"] for r in responses}) == 10
+    assert api.recording_rows() == (10, 20, 10)
+    assert len(api.stored_files()) == 20
+
+
+# -- calibration uploads -----------------------------------------------------------
+
+
+def test_calibration_from_board_videos_queues_a_calibrate_job(api: Api, video_pair) -> None:
+    h = api.headers
+    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-B"}, headers=h).json()
+    left, right = video_pair
+    r = api.client.post(
+        f"/api/v1/rigs/{rig['id']}/calibrations",
+        data={"board": "charuco", "cols": "7", "rows": "5", "square_mm": "30", "marker_mm": "22"},
+        files=trial_files(left, right),
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    body = r.json()
+    assert body["status"] == "pending" and body["job_id"] is not None
+    with api.sessions() as db:
+        job = db.get(Job, body["job_id"])
+        assert job is not None and job.kind == "calibrate" and job.calibration_id == body["id"]
+        assert db.scalar(select(Video.calibration_id).where(Video.side == "left")) == body["id"]
+    listed = api.client.get(f"/api/v1/rigs/{rig['id']}/calibrations", headers=h).json()
+    assert [c["board"]["dictionary"] for c in listed] == ["DICT_4X4_1000"]
+    assert len(api.stored_files()) == 2
+
+
+@pytest.mark.parametrize(
+    ("fields", "words"),
+    [
+        ({"board": "charuco", "cols": "7", "rows": "5", "square_mm": "30"}, "marker_mm"),
+        ({"board": "circles", "cols": "7", "rows": "5", "square_mm": "30"}, "board"),
+        ({"board": "chessboard", "cols": "1", "rows": "5", "square_mm": "30"}, "cols"),
+        ({"board": "chessboard", "cols": "9", "rows": "6", "square_mm": "-3"}, "square_mm"),
+    ],
+)
+def test_calibration_with_bad_board_fields_leaves_nothing(
+    api: Api, video_pair, fields: dict, words: str
+) -> None:
+    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-B"}, headers=api.headers).json()
+    left, right = video_pair
+    r = api.client.post(
+        f"/api/v1/rigs/{rig['id']}/calibrations",
+        data=fields,
+        files=trial_files(left, right),
+        headers=api.headers,
+    )
+    assert r.status_code == 422, r.text
+    assert words in r.json()["detail"]
+    assert api.count(Job) == 0 and api.count(Video) == 0 and api.stored_files() == []
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        (b"", "empty"),
+        (b"{not json", "JSON"),
+        (b'{"format": "bradyscope.rig/9", "cameras": []}', "format"),
+    ],
+)
+def test_bad_rig_file_is_refused(api: Api, content: bytes, words: str) -> None:
+    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-C"}, headers=api.headers).json()
+    r = api.client.post(
+        f"/api/v1/rigs/{rig['id']}/calibrations",
+        files={"rig_json": ("rig.json", content, "application/json")},
+        headers=api.headers,
+    )
+    assert r.status_code == 422, r.text
+    assert words in r.json()["detail"]
+    assert api.stored_files() == []
+    assert (
+        api.client.get(f"/api/v1/rigs/{rig['id']}/calibrations", headers=api.headers).json() == []
+    )
