@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
 """Uploads: accepted ones are stored completely; rejected ones leave nothing behind.
 
 Every rejection is checked three ways: a 4xx with a clear sentence, no Trial /
@@ -128,7 +129,7 @@ def test_rejected_trial_upload_leaves_nothing(
 
 
 def test_oversized_upload_is_refused_with_413_and_leaves_nothing(
-    app_settings, db_sessionmaker, video_pair
+    app_settings, db_sessionmaker
 ) -> None:
     from api_support import make_api_key
     from fastapi.testclient import TestClient
@@ -136,7 +137,6 @@ def test_oversized_upload_is_refused_with_413_and_leaves_nothing(
     from app.main import create_app
 
     settings = app_settings.model_copy(update={"max_upload_bytes": 20_000})
-    left, right = video_pair
     big = bytes(200_000)  # 10x the limit
     key = make_api_key(db_sessionmaker)
     with TestClient(create_app(settings)) as client:
