@@ -80,7 +80,7 @@ class JobContext:
         settings: Settings,
         storage: Storage,
         sessions: sessionmaker[Session],
-        stages: tuple[str, ...] = (),
+        stages: tuple[tuple[str, float], ...] = (),
     ) -> None:
         self.job = job
         self.settings = settings
@@ -103,9 +103,12 @@ class JobContext:
 
     def _overall(self, stage: str, done: int, total: int) -> float:
         within = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
-        if stage in self.stages:
-            return (self.stages.index(stage) + within) / len(self.stages)
-        return within
+        names = [name for name, _ in self.stages]
+        if stage not in names:
+            return within
+        weights = [weight for _, weight in self.stages]
+        i = names.index(stage)
+        return (sum(weights[:i]) + weights[i] * within) / sum(weights)
 
     def progress(self, stage: str, done: int, total: int) -> None:
         """A ``core.progress.ProgressCallback``: records progress, extends the lease.
@@ -303,6 +306,13 @@ def calibrate(ctx: JobContext) -> None:
     outcome = calibrate_stereo_from_paths(left, right, board, progress=ctx.progress)
     rig_doc = rig_to_dict(outcome.rig)
     quality = _calibration_quality(outcome)
+    try:
+        from core.calibration import quality_verdict
+
+        verdict, reasons = quality_verdict(quality)
+        quality = {**quality, "verdict": verdict, "verdict_reasons": list(reasons)}
+    except ImportError:  # an older core without verdicts
+        pass
     if quality:
         rig_doc["quality"] = {**rig_doc.get("quality", {}), **quality}
     rms_px = quality.get("rms_px")
@@ -341,8 +351,20 @@ def _calibration_quality(outcome: Any) -> dict[str, Any]:
 
 
 HANDLERS: dict[str, Handler] = {"analyze_trial": analyze_trial, "calibrate": calibrate}
-STAGES: dict[str, tuple[str, ...]] = {}
-"""Ordered stage names per job kind, for a progress fraction that spans all stages."""
+STAGES: dict[str, tuple[tuple[str, float], ...]] = {
+    # core.pipeline.analyze_recording's stages and their rough share of the run time.
+    "analyze_trial": (
+        ("detection", 0.85),
+        ("synchronisation", 0.04),
+        ("triangulation", 0.04),
+        ("tracking", 0.04),
+        ("metrics", 0.03),
+    ),
+    # core.calibration.calibrate_stereo_from_paths's stages.
+    "calibrate": (("detection", 0.7), ("calibration", 0.3)),
+}
+"""Ordered ``(stage, weight)`` per job kind: the job's progress fraction spans all stages.
+Stages not listed report their own fraction."""
 
 
 # --------------------------------------------------------------------------- the loop

@@ -5,13 +5,14 @@ from __future__ import annotations
 import threading
 from datetime import UTC, datetime
 
+import numpy as np
 import pytest
 from sqlalchemy import select
 
 from app import jobs
 from app.errors import InvalidRequestError
 from app.jobs import LeaseLostError
-from app.models import Job, Patient, RecordingSession, Result, Rig, Trial
+from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
 from app.worker import JobContext, run_job, run_worker
 from core.errors import DetectionError
 
@@ -44,14 +45,14 @@ def test_success_stores_effect_and_marks_trial(app_settings, db_sessionmaker):
 
     def handler(ctx: JobContext) -> None:
         for done in range(4):
-            ctx.progress("tracking", done, 4)
+            ctx.progress("custom stage", done, 4)
             seen.append((_job(sm, job_id).stage, _job(sm, job_id).progress))
         ctx.finish(lambda db: db.add(Result(trial_id=trial_id, job_id=job_id, document={"a": 1})))
 
     assert run_worker(app_settings, once=True, handlers={"analyze_trial": handler}) == 1
     job = _job(sm, job_id)
     assert (job.status, job.progress, job.stage, job.attempts) == ("succeeded", 1.0, "done", 1)
-    assert seen[0] == ("tracking", 0.0)  # a stage change is written at once
+    assert seen[0] == ("custom stage", 0.0)  # a stage change is written at once
     with sm() as db:
         assert db.get(Trial, trial_id).status == "succeeded"
         assert [r.document for r in db.scalars(select(Result))] == [{"a": 1}]
@@ -62,7 +63,7 @@ def test_progress_spans_known_stages(app_settings, db_sessionmaker, monkeypatch)
 
     sm = db_sessionmaker
     _, job_id = _enqueue_trial_job(sm)
-    monkeypatch.setitem(worker.STAGES, "analyze_trial", ("detection", "tracking"))
+    monkeypatch.setitem(worker.STAGES, "analyze_trial", (("detection", 0.5), ("tracking", 0.5)))
     fractions = []
 
     def handler(ctx: JobContext) -> None:
@@ -171,3 +172,166 @@ def test_stop_event_stops_an_idle_worker(app_settings):
 
 def test_kill9_of_a_worker_mid_job_sqlite(app_settings, worker_script, kill9_scenario):
     kill9_scenario(app_settings, worker_script)
+
+
+# --------------------------------------------------------------------------- real handlers
+
+
+def _store_video(storage, db, path, *, side, trial_id=None, calibration_id=None) -> Video:
+    from core.video import probe_video
+
+    info = probe_video(path)
+    with storage.receive("videos", path.suffix) as incoming:
+        incoming.write(path.read_bytes())
+        stored = incoming.commit()
+    video = Video(
+        trial_id=trial_id,
+        calibration_id=calibration_id,
+        side=side,
+        path=stored.path,
+        size_bytes=stored.size_bytes,
+        sha256=stored.sha256,
+        fps=info.fps,
+        frame_count=info.frame_count,
+        width=info.image_size.width,
+        height=info.image_size.height,
+        codec=info.fourcc,
+    )
+    db.add(video)
+    return video
+
+
+@pytest.fixture(scope="module")
+def small_recording(simulated_session):
+    from core.camera import ImageSize
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario
+
+    return simulated_session(
+        seed=11,
+        tapping=TappingScenario(duration_s=2.5),
+        imaging=ImagingScenario(image_size=ImageSize(640, 512)),
+    )
+
+
+def _trial_with_videos(db, storage, recording, *, calibrated: bool) -> tuple[int, int]:
+    import json
+
+    rig, patient = Rig(name="sim-rig"), Patient(code="PD-SIM")
+    db.add_all([rig, patient])
+    db.flush()
+    if calibrated:
+        db.add(
+            Calibration(
+                rig_id=rig.id,
+                version=1,
+                valid_from=datetime(2026, 1, 1, tzinfo=UTC),
+                rig_json=json.loads(recording.rig_path.read_text()),
+                rms_px=0.1,
+                source="rig_file",
+                status="ready",
+            )
+        )
+    session = RecordingSession(
+        patient_id=patient.id, rig_id=rig.id, recorded_at=datetime(2026, 2, 1, tzinfo=UTC)
+    )
+    db.add(session)
+    db.flush()
+    trial = Trial(session_id=session.id, hand="right")
+    db.add(trial)
+    db.flush()
+    _store_video(storage, db, recording.left_video, side="left", trial_id=trial.id)
+    _store_video(storage, db, recording.right_video, side="right", trial_id=trial.id)
+    return trial.id, jobs.enqueue(db, "analyze_trial", trial_id=trial.id).id
+
+
+@pytest.mark.slow
+def test_analyze_trial_handler_measures_a_simulated_recording(
+    app_settings, db_sessionmaker, storage, small_recording
+):
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+    assert run_worker(app_settings, once=True) == 1
+    job = _job(sm, job_id)
+    assert (job.status, job.error, job.attempts) == ("succeeded", None, 1)
+    truth = small_recording.truth
+    with sm() as db:
+        result = db.scalars(select(Result).where(Result.trial_id == trial_id)).one()
+        assert db.get(Trial, trial_id).status == "succeeded"
+    doc = result.document
+    assert doc["format"] == "bradyscope.result/1"
+    assert doc["metrics"]["tap_count"] == truth["tap_count"]
+    # Loose service-level check; core's tests hold the pipeline to the metric tolerances.
+    assert doc["metrics"]["amplitude_mm_mean"] == pytest.approx(
+        truth["amplitude_mm_mean"],
+        abs=2.0,  # mm
+    )
+    assert doc["calibration"]["version"] == 1 and result.calibration_id is not None
+    markers = storage.absolute(result.markers_path).read_text().splitlines()
+    assert markers[0].startswith("frame,time_s,marker,x_mm,y_mm,z_mm,status,reprojection_px")
+    assert len(markers) - 1 == 2 * doc["frame_count"]  # thumb and index per frame
+
+
+@pytest.mark.slow
+def test_analyze_without_calibration_fails_with_a_sentence(
+    app_settings, db_sessionmaker, storage, small_recording
+):
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=False)
+    run_worker(app_settings, once=True)
+    job = _job(sm, job_id)
+    assert job.status == "failed" and job.attempts == 1
+    assert "no ready calibration" in job.error and "upload a calibration" in job.error
+    with sm() as db:
+        assert db.scalars(select(Result)).all() == []
+        assert db.get(Trial, trial_id).status == "failed"
+
+
+@pytest.mark.slow
+def test_calibrate_handler_makes_a_ready_calibration(
+    app_settings, db_sessionmaker, storage, tmp_path
+):
+    import json
+
+    from core.camera import ImageSize, rig_from_dict
+    from core.simulation.boards import example_rig, write_board_recordings
+
+    truth = example_rig(image_size=ImageSize(640, 512))
+    write_board_recordings(
+        truth, tmp_path, seed=2, board="chessboard", duration_s=12, fps=2, pose_interval_s=0.5
+    )
+    board = json.loads((tmp_path / "chessboard.json").read_text())
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        rig = Rig(name="board-rig")
+        db.add(rig)
+        db.flush()
+        cal = Calibration(
+            rig_id=rig.id,
+            version=1,
+            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
+            source="board_videos",
+            status="pending",
+            board=board,
+        )
+        db.add(cal)
+        db.flush()
+        for side in ("left", "right"):
+            path = tmp_path / f"chessboard_{side}.mkv"
+            _store_video(storage, db, path, side=side, calibration_id=cal.id)
+        cal_id = cal.id
+        job_id = jobs.enqueue(db, "calibrate", calibration_id=cal.id).id
+    assert run_worker(app_settings, once=True) == 1
+    job = _job(sm, job_id)
+    assert (job.status, job.error) == ("succeeded", None)
+    with sm() as db:
+        cal = db.get(Calibration, cal_id)
+    assert cal.status == "ready"
+    assert cal.rms_px < 0.3  # px, noise-level fit on simulated boards
+    assert cal.quality["verdict"] in ("good", "acceptable", "poor")
+    rig = rig_from_dict(cal.rig_json)
+    baseline_mm = float(np.linalg.norm(rig.right.t_cam_from_world_mm))
+    true_baseline_mm = float(np.linalg.norm(truth.right.t_cam_from_world_mm))
+    assert baseline_mm == pytest.approx(true_baseline_mm, abs=1.0)  # mm
