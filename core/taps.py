@@ -170,8 +170,8 @@ class Segmentation:
 @dataclass(frozen=True)
 class _Valley:
     i_min: int
-    first: int  # first frame of the turn (still and closed)
-    last: int  # last frame of the turn
+    first: float  # start of the turn (still and closed), sub-frame
+    last: float  # end of the turn, sub-frame
     seen: bool  # the closure was observed (see rule 4)
     inner: bool  # lies between two maxima of the same run
 
@@ -188,8 +188,14 @@ def _vertex(f: FloatArray, i: int) -> float:
 
 def _turn(
     f: FloatArray, speed: FloatArray, i_min: int, lo: int, hi: int, still: float, tol: float
-) -> tuple[int, int]:
-    """Contiguous still-and-closed frames around ``i_min`` within ``[lo, hi]``."""
+) -> tuple[float, float]:
+    """Start and end (sub-frame) of the still-and-closed stretch around ``i_min`` in ``[lo, hi]``.
+
+    The ends are where the speed crosses ``still``, linearly interpolated
+    between the last still frame and the first moving one.
+    """
+    if not speed[i_min] < still:
+        return float(i_min), float(i_min)
     limit = f[i_min] + tol
     first = i_min
     while first - 1 >= lo and speed[first - 1] < still and f[first - 1] <= limit:
@@ -197,7 +203,14 @@ def _turn(
     last = i_min
     while last + 1 <= hi and speed[last + 1] < still and f[last + 1] <= limit:
         last += 1
-    return first, last
+    return _crossing(speed, still, first, first - 1), _crossing(speed, still, last, last + 1)
+
+
+def _crossing(speed: FloatArray, still: float, inside: int, outside: int) -> float:
+    if not 0 <= outside < len(speed) or not speed[outside] >= still > speed[inside]:
+        return float(inside)
+    frac = (still - speed[inside]) / (speed[outside] - speed[inside])
+    return inside + float(frac) * (outside - inside)
 
 
 def segment_recording(
@@ -277,7 +290,7 @@ def segment_recording(
 
     # 2. Closures and their turns.
     run_valleys: list[list[_Valley]] = []
-    inner_turns: list[int] = []
+    inner_turns: list[float] = []
     for a, b, peaks, mins in per_run:
         valleys = []
         for j, i_min in enumerate(mins):
