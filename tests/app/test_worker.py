@@ -335,3 +335,62 @@ def test_calibrate_handler_makes_a_ready_calibration(
     baseline_mm = float(np.linalg.norm(rig.right.t_cam_from_world_mm))
     true_baseline_mm = float(np.linalg.norm(truth.right.t_cam_from_world_mm))
     assert baseline_mm == pytest.approx(true_baseline_mm, abs=1.0)  # mm
+
+
+@pytest.mark.slow
+def test_kill9_of_bradyscope_worker_during_a_real_analysis(
+    app_settings, db_sessionmaker, storage, small_recording, wait_for
+):
+    """The acceptance scenario with the real command and pipeline: kill -9 mid-analysis,
+    start another ``bradyscope worker``: the job completes with exactly one Result; then
+    SIGTERM stops that worker cleanly."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+    env = {
+        **os.environ,
+        "BRADYSCOPE_DATA_DIR": str(app_settings.data_dir),
+        "BRADYSCOPE_JOB_LEASE_S": "2",
+        "BRADYSCOPE_WORKER_POLL_S": "0.1",
+    }
+    env.pop("BRADYSCOPE_DATABASE_URL", None)
+    command = [os.path.join(os.path.dirname(sys.executable), "bradyscope"), "worker"]
+
+    first = subprocess.Popen(command, env=env, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(
+            lambda: (j := _job(sm, job_id)).status == "running" and j.progress > 0,
+            timeout_s=120,
+            what="the first worker to be measuring",
+        )
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait(timeout=30)
+    assert _job(sm, job_id).status == "running"  # orphaned: its lease will expire
+
+    second = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(
+            lambda: _job(sm, job_id).status in ("succeeded", "failed"),
+            timeout_s=180,
+            what="the second worker to finish the job",
+        )
+        second.send_signal(signal.SIGTERM)
+        _, err = second.communicate(timeout=60)
+    finally:
+        if second.poll() is None:
+            second.kill()
+    assert second.returncode == 0, err
+    assert "stopped after 1 job(s)" in err
+    job = _job(sm, job_id)
+    assert (job.status, job.attempts, job.error) == ("succeeded", 2, None)
+    with sm() as db:
+        results = db.scalars(select(Result).where(Result.trial_id == trial_id)).all()
+    assert len(results) == 1 and results[0].job_id == job_id
+    assert results[0].document["metrics"]["tap_count"] == small_recording.truth["tap_count"]
+    assert [p for p in storage.tmp_dir.iterdir()] == []  # nothing half-written left behind
