@@ -298,6 +298,156 @@ def _blur_samples(
     return np.clip(n, 1, _MAX_BLUR_SAMPLES)
 
 
+class StereoRenderer:
+    """Renders the stereo frames of a simulated trial, one pair at a time (bounded memory).
+
+    Frames must be rendered in order (``render(0)``, ``render(1)``, ...): the
+    sensor noise comes from sequential random streams, which is what makes a
+    session reproducible from its seed.
+
+    Parameters
+    ----------
+    truth : TappingTruth
+    rig : StereoRig
+    imaging : ImagingScenario
+    seed : int
+    """
+
+    def __init__(
+        self, truth: TappingTruth, *, rig: StereoRig, imaging: ImagingScenario, seed: int
+    ) -> None:
+        for cam in rig.cameras:
+            if cam.image_size != imaging.image_size:
+                raise ValueError(
+                    f"the rig's {cam.name} camera is {tuple(cam.image_size)} but"
+                    f" imaging.image_size is {tuple(imaging.image_size)}"
+                )
+        names = truth.marker_names
+        for _, marker, _, _ in imaging.occlusions:
+            if marker not in names:
+                raise ValueError(f"occlusion marker must be one of {names}, got {marker!r}")
+        self.truth = truth
+        self.rig = rig
+        self.imaging = imaging
+        self.seed = int(seed)
+        self.model = model = truth.model
+        self.n_frames = n_frames = len(truth.t_s)
+        offsets = {"left": 0.0, "right": float(imaging.offset_frames)}
+        self.times: dict[str, FloatArray] = {
+            c: (np.arange(n_frames, dtype=np.float64) + offsets[c]) / truth.fps
+            for c in CAMERA_NAMES
+        }
+        rngs = {
+            name: np.random.default_rng([self.seed, 0x51A, i])
+            for i, name in enumerate(
+                (
+                    "bg-left",
+                    "bg-right",
+                    "noise-left",
+                    "noise-right",
+                    "shot-left",
+                    "shot-right",
+                    "scene",
+                )
+            )
+        }
+        self._shot_rngs = {c: rngs[f"shot-{c}"] for c in CAMERA_NAMES}
+        marker_px = [
+            cam.project(truth.positions_mm[:, :2].reshape(-1, 3))[::7] for cam in rig.cameras
+        ]
+        marker_px = [p[np.all(np.isfinite(p), axis=1)] for p in marker_px]
+        self.statics = _choose_static(imaging.distractors_static, rig, marker_px, rngs["scene"])
+        self.movings = _choose_moving(imaging.distractors_moving, rngs["scene"])
+        self._radius_mm = np.full(len(names), imaging.marker_diameter_mm / 2.0)
+        self._marker_peaks = imaging.marker_peak * np.array([1.0, 0.96, 0.92][: len(names)])
+        self._backgrounds = {
+            c: make_background(
+                imaging.image_size,
+                rng=rngs[f"bg-{c}"],
+                level=imaging.background_level,
+                texture=imaging.background_texture,
+            )
+            for c in CAMERA_NAMES
+        }
+        self._noises = {
+            c: SensorNoise(imaging.image_size, sigma=imaging.noise_sigma, rng=rngs[f"noise-{c}"])
+            for c in CAMERA_NAMES
+        }
+        self.occluded = {c: np.zeros((n_frames, len(names)), dtype=bool) for c in CAMERA_NAMES}
+        for cam_name, marker, t0, dur in imaging.occlusions:
+            t = self.times[cam_name]
+            self.occluded[cam_name][:, names.index(marker)] |= (t >= t0) & (t < t0 + dur)
+        self._cameras = {"left": rig.left, "right": rig.right}
+        self._n_sub = {
+            c: _blur_samples(model, self.times[c], imaging.exposure_s, float(cam.K[0, 0]))
+            for c, cam in self._cameras.items()
+        }
+        self._static_layers = [
+            SphereLayer(
+                np.array([d.position_mm for d in self.statics if d.profile == profile])[None],
+                np.array([d.radius_mm for d in self.statics if d.profile == profile]),
+                np.array([d.peak for d in self.statics if d.profile == profile]),
+                profile,
+            )
+            for profile in (DISC, GLINT)
+            if any(d.profile == profile for d in self.statics)
+        ]
+        self._next = 0
+
+    def render(self, j: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """The left and right frames ``j``, uint8 ``(H, W)`` each."""
+        if j != self._next:
+            raise ValueError(f"frames must be rendered in order: expected {self._next}, got {j}")
+        self._next += 1
+        frames = []
+        for c in CAMERA_NAMES:
+            frames.append(self._render_camera(c, j))
+        return frames[0], frames[1]
+
+    def _render_camera(self, c: str, j: int) -> NDArray[np.uint8]:
+        imaging = self.imaging
+        cam = self._cameras[c]
+        S = int(self._n_sub[c][j])
+        t_mid = self.times[c][j]
+        sub_t = t_mid + imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
+        frame = self._backgrounds[c].copy()
+        self._noises[c].add_to(frame)
+        for layer in self._static_layers:
+            draw_spheres(frame, cam, layer, psf_sigma_px=imaging.psf_sigma_px)
+        if self.movings:
+            centres = np.stack([d.positions_mm(self.model, sub_t) for d in self.movings], axis=1)
+            peaks = np.array([d.brightness(np.array([t_mid]))[0] for d in self.movings])
+            radii = np.array([d.radius_mm for d in self.movings])
+            draw_spheres(
+                frame,
+                cam,
+                SphereLayer(centres, radii, peaks, GLINT),
+                psf_sigma_px=imaging.psf_sigma_px,
+            )
+        peaks = np.where(self.occluded[c][j], 0.0, self._marker_peaks)
+        draw_spheres(
+            frame,
+            cam,
+            SphereLayer(self.model.positions_mm(sub_t), self._radius_mm, peaks, DISC),
+            psf_sigma_px=imaging.psf_sigma_px,
+            shot_noise=(self._shot_rngs[c], _SHOT_NOISE_GAIN) if imaging.noise_sigma > 0 else None,
+        )
+        return to_uint8(frame)
+
+    def truth_document(self, *, video_names: dict[str, str]) -> dict[str, Any]:
+        """The ``truth.json`` document (``bradyscope.truth/1``)."""
+        return _truth_document(
+            self.truth,
+            seed=self.seed,
+            imaging=self.imaging,
+            video_names=video_names,
+            occluded=self.occluded,
+            statics=self.statics,
+            movings=self.movings,
+            model=self.model,
+        )
+
+
 def simulate_session(
     out_dir: str | Path,
     *,
@@ -337,132 +487,27 @@ def simulate_session(
         )
     if rig is None:
         rig = default_rig(image_size=imaging.image_size)
-    for cam in rig.cameras:
-        if cam.image_size != imaging.image_size:
-            raise ValueError(
-                f"the rig's {cam.name} camera is {tuple(cam.image_size)} but imaging.image_size is"
-                f" {tuple(imaging.image_size)}"
-            )
-    names = tapping.marker_names
-    for _, marker, _, _ in imaging.occlusions:
-        if marker not in names:
-            raise ValueError(f"occlusion marker must be one of {names}, got {marker!r}")
+    truth = simulate_tapping(tapping, seed=seed)
+    renderer = StereoRenderer(truth, rig=rig, imaging=imaging, seed=seed)
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    truth = simulate_tapping(tapping, seed=seed)
-    model = truth.model
-    fps = tapping.fps
-    n_frames = len(truth.t_s)
-    offsets = {"left": 0.0, "right": float(imaging.offset_frames)}
-    times: dict[str, FloatArray] = {
-        c: (np.arange(n_frames, dtype=np.float64) + offsets[c]) / fps for c in CAMERA_NAMES
-    }
-
-    rngs = {
-        name: np.random.default_rng([int(seed), 0x51A, i])
-        for i, name in enumerate(
-            ("bg-left", "bg-right", "noise-left", "noise-right", "shot-left", "shot-right", "scene")
-        )
-    }
-    marker_px = [cam.project(truth.positions_mm[:, :2].reshape(-1, 3))[::7] for cam in rig.cameras]
-    marker_px = [p[np.all(np.isfinite(p), axis=1)] for p in marker_px]
-    statics = _choose_static(imaging.distractors_static, rig, marker_px, rngs["scene"])
-    movings = _choose_moving(imaging.distractors_moving, rngs["scene"])
-
-    radius_mm = imaging.marker_diameter_mm / 2.0
-    marker_peaks = imaging.marker_peak * np.array([1.0, 0.96, 0.92][: len(names)])
-    backgrounds = {
-        c: make_background(
-            imaging.image_size,
-            rng=rngs[f"bg-{c}"],
-            level=imaging.background_level,
-            texture=imaging.background_texture,
-        )
-        for c in CAMERA_NAMES
-    }
-    noises = {
-        c: SensorNoise(imaging.image_size, sigma=imaging.noise_sigma, rng=rngs[f"noise-{c}"])
-        for c in CAMERA_NAMES
-    }
-    occluded = {
-        c: np.zeros((n_frames, len(names)), dtype=bool) for c in CAMERA_NAMES
-    }  # per camera frame
-    for cam_name, marker, t0, dur in imaging.occlusions:
-        t = times[cam_name]
-        occluded[cam_name][:, names.index(marker)] |= (t >= t0) & (t < t0 + dur)
-    cameras = {"left": rig.left, "right": rig.right}
-    n_sub = {
-        c: _blur_samples(model, times[c], imaging.exposure_s, float(cameras[c].K[0, 0]))
-        for c in CAMERA_NAMES
-    }
-    static_layer = (
-        SphereLayer(
-            np.array([d.position_mm for d in statics])[None],
-            np.array([d.radius_mm for d in statics]),
-            np.array([d.peak for d in statics]),
-        )
-        if statics
-        else None
-    )
-    static_profiles = np.array([d.profile for d in statics])
-
     suffix = video_suffix(imaging.codec)
     paths = {c: out / f"{c}{suffix}" for c in CAMERA_NAMES}
     writers = {
         c: _ThreadedWriter(
-            VideoWriter(paths[c], fps=fps, image_size=imaging.image_size, codec=imaging.codec)
+            VideoWriter(
+                paths[c], fps=tapping.fps, image_size=imaging.image_size, codec=imaging.codec
+            )
         )
         for c in CAMERA_NAMES
     }
+    n_frames = renderer.n_frames
     try:
         for j in range(n_frames):
-            for c in CAMERA_NAMES:
-                cam = cameras[c]
-                S = int(n_sub[c][j])
-                t_mid = times[c][j]
-                sub_t = t_mid + imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
-                frame = backgrounds[c].copy()
-                noises[c].add_to(frame)
-                if static_layer is not None:
-                    for profile in (DISC, GLINT):
-                        sel = static_profiles == profile
-                        if np.any(sel):
-                            draw_spheres(
-                                frame,
-                                cam,
-                                SphereLayer(
-                                    static_layer.centres_mm[:, sel],
-                                    static_layer.radius_mm[sel],
-                                    static_layer.peak[sel],
-                                    profile,
-                                ),
-                                psf_sigma_px=imaging.psf_sigma_px,
-                            )
-                if movings:
-                    centres = np.stack([d.positions_mm(model, sub_t) for d in movings], axis=1)
-                    peaks = np.array([d.brightness(np.array([t_mid]))[0] for d in movings])
-                    draw_spheres(
-                        frame,
-                        cam,
-                        SphereLayer(
-                            centres, np.array([d.radius_mm for d in movings]), peaks, GLINT
-                        ),
-                        psf_sigma_px=imaging.psf_sigma_px,
-                    )
-                peaks = np.where(occluded[c][j], 0.0, marker_peaks)
-                draw_spheres(
-                    frame,
-                    cam,
-                    SphereLayer(
-                        model.positions_mm(sub_t), np.full(len(names), radius_mm), peaks, DISC
-                    ),
-                    psf_sigma_px=imaging.psf_sigma_px,
-                    shot_noise=(rngs[f"shot-{c}"], _SHOT_NOISE_GAIN)
-                    if imaging.noise_sigma > 0
-                    else None,
-                )
-                writers[c].write(to_uint8(frame))
+            left, right = renderer.render(j)
+            writers["left"].write(left)
+            writers["right"].write(right)
             if (j + 1) % 10 == 0 or j + 1 == n_frames:
                 report(progress, "simulation", j + 1, n_frames)
     finally:
@@ -477,16 +522,7 @@ def simulate_session(
 
     rig_path = out / "rig.json"
     write_rig(rig, rig_path)
-    doc = _truth_document(
-        truth,
-        seed=seed,
-        imaging=imaging,
-        paths=paths,
-        occluded=occluded,
-        statics=statics,
-        movings=movings,
-        model=model,
-    )
+    doc = renderer.truth_document(video_names={c: p.name for c, p in paths.items()})
     truth_path = out / "truth.json"
     truth_path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     return SimulatedSession(paths["left"], paths["right"], rig_path, truth_path, doc)
@@ -504,7 +540,7 @@ def _truth_document(
     *,
     seed: int,
     imaging: ImagingScenario,
-    paths: dict[str, Path],
+    video_names: dict[str, str],
     occluded: dict[str, NDArray[np.bool_]],
     statics: list[_StaticDistractor],
     movings: list[_MovingDistractor],
@@ -531,7 +567,7 @@ def _truth_document(
         "format": TRUTH_FORMAT,
         "units": "mm",
         "seed": int(seed),
-        "videos": {"left": paths["left"].name, "right": paths["right"].name},
+        "videos": dict(video_names),
         "rig": "rig.json",
         "world_frame": "left camera (x right, y down, z forward, mm)",
         "fps": truth.fps,
