@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import threading
 from collections.abc import Mapping
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from app.settings import Settings, settings_with
@@ -116,6 +118,14 @@ def run(args: argparse.Namespace) -> int:
         proxy_headers=True,
         server_header=False,
     )
+
+    # uvicorn handles SIGINT/SIGTERM itself, then re-raises the signal once it has shut
+    # down; these handlers receive it so that the embedded workers stop cleanly too.
+    def stop_workers(signum: int, frame: FrameType | None) -> None:
+        stop_event.set()
+
+    signal.signal(signal.SIGTERM, stop_workers)
+    signal.signal(signal.SIGINT, stop_workers)
     try:
         uvicorn.Server(config).run()
     finally:
