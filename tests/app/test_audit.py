@@ -1,0 +1,205 @@
+"""The audit trail: each patient-data route writes exactly one event, with no clinical values."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+from api_support import Api, seed_recording_target, trial_files
+from fastapi.routing import iter_route_contexts
+from sqlalchemy import func, select
+
+from app.models import AuditEvent, Result, Trial
+from app.storage import Storage
+
+NOTES = "tremor worse after coffee, lives alone"  # a clinical free text that must never be audited
+# API routes that serve no patient data (not audited): rigs and calibrations, job
+# status (polled), who-am-I and login/logout (audited as login/logout themselves).
+NOT_PATIENT_DATA = {
+    ("POST", "/api/v1/auth/login"),
+    ("POST", "/api/v1/auth/logout"),
+    ("GET", "/api/v1/auth/me"),
+    ("POST", "/api/v1/rigs"),
+    ("GET", "/api/v1/rigs"),
+    ("GET", "/api/v1/rigs/{rig_id}"),
+    ("POST", "/api/v1/rigs/{rig_id}/calibrations"),
+    ("GET", "/api/v1/rigs/{rig_id}/calibrations"),
+    ("GET", "/api/v1/calibrations/{calibration_id}"),
+    ("GET", "/api/v1/calibrations/{calibration_id}/rig.json"),
+    ("GET", "/api/v1/jobs/{job_id}"),
+}
+
+
+@dataclass(frozen=True)
+class Case:
+    method: str
+    route: str  # as declared
+    action: str
+    resource_type: str
+    expect_patient: bool = True
+
+
+CASES = [
+    Case("POST", "/api/v1/patients", "create", "patient"),
+    Case("GET", "/api/v1/patients", "list", "patient", expect_patient=False),
+    Case("GET", "/api/v1/patients/{patient_id}", "read", "patient"),
+    Case("PATCH", "/api/v1/patients/{patient_id}", "update", "patient"),
+    Case("DELETE", "/api/v1/patients/{patient_id}", "delete", "patient"),
+    Case("GET", "/api/v1/patients/{patient_id}/sessions", "list", "session"),
+    Case("POST", "/api/v1/sessions", "create", "session"),
+    Case("GET", "/api/v1/sessions", "list", "session"),
+    Case("GET", "/api/v1/sessions/{session_id}", "read", "session"),
+    Case("PATCH", "/api/v1/sessions/{session_id}", "update", "session"),
+    Case("DELETE", "/api/v1/sessions/{session_id}", "delete", "session"),
+    Case("POST", "/api/v1/sessions/{session_id}/trials", "create", "trial"),
+    Case("GET", "/api/v1/sessions/{session_id}/trials", "list", "trial"),
+    Case("GET", "/api/v1/trials/{trial_id}", "read", "trial"),
+    Case("GET", "/api/v1/trials/{trial_id}/result", "read", "result"),
+    Case("GET", "/api/v1/trials/{trial_id}/markers.csv", "export", "markers_csv"),
+    Case("GET", "/api/v1/trials/{trial_id}/report.html", "export", "report_html"),
+    Case("GET", "/api/v1/trials/{trial_id}/report.pdf", "export", "report_pdf"),
+    Case("GET", "/api/v1/trials/{trial_id}/fhir", "export", "fhir_bundle"),
+]
+
+
+def add_result(api: Api, trial_id: int) -> None:
+    """Store a known result for a trial, as the worker would (synthetic, not measured)."""
+    from sample_trial import synthetic_trial
+
+    from app.exports import markers_csv
+
+    markers, document = synthetic_trial()
+    stored = Storage.from_settings(api.settings).write_bytes(
+        "results", ".csv", markers_csv(markers).encode()
+    )
+    with api.sessions() as db:
+        trial = db.get(Trial, trial_id)
+        assert trial is not None
+        trial.status = "succeeded"
+        db.add(Result(trial_id=trial_id, document=document, markers_path=stored.path))
+        db.commit()
+
+
+@pytest.fixture
+def world(api: Api, video_pair) -> dict[str, int]:
+    seeded = seed_recording_target(api)
+    h = api.headers
+    r = api.client.patch(f"/api/v1/patients/{seeded.patient_id}", json={"notes": NOTES}, headers=h)
+    assert r.status_code == 200
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "left"},
+        files=trial_files(*video_pair),
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    add_result(api, r.json()["id"])
+    return {
+        "patient_id": seeded.patient_id,
+        "rig_id": seeded.rig_id,
+        "session_id": seeded.session_id,
+        "trial_id": r.json()["id"],
+    }
+
+
+def _request(api: Api, case: Case, ids: dict[str, int], video_pair) -> tuple[int, int]:
+    """Run one case; returns (status, patient id it concerns)."""
+    c, h = api.client, api.headers
+    url = case.route.format(**ids)
+    if (case.method, case.route) == ("POST", "/api/v1/patients"):
+        r = c.post(url, json={"code": "PD-NEW", "notes": NOTES}, headers=h)
+        return r.status_code, r.json()["id"]
+    if case.method == "PATCH":
+        r = c.patch(url, json={"notes": NOTES + " (updated)"}, headers=h)
+    elif case.route == "/api/v1/sessions" and case.method == "POST":
+        body = {
+            "patient_id": ids["patient_id"],
+            "rig_id": ids["rig_id"],
+            "recorded_at": "2026-04-01T10:00:00Z",
+            "notes": NOTES,
+            "updrs_34_rating": 2,
+        }
+        r = c.post(url, json=body, headers=h)
+    elif case.route == "/api/v1/sessions" and case.method == "GET":
+        r = c.get(url, params={"patient_id": ids["patient_id"]}, headers=h)
+    elif case.method == "POST":  # trial upload
+        r = c.post(url, data={"hand": "right"}, files=trial_files(*video_pair), headers=h)
+    else:
+        r = c.request(case.method, url, headers=h)
+    return r.status_code, ids["patient_id"]
+
+
+def test_cases_cover_every_patient_data_route(api: Api) -> None:
+    declared = {
+        (method, rc.path)
+        for rc in iter_route_contexts(api.app.routes)
+        if rc.path.startswith("/api/v1/")
+        for method in (getattr(rc, "methods", None) or ())
+        if method != "HEAD"
+    }
+    covered = {(c.method, c.route) for c in CASES}
+    assert declared - NOT_PATIENT_DATA == covered
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c.method} {c.route}")
+def test_each_patient_data_route_writes_exactly_one_audit_event(
+    api: Api, world: dict[str, int], video_pair, case: Case
+) -> None:
+    before = {e.id for e in api.audit_events()}
+    status, patient_id = _request(api, case, world, video_pair)
+    assert status < 300, status
+    new = [e for e in api.audit_events() if e.id not in before]
+    assert len(new) == 1, [(e.action, e.resource_type) for e in new]
+    event = new[0]
+    assert (event.action, event.resource_type, event.outcome) == (
+        case.action,
+        case.resource_type,
+        "success",
+    )
+    assert event.patient_id == (patient_id if case.expect_patient else None)
+    assert event.actor_type == "api_client" and event.actor_id is not None
+    assert event.request_id and event.at is not None
+
+
+def test_audit_rows_hold_no_clinical_values(api: Api, world: dict[str, int], video_pair) -> None:
+    for case in CASES:
+        _request(api, case, world, video_pair)
+    with api.sessions() as db:
+        rows = list(db.scalars(select(AuditEvent)))
+        result = db.scalar(select(Result))
+    assert len(rows) > len(CASES)
+    metric_values = {
+        str(v) for v in result.document["metrics"].values() if isinstance(v, float)
+    }  # e.g. "2.5", "51.2": none may appear in an audit row
+    for row in rows:
+        text = " ".join(
+            str(getattr(row, col.name)) for col in AuditEvent.__table__.columns if col.name != "at"
+        )
+        assert "tremor" not in text and "coffee" not in text
+        assert not any(v in text.split() for v in metric_values)
+
+
+def test_failed_lookups_and_refusals_are_audited(api: Api) -> None:
+    r = api.client.get("/api/v1/patients/4242", headers=api.headers)
+    assert r.status_code == 404
+    with api.sessions() as db:
+        event = db.scalar(select(AuditEvent).order_by(AuditEvent.id.desc()))
+    assert event is not None
+    assert (event.action, event.resource_type, event.resource_id, event.outcome) == (
+        "read",
+        "patient",
+        "4242",
+        "not_found",
+    )
+
+
+def test_a_failed_change_is_not_audited_as_success(api: Api) -> None:
+    h = api.headers
+    assert api.client.post("/api/v1/patients", json={"code": "PD-7"}, headers=h).status_code == 201
+    r = api.client.post("/api/v1/patients", json={"code": "pd-7"}, headers=h)
+    assert r.status_code == 409
+    with api.sessions() as db:
+        creates = db.scalar(
+            select(func.count()).select_from(AuditEvent).where(AuditEvent.action == "create")
+        )
+    assert creates == 1
