@@ -126,6 +126,11 @@ class TappingScenario:
             raise ValueError(f"amplitude_mm must be in (0, 120], got {self.amplitude_mm}")
         if not (0 < self.frequency_hz <= 10):
             raise ValueError(f"frequency_hz must be in (0, 10], got {self.frequency_hz}")
+        if self.fps < 4 * self.frequency_hz:
+            raise ValueError(
+                f"fps ({self.fps}) must be at least 4 x frequency_hz ({self.frequency_hz})"
+                " to sample every tap"
+            )
         if not (0 <= self.rhythm_jitter <= 0.3):
             raise ValueError(f"rhythm_jitter must be in [0, 0.3], got {self.rhythm_jitter}")
         if not (0 <= self.amplitude_jitter <= 0.3):

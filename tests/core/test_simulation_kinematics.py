@@ -148,6 +148,7 @@ def test_left_hand_is_mirrored():
         {"hand": "middle"},
         {"hesitations": (0,)},
         {"halts": ((3, 0.1),)},
+        {"fps": 10.0, "frequency_hz": 3.0},
     ],
 )
 def test_invalid_scenarios(kwargs):

@@ -282,3 +282,18 @@ def test_cli_bad_input_is_one_sentence(tmp_path, capsys):
     assert "invalid scenario" in err and "Traceback" not in err
     status = cli_main(["simulate", "-o", str(tmp_path), "--occlusion", "left:pinky:0:1"])
     assert status == 2
+
+
+def test_cli_boards_writes_calibration_recordings_of_the_same_rig(tmp_path):
+    out = tmp_path / "with-boards"
+    status = cli_main(
+        ["simulate", "-o", str(out), "--duration", "0.1", "--size", "160x128", "--boards"]
+    )
+    assert status == 0
+    calib = out / "calibration"
+    assert (calib / "rig_true.json").is_file()
+    assert any(calib.glob("chessboard_left.*")) and any(calib.glob("charuco_right.*"))
+    np.testing.assert_allclose(
+        read_rig(calib / "rig_true.json").right.t_cam_from_world_mm,
+        read_rig(out / "rig.json").right.t_cam_from_world_mm,
+    )
