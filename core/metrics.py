@@ -25,6 +25,8 @@ from core.taps import Segmentation, Tap, segment_recording, still_periods
 #: A tap whose closure-to-closure cycle exceeds this multiple of the local
 #: median cycle is a hesitation (unless it holds a halt).
 HESITATION_FACTOR = 1.5
+#: A pause with the fingers closed at least this long (s) is a hesitation too.
+HESITATION_MIN_PAUSE_S = 0.2
 #: Taps on each side whose cycles form the local median.
 HESITATION_WINDOW_TAPS = 5
 #: Fingers still for at least this long (s) is a halt (freeze).
@@ -132,7 +134,8 @@ def locate_events(aperture: Aperture, seg: Segmentation) -> list[dict[str, Any]]
       fingers closed before a tap (``pause_before_s >= 0.3``), or a still
       stretch inside a tap outlasting a normal turn by 0.3 s or more.
     - **hesitation**: a tap, without a halt, whose closure-to-closure cycle is
-      longer than 1.5 × the median cycle of the 5 taps on each side.
+      longer than 1.5 × the median cycle of the 5 taps on each side, or that
+      follows a pause with the fingers closed of at least 0.2 s.
     - **gap**: a stretch of unusable signal (missing markers) between usable ones.
 
     One pause is counted once: as a halt if it is long enough, else as a
@@ -173,9 +176,10 @@ def locate_events(aperture: Aperture, seg: Segmentation) -> list[dict[str, Any]]
         if others.size < 2:
             continue
         typical = float(np.median(others))
-        if cycles[k] > HESITATION_FACTOR * typical:
-            pause = tap.pause_before_s or 0.0
-            events.append(_event("hesitation", tap, tap.t_start_s - pause, cycles[k] - typical))
+        pause = tap.pause_before_s or 0.0
+        if cycles[k] > HESITATION_FACTOR * typical or pause >= HESITATION_MIN_PAUSE_S:
+            excess = max(float(cycles[k]) - typical, pause)
+            events.append(_event("hesitation", tap, tap.t_start_s - pause, excess))
 
     usable_runs = aperture.runs()
     for (_a0, b0), (a1, _b1) in pairwise(usable_runs):

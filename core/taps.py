@@ -56,13 +56,19 @@ FloatArray = NDArray[np.float64]
 #: Smallest opening (mm) that can be a tap.
 DEFAULT_MIN_AMPLITUDE_MM = 3.0
 #: A maximum must also rise this fraction of the recording's typical (P90) tap.
-DEFAULT_RELATIVE_AMPLITUDE = 0.15
+DEFAULT_RELATIVE_AMPLITUDE = 0.1
 #: "Still": aperture speed below this fraction of the median peak opening speed.
 DEFAULT_STILL_FRACTION = 0.1
 #: A closed turn stays within this fraction of the adjacent amplitude of the minimum.
 DEFAULT_DWELL_TOLERANCE = 0.1
 #: Shortest pause (s) between taps; shorter excesses of a turn are frame jitter.
 DEFAULT_MIN_PAUSE_S = 0.05
+#: The still speed is at least this many SDs of the velocity noise.
+NOISE_SDS_FOR_STILL = 3.0
+#: Closures are not searched closer than this (s) to the edge of a run of signal.
+EDGE_MARGIN_S = 0.03
+#: Moving stretches this short (s) between still frames are noise, not movement.
+MAX_NOISE_BLIP_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -186,22 +192,38 @@ def _vertex(f: FloatArray, i: int) -> float:
     return i + float(np.clip(0.5 * (f[i - 1] - f[i + 1]) / curvature, -0.5, 0.5))
 
 
+def _still_mask(speed: FloatArray, still: float, max_blip: int) -> NDArray[np.bool_]:
+    """Frames with speed below ``still``, ignoring noise blips of up to ``max_blip`` frames."""
+    mask = np.isfinite(speed) & (speed < still)
+    for a, b in true_runs(~mask & np.isfinite(speed)):
+        if b - a <= max_blip and a > 0 and b < len(mask) and mask[a - 1] and mask[b]:
+            mask[a:b] = True
+    return mask
+
+
 def _turn(
-    f: FloatArray, speed: FloatArray, i_min: int, lo: int, hi: int, still: float, tol: float
+    f: FloatArray,
+    speed: FloatArray,
+    still_mask: NDArray[np.bool_],
+    i_min: int,
+    lo: int,
+    hi: int,
+    still: float,
+    tol: float,
 ) -> tuple[float, float]:
     """Start and end (sub-frame) of the still-and-closed stretch around ``i_min`` in ``[lo, hi]``.
 
     The ends are where the speed crosses ``still``, linearly interpolated
     between the last still frame and the first moving one.
     """
-    if not speed[i_min] < still:
+    if not still_mask[i_min]:
         return float(i_min), float(i_min)
     limit = f[i_min] + tol
     first = i_min
-    while first - 1 >= lo and speed[first - 1] < still and f[first - 1] <= limit:
+    while first - 1 >= lo and still_mask[first - 1] and f[first - 1] <= limit:
         first -= 1
     last = i_min
-    while last + 1 <= hi and speed[last + 1] < still and f[last + 1] <= limit:
+    while last + 1 <= hi and still_mask[last + 1] and f[last + 1] <= limit:
         last += 1
     return _crossing(speed, still, first, first - 1), _crossing(speed, still, last, last + 1)
 
@@ -280,13 +302,24 @@ def segment_recording(
         peaks = [int(p) for p in pk[prom >= threshold]]
         if not peaks:
             continue
-        bounds = [a, *peaks, b - 1]
+        # The closures before the first and after the last maximum are searched
+        # a few frames away from the run's edges, where a noisy rest could put
+        # the minimum on the very edge frame, which is never a seen closure.
+        edge = max(2, round(EDGE_MARGIN_S * fps))
+        first_lo = a + edge if a + edge < peaks[0] else a
+        last_hi = b - 1 - edge if b - 1 - edge > peaks[-1] else b - 1
+        bounds = [first_lo, *peaks, last_hi]
         mins = [lo + int(np.argmin(f[lo : hi + 1])) for lo, hi in pairwise(bounds)]
         per_run.append((a, b, peaks, mins))
         opening_peak_speeds += [float(np.max(v[mins[j] : p + 1])) for j, p in enumerate(peaks)]
     if not per_run:
         return Segmentation([], threshold, float("nan"), 0.0)
-    still = still_fraction * float(np.median(opening_peak_speeds))
+    # Still: slow compared with the taps, and clearly above the velocity noise.
+    still = max(
+        still_fraction * float(np.median(opening_peak_speeds)),
+        NOISE_SDS_FOR_STILL * aperture.velocity_noise_mm_s,
+    )
+    still_mask = _still_mask(speed, still, max(1, round(MAX_NOISE_BLIP_S * fps)))
 
     # 2. Closures and their turns.
     run_valleys: list[list[_Valley]] = []
@@ -297,12 +330,14 @@ def segment_recording(
             lo = a if j == 0 else peaks[j - 1]
             hi = b - 1 if j == len(peaks) else peaks[j]
             adjacent = [f[p] - f[i_min] for p in (lo, hi) if p in peaks]
-            first, last = _turn(f, speed, i_min, lo, hi, still, dwell_tolerance * min(adjacent))
+            first, last = _turn(
+                f, speed, still_mask, i_min, lo, hi, still, dwell_tolerance * min(adjacent)
+            )
             inner = 0 < j < len(peaks)
             seen = a < i_min < b - 1 and f[i_min - 1] >= f[i_min] <= f[i_min + 1]
             if not inner:
                 p = peaks[0] if j == 0 else peaks[-1]
-                at_rest = last > first or bool(speed[i_min] < still)
+                at_rest = last > first or bool(still_mask[i_min])
                 seen = (seen or at_rest) and f[p] - f[i_min] >= threshold
             else:
                 inner_turns.append(last - first)
@@ -315,11 +350,15 @@ def segment_recording(
     def has_pause(vl: _Valley) -> bool:
         return vl.last - vl.first - turn >= min_pause
 
+    def turn_point(vl: _Valley) -> float:
+        # The middle of the turn: the minimum is ill-defined on a flat, noisy closure.
+        return (vl.first + vl.last) / 2 if vl.last > vl.first else _vertex(f, vl.i_min)
+
     def closing_end(vl: _Valley) -> float:
-        return vl.first + turn / 2 if has_pause(vl) else _vertex(f, vl.i_min)
+        return vl.first + turn / 2 if has_pause(vl) else turn_point(vl)
 
     def opening_start(vl: _Valley) -> float:
-        return vl.last - turn / 2 if has_pause(vl) else _vertex(f, vl.i_min)
+        return vl.last - turn / 2 if has_pause(vl) else turn_point(vl)
 
     # 3. Taps.
     filled = ~aperture.valid
