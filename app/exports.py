@@ -276,12 +276,10 @@ def _observation(
     effective: str,
     hand: str,
 ) -> dict[str, Any]:
-    from app.reports import METRICS
+    from app.reports import metric_spec
 
-    spec = METRICS.get(key)
-    label = spec.label if spec else key.replace("_", " ")
-    ucum = spec.ucum if spec else "1"
-    unit = spec.unit if spec else ""
+    spec = metric_spec(key)
+    label, ucum, unit = spec.label, spec.ucum, spec.unit
     obs: dict[str, Any] = {
         "resourceType": "Observation",
         "status": "final",
@@ -322,7 +320,7 @@ def _observation(
                 }
             ]
         }
-    if spec:
+    if spec.definition:
         obs["note"] = [{"text": spec.definition}]
     return obs
 
@@ -367,8 +365,10 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     obs_urls: list[str] = []
     metrics: Mapping[str, Any] = data.result.get("metrics", {}) if data.result else {}
     for key, value in metrics.items():
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if isinstance(value, bool) or not isinstance(value, int | float | None):
             continue
+        if value is None:
+            value = math.nan  # an undefined metric: Observation with dataAbsentReason
         url = urn()
         obs_urls.append(url)
         entries.append(
@@ -423,7 +423,7 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     entries.append({"fullUrl": urn(), "resource": report})
     doc: dict[str, Any] = {
         "resourceType": "Bundle",
-        "type": "collection",
+        "type": "collection",  # no server-side processing asked for; a set of resources
         "timestamp": issued,
         "identifier": {"system": "urn:bradyscope:trial", "value": str(data.trial_id)},
         "entry": entries,

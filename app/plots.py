@@ -33,6 +33,7 @@ COLOURS = {
     "tap": "#0b5d8c",
     "hesitation": "#e69f00",
     "halt": "#c0392b",
+    "gap": "#7b8794",
     "opening": "#009e73",
     "closing": "#cc79a7",
     "thumb": "#d55e00",
@@ -69,7 +70,7 @@ class PlotEvent:
 
     Attributes
     ----------
-    kind : ``"hesitation"`` or ``"halt"``.
+    kind : ``"hesitation"``, ``"halt"`` or ``"gap"`` (a stretch without usable signal).
     t_start_s, t_end_s : float
         Start and end of the pause in seconds from the first frame.
     """
@@ -183,7 +184,7 @@ def aperture_plot(
     with matplotlib.rc_context(_RC):
         ax = fig.add_subplot()
         for ev in events:
-            colour = COLOURS["halt"] if ev.kind == "halt" else COLOURS["hesitation"]
+            colour = COLOURS.get(ev.kind, COLOURS["hesitation"])
             ax.axvspan(ev.t_start_s, ev.t_end_s, color=colour, alpha=0.22, lw=0)
         measured = a.copy()
         if interpolated is not None:
@@ -219,6 +220,8 @@ def aperture_plot(
             ax.fill_between([], [], color=COLOURS["hesitation"], alpha=0.3, label="hesitation")
         if "halt" in kinds:
             ax.fill_between([], [], color=COLOURS["halt"], alpha=0.3, label="halt")
+        if "gap" in kinds:
+            ax.fill_between([], [], color=COLOURS["gap"], alpha=0.3, label="no signal")
         ax.set_xlabel("time (s)")
         ax.set_ylabel("thumb–index distance (mm)")
         ax.set_xlim(float(t[0]), float(t[-1]))

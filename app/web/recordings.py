@@ -1,0 +1,330 @@
+"""Session page, trial upload (left and right hand) and the live job view.
+
+The upload form works without JavaScript (a plain multipart POST, then a
+redirect to the job page). With JavaScript (``/static/app.js``) it is sent by
+XMLHttpRequest so that a progress bar shows the bytes sent; the answer is
+then JSON and the script goes to the job page itself.
+
+Uploads are streamed to storage by :func:`app.uploads.receive_multipart`; the
+CSRF token comes in the ``X-CSRF-Token`` header (script) or as the form's
+``csrf_token`` field (plain form), checked before anything is stored for good.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from sqlalchemy import select
+
+from app.audit import audit
+from app.auth import SessionDep
+from app.errors import AppError
+from app.models import Job, RecordingSession, Trial, calibration_for
+from app.web.common import (
+    csrf_from_header,
+    csrf_ok,
+    error_page,
+    login_redirect,
+    open_db,
+    page_user,
+    render,
+    settings_of,
+    status_of,
+    wants_json,
+)
+
+router = APIRouter()
+
+
+def _visible_session(db: Any, session_id: int) -> RecordingSession | None:
+    row = db.get(RecordingSession, session_id)
+    if row is None or row.deleted_at is not None or row.patient.deleted_at is not None:
+        return None
+    return row
+
+
+def _latest_job(db: Any, trial_id: int) -> Job | None:
+    return db.scalars(
+        select(Job).where(Job.trial_id == trial_id).order_by(Job.id.desc()).limit(1)
+    ).first()
+
+
+def _session_context(db: Any, session: RecordingSession) -> dict[str, Any]:
+    trials = [t for t in session.trials if t.deleted_at is None]
+    calibration = None
+    calibration_problem = None
+    try:
+        calibration = calibration_for(db, session)
+    except AppError as exc:
+        calibration_problem = str(exc)
+    return {
+        "session": session,
+        "patient": session.patient,
+        "trials": [{"trial": t, "job": _latest_job(db, t.id)} for t in trials],
+        "calibration": calibration,
+        "calibration_problem": calibration_problem,
+        "hands": ("left", "right"),
+        "done_hands": {t.hand for t in trials if t.status != "failed"},
+    }
+
+
+@router.get("/sessions/{session_id}", response_class=HTMLResponse)
+def session_page(request: Request, db: SessionDep, session_id: int) -> Response:
+    user = page_user(request, db)
+    if user is None:
+        return login_redirect(request)
+    session = _visible_session(db, session_id)
+    if session is None:
+        audit(db, user, "read", "session", session_id, outcome="not_found")
+        db.commit()
+        return error_page(
+            request, user, status_code=404, message=f"Session {session_id} does not exist."
+        )
+    context = _session_context(db, session)
+    audit(db, user, "read", "session", session.id, session.patient_id)
+    db.commit()
+    return render(
+        request,
+        "session.html",
+        user,
+        active="patients",
+        title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
+        **context,
+    )
+
+
+def _upload_error(
+    request: Request, user: Any, session_id: int, status: int, message: str
+) -> Response:
+    if wants_json(request):
+        return JSONResponse({"detail": message}, status_code=status)
+    db = open_db(request)
+    try:
+        session = _visible_session(db, session_id)
+        if session is None:
+            return error_page(request, user, status_code=status, message=message)
+        context = _session_context(db, session)
+        audit(db, user, "read", "session", session.id, session.patient_id)
+        db.commit()
+        return render(
+            request,
+            "session.html",
+            user,
+            status_code=status,
+            active="patients",
+            title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
+            error=message,
+            **context,
+        )
+    finally:
+        db.close()
+
+
+def _user_and_session(request: Request, session_id: int) -> tuple[Any, bool]:
+    db = open_db(request)
+    try:
+        user = page_user(request, db)
+        exists = _visible_session(db, session_id) is not None
+        db.rollback()
+        return user, exists
+    finally:
+        db.close()
+
+
+def _create_trial(request: Request, user: Any, session_id: int, upload: Any) -> Any:
+    from app.services.recordings import create_trial
+
+    db = open_db(request)
+    try:
+        return create_trial(db, user, session_id, upload)
+    finally:
+        db.close()
+
+
+_CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
+
+
+@router.post("/sessions/{session_id}/trials")
+async def trial_upload(request: Request, session_id: int) -> Response:
+    from app.services.recordings import TRIAL_FILE_FIELDS, TRIAL_TEXT_FIELDS
+    from app.storage import Storage
+    from app.uploads import receive_multipart
+
+    user, exists = await run_in_threadpool(_user_and_session, request, session_id)
+    if user is None:
+        if wants_json(request):
+            return JSONResponse({"detail": "Please log in again."}, status_code=401)
+        return login_redirect(request)
+    header_token = csrf_from_header(request)
+    if header_token is not None and not csrf_ok(user, header_token):
+        return await run_in_threadpool(_upload_error, request, user, session_id, 403, _CSRF_MESSAGE)
+    if not exists:
+        return await run_in_threadpool(
+            _upload_error, request, user, session_id, 404, f"Session {session_id} does not exist."
+        )
+    settings = settings_of(request)
+    try:
+        upload = await receive_multipart(
+            request,
+            storage=Storage.from_settings(settings),
+            file_fields=TRIAL_FILE_FIELDS,
+            text_fields=frozenset(TRIAL_TEXT_FIELDS) | {"csrf_token"},
+            max_file_bytes=int(settings.max_upload_bytes),
+        )
+    except AppError as exc:
+        return await run_in_threadpool(
+            _upload_error, request, user, session_id, status_of(exc), str(exc)
+        )
+    try:
+        if header_token is None and not csrf_ok(user, upload.fields.get("csrf_token")):
+            upload.discard()
+            return await run_in_threadpool(
+                _upload_error, request, user, session_id, 403, _CSRF_MESSAGE
+            )
+        try:
+            out = await run_in_threadpool(_create_trial, request, user, session_id, upload)
+        except AppError as exc:
+            upload.discard()
+            return await run_in_threadpool(
+                _upload_error, request, user, session_id, status_of(exc), str(exc)
+            )
+        except Exception as exc:  # a core error while checking the videos
+            from core.errors import BradyscopeError
+
+            upload.discard()
+            if isinstance(exc, BradyscopeError):
+                return await run_in_threadpool(
+                    _upload_error, request, user, session_id, 422, str(exc)
+                )
+            raise
+    finally:
+        upload.close()
+    job_url = f"/jobs/{out.job_id}"
+    if wants_json(request):
+        return JSONResponse(
+            {
+                "trial_id": out.trial.id,
+                "job_id": out.job_id,
+                "job_url": job_url,
+                "warnings": out.warnings,
+            },
+            status_code=201,
+        )
+    return RedirectResponse(job_url, status_code=303)
+
+
+# --------------------------------------------------------------------------- jobs
+
+
+def _job_view(db: Any, job: Job) -> dict[str, Any]:
+    from app.jobs import job_status
+
+    view = job_status(db, job.id) or {}
+    out = {
+        key: view.get(key)
+        for key in (
+            "id",
+            "kind",
+            "status",
+            "progress",
+            "stage",
+            "error",
+            "attempts",
+            "max_attempts",
+        )
+    }
+    out["stage_label"] = _stage_label(job.stage, job.status)
+    if job.kind == "calibrate" and job.stage == "detection" and job.status == "running":
+        out["stage_label"] = "Finding the calibration board"
+    if job.trial_id is not None:
+        out["trial_url"] = f"/trials/{job.trial_id}"
+    if job.calibration_id is not None and job.calibration is not None:
+        out["rig_url"] = f"/rigs/{job.calibration.rig_id}"
+    return out
+
+
+_STAGES = {
+    "queued": "Waiting for a worker",
+    "claimed": "Starting",
+    "detection": "Finding the markers in the videos",
+    "markers": "Finding the markers in the videos",
+    "sync": "Synchronising the two cameras",
+    "synchronisation": "Synchronising the two cameras",
+    "tracking": "Following the fingertips",
+    "matching": "Matching the markers between the cameras",
+    "triangulation": "Computing 3D positions",
+    "tracks": "Following the fingertips",
+    "metrics": "Computing the tapping measurements",
+    "board": "Finding the calibration board",
+    "calibration": "Computing the calibration",
+}
+
+
+def _stage_label(stage: str | None, status: str) -> str:
+    if status == "succeeded":
+        return "Finished"
+    if status == "failed":
+        return "Stopped with an error"
+    if status == "queued" and not stage:
+        return _STAGES["queued"]
+    if not stage:
+        return "Working"
+    return _STAGES.get(stage, stage.replace("_", " ").capitalize())
+
+
+def _visible_job(db: Any, job_id: int) -> Job | None:
+    job = db.get(Job, job_id)
+    if job is None:
+        return None
+    if job.trial is not None:
+        trial: Trial = job.trial
+        if (
+            trial.deleted_at is not None
+            or trial.session.deleted_at is not None
+            or trial.session.patient.deleted_at is not None
+        ):
+            return None
+    return job
+
+
+@router.get("/jobs/{job_id}", response_class=HTMLResponse)
+def job_page(request: Request, db: SessionDep, job_id: int) -> Response:
+    user = page_user(request, db)
+    if user is None:
+        return login_redirect(request)
+    job = _visible_job(db, job_id)
+    if job is None:
+        return error_page(request, user, status_code=404, message=f"Job {job_id} does not exist.")
+    view = _job_view(db, job)
+    trial = job.trial
+    patient = trial.session.patient if trial is not None else None
+    if patient is not None:
+        audit(db, user, "read", "trial", trial.id, patient.id)  # type: ignore[union-attr]
+    db.commit()
+    return render(
+        request,
+        "job.html",
+        user,
+        active="patients" if trial is not None else "rigs",
+        title=f"Analysis {job.id}" if trial is not None else f"Calibration job {job.id}",
+        job=view,
+        trial=trial,
+        patient=patient,
+    )
+
+
+@router.get("/jobs/{job_id}/status")
+def job_status_json(request: Request, db: SessionDep, job_id: int) -> Response:
+    """The job's status for the page's polling script (browser session; not audited)."""
+    user = page_user(request, db)
+    if user is None:
+        return JSONResponse({"detail": "Please log in again."}, status_code=401)
+    job = _visible_job(db, job_id)
+    if job is None:
+        return JSONResponse({"detail": f"Job {job_id} does not exist."}, status_code=404)
+    view = _job_view(db, job)
+    db.rollback()
+    return JSONResponse(view)

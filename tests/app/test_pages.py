@@ -1,0 +1,371 @@
+"""Browser pages over a real migrated SQLite database, with a stored result.
+
+The result here is the synthetic trial of ``sample_trial`` stored as the
+worker would store it (a Result row and a markers.csv file), so that the pages
+are tested without running the pipeline; ``tests/browser`` runs the real one.
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import UTC, datetime
+
+import pytest
+from fastapi.testclient import TestClient
+from sample_trial import synthetic_trial
+from sqlalchemy import func, select
+
+from app.exports import markers_csv
+from app.models import (
+    AuditEvent,
+    Calibration,
+    Job,
+    Patient,
+    RecordingSession,
+    Result,
+    Rig,
+    Trial,
+    User,
+)
+from app.passwords import hash_password
+
+EMAIL = "clinician@example.org"
+PASSWORD = "correct horse battery staple"
+
+
+def _rig_doc() -> dict:
+    from core.camera import ImageSize, rig_to_dict
+    from core.simulation.rig import default_rig
+
+    return rig_to_dict(default_rig(image_size=ImageSize(640, 512)))
+
+
+@pytest.fixture
+def seeded(app_settings, db_sessionmaker, storage):
+    """A clinician, a rig with a calibration, a patient with two sessions and three results."""
+    with db_sessionmaker() as db:
+        user = User(
+            email=EMAIL,
+            password_hash=hash_password(PASSWORD),
+            role="clinician",
+            display_name="Dr. Test",
+        )
+        rig = Rig(name="clinic-A")
+        db.add_all([user, rig])
+        db.flush()
+        cal = Calibration(
+            rig_id=rig.id,
+            version=1,
+            valid_from=datetime(2024, 1, 1, tzinfo=UTC),
+            rig_json=_rig_doc(),
+            rms_px=0.21,
+            quality={"rms_px": 0.21},
+            source="rig_file",
+            status="ready",
+        )
+        patient = Patient(code="PD-0042")
+        db.add_all([cal, patient])
+        db.flush()
+        trials = {}
+        for i, (when, med) in enumerate(
+            [
+                (datetime(2024, 3, 1, 9, tzinfo=UTC), "off"),
+                (datetime(2025, 3, 1, 9, tzinfo=UTC), "on"),
+            ]
+        ):
+            s = RecordingSession(
+                patient_id=patient.id,
+                rig_id=rig.id,
+                recorded_at=when,
+                medication_state=med,
+                dbs_state="none",
+                updrs_34_rating=2,
+                clinician_user_id=user.id,
+            )
+            db.add(s)
+            db.flush()
+            for hand in ("left", "right") if i == 1 else ("right",):
+                markers, result = synthetic_trial(amplitude0_mm=52.0 - 5 * i, seed=i)
+                stored = storage.write_bytes("results", ".csv", markers_csv(markers).encode())
+                trial = Trial(session_id=s.id, hand=hand, status="succeeded")
+                db.add(trial)
+                db.flush()
+                job = Job(
+                    kind="analyze_trial",
+                    trial_id=trial.id,
+                    status="succeeded",
+                    progress=1.0,
+                    stage="metrics",
+                )
+                db.add(job)
+                db.flush()
+                db.add(
+                    Result(
+                        trial_id=trial.id,
+                        job_id=job.id,
+                        calibration_id=cal.id,
+                        document=result,
+                        markers_path=stored.path,
+                    )
+                )
+                trials[(i, hand)] = trial.id
+        db.commit()
+        return {"patient_id": patient.id, "rig_id": rig.id, "trials": trials}
+
+
+@pytest.fixture
+def client(app_settings):
+    from app.main import create_app
+
+    with TestClient(create_app(app_settings)) as c:
+        yield c
+
+
+def _csrf(html: str) -> str:
+    match = re.search(r'name="csrf_token" value="([^"]+)"', html)
+    assert match, "the page has no CSRF field"
+    return match.group(1)
+
+
+def login(client) -> str:
+    page = client.get("/login")
+    assert page.status_code == 200
+    r = client.post(
+        "/login",
+        data={
+            "email": EMAIL,
+            "password": PASSWORD,
+            "csrf_token": _csrf(page.text),
+            "next": "/patients",
+        },
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text
+    assert r.headers["location"] == "/patients"
+    return _csrf(client.get("/patients").text)
+
+
+def _audit_count(db_sessionmaker) -> int:
+    with db_sessionmaker() as db:
+        return db.scalar(select(func.count()).select_from(AuditEvent)) or 0
+
+
+def _svg_count(html: str) -> int:
+    return len(re.findall(r"<svg[^>]*data-plot=", html))
+
+
+def test_every_page_needs_a_login(client, seeded):
+    t = seeded["trials"][(1, "right")]
+    for path in [
+        "/patients",
+        f"/patients/{seeded['patient_id']}",
+        f"/patients/{seeded['patient_id']}/sessions/new",
+        "/sessions/1",
+        f"/trials/{t}",
+        f"/trials/{t}/download/pdf",
+        "/jobs/1",
+        "/rigs",
+        f"/rigs/{seeded['rig_id']}",
+    ]:
+        r = client.get(path, follow_redirects=False)
+        assert r.status_code == 303, path
+        assert r.headers["location"].startswith("/login?next="), path
+        assert "PD-0042" not in r.text
+    assert client.get("/jobs/1/status").status_code == 401
+    r = client.post("/patients", data={"code": "X-1"}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"].startswith("/login")
+
+
+def test_login_rejects_a_wrong_password_and_a_missing_form_token(client, seeded):
+    page = client.get("/login")
+    r = client.post(
+        "/login", data={"email": EMAIL, "password": "wrong", "csrf_token": _csrf(page.text)}
+    )
+    assert r.status_code == 401
+    assert "wrong" in r.text and 'type="password"' in r.text
+    r = client.post("/login", data={"email": EMAIL, "password": PASSWORD, "csrf_token": "forged"})
+    assert r.status_code == 403
+    assert client.get("/patients", follow_redirects=False).status_code == 303  # still logged out
+
+
+def test_login_next_is_kept_on_site(client, seeded):
+    page = client.get("/login")
+    r = client.post(
+        "/login",
+        data={
+            "email": EMAIL,
+            "password": PASSWORD,
+            "csrf_token": _csrf(page.text),
+            "next": "https://evil.example/",
+        },
+        follow_redirects=False,
+    )
+    assert r.headers["location"] == "/patients"
+
+
+def test_patient_list_search_and_create(client, seeded, db_sessionmaker):
+    token = login(client)
+    before = _audit_count(db_sessionmaker)
+    r = client.get("/patients?q=0042")
+    assert r.status_code == 200 and "PD-0042" in r.text
+    assert _audit_count(db_sessionmaker) == before + 1  # one event for the page
+    empty = client.get("/patients?q=nobody").text
+    assert 'href="/patients/' not in empty and "No patient code contains" in empty
+    r = client.post(
+        "/patients", data={"code": "PD-0100", "csrf_token": token}, follow_redirects=False
+    )
+    assert r.status_code == 303 and r.headers["location"].startswith("/patients/")
+    page = client.get(r.headers["location"])
+    assert "Patient PD-0100" in page.text and "No sessions yet" in page.text
+    # Duplicate code: a clear message, status 409, nothing created.
+    r = client.post("/patients", data={"code": "PD-0100", "csrf_token": token})
+    assert r.status_code == 409 and "exists already" in r.text
+    # Without the CSRF token nothing is created.
+    r = client.post("/patients", data={"code": "PD-0101"})
+    assert r.status_code == 403
+    with db_sessionmaker() as db:
+        assert (
+            db.scalar(select(func.count()).select_from(Patient).where(Patient.code == "PD-0101"))
+            == 0
+        )
+
+
+def test_patient_page_shows_sessions_and_trend_plots(client, seeded, db_sessionmaker):
+    login(client)
+    before = _audit_count(db_sessionmaker)
+    r = client.get(f"/patients/{seeded['patient_id']}")
+    assert r.status_code == 200
+    assert _audit_count(db_sessionmaker) == before + 1
+    html = r.text
+    assert (
+        html.count('data-plot="trend"') == 5
+    )  # amplitude, frequency, velocity, decrement, hesitations
+    assert "right, off" in html and "right, on" in html and "left, on" in html
+    assert "2024-03-01" in html and "2025-03-01" in html
+
+
+def test_new_session_form_and_creation(client, seeded, db_sessionmaker):
+    token = login(client)
+    pid = seeded["patient_id"]
+    form = client.get(f"/patients/{pid}/sessions/new").text
+    for field in ("rig_id", "recorded_at", "updrs_34_rating", "notes"):
+        assert f'for="{field}"' in form, field  # every field is labelled
+    assert "<legend>Medication state</legend>" in form
+    r = client.post(
+        f"/patients/{pid}/sessions",
+        data={
+            "rig_id": str(seeded["rig_id"]),
+            "recorded_at": "2025-06-01T10:30",
+            "medication_state": "off",
+            "dbs_state": "on",
+            "updrs_34_rating": "3",
+            "notes": "Morning, 12 h off levodopa.",
+            "csrf_token": token,
+        },
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text
+    page = client.get(r.headers["location"]).text
+    assert "Upload the left hand" in page and "Upload the right hand" in page
+    assert page.count("<progress") >= 2  # an upload progress bar per hand
+    with db_sessionmaker() as db:
+        s = db.scalars(select(RecordingSession).order_by(RecordingSession.id.desc())).first()
+        assert (s.medication_state, s.dbs_state, s.updrs_34_rating) == ("off", "on", 3)
+        assert s.recorded_at == datetime(2025, 6, 1, 10, 30, tzinfo=UTC)
+    # A bad rating is refused with a message and the values are kept.
+    r = client.post(
+        f"/patients/{pid}/sessions",
+        data={
+            "rig_id": str(seeded["rig_id"]),
+            "recorded_at": "2025-06-01T10:30",
+            "updrs_34_rating": "7",
+            "csrf_token": token,
+        },
+    )
+    assert r.status_code == 422 and "Please correct the form" in r.text
+
+
+def test_trial_page_has_every_plot_metrics_and_quality(client, seeded, db_sessionmaker):
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    before = _audit_count(db_sessionmaker)
+    r = client.get(f"/trials/{t}")
+    assert r.status_code == 200
+    assert _audit_count(db_sessionmaker) == before + 1
+    html = r.text
+    for name in ("aperture", "amplitude", "velocity", "paths"):
+        assert f'data-plot="{name}"' in html, name
+    assert "Mean amplitude" in html and "mm/tap" in html
+    assert "Calibration used" in html and "clinic-A, calibration v1" in html
+    assert "Frames interpolated" in html and "Camera synchronisation offset" in html
+    assert "The thumb marker was lost in the last frame." in html
+    for kind in ("pdf", "html", "csv", "c3d", "trc", "json", "fhir"):
+        assert f'/trials/{t}/download/{kind}"' in html
+    # Comparison with the other hand of the same session, offered first.
+    other = seeded["trials"][(1, "left")]
+    assert re.search(rf'<option value="{other}"[^>]*>[^<]*other hand, same session', html)
+    r = client.get(f"/trials/{t}?compare={other}")
+    assert "Compared trial" in r.text and _svg_count(r.text) >= 4 + 4
+    # A trial of another patient cannot be compared.
+    assert "cannot be compared" in client.get(f"/trials/{t}?compare=99999").text
+
+
+def test_downloads_are_audited_once_each(client, seeded, db_sessionmaker):
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    expected = {
+        "pdf": b"%PDF",
+        "html": b"<!DOCTYPE html>",
+        "csv": b"frame,time_s,marker",
+        "trc": b"PathFileType",
+        "json": b"{",
+        "fhir": b"{",
+    }
+    for kind, start in expected.items():
+        before = _audit_count(db_sessionmaker)
+        r = client.get(f"/trials/{t}/download/{kind}")
+        assert r.status_code == 200, (kind, r.text[:300])
+        assert r.content.lstrip().startswith(start), kind
+        assert "attachment" in r.headers["content-disposition"]
+        assert _audit_count(db_sessionmaker) == before + 1, kind
+    r = client.get(f"/trials/{t}/download/c3d")
+    assert r.status_code == 200 and len(r.content) > 512
+    assert client.get(f"/trials/{t}/download/exe").status_code == 404
+
+
+def test_rig_pages_show_the_calibration_verdict(client, seeded):
+    token = login(client)
+    html = client.get("/rigs").text
+    assert "clinic-A" in html and "verdict-" in html
+    r = client.get(f"/rigs/{seeded['rig_id']}")
+    assert r.status_code == 200 and "Version 1" in r.text
+    assert re.search(r'class="verdict verdict-(good|acceptable|poor)"', r.text)
+    r = client.post("/rigs", data={"name": "clinic-B", "csrf_token": token}, follow_redirects=False)
+    assert r.status_code == 303
+    rig_page = client.get(r.headers["location"]).text
+    assert "No calibration yet" in rig_page
+    # Upload a rig file through the page's form (plain multipart, CSRF in the form).
+    import json
+
+    rig_id = int(r.headers["location"].split("/")[2].split("?")[0])
+    r = client.post(
+        f"/rigs/{rig_id}/calibrations",
+        data={"csrf_token": _csrf(rig_page)},
+        files={"rig_json": ("rig.json", json.dumps(_rig_doc()).encode(), "application/json")},
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text
+    assert "Version 1" in client.get(f"/rigs/{rig_id}").text
+
+
+def test_job_status_json_for_polling(client, seeded, db_sessionmaker):
+    login(client)
+    with db_sessionmaker() as db:
+        job_id = db.scalar(select(Job.id).where(Job.trial_id == seeded["trials"][(0, "right")]))
+    r = client.get(f"/jobs/{job_id}/status")
+    assert r.status_code == 200
+    body = r.json()
+    assert body["status"] == "succeeded" and body["trial_url"].startswith("/trials/")
+    page = client.get(f"/jobs/{job_id}")
+    assert page.status_code == 200 and "data-job-status-url" in page.text
+    assert client.get("/jobs/99999/status").status_code == 404
