@@ -20,9 +20,10 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.apikeys import SCOPES, generate_api_key, hash_api_key
 from app.main import create_app
-from app.models import ApiClient, AuditEvent, Job, Trial, User, Video
+from app.models import ApiClient, AuditEvent, Job, Result, Trial, User, Video
 from app.passwords import hash_password
 from app.settings import Settings
+from app.storage import Storage
 from core.camera import Camera, ImageSize, StereoRig, rig_to_dict
 from core.video import VideoWriter
 
@@ -175,3 +176,21 @@ def trial_files(
         "left_video": (names[0], content(left), "video/mp4"),
         "right_video": (names[1], content(right), "video/mp4"),
     }
+
+
+def add_result(api: Api, trial_id: int) -> None:
+    """Store a known result for a trial, as the worker would (synthetic, not measured)."""
+    from sample_trial import synthetic_trial
+
+    from app.exports import markers_csv
+
+    markers, document = synthetic_trial()
+    stored = Storage.from_settings(api.settings).write_bytes(
+        "results", ".csv", markers_csv(markers).encode()
+    )
+    with api.sessions() as db:
+        trial = db.get(Trial, trial_id)
+        assert trial is not None
+        trial.status = "succeeded"
+        db.add(Result(trial_id=trial_id, document=document, markers_path=stored.path))
+        db.commit()

@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
 """The audit trail: each patient-data route writes exactly one event, with no clinical values."""
 
 from __future__ import annotations
@@ -5,12 +6,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import pytest
-from api_support import Api, seed_recording_target, trial_files
+from api_support import Api, add_result, api, seed_recording_target, trial_files, video_pair  # noqa: F401 - pytest fixtures
 from fastapi.routing import iter_route_contexts
 from sqlalchemy import func, select
 
-from app.models import AuditEvent, Result, Trial
-from app.storage import Storage
+from app.models import AuditEvent, Result
 
 NOTES = "tremor worse after coffee, lives alone"  # a clinical free text that must never be audited
 # API routes that serve no patient data (not audited): rigs and calibrations, job
@@ -60,24 +60,6 @@ CASES = [
     Case("GET", "/api/v1/trials/{trial_id}/report.pdf", "export", "report_pdf"),
     Case("GET", "/api/v1/trials/{trial_id}/fhir", "export", "fhir_bundle"),
 ]
-
-
-def add_result(api: Api, trial_id: int) -> None:
-    """Store a known result for a trial, as the worker would (synthetic, not measured)."""
-    from sample_trial import synthetic_trial
-
-    from app.exports import markers_csv
-
-    markers, document = synthetic_trial()
-    stored = Storage.from_settings(api.settings).write_bytes(
-        "results", ".csv", markers_csv(markers).encode()
-    )
-    with api.sessions() as db:
-        trial = db.get(Trial, trial_id)
-        assert trial is not None
-        trial.status = "succeeded"
-        db.add(Result(trial_id=trial_id, document=document, markers_path=stored.path))
-        db.commit()
 
 
 @pytest.fixture

@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
 """Authentication and authorisation: every route is closed, keys, scopes, sessions, CSRF, throttling."""
 
 from __future__ import annotations
@@ -6,7 +7,12 @@ import re
 from datetime import timedelta
 
 import pytest
-from api_support import Api, make_api_key, make_user
+from api_support import (
+    Api,
+    api,  # noqa: F401 - pytest fixtures
+    make_api_key,
+    make_user,
+)
 from fastapi.routing import iter_route_contexts
 from fastapi.testclient import TestClient
 from sqlalchemy import select, update

@@ -1,0 +1,159 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
+"""Patients and sessions over the REST API: create, list, search, paginate, update, delete."""
+
+from __future__ import annotations
+
+from api_support import (
+    Api,
+    api,  # noqa: F401 - pytest fixtures
+)
+
+from app.models import Patient
+
+
+def _create(api: Api, code: str, **fields) -> dict:
+    r = api.client.post("/api/v1/patients", json={"code": code, **fields}, headers=api.headers)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def test_create_read_update_patient(api: Api) -> None:
+    created = _create(api, "PD-0042", birth_year=1951, sex="female")
+    assert created["code"] == "PD-0042" and created["created_at"].endswith("Z")
+    r = api.client.get(f"/api/v1/patients/{created['id']}", headers=api.headers)
+    assert r.json() == created
+    r = api.client.patch(
+        f"/api/v1/patients/{created['id']}",
+        json={"notes": "DBS since 2021", "birth_year": None, "code": None},
+        headers=api.headers,
+    )
+    assert r.status_code == 200
+    body = r.json()
+    assert body["notes"] == "DBS since 2021" and body["birth_year"] is None
+    assert body["code"] == "PD-0042"  # code cannot be cleared; null is ignored
+
+
+def test_patient_validation_and_conflicts(api: Api) -> None:
+    _create(api, "PD-1")
+    h = api.headers
+    for bad in (
+        {"code": ""},
+        {"code": "has space"},
+        {"code": "PD-2", "birth_year": 1700},
+        {"code": "PD-2", "sex": "x"},
+        {"code": "PD-2", "name": "Jane Doe"},
+        {},
+    ):
+        r = api.client.post("/api/v1/patients", json=bad, headers=h)
+        assert r.status_code == 422, bad
+        assert r.json()["detail"].startswith("The request is invalid")
+        assert isinstance(r.json()["errors"], list)
+    r = api.client.post("/api/v1/patients", json={"code": "pd-1"}, headers=h)
+    assert r.status_code == 409  # codes are unique regardless of case
+    other = _create(api, "PD-3")
+    r = api.client.patch(f"/api/v1/patients/{other['id']}", json={"code": "PD-1"}, headers=h)
+    assert r.status_code == 409
+    assert api.client.get("/api/v1/patients/999", headers=h).status_code == 404
+    r = api.client.post(
+        "/api/v1/patients", content=b"{not json", headers={**h, "Content-Type": "application/json"}
+    )
+    assert r.status_code == 422
+
+
+def test_list_search_and_paginate(api: Api) -> None:
+    for i in range(7):
+        _create(api, f"PD-{i:04d}")
+    _create(api, "MSA-0001")
+    h = api.headers
+    page = api.client.get("/api/v1/patients", params={"limit": 3}, headers=h).json()
+    assert page["total"] == 8 and page["limit"] == 3 and page["offset"] == 0
+    assert [p["code"] for p in page["items"]] == ["MSA-0001", "PD-0000", "PD-0001"]
+    seen = []
+    for offset in range(0, 8, 3):
+        seen += api.client.get(
+            "/api/v1/patients", params={"limit": 3, "offset": offset}, headers=h
+        ).json()["items"]
+    assert len({p["id"] for p in seen}) == 8
+    found = api.client.get("/api/v1/patients", params={"q": "msa"}, headers=h).json()
+    assert [p["code"] for p in found["items"]] == ["MSA-0001"] and found["total"] == 1
+    # LIKE wildcards in the search are taken literally
+    assert api.client.get("/api/v1/patients", params={"q": "%"}, headers=h).json()["total"] == 0
+    assert api.client.get("/api/v1/patients", params={"limit": 0}, headers=h).status_code == 422
+    assert api.client.get("/api/v1/patients", params={"limit": 201}, headers=h).status_code == 422
+
+
+def test_delete_is_soft_and_keeps_the_code_reserved(api: Api) -> None:
+    h = api.headers
+    p = _create(api, "PD-9")
+    rig = api.client.post("/api/v1/rigs", json={"name": "r"}, headers=h).json()
+    s = api.client.post(
+        "/api/v1/sessions",
+        json={"patient_id": p["id"], "rig_id": rig["id"], "recorded_at": "2026-02-01T08:00:00"},
+        headers=h,
+    ).json()
+    assert api.client.delete(f"/api/v1/patients/{p['id']}", headers=h).status_code == 204
+    assert api.client.get(f"/api/v1/patients/{p['id']}", headers=h).status_code == 404
+    assert api.client.get(f"/api/v1/sessions/{s['id']}", headers=h).status_code == 404
+    assert api.client.get("/api/v1/patients", headers=h).json()["total"] == 0
+    assert api.client.delete(f"/api/v1/patients/{p['id']}", headers=h).status_code == 404
+    r = api.client.post("/api/v1/patients", json={"code": "PD-9"}, headers=h)
+    assert r.status_code == 409 and "deleted" in r.json()["detail"]
+    with api.sessions() as db:
+        row = db.get(Patient, p["id"])
+        assert row is not None and row.deleted_at is not None  # the row is kept
+
+
+def test_sessions_create_list_update_delete(api: Api) -> None:
+    h = api.headers
+    p = _create(api, "PD-5")
+    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-A"}, headers=h).json()
+    ids = []
+    for day, med in ((1, "off"), (3, "on"), (2, "unknown")):
+        r = api.client.post(
+            "/api/v1/sessions",
+            json={
+                "patient_id": p["id"],
+                "rig_id": rig["id"],
+                "recorded_at": f"2026-02-0{day}T08:00:00+01:00",
+                "medication_state": med,
+            },
+            headers=h,
+        )
+        assert r.status_code == 201, r.text
+        ids.append(r.json()["id"])
+    first = api.client.get(f"/api/v1/sessions/{ids[0]}", headers=h).json()
+    assert first["recorded_at"] == "2026-02-01T07:00:00Z"  # stored and returned in UTC
+    listed = api.client.get("/api/v1/sessions", params={"patient_id": p["id"]}, headers=h).json()
+    assert [s["id"] for s in listed["items"]] == [ids[1], ids[2], ids[0]]  # newest first
+    via_patient = api.client.get(f"/api/v1/patients/{p['id']}/sessions", headers=h).json()
+    assert via_patient == listed
+    r = api.client.patch(
+        f"/api/v1/sessions/{ids[0]}",
+        json={"medication_state": "on", "updrs_34_rating": 3, "dbs_state": None},
+        headers=h,
+    )
+    assert r.status_code == 200
+    assert (r.json()["medication_state"], r.json()["updrs_34_rating"], r.json()["dbs_state"]) == (
+        "on",
+        3,
+        "unknown",
+    )
+    assert (
+        api.client.patch(
+            f"/api/v1/sessions/{ids[0]}", json={"updrs_34_rating": 5}, headers=h
+        ).status_code
+        == 422
+    )
+    assert (
+        api.client.patch(
+            f"/api/v1/sessions/{ids[0]}", json={"calibration_id": 77}, headers=h
+        ).status_code
+        == 422
+    )
+    assert api.client.delete(f"/api/v1/sessions/{ids[0]}", headers=h).status_code == 204
+    listed = api.client.get("/api/v1/sessions", params={"patient_id": p["id"]}, headers=h).json()
+    assert listed["total"] == 2
+    bad = {"patient_id": p["id"], "rig_id": 999, "recorded_at": "2026-02-01T08:00:00Z"}
+    assert api.client.post("/api/v1/sessions", json=bad, headers=h).status_code == 404
+    bad = {"patient_id": p["id"], "rig_id": rig["id"], "recorded_at": "0001-01-01T00:00:00+05:00"}
+    assert api.client.post("/api/v1/sessions", json=bad, headers=h).status_code == 422

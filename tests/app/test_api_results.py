@@ -1,0 +1,125 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
+"""Trials, jobs, results and exports over the REST API."""
+
+from __future__ import annotations
+
+import csv
+import io
+import sys
+
+from api_support import Api, add_result, api, seed_recording_target, trial_files, video_pair  # noqa: F401 - pytest fixtures
+
+
+def _upload(api: Api, video_pair, hand: str = "left") -> dict:
+    seeded = seed_recording_target(api)
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": hand, "offset_frames": "1.5"},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == 201, r.text
+    return {**r.json(), "session_id": seeded.session_id}
+
+
+def test_trial_job_and_listing(api: Api, video_pair) -> None:
+    up = _upload(api, video_pair)
+    h = api.headers
+    job = api.client.get(f"/api/v1/jobs/{up['job_id']}", headers=h)
+    assert job.status_code == 200
+    body = job.json()
+    assert (body["status"], body["progress"], body["error"], body["trial_id"]) == (
+        "queued",
+        0.0,
+        None,
+        up["id"],
+    )
+    trial = api.client.get(f"/api/v1/trials/{up['id']}", headers=h).json()
+    assert trial["hand"] == "left" and trial["offset_frames"] == 1.5
+    assert trial["job_id"] == up["job_id"] and trial["has_result"] is False
+    assert sorted(v["side"] for v in trial["videos"]) == ["left", "right"]
+    listed = api.client.get(f"/api/v1/sessions/{up['session_id']}/trials", headers=h).json()
+    assert [t["id"] for t in listed] == [up["id"]]
+    assert api.client.get("/api/v1/jobs/999", headers=h).status_code == 404
+
+
+def test_result_is_409_until_the_analysis_succeeded(api: Api, video_pair) -> None:
+    up = _upload(api, video_pair)
+    for suffix in ("result", "markers.csv", "report.html", "report.pdf", "fhir"):
+        r = api.client.get(f"/api/v1/trials/{up['id']}/{suffix}", headers=api.headers)
+        assert r.status_code == 409, suffix
+        assert "no result yet" in r.json()["detail"]
+    assert api.client.get("/api/v1/trials/999/result", headers=api.headers).status_code == 404
+
+
+def test_result_and_exports(api: Api, video_pair) -> None:
+    from sample_trial import synthetic_trial
+
+    up = _upload(api, video_pair)
+    add_result(api, up["id"])
+    h = api.headers
+    _, expected = synthetic_trial()
+    result = api.client.get(f"/api/v1/trials/{up['id']}/result", headers=h)
+    assert result.status_code == 200
+    assert result.json() == expected
+    markers = api.client.get(f"/api/v1/trials/{up['id']}/markers.csv", headers=h)
+    assert markers.status_code == 200 and markers.headers["content-type"].startswith("text/csv")
+    rows = list(csv.DictReader(io.StringIO(markers.text)))
+    assert list(rows[0]) == [
+        "frame",
+        "time_s",
+        "marker",
+        "x_mm",
+        "y_mm",
+        "z_mm",
+        "status",
+        "reprojection_px",
+    ]
+    html = api.client.get(f"/api/v1/trials/{up['id']}/report.html", headers=h)
+    assert html.status_code == 200 and "PD-0042" in html.text
+    fhir = api.client.get(f"/api/v1/trials/{up['id']}/fhir", headers=h)
+    assert fhir.status_code == 200
+    assert fhir.headers["content-type"].startswith("application/fhir+json")
+    assert fhir.json()["resourceType"] == "Bundle"
+    assert api.client.get("/api/v1/trials/1/result").status_code == 401
+
+
+def test_missing_renderer_answers_503_not_fake_content(api: Api, video_pair, monkeypatch) -> None:
+    up = _upload(api, video_pair)
+    add_result(api, up["id"])
+    monkeypatch.setitem(sys.modules, "app.reports", None)  # import now raises ImportError
+    r = api.client.get(f"/api/v1/trials/{up['id']}/report.html", headers=api.headers)
+    assert r.status_code == 503
+    assert "not available yet" in r.json()["detail"]
+
+
+def test_rig_file_calibration_round_trip(api: Api) -> None:
+    import json
+
+    from api_support import rig_document
+
+    h = api.headers
+    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-R"}, headers=h).json()
+    doc = rig_document()
+    r = api.client.post(
+        f"/api/v1/rigs/{rig['id']}/calibrations",
+        files={"rig_json": ("rig.json", json.dumps(doc).encode(), "application/json")},
+        data={"valid_from": "2026-01-01T00:00:00Z"},
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["status"] == "ready" and r.json()["job_id"] is None
+    cal = api.client.get(f"/api/v1/calibrations/{r.json()['id']}", headers=h).json()
+    assert (cal["version"], cal["rms_px"], cal["source"]) == (1, 0.2, "rig_file")
+    assert cal["valid_from"] == "2026-01-01T00:00:00Z"
+    back = api.client.get(f"/api/v1/calibrations/{cal['id']}/rig.json", headers=h).json()
+    assert back["cameras"][1]["t"] == doc["cameras"][1]["t"]
+    second = api.client.post(
+        f"/api/v1/rigs/{rig['id']}/calibrations",
+        files={"rig_json": ("rig.json", json.dumps(doc).encode(), "application/json")},
+        headers=h,
+    ).json()
+    listed = api.client.get(f"/api/v1/rigs/{rig['id']}/calibrations", headers=h).json()
+    assert [c["version"] for c in listed] == [1, 2] and listed[1]["id"] == second["id"]
+    assert api.client.post("/api/v1/rigs", json={"name": "CLINIC-r"}, headers=h).status_code == 409
+    assert api.client.get("/api/v1/rigs", headers=h).json()["total"] == 1
