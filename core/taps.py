@@ -68,7 +68,7 @@ NOISE_SDS_FOR_STILL = 3.0
 #: Closures are not searched closer than this (s) to the edge of a run of signal.
 EDGE_MARGIN_S = 0.03
 #: Moving stretches this short (s) between still frames are noise, not movement.
-MAX_NOISE_BLIP_S = 0.02
+MAX_NOISE_BLIP_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -210,15 +210,26 @@ def _turn(
     hi: int,
     still: float,
     tol: float,
+    max_offset: int,
 ) -> tuple[float, float]:
     """Start and end (sub-frame) of the still-and-closed stretch around ``i_min`` in ``[lo, hi]``.
 
     The ends are where the speed crosses ``still``, linearly interpolated
     between the last still frame and the first moving one.
     """
-    if not still_mask[i_min]:
-        return float(i_min), float(i_min)
     limit = f[i_min] + tol
+    if not still_mask[i_min]:
+        # The filter may put the minimum a frame or two off the still stretch
+        # of a sharp closure: start from the nearest still, closed frame.
+        near = [
+            j
+            for d in range(1, max_offset + 1)
+            for j in (i_min - d, i_min + d)
+            if lo <= j <= hi and still_mask[j] and f[j] <= limit
+        ]
+        if not near:
+            return float(i_min), float(i_min)
+        i_min = near[0]
     first = i_min
     while first - 1 >= lo and still_mask[first - 1] and f[first - 1] <= limit:
         first -= 1
@@ -296,6 +307,7 @@ def segment_recording(
         return Segmentation([], float(min_amplitude_mm), float("nan"), 0.0)
     threshold = max(min_amplitude_mm, relative_amplitude * float(np.percentile(all_prom, 90)))
 
+    edge = max(2, round(EDGE_MARGIN_S * fps))  # frames
     per_run: list[tuple[int, int, list[int], list[int]]] = []
     opening_peak_speeds: list[float] = []
     for a, b, pk, prom in candidates:
@@ -305,7 +317,6 @@ def segment_recording(
         # The closures before the first and after the last maximum are searched
         # a few frames away from the run's edges, where a noisy rest could put
         # the minimum on the very edge frame, which is never a seen closure.
-        edge = max(2, round(EDGE_MARGIN_S * fps))
         first_lo = a + edge if a + edge < peaks[0] else a
         last_hi = b - 1 - edge if b - 1 - edge > peaks[-1] else b - 1
         bounds = [first_lo, *peaks, last_hi]
@@ -331,7 +342,7 @@ def segment_recording(
             hi = b - 1 if j == len(peaks) else peaks[j]
             adjacent = [f[p] - f[i_min] for p in (lo, hi) if p in peaks]
             first, last = _turn(
-                f, speed, still_mask, i_min, lo, hi, still, dwell_tolerance * min(adjacent)
+                f, speed, still_mask, i_min, lo, hi, still, dwell_tolerance * min(adjacent), edge
             )
             inner = 0 < j < len(peaks)
             seen = a < i_min < b - 1 and f[i_min - 1] >= f[i_min] <= f[i_min + 1]

@@ -150,3 +150,19 @@ def test_true_runs():
     assert true_runs(np.array([0, 1, 1, 0, 1], bool)) == [(1, 3), (4, 5)]
     assert true_runs(np.array([], bool)) == []
     assert true_runs(np.ones(3, bool)) == [(0, 3)]
+
+
+@pytest.mark.parametrize("fps", [60.0, 100.0, 200.0])
+def test_noise_estimate(fps):
+    t, dist, _ = _sine(fps, dur_s=10.0)
+    pos = _two_markers(dist)
+    clean = aperture_signal(pos, fps)
+    assert clean.noise_mm < 0.01  # mm
+    rng = np.random.default_rng(5)
+    noisy = aperture_signal(pos + rng.normal(0, 0.2, pos.shape), fps)
+    # Distance noise of 0.2 mm per coordinate on each marker: 0.2 * sqrt(2) mm.
+    assert noisy.noise_mm == pytest.approx(0.2 * np.sqrt(2), rel=0.15)
+    still = aperture_signal(
+        _two_markers(np.full_like(t, 40.0)) + rng.normal(0, 0.2, pos.shape), fps
+    )
+    assert np.nanstd(still.velocity_mm_s) == pytest.approx(still.velocity_noise_mm_s, rel=0.15)

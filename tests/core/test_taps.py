@@ -191,3 +191,67 @@ def test_tap_dict_has_the_result_json_keys():
         "closing_velocity_mm_s_max",
     ):
         assert key in d
+
+
+def _contact_taps(amps, periods, dwells, fps, *, closed_mm=20.0, lead_s=0.4, tail_s=0.4):
+    """Taps that end in a collision: raised-cosine opening, closing that hits the
+    thumb at full speed (quarter cosine), then ``dwells[k]`` s in contact before
+    tap k. Unlike the simulator's C2 taps, the closure is a sharp corner.
+    Returns positions (T, 2, 3) and per-tap (t_start, t_max, t_end, amplitude)."""
+    truth, t = [], lead_s
+    for a, p, dw in zip(amps, periods, dwells, strict=True):
+        t0 = t + dw
+        truth.append((t0, t0 + 0.45 * p, t0 + p, a))
+        t = t0 + p
+    ts = np.arange(int((t + tail_s) * fps)) / fps
+    d = np.full(ts.shape, closed_mm)
+    for t0, tm, te, a in truth:
+        m = (ts >= t0) & (ts < tm)
+        d[m] = closed_mm + a * (1 - np.cos(np.pi * (ts[m] - t0) / (tm - t0))) / 2
+        m = (ts >= tm) & (ts < te)
+        d[m] = closed_mm + a * np.cos(np.pi / 2 * (ts[m] - tm) / (te - tm))
+    pos = np.zeros((len(ts), 2, 3))
+    pos[:, 1, 0] = d
+    return pos, truth
+
+
+@pytest.mark.parametrize("fps", [60.0, 100.0, 200.0])
+def test_sharp_contact_closures(fps):
+    rng = np.random.default_rng(1)
+    n = 20
+    amps = 50.0 - np.arange(n)
+    periods = 0.3 * (1 + 0.05 * rng.standard_normal(n))
+    dwells = np.full(n, 0.03)
+    pos, truth = _contact_taps(amps, periods, dwells, fps)
+    taps = _taps(pos, fps)
+    assert len(taps) == n
+    for tap, (_t0, tm, te, a) in zip(taps, truth, strict=True):
+        assert tap.amplitude_mm == pytest.approx(a, abs=0.35)  # mm (sampling of the corner)
+        assert tap.t_max_aperture_s == pytest.approx(tm, abs=1.0 / fps)  # s
+        # A brisk turn (no pause) splits the 30-ms contact in its middle.
+        assert te - 1.0 / fps <= tap.t_end_s <= te + 0.03 + 1.5 / fps  # s
+
+
+@pytest.mark.parametrize("fps", [60.0, 100.0])
+def test_slow_tapping_with_a_dwell_at_every_closure(fps):
+    """A slow patient resting ~0.25 s in contact at every tap: no pauses singled
+    out, cycles measured closure to closure, small late taps still counted."""
+    rng = np.random.default_rng(1)
+    n = 15
+    amps = np.maximum(40.0 - 2.5 * np.arange(n), 4.0)
+    periods = 0.7 * (1 + 0.12 * rng.standard_normal(n))
+    dwells = 0.25 * (1 + 0.2 * rng.standard_normal(n))
+    dwells[0] = 0.0
+    pos, truth = _contact_taps(amps, periods, dwells, fps)
+    pos = pos + rng.normal(0.0, 0.1, pos.shape)  # mm
+    seg = segment_recording(aperture_signal(pos, fps))
+    taps = seg.taps
+    assert len(taps) == n
+    assert seg.typical_turn_s == pytest.approx(0.25, abs=0.06)  # s
+    # Only the excess over the typical dwell (jitter, here <= 0.1 s) is a pause.
+    assert max(t.pause_before_s for t in taps[1:]) < 0.15  # s
+    # Taps are split in the middle of a dwell that holds no pause, so a cycle
+    # runs from about the middle of one dwell to the middle of the next.
+    middles = [truth[k][2] + dwells[k + 1] / 2 for k in range(n - 1)]
+    got = [t.cycle_s for t in taps[1 : n - 1]]
+    np.testing.assert_allclose(got, np.diff(middles), atol=0.06)  # s
