@@ -151,6 +151,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="hide a marker in one camera, e.g. left:index:2.0:0.5 (repeatable)",
     )
     g.add_argument(
+        "--skin",
+        type=float,
+        default=0.0,
+        metavar="LEVEL",
+        help="draw the hand and forearm at this gray level (0 = not drawn, e.g. 25)",
+    )
+    g.add_argument(
         "--codec",
         choices=("lossless", "mp4v"),
         default="lossless",
@@ -197,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
             occlusions=tuple(args.occlusion),
             offset_frames=args.offset,
             codec=args.codec,
+            skin_level=args.skin,
         )
         # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
         simulate_tapping(tapping, seed=args.seed)

@@ -49,6 +49,18 @@ _HAND_MARKER_LOCAL_MM = np.array([-40.0, 15.0, -12.0])  # back of the hand, behi
 _RIGHT_HAND_U = np.array([-1.0, 0.12, -0.35])
 _RIGHT_HAND_V_HINT = np.array([0.0, -1.0, 0.0])
 
+# The body as capsules (start, end, radius), hand frame, mm, for drawing the skin:
+# palm/metacarpals, the curled middle/ring/little fingers, the forearm. The index
+# runs from the MCP joint (origin) to its marker, the thumb from THUMB_BASE to its marker.
+HAND_BODY_CAPSULES_MM = (
+    ((-85.0, -5.0, 30.0), (-5.0, 0.0, 30.0), 20.0),
+    ((0.0, -8.0, 20.0), (20.0, -25.0, 25.0), 10.0),
+    ((-85.0, -5.0, 30.0), (-330.0, -30.0, 30.0), 28.0),
+)
+INDEX_RADIUS_MM = 9.0
+THUMB_BASE_MM = (-45.0, -30.0, 10.0)
+THUMB_RADIUS_MM = 10.0
+
 # Timeline constants (s).
 _LEAD_IN_S = 0.5  # fingers closed and still before the first tap
 _TAIL_S = 0.3  # fingers closed and still after the last tap

@@ -186,6 +186,78 @@ def draw_spheres(
         canvas[y0:y1, x0:x1] += patch.astype(np.float32)
 
 
+def draw_capsules(
+    canvas: NDArray[np.float32],
+    camera: Camera,
+    starts_mm: ArrayLike,
+    ends_mm: ArrayLike,
+    radii_mm: ArrayLike,
+    *,
+    level: float,
+    blur_px: float = 2.0,
+) -> None:
+    """Add dimly lit body parts (fingers, hand, forearm) as blurred capsules, in place.
+
+    Each capsule is the segment ``starts_mm[k] -> ends_mm[k]`` (world, mm)
+    thickened to ``2 * radii_mm[k]``; its image is the projected segment drawn
+    with the perspective thickness at its mean depth, softened by a Gaussian of
+    ``blur_px``. Overlapping capsules merge (union), they do not add up.
+
+    Parameters
+    ----------
+    canvas : ndarray, shape (H, W), float32
+    camera : Camera
+    starts_mm, ends_mm : array_like, shape (K, 3)
+    radii_mm : array_like, shape (K,)
+    level : float
+        Gray level added inside the silhouette (skin under the ring light).
+    blur_px : float
+    """
+    a = np.asarray(starts_mm, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(ends_mm, dtype=np.float64).reshape(-1, 3)
+    r = np.broadcast_to(np.asarray(radii_mm, dtype=np.float64), (len(a),))
+    if a.shape != b.shape:
+        raise ValueError(
+            f"starts_mm and ends_mm must have the same shape, got {a.shape}, {b.shape}"
+        )
+    if level <= 0 or len(a) == 0:
+        return
+    size = ImageSize.of_image(canvas)
+    z = camera.to_camera(np.vstack([a, b]))[:, 2].reshape(2, -1)
+    px = camera.project(np.vstack([a, b])).reshape(2, -1, 2)
+    ok = np.all(z > 10.0, axis=0) & np.all(np.isfinite(px), axis=(0, 2))
+    if not np.any(ok):
+        return
+    thick = 2.0 * camera.K[0, 0] * r / z.mean(axis=0)  # px
+    margin = thick[ok].max() / 2 + 3 * blur_px + 2
+    lo = np.floor(np.min(px[:, ok].reshape(-1, 2), axis=0) - margin)
+    hi = np.ceil(np.max(px[:, ok].reshape(-1, 2), axis=0) + margin)
+    x0, y0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+    x1, y1 = min(int(hi[0]) + 1, size.width), min(int(hi[1]) + 1, size.height)
+    if x1 <= x0 or y1 <= y0:
+        return
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    shift = 4  # sub-pixel end points, 1/16 px
+    for k in np.flatnonzero(ok):
+        p0 = np.rint((px[0, k] - (x0, y0)) * (1 << shift)).astype(np.int64)
+        p1 = np.rint((px[1, k] - (x0, y0)) * (1 << shift)).astype(np.int64)
+        p0 = np.clip(p0, -(1 << 24), 1 << 24)
+        p1 = np.clip(p1, -(1 << 24), 1 << 24)
+        cv2.line(
+            mask,
+            (int(p0[0]), int(p0[1])),
+            (int(p1[0]), int(p1[1])),
+            255,
+            thickness=max(int(np.rint(thick[k])), 1),
+            lineType=cv2.LINE_AA,
+            shift=shift,
+        )
+    soft = mask.astype(np.float32) * np.float32(level / 255.0)
+    if blur_px > 0:
+        soft = np.asarray(cv2.GaussianBlur(soft, (0, 0), blur_px), dtype=np.float32)
+    canvas[y0:y1, x0:x1] += soft
+
+
 def make_background(
     image_size: ImageSize,
     *,

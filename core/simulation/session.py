@@ -23,9 +23,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from core.camera import FloatArray, ImageSize, StereoRig, write_rig
+from core.camera import Camera, FloatArray, ImageSize, StereoRig, write_rig
 from core.progress import ProgressCallback, report
 from core.simulation.kinematics import (
+    HAND_BODY_CAPSULES_MM,
+    INDEX_RADIUS_MM,
+    THUMB_BASE_MM,
+    THUMB_RADIUS_MM,
     TappingModel,
     TappingScenario,
     TappingTruth,
@@ -36,6 +40,7 @@ from core.simulation.render import (
     GLINT,
     SensorNoise,
     SphereLayer,
+    draw_capsules,
     draw_spheres,
     make_background,
     to_uint8,
@@ -87,6 +92,9 @@ class ImagingScenario:
         Mean gray level of the dark background and the amplitude of its texture.
     psf_sigma_px : float
         Lens blur (px).
+    skin_level : float
+        Gray level of the hand and forearm (skin lit by the ring light), drawn
+        as soft capsules under the markers; 0 (default) leaves them out.
     """
 
     image_size: ImageSize = ImageSize(1280, 1024)  # noqa: RUF009 (immutable NamedTuple)
@@ -102,6 +110,7 @@ class ImagingScenario:
     background_level: float = 14.0
     background_texture: float = 5.0
     psf_sigma_px: float = 0.5
+    skin_level: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "image_size", ImageSize(*(int(v) for v in self.image_size)))
@@ -132,6 +141,8 @@ class ImagingScenario:
         if not np.isfinite(self.offset_frames):
             raise ValueError(f"offset_frames must be finite, got {self.offset_frames}")
         video_suffix(self.codec)  # raises ValueError for an unknown codec
+        if not 0 <= self.skin_level <= 200:
+            raise ValueError(f"skin_level must be in [0, 200], got {self.skin_level}")
         if not 0 <= self.psf_sigma_px <= 5:
             raise ValueError(f"psf_sigma_px must be in [0, 5], got {self.psf_sigma_px}")
 
@@ -412,6 +423,8 @@ class StereoRenderer:
         sub_t = t_mid + imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
         frame = self._backgrounds[c].copy()
         self._noises[c].add_to(frame)
+        if imaging.skin_level > 0:
+            self._draw_skin(frame, cam, t_mid)
         for layer in self._static_layers:
             draw_spheres(frame, cam, layer, psf_sigma_px=imaging.psf_sigma_px)
         if self.movings:
@@ -433,6 +446,19 @@ class StereoRenderer:
             shot_noise=(self._shot_rngs[c], _SHOT_NOISE_GAIN) if imaging.noise_sigma > 0 else None,
         )
         return to_uint8(frame)
+
+    def _draw_skin(self, frame: NDArray[np.float32], cam: Camera, t_mid: float) -> None:
+        t = np.array([t_mid])
+        markers = self.model.positions_mm(t)[0]
+        body = np.array([[*a, *b, r] for a, b, r in HAND_BODY_CAPSULES_MM])
+        rigid = self.model.hand_points_mm(
+            t, np.vstack([body[:, :3], body[:, 3:6], [0.0, 0.0, 0.0], THUMB_BASE_MM])
+        )[0]
+        k = len(body)
+        starts = np.vstack([rigid[:k], rigid[2 * k : 2 * k + 2]])
+        ends = np.vstack([rigid[k : 2 * k], markers[1], markers[0]])
+        radii = np.concatenate([body[:, 6], [INDEX_RADIUS_MM, THUMB_RADIUS_MM]])
+        draw_capsules(frame, cam, starts, ends, radii, level=self.imaging.skin_level)
 
     def truth_document(self, *, video_names: dict[str, str]) -> dict[str, Any]:
         """The ``truth.json`` document (``bradyscope.truth/1``)."""

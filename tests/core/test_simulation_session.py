@@ -118,6 +118,7 @@ def test_deterministic_for_a_seed(tmp_path):
         distractors_moving=1,
         occlusions=(("right", "thumb", 0.1, 0.1),),
         offset_frames=1.5,
+        skin_level=25.0,
     )
     a = simulate_session(tmp_path / "a", seed=11, tapping=tapping, imaging=imaging)
     b = simulate_session(tmp_path / "b", seed=11, tapping=tapping, imaging=imaging)
@@ -215,6 +216,7 @@ def test_mp4v_codec(tmp_path):
         imaging=ImagingScenario(image_size=ImageSize(160, 128), codec="mp4v"),
     )
     assert result.left_video.suffix == ".mp4"
+    assert result.truth["imaging"]["codec"] == "mp4v"
     assert len(_read_all(result.left_video)) == 20 == len(_read_all(result.right_video))
 
 
@@ -262,6 +264,8 @@ def test_cli_end_to_end(tmp_path, capsys):
             "right:thumb:0.1:0.1",
             "--noise",
             "1.5",
+            "--skin",
+            "20",
         ]
     )
     assert status == 0
@@ -269,6 +273,7 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert doc["frame_count"] == 30 and doc["offset_frames"] == 2.0
     assert doc["marker_names"] == ["thumb", "index", "hand"]
     assert doc["imaging"]["image_size"] == [320, 256]
+    assert doc["imaging"]["skin_level"] == 20.0
     assert (out / "left.mkv").is_file() and (out / "right.mkv").is_file()
     assert (out / "rig.json").is_file()
 
