@@ -402,6 +402,8 @@ def fill_gaps(
     single_view_camera: NDArray[np.int_] | None = None,
     single_view_px: FloatArray | None = None,
     context_frames: int = 6,
+    poly_degree: int = 7,
+    path_window_frames: int = 35,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Fill short gaps between measured frames of one marker.
 
@@ -421,6 +423,12 @@ def fill_gaps(
         camera's ray at the interpolated depth.
     context_frames : int
         Measured frames on each side that shape the spline (at least).
+    poly_degree : int
+        Degree of the time polynomial fitted across a gap with single-view
+        observations.
+    path_window_frames : int
+        Measured frames this far on either side of a gap sample the marker's
+        path for single-view points.
 
     Returns
     -------
@@ -462,18 +470,152 @@ def fill_gaps(
             w = (t_fill - a) / (b - a)
             est = pos[a] * (1 - w[:, None]) + pos[b] * w[:, None]
         if rig is not None and single_view_camera is not None and single_view_px is not None:
-            for k, t in enumerate(t_fill):
-                ci = int(single_view_camera[t])
-                if ci < 0:
-                    continue
-                cam = rig.cameras[ci]
-                depth = cam.to_camera(est[k][None])[0, 2]
-                pt = cam.backproject_depth(single_view_px[t][None], depth)[0]
-                if np.all(np.isfinite(pt)):
-                    est[k] = pt
+            sv = single_view_camera[t_fill] >= 0
+            if np.any(sv):
+                lo, hi = max(0, a - path_window_frames), b + path_window_frames + 1
+                window = np.arange(lo, min(hi, len(pos)))
+                path = pos[window[meas[window]]]
+                est = _fit_gap_with_views(
+                    rig,
+                    pos,
+                    knots,
+                    t_fill,
+                    single_view_camera,
+                    single_view_px,
+                    est,
+                    degree=poly_degree,
+                    path_mm=path,
+                )
         pos[t_fill] = est
         filled[t_fill] = True
     return pos, filled
+
+
+def _fit_gap_with_views(
+    rig: StereoRig,
+    pos: FloatArray,
+    knots: NDArray[np.int_],
+    t_fill: NDArray[np.int_],
+    sv_camera: NDArray[np.int_],
+    sv_px: FloatArray,
+    spline_est: FloatArray,
+    *,
+    degree: int,
+    path_mm: FloatArray | None = None,
+) -> FloatArray:
+    """Positions across a gap from a time polynomial fitted to 3D points and 2D views.
+
+    Unknowns: the coefficients of ``X(t)`` (a polynomial of ``degree`` per
+    coordinate). Equations (linear least squares, all in mm): ``X(t_k) =
+    P_k`` at the measured neighbours, and for every single-view frame the two
+    linear ray constraints ``(R_0 - x R_2) X = x t_z - t_x`` (same with
+    ``y``), whose residual is the lateral miss (mm at the marker's depth).
+    The views fix where along its path the marker was; the smooth time
+    polynomial then only has to supply the depth. Each filled point is finally
+    put on its camera's ray: where the ray passes the marker's own path in
+    the neighbouring cycles (``path_mm``, see :func:`_ray_meets_path`), or
+    else at the polynomial's depth.
+    """
+    sv_frames = t_fill[sv_camera[t_fill] >= 0]
+    t_all = np.concatenate([knots, sv_frames]).astype(np.float64)
+    t_mid = 0.5 * (t_all.min() + t_all.max())
+    half = max(0.5 * (t_all.max() - t_all.min()), 1.0)
+    deg = int(min(degree, len(knots) + 2 * len(sv_frames) // 3 - 1))
+    if deg < 1:
+        return spline_est
+
+    def basis(t: NDArray[np.int_]) -> FloatArray:
+        return ((np.asarray(t, dtype=np.float64) - t_mid) / half)[:, None] ** np.arange(deg + 1)
+
+    n_c = deg + 1
+    rows: list[FloatArray] = []
+    rhs: list[float] = []
+    b_k = basis(knots)
+    for axis in range(3):
+        block = np.zeros((len(knots), 3 * n_c))
+        block[:, axis * n_c : (axis + 1) * n_c] = b_k
+        rows.append(block)
+        rhs.extend(pos[knots, axis].tolist())
+    b_s = basis(sv_frames)
+    for k, t in enumerate(sv_frames):
+        cam = rig.cameras[int(sv_camera[t])]
+        xy = cam.undistort_points(sv_px[t][None])[0]
+        if not np.all(np.isfinite(xy)):
+            continue
+        R, tr = cam.R_cam_from_world, cam.t_cam_from_world_mm
+        for a in range(2):
+            coef = R[a] - xy[a] * R[2]  # (3,)
+            row = np.concatenate([coef[axis] * b_s[k] for axis in range(3)])
+            rows.append(row[None])
+            rhs.append(float(xy[a] * tr[2] - tr[a]))
+    A = np.vstack(rows)
+    sol, *_ = np.linalg.lstsq(A, np.asarray(rhs), rcond=None)
+    coeffs = sol.reshape(3, n_c)
+    est = basis(t_fill) @ coeffs.T  # (n, 3)
+    out = est.copy()
+    for k, t in enumerate(t_fill):
+        ci = int(sv_camera[t])
+        if ci < 0:
+            continue
+        cam = rig.cameras[ci]
+        origin, direction = cam.backproject(sv_px[t][None])
+        if not np.all(np.isfinite(direction)):
+            continue
+        depth = cam.to_camera(est[k][None])[0, 2]
+        pt = cam.backproject_depth(sv_px[t][None], depth)[0]
+        if path_mm is not None and len(path_mm):
+            on_path = _ray_meets_path(origin[0], direction[0], path_mm, est[k])
+            if on_path is not None:
+                pt = 0.5 * (pt + on_path)
+        out[k] = pt
+    return out
+
+
+def _ray_meets_path(
+    origin: FloatArray,
+    direction: FloatArray,
+    path_mm: FloatArray,
+    guess_mm: FloatArray,
+    *,
+    near_guess_mm: float = 12.0,
+    near_ray_mm: float = 1.0,
+    n_points: int = 6,
+    min_extent_mm: float = 0.5,
+    max_cos: float = 0.95,
+) -> FloatArray | None:
+    """Where a camera ray crosses the path a marker followed in neighbouring cycles.
+
+    Tapping repeats the same hinge motion, so the measured positions of the
+    surrounding second sample the 3D path densely. Near the time-interpolated
+    guess, the ``n_points`` path points closest to the ray define a local
+    line (principal direction); the result is the point of the ray closest
+    to that line. Only the depth along the ray comes from the path; the
+    observation fixes the rest. None when the path does not pass close to
+    the ray, or runs along it.
+    """
+    near = path_mm[np.linalg.norm(path_mm - guess_mm, axis=1) < near_guess_mm]
+    if len(near) < 3:
+        return None
+    rel = near - origin
+    along = rel @ direction
+    dist_ray = np.linalg.norm(rel - along[:, None] * direction, axis=1)
+    order = np.argsort(dist_ray)[:n_points]
+    if len(order) < 3 or dist_ray[order[0]] > near_ray_mm:
+        return None
+    pts = near[order]
+    centre = pts.mean(axis=0)
+    _, sing, vt = np.linalg.svd(pts - centre, full_matrices=False)
+    e = vt[0]
+    if sing[0] < min_extent_mm * np.sqrt(len(pts)):
+        return None  # a cluster (the marker rested here): no direction to follow
+    c = float(np.dot(direction, e))
+    if abs(c) > max_cos:
+        return None
+    w = origin - centre
+    # Closest points of the lines origin + s d and centre + u e (|d| = |e| = 1).
+    d_w, e_w = float(np.dot(direction, w)), float(np.dot(e, w))
+    s_ray = (c * e_w - d_w) / (1.0 - c * c)
+    return origin + s_ray * direction
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,83 @@
+"""Epipolar matching: exact pairs, distractors, gating, conventions."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from core.camera import Camera, ImageSize, StereoRig
+from core.matching import candidate_pairs, epipolar_distances_px, match_stereo
+
+
+def make_rig() -> StereoRig:
+    """A verging 1280x1024 rig, 160 mm baseline, converging at 500 mm, with distortion."""
+    size = ImageSize(1280, 1024)
+    K = np.array([[1800.0, 0, 645.0], [0, 1795.0, 508.0], [0, 0, 1]])
+    angle = np.arctan2(160.0, 500.0)
+    R = np.asarray(cv2.Rodrigues(np.array([0.01, -angle, 0.005]))[0], dtype=np.float64)
+    t = -R @ np.array([160.0, 2.0, 0.0])
+    return StereoRig(
+        Camera("left", size, K, np.array([-0.12, 0.08, 0.0005, -0.0003, -0.02])),
+        Camera("right", size, K, np.array([-0.10, 0.05, -0.0004, 0.0002, 0.0]), R, t),
+    )
+
+
+def test_true_pairs_have_zero_epipolar_distance() -> None:
+    rig = make_rig()
+    pts = np.random.default_rng(0).uniform([-60, -60, 420], [60, 60, 600], (30, 3))
+    ln = rig.left.undistort_points(rig.left.project(pts))
+    rn = rig.right.undistort_points(rig.right.project(pts))
+    d = epipolar_distances_px(rig, ln, rn)
+    assert d.shape == (30, 30)
+    assert np.max(np.diag(d)) < 1e-6  # px
+
+
+def test_one_to_one_with_distractors_and_shuffling() -> None:
+    rig = make_rig()
+    rng = np.random.default_rng(1)
+    # Thumb and index separated vertically (as in the tapping posture).
+    markers = np.array([[10.0, -30.0, 500.0], [-5.0, 20.0, 505.0]])
+    lp = rig.left.project(markers) + rng.normal(0, 0.1, (2, 2))
+    rp = rig.right.project(markers) + rng.normal(0, 0.1, (2, 2))
+    # Distractors: random bright spots in each image (not stereo-consistent with the markers).
+    lp_all = np.vstack([lp, [[100.0, 100.0], [1200.0, 900.0]]])
+    rp_all = np.vstack([[[300.0, 700.0]], rp, [[50.0, 60.0]]])
+    m = match_stereo(rig, lp_all, rp_all)
+    pairs = set(zip(m.left_index.tolist(), m.right_index.tolist(), strict=True))
+    assert {(0, 1), (1, 2)} <= pairs
+    assert len(set(m.left_index.tolist())) == len(m) and len(set(m.right_index.tolist())) == len(m)
+    assert np.all(m.epipolar_px <= 2.0)  # px (gate)
+
+
+def test_gate_rejects_far_pairs_and_empty_inputs() -> None:
+    rig = make_rig()
+    pt = np.array([[0.0, 0.0, 500.0]])
+    lp, rp = rig.left.project(pt), rig.right.project(pt)
+    assert len(match_stereo(rig, lp, rp + np.array([0.0, 5.0]))) == 0  # 5 px off the epipolar line
+    assert len(match_stereo(rig, lp, rp + np.array([0.0, 1.0]))) == 1
+    assert len(match_stereo(rig, lp, np.zeros((0, 2)))) == 0
+    with pytest.raises(ValueError):
+        match_stereo(rig, lp, rp, max_epipolar_px=0)
+
+
+def test_candidate_pairs_keeps_ambiguous_pairs() -> None:
+    """Two points on the same epipolar line both stay candidates (the tracker decides)."""
+    rig = make_rig()
+    a = np.array([[0.0, 0.0, 500.0]])
+    ln = rig.left.undistort_points(rig.left.project(a))
+    # A second right point on the epipolar line of a, at another depth.
+    b = rig.left.backproject_depth(rig.left.project(a), 560.0)
+    rn = rig.right.undistort_points(rig.right.project(np.vstack([a, b])))
+    c = candidate_pairs(rig, ln, rn)
+    assert sorted(c.right_index.tolist()) == [0, 1]
+
+
+def test_convention_essential_matrix_direction() -> None:
+    """Left points against right points (not the transpose) satisfy the constraint."""
+    rig = make_rig()
+    pts = np.random.default_rng(2).uniform([-60, -60, 420], [60, 60, 600], (10, 3))
+    ln = rig.left.undistort_points(rig.left.project(pts))
+    rn = rig.right.undistort_points(rig.right.project(pts))
+    assert np.max(np.diag(epipolar_distances_px(rig, ln, rn))) < 1e-6  # px
+    assert np.median(np.diag(epipolar_distances_px(rig, rn, ln))) > 1.0  # px: swapped is wrong

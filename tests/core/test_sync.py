@@ -1,0 +1,89 @@
+"""Frame offset from the marker motion: exact integer offsets, static clutter, no motion."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from core.camera import Camera, ImageSize, StereoRig
+from core.simulation.kinematics import TappingScenario, simulate_tapping
+from core.sync import estimate_offset, given_offset
+
+
+def make_rig() -> StereoRig:
+    size = ImageSize(1280, 1024)
+    K = np.array([[1800.0, 0, 645.0], [0, 1795.0, 508.0], [0, 0, 1]])
+    angle = np.arctan2(160.0, 500.0)
+    R = np.asarray(cv2.Rodrigues(np.array([0.01, -angle, 0.005]))[0], dtype=np.float64)
+    t = -R @ np.array([160.0, 2.0, 0.0])
+    return StereoRig(
+        Camera("left", size, K, np.array([-0.12, 0.08, 0.0005, -0.0003, -0.02])),
+        Camera("right", size, K, np.array([-0.10, 0.05, -0.0004, 0.0002, 0.0]), R, t),
+    )
+
+
+RIG = make_rig()
+TRUTH = simulate_tapping(TappingScenario(duration_s=4.0, fps=100.0, hand_marker=True), seed=3)
+
+
+def views(offset: int, *, noise_px: float = 0.15, seed: int = 0, clutter: bool = True):
+    """Per-frame undistorted detections; right frame j shows left frame j + offset."""
+    rng = np.random.default_rng(seed)
+    pos = TRUTH.positions_mm  # (T, 3 markers, 3)
+    n = pos.shape[0]
+    static = np.array([[60.0, 40.0, 520.0], [-70.0, -20.0, 480.0]])  # stereo-consistent reflections
+    left, right = [], []
+    for i in range(n):
+        pl = RIG.left.project(np.vstack([pos[i], static]))
+        left.append(pl + rng.normal(0, noise_px, pl.shape))
+    for j in range(n):
+        k = j + offset
+        pts = pos[k] if 0 <= k < n else np.zeros((0, 3))
+        pr = RIG.right.project(np.vstack([pts, static]))
+        right.append(pr + rng.normal(0, noise_px, pr.shape))
+    if clutter:  # flickering random spots
+        for arr in (left, right):
+            for i in range(0, n, 7):
+                arr[i] = np.vstack([arr[i], rng.uniform([0, 0], [1280, 1024], (2, 2))])
+    ln = [RIG.left.undistort_points(p) for p in left]
+    rn = [RIG.right.undistort_points(p) for p in right]
+    return ln, rn
+
+
+@pytest.mark.parametrize("offset", [-10, -7, -1, 0, 3, 10])
+def test_integer_offsets_are_found_exactly(offset: int) -> None:
+    ln, rn = views(offset, seed=offset + 20)
+    est = estimate_offset(RIG, ln, rn, max_offset_frames=30)
+    assert est.offset_frames == offset
+    assert abs(est.offset_subframe - offset) <= 0.5  # frames
+    assert est.confidence > 0.5
+    assert est.method == "auto"
+    doc = est.to_result()
+    assert doc["offset_frames"] == float(offset) and doc["method"] == "auto"
+
+
+def test_convention_sign() -> None:
+    """Right frame j = left frame j + K: shifting the right list by one frame changes K by one."""
+    ln, rn = views(4, clutter=False)
+    assert estimate_offset(RIG, ln, rn[1:], max_offset_frames=12).offset_frames == 5
+    assert estimate_offset(RIG, ln[1:], rn, max_offset_frames=12).offset_frames == 3
+
+
+def test_no_motion_gives_zero_confidence() -> None:
+    static = np.array([[0.0, 0.0, 500.0], [20.0, 30.0, 510.0]])
+    ln = [RIG.left.undistort_points(RIG.left.project(static))] * 200
+    rn = [RIG.right.undistort_points(RIG.right.project(static))] * 200
+    est = estimate_offset(RIG, ln, rn, max_offset_frames=10)
+    assert est.confidence < 0.05
+
+
+def test_given_offset_and_errors() -> None:
+    g = given_offset(-3)
+    assert g.offset_frames == -3 and g.method == "given" and g.to_result()["method"] == "given"
+    with pytest.raises(ValueError):
+        given_offset(float("nan"))
+    with pytest.raises(ValueError):
+        estimate_offset(RIG, [], [], max_offset_frames=-1)
+    est = estimate_offset(RIG, [], [], max_offset_frames=3)
+    assert est.confidence == 0.0
