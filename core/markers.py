@@ -55,7 +55,6 @@ _MARGIN_PX = 3  # support of the centre estimators beyond the half-maximum core
 _MAX_SEEDS_PER_REGION = 64
 _DISC5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
 _ONES3 = np.ones((3, 3), np.uint8)
-_ELLIPSES: dict[int, NDArray[np.uint8]] = {}
 
 
 @dataclass(frozen=True)
@@ -298,21 +297,18 @@ def detect_markers(
         pts = np.asarray(search_xy_px, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise ValueError(f"search_xy_px must have shape (K, 2), got {pts.shape}")
-        h, w = image.shape
-        reach = radius_px + 0.5 * params.diameter_px_max + _MARGIN_PX + 2
-        for x, y in pts[np.all(np.isfinite(pts), axis=1)]:
-            x0, x1 = max(0, math.floor(x - reach)), min(w, math.ceil(x + reach) + 1)
-            y0, y1 = max(0, math.floor(y - reach)), min(h, math.ceil(y + reach) + 1)
-            if x1 - x0 < 3 or y1 - y0 < 3:
-                continue
-            bg, sigma = _background_and_noise(image[y0:y1:2, x0:x1:2])
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        # seeds are blob maxima: within the radius plus a streak's half length
+        reach = radius_px + 0.5 * params.diameter_px_max
+        for (x0, y0, x1, y1), group in _merged_windows(pts, reach, image.shape):
+            bg, sigma = _background_and_noise(image[y0:y1:3, x0:x1:3])
             thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
             found = _search_region(image, (x0, y0, x1, y1), thr, params, measured)
             for m in found:
                 if m.blob is not None:
-                    bx, by = m.blob.xy_px
-                    if (bx - x) ** 2 + (by - y) ** 2 > radius_px**2:
-                        m.blob = None  # outside the search disc; keep the core as "seen"
+                    d2 = np.sum((group - np.asarray(m.blob.xy_px)) ** 2, axis=1)
+                    if d2.min() > radius_px**2:
+                        m.blob = None  # outside the search discs; keep the core as "seen"
             measured.extend(found)
     return _to_detections([m.blob for m in measured if m.blob is not None])
 
@@ -334,6 +330,40 @@ def _background_and_noise(sample: NDArray[np.uint8]) -> tuple[float, float]:
     k = int(np.searchsorted(hi - lo, (n + 1) // 2))
     sigma = max(1.4826 * k, 0.7)  # quantisation floor
     return float(med), float(sigma)
+
+
+def _merged_windows(
+    pts: FloatArray, reach: float, shape: tuple[int, ...]
+) -> list[tuple[tuple[int, int, int, int], FloatArray]]:
+    """Square windows ``(x0, y0, x1, y1)`` of half-size ``reach`` around the points,
+    overlapping ones merged into their bounding box, with the points of each."""
+    h, w = shape[0], shape[1]
+    boxes: list[list[float]] = []
+    groups: list[list[int]] = []
+    for i, (x, y) in enumerate(pts.tolist()):
+        boxes.append([x - reach, y - reach, x + reach, y + reach])
+        groups.append([i])
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    groups[i] += groups.pop(j)
+                    boxes.pop(j)
+                    merged = True
+                    break
+            if merged:
+                break
+    out = []
+    for (bx0, by0, bx1, by1), g in zip(boxes, groups, strict=True):
+        x0, x1 = max(0, math.floor(bx0)), min(w, math.ceil(bx1) + 1)
+        y0, y1 = max(0, math.floor(by0)), min(h, math.ceil(by1) + 1)
+        if x1 - x0 >= 3 and y1 - y0 >= 3:
+            out.append(((x0, y0, x1, y1), pts[g]))
+    return out
 
 
 def _full_frame_regions(
@@ -368,7 +398,7 @@ def _smooth(image: NDArray[np.uint8], x0: int, y0: int, x1: int, y1: int) -> NDA
     """
     h, w = image.shape
     px0, py0, px1, py1 = max(0, x0 - 1), max(0, y0 - 1), min(w, x1 + 1), min(h, y1 + 1)
-    sm = cast(NDArray[np.float32], cv2.boxFilter(image[py0:py1, px0:px1], cv2.CV_32F, (3, 3),
+    sm = cast("NDArray[np.float32]", cv2.boxFilter(image[py0:py1, px0:px1], cv2.CV_32F, (3, 3),
                                                  borderType=cv2.BORDER_REPLICATE))  # fmt: skip
     return sm[y0 - py0 : y1 - py0, x0 - px0 : x1 - px0]
 
@@ -460,16 +490,15 @@ def _measure(
         if contrast < params.min_contrast:
             return _Measured(None, x0, y0, None)
         mask = (sm > bg + 0.5 * contrast).view(np.uint8)
-        n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-        lab = int(labels[ly, lx])
-        core = (labels == lab).view(np.uint8)
+        # the core: the 8-connected half-maximum region of the seed, filled with 2
+        area, _, _, (bx, by, bw, bh) = cv2.floodFill(mask, None, (lx, ly), 2, flags=8)
+        core = (mask == 2).view(np.uint8)
         # measure from the core's maximum (first in raster order), so that every
         # seed of the same blob gives the same result
         _, peak_val, _, (mx_l, my_l) = cv2.minMaxLoc(sm, mask=core)
         if (mx_l != lx or my_l != ly) and reseeds < 2:
             sx, sy, reseeds = mx_l + x0, my_l + y0, reseeds + 1
             continue
-        bx, by, bw, bh, area = (int(v) for v in stats[lab])
         mom = cv2.moments(core, binaryImage=True)
         diameter, roundness, fill, cov = _shape(mom)
         margin = max(_MARGIN_PX, math.ceil(0.5 * diameter))
@@ -502,14 +531,16 @@ def _measure(
     # ``margin`` beyond the core, grown by 2 px; other blobs masked out
     sigma = max((float(ring[(3 * n_ring) // 4]) - float(ring[n_ring // 4])) / 1.349, 0.7)
     low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).view(np.uint8)
-    near = cast(NDArray[np.uint8], cv2.dilate(core, _ellipse(2 * margin + 1)))
-    support = cast(NDArray[np.uint8], cv2.dilate(low_mask & near, _DISC5))
+    k = 2 * margin + 1
+    near = cast("NDArray[np.uint8]", cv2.dilate(core, np.ones((k, k), np.uint8)))
+    support = cast("NDArray[np.uint8]", cv2.dilate(low_mask & near, _DISC5))
     outside = low_mask & (1 - near)
-    if n_lab > 2 or outside.any():
-        others = outside | ((labels > 0).view(np.uint8) & (1 - core))
-        support &= 1 - cast(NDArray[np.uint8], cv2.dilate(others, _DISC5))
-        if n_lab > 2:  # a neighbour above this blob's half maximum: split by distance
-            other_cores = ((labels > 0) & (labels != lab)).view(np.uint8)
+    other_cores = (mask == 1).view(np.uint8)  # other blobs above this one's half maximum
+    has_neighbour = bool(other_cores.any())
+    if has_neighbour or outside.any():
+        others = outside | other_cores
+        support &= 1 - cast("NDArray[np.uint8]", cv2.dilate(others, _DISC5))
+        if has_neighbour:  # split by distance
             d_own = cv2.distanceTransform(1 - core, cv2.DIST_L2, 3)
             d_other = cv2.distanceTransform(1 - other_cores, cv2.DIST_L2, 3)
             support &= (d_own < d_other).view(np.uint8)
@@ -538,15 +569,6 @@ def _measure(
         quality=quality,
     )
     return measured
-
-
-def _ellipse(k: int) -> NDArray[np.uint8]:
-    kernel = _ELLIPSES.get(k)
-    if kernel is None:
-        kernel = _ELLIPSES[k] = np.asarray(
-            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dtype=np.uint8
-        )
-    return kernel
 
 
 def _shape(mom: dict[str, float]) -> tuple[float, float, float, tuple[float, float, float]]:
