@@ -15,11 +15,14 @@ printed board) and ``z`` into the board, so a camera facing the printed side
 sees it with ``z`` pointing away from the camera.
 
 Chessboard corners are located by ``cv2.findChessboardCorners`` followed by
-``cv2.cornerSubPix`` with a window sized to the squares (``method="auto"``
-falls back to the sector-based ``cv2.findChessboardCornersSB`` when that finds
-nothing). On simulated boards with known corners the ``cornerSubPix`` corners
+``cv2.cornerSubPix`` with a window sized to the squares (``method="classic"``,
+the default; ``"sb"`` uses the sector-based ``cv2.findChessboardCornersSB``
+and ``"auto"`` falls back to it when the classic detector finds nothing).
+``"classic"`` is the default because, on simulated boards with known corners the ``cornerSubPix`` corners
 are about twice as accurate as ``findChessboardCornersSB(CALIB_CB_ACCURACY)``
-(RMS ~0.035 px against ~0.07 px) and ten times faster; see
+(RMS ~0.035 px against ~0.07 px), ten times faster, and ``findChessboardCornersSB``
+sometimes reports a grid one row or column larger than the board (into its
+white margin) when the size asked for is wrong; see
 ``bench/bench_calibration.py`` and docs/calibration.md.
 """
 
@@ -266,7 +269,7 @@ def detect_board(
     image: NDArray[Any],
     board: BoardSpec,
     *,
-    method: ChessboardMethod = "auto",
+    method: ChessboardMethod = "classic",
 ) -> BoardDetection | None:
     """Find a calibration board in an image, with sub-pixel corners.
 

@@ -55,6 +55,8 @@ _BLUR_FACTOR = 1.6
 _DUPLICATE_DISTANCE = 0.03
 #: A calibration whose final RMS exceeds this (px) is refused: the board spec is wrong.
 _FAIL_RMS_PX = 3.0
+#: Frames searched by the quick check that the board is in the recording at all.
+_PROBE_FRAMES = 12
 #: Coverage grid (columns, rows) over the image.
 _COVERAGE_GRID = (10, 8)
 
@@ -226,6 +228,8 @@ def collect_views(
         check_stereo_videos(src_l, src_r)
         size_l = src_l.image_size
         n_total = min(src_l.frame_count, src_r.frame_count)
+    if kind_l == "video" or n_total > 2 * _PROBE_FRAMES:
+        _probe(kind_l, src_l, src_r, board, n_total)
     indices = _sample_indices(n_total, max_candidates)
     views: list[StereoView] = []
     for done, (i, img_l, img_r) in enumerate(_iter_pairs(kind_l, src_l, src_r, indices)):
@@ -243,6 +247,42 @@ def collect_views(
         views.append(StereoView(i, det_l, det_r, float(width)))
         report(progress, "detection", done + 1, len(indices))
     return ViewCollection(views, size_l, n_total, kind_l)
+
+
+def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) -> None:
+    """Fail fast when the board is in no frame: search a few frames spread over the recording.
+
+    A board that is absent, or whose size was given wrong, makes every
+    detection fail slowly; a dozen frames tell. Videos are read by seeking
+    (not frame-exact, which does not matter here).
+    """
+    from core.video import read_image
+
+    indices = _sample_indices(n_total, _PROBE_FRAMES)
+    found = {"left": 0, "right": 0}
+    for side, src in (("left", src_l), ("right", src_r)):
+        cap = None if kind == "images" else cv2.VideoCapture(str(src.path), cv2.CAP_FFMPEG)
+        try:
+            for i in indices:
+                if cap is None:
+                    img = read_image(src[i])
+                else:
+                    cap.set(cv2.CAP_PROP_POS_FRAMES, float(i))
+                    ok, img = cap.read()
+                    if not ok or img is None:
+                        continue
+                if detect_board(img, board) is not None:
+                    found[side] += 1
+                    break
+        finally:
+            if cap is not None:
+                cap.release()
+        if found[side] == 0:
+            raise DetectionError(
+                f"the board ({board.describe()}) was found in 0 of {len(indices)} {side} frames"
+                " tried across the recording; check --cols/--rows (a chessboard counts inner"
+                " corners, a ChArUco board squares) and that the recording shows the board."
+            )
 
 
 def edge_width_px(image: NDArray[np.uint8], detection: BoardDetection) -> float:
@@ -972,18 +1012,18 @@ def quality_verdict(quality: dict[str, Any]) -> tuple[str, list[str]]:
         False,
         f"epipolar error {epi} px is above {g} px: the two cameras' geometry is uncertain.",
     )
-    sq_err = quality.get("square_error_mm_rms")
+    sq_err = quality.get("square_error_mm_mean")
     sq = quality.get("square_mm")
     if sq_err is not None and sq:
-        rel = float(sq_err) / float(sq)
+        rel = abs(float(sq_err)) / float(sq)
         g, a = VERDICT_THRESHOLDS["square_error_relative"]
         judge(
             rel,
             g,
             a,
             False,
-            f"board squares measure {sq_err} mm RMS off their true {sq} mm ({100 * rel:.2f} %, above"
-            f" {100 * g:.1f} %): 3D lengths will be off by as much.",
+            f"board squares measure {float(sq_err):+.3f} mm off their true {sq:g} mm on average"
+            f" ({100 * rel:.2f} %, above {100 * g:.1f} %): 3D lengths will be off by as much.",
         )
     cov_vals = [quality.get(k) for k in ("coverage_left", "coverage_right")]
     cov_known = [float(c) for c in cov_vals if c is not None]

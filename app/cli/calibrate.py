@@ -1,14 +1,97 @@
-"""`bradyscope calibrate` (INTERFACES.md)."""
+"""`bradyscope calibrate` (INTERFACES.md): board recordings -> rig.json with quality."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from core.boards import BoardSpec
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("calibrate", help="(not built yet)")
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate a stereo rig from two board recordings",
+        description=(
+            "Calibrate both cameras and their relative pose from synchronous recordings of a"
+            " chessboard or ChArUco board (two videos, or two folders of images paired in"
+            " file-name order). Writes the rig file with its quality figures."
+        ),
+    )
+    p.add_argument("--left", required=True, type=Path, help="left video or image folder")
+    p.add_argument("--right", required=True, type=Path, help="right video or image folder")
+    p.add_argument("--board", required=True, choices=("chessboard", "charuco"))
+    p.add_argument(
+        "--cols",
+        required=True,
+        type=int,
+        help="chessboard: inner corners per row; charuco: squares per row",
+    )
+    p.add_argument(
+        "--rows",
+        required=True,
+        type=int,
+        help="chessboard: inner corners per column; charuco: squares per column",
+    )
+    p.add_argument("--square-mm", required=True, type=float, help="square side (mm), as printed")
+    p.add_argument("--marker-mm", type=float, default=None, help="charuco: marker side (mm)")
+    p.add_argument(
+        "--dictionary", default=None, help="charuco: ArUco dictionary (default DICT_4X4_1000)"
+    )
+    p.add_argument(
+        "--max-views", type=int, default=40, help="stereo views used in the fit at most (40)"
+    )
+    p.add_argument("-o", "--output", required=True, type=Path, help="rig file to write (JSON)")
     p.set_defaults(func=run)
 
 
+def _board(args: argparse.Namespace) -> BoardSpec:
+    from core.boards import BoardSpec
+    from core.errors import InputError
+
+    if args.board == "chessboard" and (args.marker_mm is not None or args.dictionary is not None):
+        raise InputError(
+            "--marker-mm and --dictionary describe ChArUco boards; drop them for a chessboard."
+        )
+    try:
+        return BoardSpec(
+            kind=args.board,
+            cols=args.cols,
+            rows=args.rows,
+            square_mm=args.square_mm,
+            marker_mm=args.marker_mm,
+            dictionary=args.dictionary,
+        )
+    except ValueError as exc:
+        raise InputError(f"the board description is invalid: {exc}.") from exc
+
+
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("bradyscope calibrate is not built yet")
+    from app.cli.progress import progress_bar
+    from core.calibration import calibrate_stereo_from_paths, quality_verdict
+    from core.camera import write_rig
+    from core.errors import InputError
+
+    board = _board(args)
+    if args.max_views < 6:
+        raise InputError(f"--max-views must be at least 6, got {args.max_views}.")
+    out = Path(args.output)
+    if out.parent and not out.parent.exists():
+        raise InputError(f"the folder of the output file {out} does not exist; create it first.")
+    with progress_bar() as progress:
+        result = calibrate_stereo_from_paths(
+            args.left, args.right, board, max_views=args.max_views, progress=progress
+        )
+    write_rig(result.rig, out)
+    q = result.quality
+    verdict, reasons = quality_verdict(q)
+    print(
+        f"wrote {out}: {q['views_used']} views, RMS {q['rms_px']:.3f} px,"
+        f" epipolar {q['epipolar_px_mean']:.3f} px, baseline {q['baseline_mm']:.2f} mm"
+        f" — {verdict}",
+    )
+    for reason in reasons:
+        print(f"  {reason}")
+    return 0

@@ -311,7 +311,7 @@ def random_board_poses(
     around the rig's convergence distance, tilted up to ``max_tilt_rad``
     about both in-plane axes and turned up to 25 degrees in the plane. The
     board faces the midpoint between the two cameras. Unless
-    ``allow_partial``, every corner lies inside both images (10 px margin).
+    ``allow_partial``, the whole pattern lies inside both images (10 px margin).
     """
     if n_poses < 1:
         raise ValueError(f"n_poses must be >= 1, got {n_poses}")
@@ -322,7 +322,9 @@ def random_board_poses(
     if distance_range_mm is None:
         distance_range_mm = (0.75 * converge, 1.3 * converge)
     mid = c_right / 2
-    objp = board.object_points()
+    x_min, y_min, x_max, y_max = board.outline_mm()
+    outline = np.array([[x_min, y_min, 0], [x_max, y_min, 0], [x_min, y_max, 0], [x_max, y_max, 0]])
+    objp = np.vstack([board.object_points(), outline])
     centre = _board_centre(board)
     poses: list[tuple[FloatArray, FloatArray]] = []
     w, h = rig.left.image_size
