@@ -65,6 +65,7 @@ def test_files_and_video_properties(session):
         cap = cv2.VideoCapture(str(path))
         assert cap.isOpened()
         assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(100.0)
+        assert round(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 80  # what the container states
         assert int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 640
         assert int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)) == 512
         cap.release()
