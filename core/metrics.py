@@ -85,6 +85,8 @@ class TappingMetrics:
                     "peak_threshold_mm": seg.peak_threshold_mm,
                     "still_velocity_mm_s": seg.still_velocity_mm_s,
                     "typical_turn_s": seg.typical_turn_s,
+                    "noise_mm": self.aperture.noise_mm,
+                    "velocity_noise_mm_s": self.aperture.velocity_noise_mm_s,
                 },
             }
         )
