@@ -127,6 +127,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--exposure-ms", type=float, default=3.0, help="exposure time (ms)")
     g.add_argument(
         "--offset",
+        "--offset-frames",
+        dest="offset",
         type=float,
         default=0.0,
         metavar="K",

@@ -256,7 +256,7 @@ def test_cli_end_to_end(tmp_path, capsys):
             "0.3",
             "--size",
             "320x256",
-            "--offset",
+            "--offset-frames",
             "2",
             "--hand-marker",
             "--distractors-static",
