@@ -1,0 +1,207 @@
+"""`bradyscope calibrate` end to end: a rig file on success, one sentence and exit 2 on bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from core.camera import ImageSize, read_rig
+from core.simulation.boards import example_rig, write_board_recordings
+from core.video import VideoWriter
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "opencv-stereo"
+SMALL = ImageSize(640, 512)
+
+
+def _one_sentence_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("bradyscope calibrate: ")
+    return err
+
+
+def _blank_video(path: Path, size: ImageSize, n_frames: int, seed: int) -> Path:
+    rng = np.random.default_rng(seed)
+    with VideoWriter(path, fps=10.0, image_size=size, codec="lossless") as w:
+        for _ in range(n_frames):
+            frame = 110 + rng.normal(0, 3, (size.height, size.width))
+            w.write(frame.clip(0, 255).astype(np.uint8))
+    return path
+
+
+@pytest.fixture(scope="module")
+def small_recording(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli-boards")
+    write_board_recordings(
+        example_rig(image_size=SMALL),
+        out,
+        seed=4,
+        board="chessboard",
+        duration_s=0.8,
+        fps=10.0,
+        pose_interval_s=0.1,
+    )
+    return out
+
+
+CHESSBOARD_ARGS = ["--board", "chessboard", "--cols", "9", "--rows", "6", "--square-mm", "25"]
+
+
+def test_calibrate_writes_a_rig_file(tmp_path, capsys):
+    if not DATA.is_dir():
+        pytest.skip(f"OpenCV's stereo sample images are not in {DATA}")
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        for f in sorted(DATA.glob(f"{side}*.jpg")):
+            (tmp_path / side / f.name).symlink_to(f)
+    out = tmp_path / "rig.json"
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(tmp_path / "left"),
+            "--right",
+            str(tmp_path / "right"),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(out),
+        ]
+    )
+    assert code == 0
+    rig = read_rig(out)
+    assert rig.left.image_size == ImageSize(640, 480)
+    assert 0 < rig.quality["rms_px"] < 0.5  # px
+    assert rig.quality["views_used"] == 13
+    printed = capsys.readouterr().out
+    assert "rig.json" in printed and "RMS" in printed
+
+
+def test_board_never_in_view(tmp_path, capsys):
+    left = _blank_video(tmp_path / "l.mkv", SMALL, 10, seed=1)
+    right = _blank_video(tmp_path / "r.mkv", SMALL, 10, seed=2)
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(left),
+            "--right",
+            str(right),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    err = _one_sentence_error(capsys)
+    assert "found in 0 of 10 left frames" in err and "--cols/--rows" in err
+    assert not (tmp_path / "rig.json").exists()
+
+
+def test_board_size_that_does_not_match(small_recording, tmp_path, capsys):
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(small_recording / "chessboard_left.mkv"),
+            "--right",
+            str(small_recording / "chessboard_right.mkv"),
+            "--board",
+            "chessboard",
+            "--cols",
+            "7",
+            "--rows",
+            "5",
+            "--square-mm",
+            "25",
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    err = _one_sentence_error(capsys)
+    assert "7x5 inner-corner chessboard" in err and "found in 0 of 8 left frames" in err
+
+
+def test_left_and_right_of_different_sizes(small_recording, tmp_path, capsys):
+    right = _blank_video(tmp_path / "r.mkv", ImageSize(320, 256), 8, seed=3)
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(small_recording / "chessboard_left.mkv"),
+            "--right",
+            str(right),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    err = _one_sentence_error(capsys)
+    assert "640x512" in err and "320x256" in err
+
+
+def test_small_recording_calibrates(small_recording, tmp_path):
+    """The error tests' recording is itself a valid calibration input (so they test the right thing)."""
+    out = tmp_path / "rig.json"
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(small_recording / "chessboard_left.mkv"),
+            "--right",
+            str(small_recording / "chessboard_right.mkv"),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(out),
+        ]
+    )
+    assert code == 0
+    true = read_rig(small_recording / "rig_true.json")
+    assert abs(read_rig(out).baseline_mm - true.baseline_mm) < 1.0  # mm, from only 8 views
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        (["--board", "charuco", "--cols", "10", "--rows", "7", "--square-mm", "25"], "marker_mm"),
+        (["--board", "chessboard", "--cols", "6", "--rows", "6", "--square-mm", "25"], "symmetric"),
+        ([*CHESSBOARD_ARGS, "--marker-mm", "18"], "ChArUco"),
+    ],
+)
+def test_bad_board_description(tmp_path, capsys, extra, match):
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(tmp_path),
+            "--right",
+            str(tmp_path),
+            *extra,
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    assert match in _one_sentence_error(capsys)
+
+
+def test_missing_input(tmp_path, capsys):
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(tmp_path / "nope.mp4"),
+            "--right",
+            str(tmp_path / "nope2.mp4"),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    assert "does not exist" in _one_sentence_error(capsys)
