@@ -11,15 +11,17 @@ The rule (the full text, with the reasons, is in ``docs/metrics.md``):
    millimetres late in a decrementing recording still are.
 2. **Closures.** Between two consecutive maxima the closure is the minimal
    filtered aperture. Around it the *turn* is the contiguous stretch where the
-   fingers are nearly still (aperture speed below ``still_fraction`` of the
-   median peak opening speed) and closed (within ``dwell_tolerance`` of the
-   adjacent amplitude above the minimum). Every turn, even a brisk one, has a
+   fingers are nearly still (aperture speed below the *still speed*,
+   ``max(still_fraction * median peak opening speed, 3 * velocity noise SD)``,
+   ignoring noise blips up to 50 ms) and closed (within ``dwell_tolerance`` of
+   the adjacent amplitude above the minimum); its ends are interpolated where
+   the speed crosses the still speed. Every turn, even a brisk one, has a
    short still stretch because the aperture speed passes through zero; its
-   median length over the recording is the *typical turn* ``D``. A turn longer
-   than ``D`` holds a **pause** of ``length - D``: the closing movement ends
-   ``D/2`` after the turn begins and the next opening starts ``D/2`` before it
-   ends. A turn no longer than ``D`` is no pause: closing end and opening
-   start are both the minimum itself.
+   median length over the recording is the *typical turn* ``D``. A turn
+   longer than ``D + min_pause_s`` holds a **pause** of ``length - D``: the
+   closing movement ends ``D/2`` after the turn begins and the next opening
+   starts ``D/2`` before it ends. Otherwise there is no pause, and closing end
+   and opening start are both the middle of the turn.
 3. **A tap** runs from the start of its opening to the end of its closing,
    through the maximal aperture. Pauses with the fingers closed lie *between*
    taps and belong to the tap that follows them (``pause_before_s``), as in
@@ -37,7 +39,9 @@ The rule (the full text, with the reasons, is in ``docs/metrics.md``):
    counts as a tap and in the rhythm, not in amplitude or velocity statistics.
 
 ``amplitude_mm`` is the maximal aperture minus the aperture at the closure
-that starts the tap (INTERFACES.md), both read on the filtered signal.
+that starts the tap (INTERFACES.md): both frames are located on the filtered
+signal and their values read on the raw distance, which the low-pass filter
+would distort at brisk turns.
 """
 
 from __future__ import annotations
@@ -88,9 +92,10 @@ class Tap:
     t_start_s, t_max_aperture_s, t_end_s : float
         Their times (s); start and end may fall between frames (see the rule).
     closed_aperture_mm : float
-        Filtered aperture at the closure that starts the tap (mm).
+        Raw aperture at the closure that starts the tap (mm), at the frame of the
+        filtered minimum.
     max_aperture_mm : float
-        Filtered aperture at the maximum (mm).
+        Raw aperture at the frame of the filtered maximum (mm).
     amplitude_mm : float
         ``max_aperture_mm - closed_aperture_mm`` (mm).
     duration_s : float
