@@ -187,9 +187,13 @@ class MarkerDetections:
     shape_cov_px2 : ndarray, shape (N, 2, 2)
         Second moments of the half-maximum region (px^2), ``[[xx, xy], [xy,
         yy]]``; its main axis is the direction of a motion streak.
+    flatness : ndarray, shape (N,)
+        Share of the half-maximum region above 75 % of the peak: about 0.8-1
+        for a sphere's disc (flat-topped), 0.42 for a Gaussian glint.
     quality : ndarray, shape (N,)
-        Score in [0, 1]: ``roundness * min(fill, 1) * min(1, peak / (3 *
-        min_contrast))``.  Use it to rank candidates, not to reject them.
+        Score in [0, 1]: ``roundness * min(fill, 1) * min(1, flatness / 0.6)
+        * min(1, peak / (3 * min_contrast))``.  Use it to rank candidates, not
+        to reject them.
     """
 
     xy_px: FloatArray
@@ -201,6 +205,7 @@ class MarkerDetections:
     fill: FloatArray = field(default_factory=lambda: np.zeros(0))
     shape_cov_px2: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     quality: FloatArray = field(default_factory=lambda: np.zeros(0))
+    flatness: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
         return int(self.xy_px.shape[0])
@@ -209,8 +214,10 @@ class MarkerDetections:
     def empty(cls) -> MarkerDetections:
         """No marker."""
         z = np.zeros(0)
-        return cls(np.zeros((0, 2)), z, z.copy(), z.copy(), z.copy(), z.copy(), z.copy(),
-                   np.zeros((0, 2, 2)), z.copy())  # fmt: skip
+        return cls(xy_px=np.zeros((0, 2)), diameter_px=z, peak=z.copy(), roundness=z.copy(),
+                   background=z.copy(), area_px=z.copy(), fill=z.copy(),
+                   shape_cov_px2=np.zeros((0, 2, 2)), quality=z.copy(),
+                   flatness=z.copy())  # fmt: skip
 
 
 @dataclass
@@ -224,6 +231,7 @@ class _Blob:
     fill: float
     cov: tuple[float, float, float]
     quality: float
+    flatness: float
 
 
 @dataclass
@@ -286,6 +294,7 @@ def detect_markers(
     if search_radius_px is not None and not search_radius_px > 0:
         raise ValueError(f"search_radius_px must be > 0, got {search_radius_px}")
     radius_px = float(params.search_radius_px if search_radius_px is None else search_radius_px)
+    image = np.ascontiguousarray(image)  # OpenCV needs C order (a no-op for video frames)
 
     measured: list[_Measured] = []
     if search_xy_px is None:
@@ -556,7 +565,13 @@ def _measure(
         diameter + 4
     ):
         cx, cy = _centroid(sub, sup, peak)
-    quality = roundness * min(fill, 1.0) * min(1.0, peak / (3.0 * params.min_contrast))
+    flatness = int(np.count_nonzero(win[core.view(bool)] > bg + 0.75 * peak)) / area
+    quality = (
+        roundness
+        * min(fill, 1.0)
+        * min(1.0, flatness / 0.6)
+        * min(1.0, peak / (3.0 * params.min_contrast))
+    )
     measured.blob = _Blob(
         xy_px=(cx + sx0 + x0, cy + sy0 + y0),
         diameter_px=diameter,
@@ -567,6 +582,7 @@ def _measure(
         fill=fill,
         cov=cov,
         quality=quality,
+        flatness=flatness,
     )
     return measured
 
@@ -612,6 +628,7 @@ def _to_detections(blobs: list[_Blob | None]) -> MarkerDetections:
         fill=np.array([b.fill for b in kept], dtype=np.float64),
         shape_cov_px2=cov,
         quality=np.array([b.quality for b in kept], dtype=np.float64),
+        flatness=np.array([b.flatness for b in kept], dtype=np.float64),
     )
 
 

@@ -146,7 +146,9 @@ def test_result_shapes_and_dtypes() -> None:
     det = detect_markers(img)
     assert len(det) == 2
     assert det.xy_px.shape == (2, 2) and det.xy_px.dtype == np.float64
-    for name in ("diameter_px", "peak", "roundness", "background", "area_px", "fill", "quality"):
+    names = ("diameter_px", "peak", "roundness", "background", "area_px", "fill", "quality",
+             "flatness")  # fmt: skip
+    for name in names:
         arr = getattr(det, name)
         assert arr.shape == (2,) and arr.dtype == np.float64, name
     assert det.shape_cov_px2.shape == (2, 2, 2)
@@ -312,6 +314,31 @@ def test_dim_and_ragged_blobs_are_rejected() -> None:
     det = detect_markers(img)
     assert len(det) == 1
     np.testing.assert_allclose(det.xy_px[0], [80.4, 60.6], atol=0.02)  # px
+
+
+def test_gaussian_glint_scores_lower_than_a_disc() -> None:
+    """Sphere images are flat-topped; a Gaussian glint of the same width is kept
+    (the tracker decides) but with a lower flatness and quality."""
+    img = render_discs(SIZE, np.array([[80.4, 60.6]]), 10.0, blur_sigma_px=0.6, noise_sigma=1)
+    yy, xx = np.mgrid[0 : SIZE[1], 0 : SIZE[0]]
+    sigma = 10.0 / 2.355  # px: same half-maximum width as the disc
+    glint = 200 * np.exp(-((xx - 200.3) ** 2 + (yy - 150.8) ** 2) / (2 * sigma**2))
+    img = np.clip(img + glint, 0, 255).astype(np.uint8)
+    det = detect_markers(img)
+    assert len(det) == 2
+    disc, gauss = np.argmin(det.xy_px[:, 0]), np.argmax(det.xy_px[:, 0])
+    assert det.flatness[disc] > 0.75 and det.flatness[gauss] < 0.5  # ln(4/3)/ln(2) = 0.42
+    assert det.quality[gauss] < 0.8 * det.quality[disc]
+    np.testing.assert_allclose(det.xy_px[gauss], [200.3, 150.8], atol=0.02)  # px
+
+
+def test_non_contiguous_image_is_accepted() -> None:
+    truth = np.array([[40.3, 30.6]])
+    img = render_discs((80, 60), truth, 10.0)
+    wide = np.zeros((60, 160), np.uint8)
+    wide[:, ::2] = img
+    det = detect_markers(wide[:, ::2])  # a strided view
+    np.testing.assert_allclose(det.xy_px, truth, atol=0.02)  # px
 
 
 def test_two_markers_close_together_are_both_found() -> None:
