@@ -363,9 +363,7 @@ class StereoRenderer:
             )
         }
         self._shot_rngs = {c: rngs[f"shot-{c}"] for c in CAMERA_NAMES}
-        marker_px = [
-            cam.project(truth.positions_mm[:, :2].reshape(-1, 3))[::7] for cam in rig.cameras
-        ]
+        marker_px = [cam.project(truth.positions_mm.reshape(-1, 3))[::5] for cam in rig.cameras]
         marker_px = [p[np.all(np.isfinite(p), axis=1)] for p in marker_px]
         self.statics = _choose_static(imaging.distractors_static, rig, marker_px, rngs["scene"])
         self.movings = _choose_moving(imaging.distractors_moving, rngs["scene"])
