@@ -159,6 +159,8 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        if exc.status_code == 400 and detail == "There was an error parsing the body":
+            detail = "The request body could not be read; send valid JSON (UTF-8) or a valid form."
         response = _error(exc.status_code, detail)
         for name, value in (exc.headers or {}).items():
             response.headers[name] = value

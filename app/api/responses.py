@@ -8,22 +8,36 @@ from fastapi import Path, Query
 
 from app.schemas import MAX_ID, ErrorResponse
 
+_TEXT = {
+    400: "The request body is malformed.",
+    401: "No valid API key or browser session.",
+    403: "The key lacks the scope, or the browser request lacks its CSRF token.",
+    404: "No such resource (or it was deleted).",
+    409: "Conflicts with the current state (duplicate, or not ready yet).",
+    413: "An uploaded file is larger than the limit.",
+    415: "The upload is not multipart/form-data, or a file is not a readable video.",
+    422: "The request is well-formed but its content is invalid.",
+    429: "Too many attempts; wait and retry.",
+    503: "This feature is not available in this installation yet.",
+}
+
 
 def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` entries for the given error statuses, all ``ErrorResponse``."""
-    text = {
-        400: "The request body is malformed.",
-        401: "No valid API key or browser session.",
-        403: "The key lacks the scope, or the browser request lacks its CSRF token.",
-        404: "No such resource (or it was deleted).",
-        409: "Conflicts with the current state (duplicate, or not ready yet).",
-        413: "An uploaded file is larger than the limit.",
-        415: "The upload is not multipart/form-data, or a file is not a readable video.",
-        422: "The request is well-formed but its content is invalid.",
-        429: "Too many attempts; wait and retry.",
-        503: "This feature is not available in this installation yet.",
+    return {s: {"model": ErrorResponse, "description": _TEXT[s]} for s in statuses}
+
+
+def json_errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """Like :func:`errors`, for routes whose success is not JSON (HTML, PDF, CSV, FHIR).
+
+    FastAPI would document a ``model`` in the route's own media type; errors
+    are always ``application/json``, so the content is spelled out.
+    """
+    schema = {"$ref": "#/components/schemas/ErrorResponse"}
+    return {
+        s: {"description": _TEXT[s], "content": {"application/json": {"schema": schema}}}
+        for s in statuses
     }
-    return {s: {"model": ErrorResponse, "description": text[s]} for s in statuses}
 
 
 # Every authenticated route can answer these.

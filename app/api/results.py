@@ -7,20 +7,20 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
-from app.api.responses import AUTH, IdPath, errors
+from app.api.responses import AUTH, IdPath, errors, json_errors
 from app.auth import Actor, SessionDep, require_scope
 from app.services import results as service
 
 router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
 
 ResultReader = Annotated[Actor, Depends(require_scope("results:read"))]
-EXPORT_ERRORS = errors(*AUTH, 404, 409)
+EXPORT_ERRORS = json_errors(*AUTH, 404, 409)
 
 
 @router.get(
     "/result",
     response_model=dict[str, Any],
-    responses=EXPORT_ERRORS,
+    responses=errors(*AUTH, 404, 409),
     summary="The result.json document (format bradyscope.result/1)",
 )
 def get_result(trial_id: IdPath, actor: ResultReader, db: SessionDep) -> dict[str, Any]:
@@ -51,7 +51,7 @@ def get_markers_csv(
     responses={
         200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "HTML"},
         **EXPORT_ERRORS,
-        **errors(503),
+        **json_errors(503),
     },
     summary="The trial's report as a standalone HTML page",
 )
@@ -70,7 +70,7 @@ def get_report_html(
             "description": "PDF",
         },
         **EXPORT_ERRORS,
-        **errors(503),
+        **json_errors(503),
     },
     summary="The trial's report as PDF",
 )
@@ -94,7 +94,7 @@ def get_report_pdf(
             "description": "A FHIR R4 Bundle (DiagnosticReport + Observations, PDF attached).",
         },
         **EXPORT_ERRORS,
-        **errors(503),
+        **json_errors(503),
     },
     summary="The trial's result as a FHIR R4 Bundle",
 )
