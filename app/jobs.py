@@ -47,8 +47,6 @@ from app.models import Calibration, Job, Trial, utcnow
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MAX_ATTEMPTS = 3
-
 
 class LeaseLostError(Exception):
     """This worker no longer holds the job (it was re-claimed, finished or removed)."""
@@ -86,12 +84,17 @@ def enqueue(
     trial_id: int | None = None,
     calibration_id: int | None = None,
     payload: dict[str, Any] | None = None,
-    max_attempts: int = DEFAULT_MAX_ATTEMPTS,
+    max_attempts: int | None = None,
 ) -> Job:
     """Add a queued job in the caller's transaction (flushed, so ``job.id`` is set).
 
     The caller commits, together with whatever the job refers to.
+    ``max_attempts`` defaults to ``BRADYSCOPE_JOB_MAX_ATTEMPTS`` (3).
     """
+    if max_attempts is None:
+        from app.settings import get_settings
+
+        max_attempts = get_settings().job_max_attempts
     if not kind:
         raise ValueError("kind must be a non-empty string")
     if max_attempts < 1:

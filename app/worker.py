@@ -247,6 +247,12 @@ def analyze_trial(ctx: JobContext) -> None:
     )
     document = dict(analysis.result_document())
     document.setdefault("calibration", cal_info)
+    upload_warnings = [str(w) for w in ctx.job.payload.get("warnings", ()) if w]
+    if upload_warnings:
+        quality = dict(document.get("quality") or {})
+        known = list(quality.get("warnings") or [])
+        quality["warnings"] = known + [w for w in upload_warnings if w not in known]
+        document["quality"] = quality
     with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
         write_markers_csv(analysis, tmp_path)
 
@@ -279,7 +285,6 @@ def analyze_trial(ctx: JobContext) -> None:
 
 def calibrate(ctx: JobContext) -> None:
     """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
-    from core.boards import BoardSpec
     from core.calibration import calibrate_stereo_from_paths
     from core.camera import rig_to_dict
 
@@ -302,7 +307,7 @@ def calibrate(ctx: JobContext) -> None:
             )
         left = ctx.storage.absolute(videos["left"].path)
         right = ctx.storage.absolute(videos["right"].path)
-    board = BoardSpec.from_dict(board_doc)
+    board = _board_spec(board_doc, calibration_id=ctx.job.calibration_id)
     outcome = calibrate_stereo_from_paths(left, right, board, progress=ctx.progress)
     rig_doc = rig_to_dict(outcome.rig)
     quality = _calibration_quality(outcome)
@@ -331,6 +336,31 @@ def calibrate(ctx: JobContext) -> None:
         )
 
     ctx.finish(write)
+
+
+def _board_spec(doc: Mapping[str, Any], *, calibration_id: int | None) -> Any:
+    """A ``core.boards.BoardSpec`` from a stored board description.
+
+    Accepts ``BoardSpec.to_dict()`` documents (key ``kind``) and the upload form's
+    fields (key ``board``).
+    """
+    from core.boards import BoardSpec
+
+    try:
+        return BoardSpec(
+            kind=doc.get("kind") or doc["board"],
+            cols=int(doc["cols"]),
+            rows=int(doc["rows"]),
+            square_mm=float(doc["square_mm"]),
+            marker_mm=float(doc["marker_mm"]) if doc.get("marker_mm") is not None else None,
+            dictionary=doc.get("dictionary"),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidRequestError(
+            f"the board description of calibration {calibration_id} is incomplete or invalid "
+            f"({exc}); upload the board videos again with the board's kind, cols, rows and "
+            "square_mm."
+        ) from exc
 
 
 def _calibration_quality(outcome: Any) -> dict[str, Any]:

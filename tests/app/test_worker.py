@@ -214,7 +214,9 @@ def small_recording(simulated_session):
     )
 
 
-def _trial_with_videos(db, storage, recording, *, calibrated: bool) -> tuple[int, int]:
+def _trial_with_videos(
+    db, storage, recording, *, calibrated: bool, payload=None
+) -> tuple[int, int]:
     import json
 
     rig, patient = Rig(name="sim-rig"), Patient(code="PD-SIM")
@@ -242,7 +244,7 @@ def _trial_with_videos(db, storage, recording, *, calibrated: bool) -> tuple[int
     db.flush()
     _store_video(storage, db, recording.left_video, side="left", trial_id=trial.id)
     _store_video(storage, db, recording.right_video, side="right", trial_id=trial.id)
-    return trial.id, jobs.enqueue(db, "analyze_trial", trial_id=trial.id).id
+    return trial.id, jobs.enqueue(db, "analyze_trial", trial_id=trial.id, payload=payload).id
 
 
 @pytest.mark.slow
@@ -251,7 +253,13 @@ def test_analyze_trial_handler_measures_a_simulated_recording(
 ):
     sm = db_sessionmaker
     with sm() as db, db.begin():
-        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+        trial_id, job_id = _trial_with_videos(
+            db,
+            storage,
+            small_recording,
+            calibrated=True,
+            payload={"warnings": ["the upload's own warning"]},
+        )
     assert run_worker(app_settings, once=True) == 1
     job = _job(sm, job_id)
     assert (job.status, job.error, job.attempts) == ("succeeded", None, 1)
@@ -268,6 +276,7 @@ def test_analyze_trial_handler_measures_a_simulated_recording(
         abs=2.0,  # mm
     )
     assert doc["calibration"]["version"] == 1 and result.calibration_id is not None
+    assert doc["quality"]["warnings"][-1] == "the upload's own warning"
     markers = storage.absolute(result.markers_path).read_text().splitlines()
     assert markers[0].startswith("frame,time_s,marker,x_mm,y_mm,z_mm,status,reprojection_px")
     assert len(markers) - 1 == 2 * doc["frame_count"]  # thumb and index per frame
@@ -394,3 +403,24 @@ def test_kill9_of_bradyscope_worker_during_a_real_analysis(
     assert len(results) == 1 and results[0].job_id == job_id
     assert results[0].document["metrics"]["tap_count"] == small_recording.truth["tap_count"]
     assert [p for p in storage.tmp_dir.iterdir()] == []  # nothing half-written left behind
+
+
+def test_board_descriptions_in_both_stored_forms():
+    from app.worker import _board_spec
+    from core.boards import BoardSpec
+
+    spec = BoardSpec(
+        "charuco", cols=10, rows=7, square_mm=25.0, marker_mm=18.0, dictionary="DICT_4X4_1000"
+    )
+    form = {
+        "board": "charuco",
+        "cols": 10,
+        "rows": 7,
+        "square_mm": 25.0,
+        "marker_mm": 18.0,
+        "dictionary": "DICT_4X4_1000",
+    }
+    assert _board_spec(spec.to_dict(), calibration_id=1) == spec
+    assert _board_spec(form, calibration_id=1) == spec
+    with pytest.raises(InvalidRequestError, match="calibration 3 is incomplete"):
+        _board_spec({"board": "chessboard", "cols": 9}, calibration_id=3)
