@@ -62,6 +62,7 @@ _RC = {
 }
 
 _counter = itertools.count()
+MAX_PATH_POINTS = 400
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,16 @@ def _to_svg(fig: Figure, *, title: str, name: str) -> str:
     )
     head_end = svg.find(">") + 1
     svg = svg[:head_end] + f"<title>{safe_title}</title>" + svg[head_end:]
+    return svg
+
+
+def copy_with_new_ids(svg: str, prefix: str) -> str:
+    """``svg`` with every element id (and its references) prefixed, to show it twice on a page."""
+    ids = set(_ID_RE.findall(svg))
+    for old in sorted(ids, key=len, reverse=True):
+        svg = svg.replace(f'id="{old}"', f'id="{prefix}{old}"')
+        svg = svg.replace(f"#{old})", f"#{prefix}{old})")
+        svg = svg.replace(f'href="#{old}"', f'href="#{prefix}{old}"')
     return svg
 
 
@@ -320,6 +331,9 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
     if not np.isfinite(p).any():
         _empty(fig, "No fingertip positions were measured.")
         return _to_svg(fig, title="Fingertip paths: no data", name="paths")
+    # At most ~MAX_PATH_POINTS samples per path: the drawing looks the same and
+    # the SVG stays light for browsers and the PDF renderer.
+    p = p[:: max(1, -(-p.shape[0] // MAX_PATH_POINTS))]
     with matplotlib.rc_context(_RC):
         ax_front = fig.add_subplot(1, 3, 1)
         ax_side = fig.add_subplot(1, 3, 2)

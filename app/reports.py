@@ -14,7 +14,11 @@ decimals, one-line definition) shared by pages, reports and FHIR exports.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -609,8 +613,41 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
     return rows
 
 
+_PLOT_CACHE: OrderedDict[str, dict[str, str]] = OrderedDict()
+_PLOT_CACHE_SIZE = 16
+_plot_cache_lock = threading.Lock()
+
+
+def _plot_key(data: ReportData) -> str:
+    digest = hashlib.sha256()
+    digest.update(json.dumps(data.result, sort_keys=True, default=str).encode())
+    if data.markers is not None:
+        digest.update(np.ascontiguousarray(data.markers.positions_mm).tobytes())
+        digest.update("".join(data.markers.status.ravel().tolist()).encode())
+    return digest.hexdigest()
+
+
 def report_plots(data: ReportData) -> dict[str, str]:
-    """The trial's plots as inline SVG: ``aperture``, ``amplitude``, ``velocity``, ``paths``."""
+    """The trial's plots as inline SVG: ``aperture``, ``amplitude``, ``velocity``, ``paths``.
+
+    Drawn once per result and kept in a small in-process cache (a page, its
+    PDF and its FHIR export then share one drawing).
+    """
+    key = _plot_key(data)
+    with _plot_cache_lock:
+        cached = _PLOT_CACHE.get(key)
+        if cached is not None:
+            _PLOT_CACHE.move_to_end(key)
+            return dict(cached)
+    out = _draw_plots(data)
+    with _plot_cache_lock:
+        _PLOT_CACHE[key] = out
+        while len(_PLOT_CACHE) > _PLOT_CACHE_SIZE:
+            _PLOT_CACHE.popitem(last=False)
+    return dict(out)
+
+
+def _draw_plots(data: ReportData) -> dict[str, str]:
     taps: Sequence[Mapping[str, Any]] = data.result.get("taps") or []
     metrics = data.result.get("metrics") or {}
     out: dict[str, str] = {}

@@ -306,6 +306,8 @@ def test_trial_page_has_every_plot_metrics_and_quality(client, seeded, db_sessio
     assert re.search(rf'<option value="{other}"[^>]*>[^<]*other hand, same session', html)
     r = client.get(f"/trials/{t}?compare={other}")
     assert "Compared trial" in r.text and _svg_count(r.text) >= 4 + 4
+    ids = re.findall(r'id="([^"]+)"', r.text)
+    assert len(ids) == len(set(ids)), "duplicate element ids on the comparison page"
     # A trial of another patient cannot be compared.
     assert "cannot be compared" in client.get(f"/trials/{t}?compare=99999").text
 
