@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 from datetime import UTC, datetime
 
@@ -36,11 +37,10 @@ def test_the_planned_progression_is_realistic():
     for hand in ("left", "right"):
         off = pick(hand, "off")
         # Over the visits OFF medication: smaller, slower, more decrement, not fewer pauses.
-        assert all(a.amplitude_mm > b.amplitude_mm for a, b in zip(off, off[1:], strict=False))
-        assert all(a.frequency_hz > b.frequency_hz for a, b in zip(off, off[1:], strict=False))
+        assert all(a.amplitude_mm > b.amplitude_mm for a, b in itertools.pairwise(off))
+        assert all(a.frequency_hz > b.frequency_hz for a, b in itertools.pairwise(off))
         assert all(
-            a.decrement_mm_per_tap > b.decrement_mm_per_tap
-            for a, b in zip(off, off[1:], strict=False)
+            a.decrement_mm_per_tap > b.decrement_mm_per_tap for a, b in itertools.pairwise(off)
         )
         # Medication ON is better than OFF at every visit.
         for o, n in zip(off, pick(hand, "on"), strict=True):
