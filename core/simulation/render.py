@@ -300,6 +300,16 @@ class SensorNoise:
             (rng.standard_normal(2 * self._n) * sigma).astype(np.float32) if sigma > 0 else None
         )
 
+    def noisy(self, background: NDArray[np.float32]) -> NDArray[np.float32]:
+        """A new frame: ``background`` (float32, (H, W)) plus one frame of noise."""
+        if self._buffer is None:
+            return background.copy()
+        off = int(self._rng.integers(0, self._n))
+        return np.asarray(
+            cv2.add(background, self._buffer[off : off + self._n].reshape(self._shape)),
+            dtype=np.float32,
+        )
+
     def add_to(self, frame: NDArray[np.float32]) -> None:
         """Add one frame of noise to ``frame`` (float32, (H, W)) in place."""
         if self._buffer is None:
@@ -310,9 +320,8 @@ class SensorNoise:
 
 def to_uint8(frame: NDArray[np.float32]) -> NDArray[np.uint8]:
     """Round and saturate a float image to 8 bits (``frame`` is left unchanged)."""
-    tmp = frame + np.float32(0.5)
-    np.clip(tmp, 0.0, 255.0, out=tmp)
-    return tmp.astype(np.uint8)  # truncation of x + 0.5 is rounding for x >= 0
+    _, positive = cv2.threshold(frame, 0.0, 0.0, cv2.THRESH_TOZERO)
+    return np.asarray(cv2.convertScaleAbs(positive), dtype=np.uint8)  # rounds, saturates at 255
 
 
 def intensity_centroid(patch: ArrayLike, *, x0: int = 0, y0: int = 0) -> FloatArray:

@@ -419,8 +419,7 @@ class StereoRenderer:
         S = int(self._n_sub[c][j])
         t_mid = self.times[c][j]
         sub_t = t_mid + imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
-        frame = self._backgrounds[c].copy()
-        self._noises[c].add_to(frame)
+        frame = self._noises[c].noisy(self._backgrounds[c])
         if imaging.skin_level > 0:
             self._draw_skin(frame, cam, t_mid)
         for layer in self._static_layers:

@@ -167,3 +167,21 @@ def test_capsules_draw_a_soft_union_of_limbs():
     assert canvas[y, x + 150] < 1.0  # beyond the end (40 mm + 8 mm = 120 px)
     with pytest.raises(ValueError, match="same shape"):
         draw_capsules(canvas, cam, a, b[:1], 8.0, level=30.0)
+
+
+def test_to_uint8_rounds_and_saturates():
+    frame = np.array([[-3.0, 0.4, 1.6, 254.6, 300.0]], np.float32)
+    out = to_uint8(frame)
+    assert out.dtype == np.uint8
+    assert out.tolist() == [[0, 0, 2, 255, 255]]
+    assert frame[0, 0] == -3.0  # the input is left unchanged
+
+
+def test_noisy_copy_leaves_the_background_alone():
+    size = ImageSize(64, 48)
+    bg = np.full((48, 64), 10.0, np.float32)
+    noise = SensorNoise(size, sigma=2.0, rng=np.random.default_rng(1))
+    frame = noise.noisy(bg)
+    assert np.all(bg == 10.0)
+    assert frame.std() == pytest.approx(2.0, rel=0.15)  # gray levels, 3072 samples
+    assert np.array_equal(SensorNoise(size, sigma=0.0, rng=np.random.default_rng(1)).noisy(bg), bg)
