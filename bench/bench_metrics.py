@@ -4,6 +4,7 @@ Run from the repository root::
 
     python bench/bench_metrics.py           # about 20 s on one idle core
     python bench/bench_metrics.py --quick   # fewer recordings
+    python bench/bench_metrics.py --e2e     # plus videos through core.pipeline (~1 min more)
 
 Ground truth: ``core.simulation.kinematics.simulate_tapping`` (C2 taps whose
 aperture is exact, rhythm jitter, decrement, hand drift). Printed figures:
@@ -191,15 +192,81 @@ def speed() -> None:
         )
 
 
+def end_to_end() -> None:
+    """Simulated videos -> core.pipeline.analyze_recording -> metrics, against truth.json."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from app.cli import main as cli_main
+    from core.camera import read_rig
+    from core.pipeline import analyze_recording
+
+    print("5. end to end: bradyscope simulate (6 s, 100 fps, 640x512) -> analyze_recording")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        status = cli_main(
+            [
+                "simulate",
+                "-o",
+                str(out),
+                "--seed",
+                "3",
+                "--duration",
+                "6",
+                "--fps",
+                "100",
+                "--decrement",
+                "-1",
+                "--hesitation-taps",
+                "5",
+                "--halts",
+                "11:0.5",
+                "--size",
+                "640x512",
+            ]
+        )
+        assert status == 0, "bradyscope simulate failed"
+        left = next(out.glob("left.*"))
+        right = next(out.glob("right.*"))
+        doc = analyze_recording(read_rig(out / "rig.json"), left, right).result_document()
+        truth = json.loads((out / "truth.json").read_text())
+    m = doc["metrics"]
+    print(f"   taps {m['tap_count']} (truth {truth['tap_count']})")
+    print(f"   frequency {m['frequency_hz']:.4f} Hz (truth {truth['frequency_hz']:.4f})")
+    print(
+        f"   mean amplitude {m['amplitude_mm_mean']:.3f} mm (truth {truth['amplitude_mm_mean']:.3f})"
+    )
+    print(
+        f"   decrement {m['amplitude_decrement_mm_per_tap']:.4f} mm/tap"
+        f" (truth {truth['decrement_mm_per_tap']:.4f})"
+    )
+    if len(doc["taps"]) == len(truth["taps"]):
+        err = max(
+            abs(a["amplitude_mm"] - b["amplitude_mm"])
+            for a, b in zip(doc["taps"], truth["taps"], strict=True)
+        )
+        print(f"   worst per-tap amplitude error {err:.3f} mm")
+    print(
+        f"   events {[(e['kind'], e['tap_index']) for e in doc.get('events', [])]}"
+        " (truth: hesitation before tap 5, halt before tap 11)"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer recordings")
+    parser.add_argument(
+        "--e2e", action="store_true", help="also run videos through the pipeline (~1 min)"
+    )
     args = parser.parse_args()
     n = 2 if args.quick else 5
     accuracy(n)
     cutoff_choice()
     robustness(n)
     speed()
+    if args.e2e:
+        end_to_end()
 
 
 if __name__ == "__main__":
