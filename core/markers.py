@@ -298,7 +298,7 @@ def detect_markers(
 
     measured: list[_Measured] = []
     if search_xy_px is None:
-        bg, sigma = _background_and_noise(image[::4, ::4])
+        bg, sigma = _background_and_noise(image[::8, ::8])
         thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
         for x0, y0, x1, y1 in _full_frame_regions(image, thr, params):
             measured.extend(_search_region(image, (x0, y0, x1, y1), thr, params, measured))
@@ -386,16 +386,19 @@ def _full_frame_regions(
     if hp * _POOL != h or wp * _POOL != w:
         binary = cv2.copyMakeBorder(binary, 0, hp * _POOL - h, 0, wp * _POOL - w,
                                     cv2.BORDER_CONSTANT, value=0)  # fmt: skip
-    # max-pooling: the mean of a 4x4 cell is > 0 when any of its pixels is set
-    pooled = cv2.resize(binary, (wp, hp), interpolation=cv2.INTER_AREA)
-    n, _, stats, _ = cv2.connectedComponentsWithStats(pooled, connectivity=8)
+    # max-pooling in two 2x2 steps (OpenCV's fast path): a mean is > 0 when any
+    # of its pixels is set (255 / 4 rounds to 64, 64 / 4 to 16)
+    half_size = cv2.resize(binary, (wp * 2, hp * 2), interpolation=cv2.INTER_AREA)
+    pooled = cv2.resize(half_size, (wp, hp), interpolation=cv2.INTER_AREA)
+    contours, _ = cv2.findContours(pooled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     pad = _MARGIN_PX + 3
     regions = []
-    for i in range(1, n):
-        x, y, bw, bh, _area = (int(v) for v in stats[i])
+    for contour in contours:
+        x, y, bw, bh = cv2.boundingRect(contour)
         x0, y0 = max(0, x * _POOL - pad), max(0, y * _POOL - pad)
         x1, y1 = min(w, (x + bw) * _POOL + pad), min(h, (y + bh) * _POOL + pad)
         regions.append((x0, y0, x1, y1))
+    regions.sort(key=lambda r: (r[1], r[0]))  # raster order, independent of OpenCV's
     return regions
 
 
