@@ -27,6 +27,8 @@ Life cycle of a :class:`app.models.Job` row::
   ``max_attempts`` is reached.
 - **reap** (:func:`reap_expired`) fails jobs whose lease expired with no
   attempts left (a job that kills its worker every time).
+- **cancel** (:func:`cancel`) fails a queued or running job (e.g. its trial was
+  deleted); a worker still running it loses its lease and stores nothing.
 
 Timestamps come from the worker's clock (UTC): machines sharing a PostgreSQL
 database must keep their clocks synchronised (NTP) to well under the lease.
@@ -360,6 +362,23 @@ def fail(
         else:
             _mark_targets_failed(db, job.trial_id, job.calibration_id)
     return str(values["status"])
+
+
+def cancel(db: Session, job_id: int, message: str) -> bool:
+    """Fail a queued or running job with ``message`` in the caller's transaction.
+
+    A worker still running it finds out at its next heartbeat or when it tries
+    to finish, and discards its work. Returns False if the job had already
+    ended (or does not exist).
+    """
+    now = utcnow()
+    result = db.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.status.in_(("queued", "running")))
+        .values(status="failed", error=message, finished_at=now, lease_expires_at=None)
+        .execution_options(synchronize_session=False)
+    )
+    return bool(result.rowcount)  # type: ignore[attr-defined]
 
 
 WORKER_LOST_MESSAGE = (

@@ -8,6 +8,8 @@ heartbeat thread keeping the lease alive, then store the outcome:
   (:meth:`JobContext.finish`), so a job is done exactly once in effect;
 - a :class:`core.errors.BradyscopeError` or :class:`app.errors.AppError`
   becomes the job's user-facing error, without retry (bad input stays bad);
+- a :class:`RetryableJobError` (e.g. video files missing on this worker) is
+  retried until ``max_attempts`` and keeps its sentence;
 - any other exception is logged with its traceback and retried until
   ``max_attempts``; the user sees a plain sentence, not the traceback;
 - a lost lease (another worker took the job over) drops the attempt silently.
@@ -46,6 +48,15 @@ from core.errors import BradyscopeError
 log = logging.getLogger(__name__)
 
 Handler = Callable[["JobContext"], None]
+
+
+class RetryableJobError(Exception):
+    """A failure another attempt (perhaps by another worker) may not have.
+
+    Its message is user-facing and kept in the job; the job is retried until
+    ``max_attempts``, like an unexpected error, but without hiding the reason.
+    """
+
 
 UNEXPECTED_RETRY_MESSAGE = (
     "an unexpected error interrupted attempt {attempt} of {max_attempts}; it will be retried."
@@ -201,10 +212,12 @@ def _trial_inputs(ctx: JobContext) -> dict[str, Any]:
                 f"trial {trial.id} has no {' and no '.join(missing)} video; upload the trial again."
             )
         cal = calibration_for(db, trial.session)
+        paths = {side: ctx.storage.absolute(videos[side].path) for side in ("left", "right")}
+        _require_files(ctx, paths.values(), what=f"trial {trial.id}")
         return {
             "trial_id": trial.id,
-            "left": ctx.storage.absolute(videos["left"].path),
-            "right": ctx.storage.absolute(videos["right"].path),
+            "left": paths["left"],
+            "right": paths["right"],
             "offset_frames": (
                 trial.offset_frames
                 if trial.offset_frames is not None
@@ -220,6 +233,16 @@ def _trial_inputs(ctx: JobContext) -> dict[str, Any]:
             },
             "rig_json": cal.rig_json,
         }
+
+
+def _require_files(ctx: JobContext, paths: Any, *, what: str) -> None:
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise RetryableJobError(
+            f"the video files of {what} are missing from the data directory "
+            f"{ctx.storage.data_dir} on worker {default_worker_name()}; every worker must use "
+            "the same data directory (BRADYSCOPE_DATA_DIR)."
+        )
 
 
 def analyze_trial(ctx: JobContext) -> None:
@@ -307,6 +330,7 @@ def calibrate(ctx: JobContext) -> None:
             )
         left = ctx.storage.absolute(videos["left"].path)
         right = ctx.storage.absolute(videos["right"].path)
+        _require_files(ctx, (left, right), what=f"calibration {cal.id}")
     board = _board_spec(board_doc, calibration_id=ctx.job.calibration_id)
     outcome = calibrate_stereo_from_paths(left, right, board, progress=ctx.progress)
     rig_doc = rig_to_dict(outcome.rig)
@@ -431,6 +455,9 @@ def run_job(
     except (BradyscopeError, AppError) as exc:
         log.info("job %d (%s) failed: %s", job.id, job.kind, exc)
         return _fail(sessions, job, str(exc), retryable=False, settings=settings)
+    except RetryableJobError as exc:
+        log.warning("job %d (%s), attempt %d: %s", job.id, job.kind, job.attempts, exc)
+        return _fail(sessions, job, str(exc), retryable=True, settings=settings)
     except Exception:
         log.exception("job %d (%s), attempt %d: unexpected error", job.id, job.kind, job.attempts)
         if job.attempts < job.max_attempts:

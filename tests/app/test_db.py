@@ -6,11 +6,12 @@ from datetime import UTC, datetime, timedelta, timezone
 
 import pytest
 import sqlalchemy as sa
-from sqlalchemy.exc import IntegrityError, StatementError
+from sqlalchemy.exc import DBAPIError, IntegrityError, StatementError
 
 from app.db import current_revision, get_engine, head_revision
 from app.errors import CalibrationMissingError
 from app.models import (
+    AuditEvent,
     Calibration,
     Job,
     Patient,
@@ -179,3 +180,36 @@ def test_job_defaults(db_session):
     db_session.flush()
     assert (job.status, job.progress, job.attempts, job.payload) == ("queued", 0.0, 0, {})
     assert job.run_after.tzinfo is not None
+
+
+def _audit_event(db) -> int:
+    event = AuditEvent(actor_type="user", actor_id="1", action="read", resource_type="patient")
+    db.add(event)
+    db.commit()
+    return event.id
+
+
+def _assert_append_only(db, event_id) -> None:
+    for statement in (
+        sa.update(AuditEvent).where(AuditEvent.id == event_id).values(outcome="denied"),
+        sa.delete(AuditEvent).where(AuditEvent.id == event_id),
+    ):
+        with pytest.raises(DBAPIError, match="append-only"):
+            db.execute(statement)
+        db.rollback()
+    assert db.get(AuditEvent, event_id).outcome == "success"
+
+
+def test_audit_events_are_append_only_sqlite(db_session):
+    _assert_append_only(db_session, _audit_event(db_session))
+
+
+@pytest.mark.postgres
+def test_audit_events_are_append_only_postgres(pg_settings):
+    from app.db import get_sessionmaker
+
+    with get_sessionmaker(pg_settings)() as db:
+        _assert_append_only(db, _audit_event(db))
+        with pytest.raises(DBAPIError, match="append-only"):
+            db.execute(sa.text("TRUNCATE audit_events"))
+        db.rollback()

@@ -213,3 +213,27 @@ def test_enqueue_validates_arguments(db_session):
         jobs.enqueue(db_session, "calibrate", max_attempts=0)
     with pytest.raises(ValueError, match="kind"):
         jobs.enqueue(db_session, "")
+
+
+def test_cancel_a_queued_job_and_a_running_one(db_sessionmaker):
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        queued = jobs.enqueue(db, "analyze_trial").id
+        running = jobs.enqueue(db, "analyze_trial").id
+    with sm() as db, db.begin():
+        assert jobs.cancel(db, queued, "the trial was deleted")
+    claimed = _claim(sm)
+    assert claimed.id == running  # the cancelled job is not claimed
+    with sm() as db, db.begin():
+        assert jobs.cancel(db, running, "the trial was deleted")
+    with pytest.raises(LeaseLostError):  # its worker finds out and stores nothing
+        jobs.heartbeat(sm, claimed, lease_s=LEASE_S)
+    with pytest.raises(LeaseLostError):
+        with sm() as db, db.begin():
+            jobs.complete(db, claimed)
+    assert (_job(sm, running).status, _job(sm, running).error) == (
+        "failed",
+        "the trial was deleted",
+    )
+    with sm() as db, db.begin():
+        assert not jobs.cancel(db, running, "again")  # already ended

@@ -299,6 +299,21 @@ def test_analyze_without_calibration_fails_with_a_sentence(
 
 
 @pytest.mark.slow
+def test_missing_video_files_are_retried_with_a_sentence(
+    app_settings, db_sessionmaker, storage, small_recording
+):
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+        for video in db.scalars(select(Video).where(Video.trial_id == trial_id)):
+            storage.delete(video.path)  # as on a worker that does not share the data dir
+    assert run_worker(app_settings, once=True) == 3  # every attempt, then failed
+    job = _job(sm, job_id)
+    assert job.status == "failed" and job.attempts == 3
+    assert "missing from the data directory" in job.error and "BRADYSCOPE_DATA_DIR" in job.error
+
+
+@pytest.mark.slow
 def test_calibrate_handler_makes_a_ready_calibration(
     app_settings, db_sessionmaker, storage, tmp_path
 ):
