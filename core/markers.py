@@ -326,19 +326,16 @@ def detect_markers(
 
 
 def _background_and_noise(sample: NDArray[np.uint8]) -> tuple[float, float]:
-    """Median and MAD-based sigma (gray levels) from a uint8 sample's histogram."""
-    hist = np.bincount(sample.ravel(), minlength=256).astype(np.int64)
-    n = int(hist.sum())
-    cum = np.cumsum(hist)
-    med = int(np.searchsorted(cum, (n + 1) // 2))
-    # MAD: smallest k with at least half of the values in [med - k, med + k]
-    ks = np.arange(256)
-    hi = cum[np.minimum(med + ks, 255)]
-    lo_idx = med - ks - 1
-    lo = np.where(lo_idx >= 0, cum[np.clip(lo_idx, 0, 255)], 0)
-    k = int(np.searchsorted(hi - lo, (n + 1) // 2))
-    sigma = max(1.4826 * k, 0.7)  # quantisation floor
-    return float(med), float(sigma)
+    """Median and noise sigma (gray levels) of a uint8 sample, from its histogram.
+
+    Sigma comes from the lower half only (median minus first quartile), since
+    the bright blobs are outliers on the upper side.
+    """
+    cum = np.cumsum(np.bincount(sample.ravel(), minlength=256))
+    n = int(cum[-1])
+    q25, q50 = np.searchsorted(cum, [(n + 3) // 4, (n + 1) // 2]).tolist()
+    sigma = max((q50 - q25) / 0.6745, 0.7)  # 0.7: quantisation floor
+    return float(q50), float(sigma)
 
 
 def _merged_windows(
