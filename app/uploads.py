@@ -241,7 +241,7 @@ class _Receiver:
         else:
             self.result.fields[self._name] = self._text.decode("utf-8", "replace")
 
-    def callbacks(self) -> dict[str, Any]:
+    def callbacks(self) -> Any:  # python_multipart.MultipartCallbacks
         return {
             "on_part_begin": self.on_part_begin,
             "on_part_data": self.on_part_data,

@@ -7,10 +7,22 @@ and shapes the answer. Every status a route can answer is listed in its
 
 from fastapi import APIRouter
 
-from app.api import auth, patients, results, rigs, sessions, trials
+from app.api.auth import router as auth_router
+from app.api.patients import router as patients_router
+from app.api.results import router as results_router
+from app.api.rigs import router as rigs_router
+from app.api.sessions import router as sessions_router
+from app.api.trials import router as trials_router
 
 api_router = APIRouter()
-for module in (auth, patients, rigs, sessions, trials, results):
-    api_router.include_router(module.router)
+for _router in (
+    auth_router,
+    patients_router,
+    rigs_router,
+    sessions_router,
+    trials_router,
+    results_router,
+):
+    api_router.include_router(_router)
 
 __all__ = ["api_router"]
