@@ -98,9 +98,12 @@ def _rig_of(db: Session, session: Any) -> Any:
 
 
 def check_trial_target(db: Session, actor: Actor, session_id: int) -> None:
-    """Fail fast (404) before receiving a large body for a session that does not exist."""
-    load_session(db, actor, session_id, "create")
-    db.rollback()  # end the read transaction; the upload may take a while
+    """Fail fast before receiving a large body: unknown session (404), no calibration (409)."""
+    session = load_session(db, actor, session_id, "create")
+    try:
+        _rig_of(db, session)
+    finally:
+        db.rollback()  # end the read transaction; the upload may take a while
 
 
 def _parse_hand(upload: ParsedUpload) -> str:
