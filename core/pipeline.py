@@ -11,7 +11,8 @@ Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
    numbers per frame. After a full-frame search, each frame is only searched
    around the positions predicted from the previous frames; a full-frame
    search is repeated every ``FULL_SEARCH_EVERY`` frames and whenever fewer
-   markers than recently seen are found.
+   markers are found than the last full searches all saw (so a marker that
+   reappears after a short occlusion is picked up at once).
 3. **Synchronisation** (:mod:`core.sync`): the frame offset from the marker
    motion, or the one given.
 4. **Matching and triangulation** (:mod:`core.matching`,
@@ -56,8 +57,8 @@ CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "re
 
 #: A full-frame marker search at least this often (frames), to pick up new markers.
 FULL_SEARCH_EVERY = 10
-#: Recent full-frame counts (frames) that define how many markers to expect.
-EXPECTED_COUNT_WINDOW = 100
+#: The last few full-frame searches define how many markers to expect.
+EXPECTED_COUNT_FULL_SEARCHES = 3
 #: Pairs farther from the epipolar constraint are not stereo candidates (px).
 MAX_EPIPOLAR_PX = 3.0
 #: Stereo candidates with a larger reprojection error are dropped (px).
@@ -200,11 +201,11 @@ class _CameraDetections:
         self._prev2: FloatArray | None = None
         self._diam = 10.0
 
-    def _expected(self, frame: int) -> int:
-        self._recent_full = [
-            (f, c) for f, c in self._recent_full if frame - f <= EXPECTED_COUNT_WINDOW
-        ]
-        return max((c for _, c in self._recent_full), default=0)
+    def _expected(self) -> int:
+        # Markers reliably seen: the fewest of the last few full searches (a
+        # flickering glint does not count; a marker hidden for a moment does).
+        self._recent_full = self._recent_full[-EXPECTED_COUNT_FULL_SEARCHES:]
+        return min((c for _, c in self._recent_full), default=0)
 
     def _predict(self) -> tuple[FloatArray | None, float]:
         prev = self._prev
@@ -225,7 +226,7 @@ class _CameraDetections:
     def process(self, image: NDArray[np.uint8]) -> None:
         frame = len(self.frames)
         pred, radius = self._predict()
-        expected = self._expected(frame)
+        expected = self._expected()
         full = pred is None or frame % self.full_every == 0
         xy = np.zeros((0, 2))
         diam = q = np.zeros(0)
@@ -367,7 +368,7 @@ def _compute_metrics(
         from core.metrics import compute_metrics
     except ImportError:  # INTEGRATION POINT: core/metrics.py not in this tree yet
         return None, ["tapping metrics are not available in this build"]
-    measured = status != MISSING
+    measured = status == MEASURED  # core.metrics: False where filled in or missing
     try:
         return compute_metrics(positions_mm, fps, measured=measured), []
     except ValueError as exc:

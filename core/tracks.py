@@ -12,15 +12,16 @@ Three steps (see ``docs/tracking.md``):
    over start new tracks. A track ends after a few frames without any
    observation, or after ``max_single_view_frames`` without a stereo one.
 2. **Identities** (:func:`select_markers`): tracklets with too few stereo
-   points are dropped; the rest are linked into chains (a later tracklet
-   continues an earlier one when they do not overlap in time and its start
-   lies within a motion-dependent distance of the other's end). The two
-   chains that move most (largest 3D spread) are the fingers; static and
-   erratic reflections never build such chains.
-3. **Labels**: of the two, the one with the larger 3D spread over the frames
-   where both are measured is the **index** finger (in the standard
-   finger-tapping posture the index does most of the opening and closing while
-   the thumb stays nearly still). ``swap_labels`` exchanges them.
+   points are dropped (flicker, erratic glints); the rest are linked into
+   chains (a later tracklet continues an earlier one when they do not overlap
+   in time and its start lies within a motion-dependent distance of the
+   other's end).
+3. **Labels** (standard finger-tapping posture, ``docs/simulator.md``): the
+   **index** is the fastest moving chain (it carries ~85 % of the opening;
+   reflections on the hand or a ring only follow the hand's slow drift); the
+   **thumb** is the other moving chain that comes closest to the index (the
+   fingertips touch at every closure). Static reflections never move and
+   never qualify. ``swap_labels`` exchanges the two labels.
 
 Gaps of at most ``max_gap_frames`` between measured frames are filled and
 marked ``interpolated`` (:func:`fill_gaps`): a cubic spline through the
@@ -319,8 +320,17 @@ def select_markers(
     link_speed_mm_s: float = 600.0,
     link_max_mm: float = 80.0,
     max_link_gap_s: float = 2.0,
+    max_closed_distance_mm: float = 60.0,
 ) -> tuple[list[list[int]], list[str]]:
-    """Link tracklets into chains and pick the two that move most (the fingers).
+    """Link tracklets into chains and pick the thumb and index chains.
+
+    Labelling rule (standard finger-tapping posture): among the chains that
+    move (3D spread at least ``min_spread_mm``), the **index** is the fastest
+    one (75th percentile of its frame-to-frame speed; the index carries most
+    of the opening, reflections on the hand only follow its slow drift), and
+    the **thumb** is the other moving chain that comes closest to the index
+    (5th percentile of their distance: the fingertips touch at each closure,
+    a reflection on the hand or a ring never does).
 
     Parameters
     ----------
@@ -337,11 +347,13 @@ def select_markers(
         link_max_mm)`` of the chain's last one.
     max_link_gap_s : float
         No links across longer gaps (s).
+    max_closed_distance_mm : float
+        A warning is given when thumb and index never come closer (mm).
 
     Returns
     -------
     chains : list of list of int
-        Two (or fewer) chains of tracklet indices, in no particular label order.
+        ``[thumb, index]`` chains of tracklet indices (fewer when not found).
     warnings : list of str
     """
     if fps <= 0:
@@ -382,15 +394,50 @@ def select_markers(
             chains[best[1]].append(i)
             spans[best[1]].append((s0, s1))
 
-    def chain_spread(chain: list[int]) -> float:
-        pts = np.concatenate([tracklets[j].positions_mm[tracklets[j].stereo] for j in chain])
-        return float(np.sqrt(np.sum(np.var(pts, axis=0)))) if len(pts) > 1 else 0.0
-
-    scored = sorted(((chain_spread(ch), ch) for ch in chains), key=lambda sc: -sc[0])
-    moving = [ch for s, ch in scored if s >= min_spread_mm]
-    if len(moving) < 2:
-        warnings.append(f"only {len(moving)} moving marker(s) were found; thumb and index need two")
-    return [sorted(ch, key=lambda j: int(tracklets[j].frames[0])) for ch in moving[:2]], warnings
+    # Per chain: stereo positions on the frame axis.
+    n_frames = 1 + max((int(tracklets[j].frames[-1]) for ch in chains for j in ch), default=-1)
+    stats = []
+    for ch in chains:
+        track = np.full((n_frames, 3), np.nan)
+        for j in ch:
+            t = tracklets[j]
+            track[t.frames[t.stereo]] = t.positions_mm[t.stereo]
+        ok = np.all(np.isfinite(track), axis=1)
+        pts = track[ok]
+        spread = float(np.sqrt(np.sum(np.var(pts, axis=0)))) if len(pts) > 1 else 0.0
+        step = np.linalg.norm(np.diff(track, axis=0), axis=1) * fps
+        step = step[np.isfinite(step)]
+        speed = float(np.percentile(step, 75)) if len(step) >= 3 else 0.0
+        stats.append((track, ok, spread, speed))
+    moving = [k for k, st in enumerate(stats) if st[2] >= min_spread_mm]
+    if not moving:
+        warnings.append("no moving marker was found; thumb and index need two")
+        return [], warnings
+    # The index finger: the fastest chain (it carries most of the opening).
+    index = max(moving, key=lambda k: stats[k][3])
+    # The thumb: the moving chain that comes closest to the index finger (the
+    # fingertips touch at every closure; reflections on the hand stay farther).
+    best_thumb: tuple[float, int] | None = None
+    for k in moving:
+        if k == index:
+            continue
+        common = stats[k][1] & stats[index][1]
+        if np.count_nonzero(common) < min_stereo_frames:
+            continue
+        dist = np.linalg.norm(stats[k][0][common] - stats[index][0][common], axis=1)
+        closest = float(np.percentile(dist, 5))
+        if best_thumb is None or closest < best_thumb[0]:
+            best_thumb = (closest, k)
+    if best_thumb is None:
+        warnings.append("only one moving marker was found; thumb and index need two")
+        return [sorted(chains[index], key=lambda j: int(tracklets[j].frames[0]))], warnings
+    if best_thumb[0] > max_closed_distance_mm:
+        warnings.append(
+            f"the two finger markers never came closer than {best_thumb[0]:.0f} mm; check that"
+            " the fingertips touch at each closure and that the markers sit on the nails"
+        )
+    ordered = [chains[best_thumb[1]], chains[index]]
+    return [sorted(ch, key=lambda j: int(tracklets[j].frames[0])) for ch in ordered], warnings
 
 
 def fill_gaps(
@@ -697,7 +744,6 @@ def track_markers(
     positions = np.full((n_frames, m, 3), np.nan)
     status = np.full((n_frames, m), MISSING, dtype=object)
     reproj = np.full((n_frames, m), np.nan)
-    spreads = []
     for k, chain in enumerate(chains):
         pos = np.full((n_frames, 3), np.nan)
         rep = np.full(n_frames, np.nan)
@@ -733,19 +779,7 @@ def track_markers(
         status[meas, k] = MEASURED
         status[filled & ~meas, k] = INTERPOLATED
         reproj[meas, k] = rep[meas]
-        spreads.append(pos)
-    # Labelling: the index finger moves most in the standard posture.
-    if len(chains) == 2:
-        both = np.all(np.isfinite(spreads[0]), axis=1) & np.all(np.isfinite(spreads[1]), axis=1)
-        if np.count_nonzero(both) >= 2:
-            s = [float(np.sqrt(np.sum(np.var(p[both], axis=0)))) for p in spreads]
-        else:
-            s = [float(np.sqrt(np.nansum(np.nanvar(p, axis=0)))) for p in spreads]
-        order = [0, 1] if s[0] <= s[1] else [1, 0]  # (thumb, index)
-    else:
-        order = [0, 1]
-    if swap_labels:
-        order = order[::-1]
+    order = [1, 0] if swap_labels else [0, 1]
     positions = positions[:, order]
     status = status[:, order]
     reproj = reproj[:, order]

@@ -1,14 +1,78 @@
-"""`bradyscope analyze` (INTERFACES.md)."""
+"""`bradyscope analyze`: a stereo recording and a rig to markers.csv + result.json (INTERFACES.md)."""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("analyze", help="(not built yet)")
+    p = sub.add_parser(
+        "analyze",
+        help="measure thumb and index trajectories and tapping metrics from two videos",
+        description=(
+            "Detect the finger markers in both videos, synchronise the cameras, triangulate,"
+            " track thumb and index, and write markers.csv and result.json into OUTDIR."
+        ),
+    )
+    p.add_argument("--rig", required=True, type=Path, help="rig file (bradyscope.rig/1 JSON)")
+    p.add_argument("--left", required=True, type=Path, help="left camera video")
+    p.add_argument("--right", required=True, type=Path, help="right camera video")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUTDIR",
+                   help="output folder (created if needed)")  # fmt: skip
+    sync = p.add_mutually_exclusive_group()
+    sync.add_argument(
+        "--offset-frames",
+        type=float,
+        metavar="K",
+        help="right frame j was taken with left frame j + K (default: estimated from the motion)",
+    )
+    sync.add_argument(
+        "--auto-sync",
+        action="store_true",
+        help="estimate the frame offset from the marker motion (the default)",
+    )
+    p.add_argument(
+        "--swap-labels",
+        action="store_true",
+        help="exchange the automatic thumb/index labels",
+    )
+    p.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=0.1,
+        metavar="S",
+        help="fill gaps up to this long (s) by interpolation; longer ones stay missing (0.1)",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("bradyscope analyze is not built yet")
+    from app.cli.progress import progress_bar
+    from core.camera import read_rig
+    from core.errors import InputError
+    from core.pipeline import analyze_recording, write_analysis
+
+    if args.max_gap_s < 0:
+        raise InputError("--max-gap-s must be zero or positive.")
+    rig = read_rig(args.rig)
+    with progress_bar() as progress:
+        analysis = analyze_recording(
+            rig,
+            args.left,
+            args.right,
+            offset_frames=args.offset_frames,
+            max_gap_s=args.max_gap_s,
+            swap_labels=args.swap_labels,
+            progress=progress,
+        )
+    try:
+        write_analysis(analysis, args.output)
+    except OSError as exc:
+        raise InputError(
+            f"cannot write the results into {args.output}: {exc.strerror}; choose another folder."
+        ) from exc
+    for warning in analysis.warnings:
+        print(f"bradyscope analyze: warning: {warning}", file=sys.stderr)
+    return 0

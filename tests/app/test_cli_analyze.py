@@ -1,0 +1,91 @@
+"""`bradyscope analyze` on a small simulated recording: files, sync option, errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from core.camera import ImageSize
+from core.simulation.kinematics import TappingScenario
+from core.simulation.session import ImagingScenario, SimulatedSession, simulate_session
+
+OFFSET = 10  # frames: the largest offset the acceptance names
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> SimulatedSession:
+    return simulate_session(
+        tmp_path_factory.mktemp("cli"),
+        seed=8,
+        tapping=TappingScenario(duration_s=2.5, fps=100.0, frequency_hz=3.0),
+        imaging=ImagingScenario(
+            image_size=ImageSize(640, 512), offset_frames=OFFSET, distractors_static=1
+        ),
+    )
+
+
+def test_analyze_writes_outputs_and_finds_the_offset(
+    session: SimulatedSession, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    code = main(
+        ["analyze", "--rig", str(session.rig_path), "--left", str(session.left_video),
+         "--right", str(session.right_video), "-o", str(out), "--auto-sync"]
+    )  # fmt: skip
+    assert code == 0
+    doc = json.loads((out / "result.json").read_text(encoding="utf-8"))
+    assert doc["format"] == "bradyscope.result/1"
+    assert doc["sync"]["offset_frames"] == float(OFFSET) and doc["sync"]["method"] == "auto"
+    with open(out / "markers.csv", newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    n = len(session.truth["positions_mm"])
+    assert len(rows) == 2 * n
+    truth = np.asarray(session.truth["positions_mm"])[:, :2]
+    measured = [r for r in rows if r["status"] == "measured"]
+    assert len(measured) > 0.9 * 2 * (n - OFFSET)
+    for r in measured[::25]:
+        m = 0 if r["marker"] == "thumb" else 1
+        xyz = np.array([float(r["x_mm"]), float(r["y_mm"]), float(r["z_mm"])])
+        assert (
+            np.linalg.norm(xyz - truth[int(r["frame"]), m]) < 0.3
+        )  # mm (640x512: half the resolution)
+
+
+def test_given_offset_and_swap(session: SimulatedSession, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    code = main(
+        ["analyze", "--rig", str(session.rig_path), "--left", str(session.left_video),
+         "--right", str(session.right_video), "-o", str(out), "--offset-frames", str(OFFSET),
+         "--swap-labels"]
+    )  # fmt: skip
+    assert code == 0
+    doc = json.loads((out / "result.json").read_text(encoding="utf-8"))
+    assert doc["sync"] == {"offset_frames": float(OFFSET), "method": "given", "confidence": 1.0}
+    with open(out / "markers.csv", newline="", encoding="utf-8") as fh:
+        row = next(
+            r for r in csv.DictReader(fh) if r["status"] == "measured" and r["marker"] == "thumb"
+        )
+    truth = np.asarray(session.truth["positions_mm"])[int(row["frame"]), 1]  # the index finger
+    xyz = np.array([float(row["x_mm"]), float(row["y_mm"]), float(row["z_mm"])])
+    assert np.linalg.norm(xyz - truth) < 0.3  # mm
+
+
+def test_bad_input_is_one_sentence(
+    session: SimulatedSession, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(
+        ["analyze", "--rig", str(session.rig_path), "--left", str(tmp_path / "nope.mkv"),
+         "--right", str(session.right_video), "-o", str(tmp_path / "out")]
+    )  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bradyscope analyze:") and "nope.mkv" in err and "\n" not in err
+    assert "Traceback" not in err
+    with pytest.raises(SystemExit):
+        main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
+              "--offset-frames", "1", "--auto-sync"])  # fmt: skip

@@ -1,0 +1,274 @@
+"""analyze_recording end to end on simulated recordings with exact ground truth (issue 4 acceptance).
+
+Sessions are rendered once per test run (module scope) and shared:
+
+- ``messy``: 1280x1024, 100 fps, 10 s, MPEG-4 (mp4v) compression, 6 ms
+  motion blur, noise sigma 3, 3 static and 2 moving distractors, a right
+  frame offset of -7 frames (not given), the index hidden from the right
+  camera for 0.08 s while it moves fast, and the thumb hidden from the left
+  camera for 0.3 s (too long to fill).
+- ``clean``: 1280x1024, 100 fps, lossless, default noise and blur, 3 s (the
+  accuracy figure does not depend on the length; 10 s is the bench's job).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.camera import ImageSize, read_rig, write_rig
+from core.errors import DetectionError, InputError
+from core.pipeline import CSV_HEADER, Analysis, analyze_recording, write_analysis, write_markers_csv
+from core.simulation.kinematics import TappingScenario
+from core.simulation.session import ImagingScenario, SimulatedSession, simulate_session
+from core.video import VideoWriter
+
+FULL = ImageSize(1280, 1024)
+MESSY_OFFSET = -7
+FAST_OCCLUSION = (2.02, 0.08)  # (t_start_s, duration_s): index hidden from the right camera
+LONG_OCCLUSION = (5.0, 0.3)  # thumb hidden from the left camera
+
+
+def truth_positions(session: SimulatedSession) -> np.ndarray:
+    return np.asarray(session.truth["positions_mm"], dtype=float)[:, :2]
+
+
+def errors_mm(analysis: Analysis, session: SimulatedSession) -> np.ndarray:
+    return np.linalg.norm(analysis.positions_mm - truth_positions(session), axis=2)
+
+
+def aperture_error_mm(analysis: Analysis, session: SimulatedSession) -> np.ndarray:
+    truth = truth_positions(session)
+    ap = np.linalg.norm(analysis.positions_mm[:, 0] - analysis.positions_mm[:, 1], axis=1)
+    ap_true = np.linalg.norm(truth[:, 0] - truth[:, 1], axis=1)
+    return ap - ap_true
+
+
+@pytest.fixture(scope="module")
+def messy(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
+    out = tmp_path_factory.mktemp("messy")
+    session = simulate_session(
+        out,
+        seed=21,
+        tapping=TappingScenario(duration_s=10.0, fps=100.0, frequency_hz=3.0, amplitude_mm=50.0),
+        imaging=ImagingScenario(
+            image_size=FULL,
+            codec="mp4v",
+            exposure_s=0.006,
+            noise_sigma=3.0,
+            distractors_static=3,
+            distractors_moving=2,
+            offset_frames=MESSY_OFFSET,
+            occlusions=(
+                ("right", "index", *FAST_OCCLUSION),
+                ("left", "thumb", *LONG_OCCLUSION),
+            ),
+        ),
+    )
+    stages: list[str] = []
+    analysis = analyze_recording(
+        read_rig(session.rig_path),
+        session.left_video,
+        session.right_video,
+        progress=lambda stage, done, total: stages.append(stage),
+    )
+    assert {"detection", "synchronisation", "triangulation", "tracking"} <= set(stages)
+    return session, analysis
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
+    out = tmp_path_factory.mktemp("clean")
+    session = simulate_session(
+        out,
+        seed=5,
+        tapping=TappingScenario(duration_s=3.0, fps=100.0, frequency_hz=3.5),
+        imaging=ImagingScenario(image_size=FULL, codec="lossless"),
+    )
+    analysis = analyze_recording(
+        read_rig(session.rig_path), session.left_video, session.right_video
+    )
+    return session, analysis
+
+
+# --------------------------------------------------------------------------- clean
+
+
+def test_clean_accuracy(clean: tuple[SimulatedSession, Analysis]) -> None:
+    session, analysis = clean
+    meas = analysis.status == "measured"
+    assert np.mean(meas) >= 0.99
+    err = errors_mm(analysis, session)[meas]
+    assert np.sqrt(np.mean(err**2)) <= 0.03  # mm (acceptance, clean)
+    ap = aperture_error_mm(analysis, session)
+    both = np.all(meas, axis=1)
+    assert np.sqrt(np.mean(ap[both] ** 2)) <= 0.05  # mm (acceptance: thumb-index distance)
+    assert analysis.sync["offset_frames"] == 0.0 and analysis.sync["method"] == "auto"
+    assert analysis.quality["reprojection_px_median"] < 0.1  # px
+
+
+def test_clean_identities_and_shapes(clean: tuple[SimulatedSession, Analysis]) -> None:
+    session, analysis = clean
+    n = len(session.truth["positions_mm"])
+    assert analysis.positions_mm.shape == (n, 2, 3)
+    assert analysis.status.shape == analysis.reprojection_px.shape == (n, 2)
+    assert analysis.marker_names == ("thumb", "index")
+    np.testing.assert_array_equal(analysis.frame_numbers, np.arange(n))
+    assert np.nanmax(errors_mm(analysis, session)) < 1.0  # mm: never the other finger
+
+
+def test_swap_labels_given_offset(clean: tuple[SimulatedSession, Analysis]) -> None:
+    session, analysis = clean
+    swapped = analyze_recording(
+        read_rig(session.rig_path),
+        session.left_video,
+        session.right_video,
+        offset_frames=0,
+        swap_labels=True,
+    )
+    assert swapped.sync["method"] == "given" and swapped.sync["offset_frames"] == 0.0
+    np.testing.assert_allclose(swapped.positions_mm[:, ::-1], analysis.positions_mm, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- messy
+
+
+def test_messy_sync_found_exactly(messy: tuple[SimulatedSession, Analysis]) -> None:
+    _, analysis = messy
+    assert analysis.sync["offset_frames"] == float(MESSY_OFFSET)
+    assert analysis.sync["method"] == "auto"
+    assert analysis.sync["confidence"] > 0.5
+
+
+def test_messy_accuracy_and_identities(messy: tuple[SimulatedSession, Analysis]) -> None:
+    session, analysis = messy
+    truth = truth_positions(session)
+    n = truth.shape[0]
+    meas = analysis.status == "measured"
+    err = errors_mm(analysis, session)
+    assert np.sqrt(np.mean(err[meas] ** 2)) <= 0.1  # mm (acceptance with blur/compression/noise)
+    # Distractors never become thumb or index, identities never swap.
+    assert np.nanmax(err) < 1.0  # mm
+    ap = aperture_error_mm(analysis, session)
+    both = np.all(meas, axis=1)
+    assert np.sqrt(np.mean(ap[both] ** 2)) <= 0.1  # mm
+    # Frames where both cameras see the marker: the right frame j = i - K exists
+    # and no occlusion hides it.
+    k = MESSY_OFFSET
+    paired = (np.arange(n) - k >= 0) & (np.arange(n) - k < n)  # right frame i - K exists
+    visible = np.repeat(paired[:, None], 2, axis=1)
+    for occ in session.truth["occlusions"]:
+        m = 0 if occ["marker"] == "thumb" else 1
+        for first, last in occ["frames"]:
+            if occ["camera"] == "right":  # right frame j pairs with left frame j + K
+                first, last = first + k, last + k
+            visible[max(first, 0) : last + 1, m] = False
+    assert np.count_nonzero(meas & visible) >= 0.99 * np.count_nonzero(visible)
+
+
+def test_messy_short_occlusion_interpolated(messy: tuple[SimulatedSession, Analysis]) -> None:
+    session, analysis = messy
+    occ = next(o for o in session.truth["occlusions"] if o["marker"] == "index")
+    ((first, last),) = occ["frames"]
+    left_frames = np.arange(first, last + 1) + MESSY_OFFSET  # right camera numbering -> left
+    assert len(left_frames) <= 10
+    assert np.all(analysis.status[left_frames, 1] == "interpolated")
+    err = errors_mm(analysis, session)[left_frames, 1]
+    assert np.max(err) <= 0.5  # mm (acceptance)
+
+
+def test_messy_long_occlusion_missing(messy: tuple[SimulatedSession, Analysis]) -> None:
+    session, analysis = messy
+    occ = next(o for o in session.truth["occlusions"] if o["marker"] == "thumb")
+    ((first, last),) = occ["frames"]
+    inner = np.arange(first + 2, last - 1)
+    assert np.all(analysis.status[inner, 0] == "missing")
+    assert np.all(np.isnan(analysis.positions_mm[inner, 0]))
+
+
+def test_outputs_follow_interfaces(
+    messy: tuple[SimulatedSession, Analysis], tmp_path: Path
+) -> None:
+    session, analysis = messy
+    write_analysis(analysis, tmp_path / "out")
+    text = (tmp_path / "out" / "markers.csv").read_text(encoding="utf-8")
+    rows = list(csv.reader(io.StringIO(text)))
+    assert tuple(rows[0]) == CSV_HEADER
+    n = analysis.positions_mm.shape[0]
+    assert len(rows) == 1 + 2 * n
+    assert rows[1][:3] == ["0", "0.0", "thumb"] and rows[2][:3] == ["0", "0.0", "index"]
+    for row in rows[1:]:
+        assert row[6] in ("measured", "interpolated", "missing")
+        if row[6] == "missing":
+            assert row[3:6] == ["", "", ""] and row[7] == ""
+        else:
+            assert all(v != "" for v in row[3:6])
+        if row[6] == "measured":
+            assert float(row[7]) >= 0
+    frame, m = 123, 1
+    row = rows[1 + 2 * frame + m]
+    assert float(row[1]) == pytest.approx(frame / 100.0)
+    np.testing.assert_allclose(
+        [float(v) for v in row[3:6]], analysis.positions_mm[frame, m], atol=1e-4
+    )
+    doc = json.loads((tmp_path / "out" / "result.json").read_text(encoding="utf-8"))
+    assert doc["format"] == "bradyscope.result/1"
+    assert doc["fps"] == 100.0
+    assert set(doc["sync"]) >= {"offset_frames", "method"}
+    assert isinstance(doc["metrics"], dict) and isinstance(doc["taps"], list)
+    q = doc["quality"]
+    assert set(q) >= {
+        "tracked_fraction",
+        "interpolated_fraction",
+        "reprojection_px_median",
+        "warnings",
+    }
+    assert 0.9 < q["tracked_fraction"] <= 1.0 and 0 < q["interpolated_fraction"] < 0.05
+    # The tapping metrics, end to end (core.metrics).
+    assert doc["metrics"]["tap_count"] == len(session.truth["taps"])
+    assert doc["metrics"]["frequency_hz"] == pytest.approx(session.truth["frequency_hz"], rel=0.02)
+    buf = io.StringIO()
+    write_markers_csv(analysis, buf)
+    assert buf.getvalue() == text
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def _write_video(path: Path, *, fps: float, size: ImageSize, n: int, value: int = 10) -> Path:
+    with VideoWriter(path, fps=fps, image_size=size, codec="mjpg") as w:
+        for _ in range(n):
+            w.write(np.full((size.height, size.width), value, np.uint8))
+    return path
+
+
+def test_bad_inputs_give_one_sentence(
+    clean: tuple[SimulatedSession, Analysis], tmp_path: Path
+) -> None:
+    session, _ = clean
+    rig = read_rig(session.rig_path)
+    not_video = tmp_path / "notes.mp4"
+    not_video.write_text("hello", encoding="utf-8")
+    with pytest.raises(InputError, match=r"could not be opened|no frame"):
+        analyze_recording(rig, not_video, session.right_video)
+    with pytest.raises(InputError, match="does not exist"):
+        analyze_recording(rig, tmp_path / "missing.mkv", session.right_video)
+    small = ImageSize(160, 128)
+    a = _write_video(tmp_path / "a.avi", fps=100.0, size=small, n=20)
+    b = _write_video(tmp_path / "b.avi", fps=50.0, size=small, n=20)
+    with pytest.raises(InputError, match="fps"):
+        analyze_recording(rig, a, b)
+    with pytest.raises(InputError, match="calibrated at 1280x1024"):
+        analyze_recording(rig, a, a)
+    # A rig for the small size and a pair of black videos: no markers.
+    from core.simulation.rig import default_rig
+
+    small_rig = default_rig(image_size=small)
+    write_rig(small_rig, tmp_path / "rig.json")
+    with pytest.raises(DetectionError, match="markers were found in only 0 of 20 frames"):
+        analyze_recording(read_rig(tmp_path / "rig.json"), a, a)
