@@ -16,10 +16,11 @@ import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import date, datetime
+from datetime import date, datetime, timedelta
 from typing import Any
 
 import matplotlib
+import matplotlib.dates as mdates
 import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
@@ -417,7 +418,13 @@ def trend_plot(
                 )
         ax.set_ylabel(f"{label} ({unit})" if unit else label)
         ax.legend(loc="best", fontsize=7)
-        fig.autofmt_xdate(rotation=30)
+        locator = mdates.AutoDateLocator(minticks=2, maxticks=5)
+        ax.xaxis.set_major_locator(locator)
+        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
+        days = [_as_datetime(p.recorded_at) for p in usable]
+        if max(days) - min(days) < timedelta(days=60):
+            centre = min(days) + (max(days) - min(days)) / 2
+            ax.set_xlim(centre - timedelta(days=45), centre + timedelta(days=45))
     return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend")
 
 

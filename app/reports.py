@@ -572,11 +572,11 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
     cal = data.calibration
     if cal is not None:
         name = cal.rig_name + (f", calibration v{cal.version}" if cal.version else "")
-        if cal.valid_from is not None:
+        if cal.valid_from is not None and cal.valid_from.year > 1980:
             name += f" (valid from {cal.valid_from:%Y-%m-%d})"
         rows.append(QualityRow("Calibration used", name))
-        rms = "–" if cal.rms_px is None else f"{cal.rms_px:.2f} px"
-        if cal.verdict:
+        rms = "not reported" if cal.rms_px is None else f"{cal.rms_px:.2f} px"
+        if cal.verdict and cal.verdict != "unknown":
             rms += f" — {cal.verdict}"
         rows.append(QualityRow("Calibration RMS error", rms, warn=cal.verdict == "poor"))
     reproj = q.get("reprojection_px_median")
