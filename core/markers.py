@@ -253,6 +253,7 @@ def detect_markers(
     params: MarkerParams = MarkerParams(),
     search_xy_px: NDArray[Any] | None = None,
     search_radius_px: float | None = None,
+    background: NDArray[Any] | None = None,
 ) -> MarkerDetections:
     """Find bright round markers and their sub-pixel centres in a gray image.
 
@@ -270,6 +271,13 @@ def detect_markers(
     search_radius_px : float, optional
         Radius (px) of the windowed search; default
         ``params.search_radius_px``.
+    background : ndarray, shape (H, W), uint8, optional
+        Image of the static scene without markers (e.g. the per-pixel median
+        of frames spread over the recording), subtracted (saturating at 0)
+        before detection.  It removes the fixed background texture under the
+        markers, the largest error left on a textured background with motion
+        blur (see ``docs/markers.md``).  The reported ``peak`` and
+        ``background`` are then relative to it.
 
     Returns
     -------
@@ -280,7 +288,8 @@ def detect_markers(
     ------
     ValueError
         If ``image`` is not a 2-D uint8 array, or ``search_xy_px`` is not
-        ``(K, 2)``, or ``search_radius_px`` is not positive.
+        ``(K, 2)``, or ``search_radius_px`` is not positive, or ``background``
+        is not a uint8 array of the image's shape.
     """
     if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
         desc = (
@@ -295,6 +304,21 @@ def detect_markers(
         raise ValueError(f"search_radius_px must be > 0, got {search_radius_px}")
     radius_px = float(params.search_radius_px if search_radius_px is None else search_radius_px)
     image = np.ascontiguousarray(image)  # OpenCV needs C order (a no-op for video frames)
+    if background is not None:
+        if (
+            not isinstance(background, np.ndarray)
+            or background.dtype != np.uint8
+            or background.shape != image.shape
+        ):
+            desc = (
+                f"shape {background.shape}, dtype {background.dtype}"
+                if isinstance(background, np.ndarray)
+                else type(background).__name__
+            )
+            raise ValueError(
+                f"background must be a uint8 array of the image's shape {image.shape}, got {desc}"
+            )
+        image = cast("NDArray[np.uint8]", cv2.subtract(image, np.ascontiguousarray(background)))
 
     measured: list[_Measured] = []
     if search_xy_px is None:
