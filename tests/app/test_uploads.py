@@ -311,3 +311,23 @@ def test_bad_rig_file_is_refused(api: Api, content: bytes, words: str) -> None:
     assert (
         api.client.get(f"/api/v1/rigs/{rig['id']}/calibrations", headers=api.headers).json() == []
     )
+
+
+def test_upload_for_a_rig_without_calibration_is_409(api: Api, video_pair) -> None:
+    h = api.headers
+    patient = api.client.post("/api/v1/patients", json={"code": "PD-1"}, headers=h).json()
+    rig = api.client.post("/api/v1/rigs", json={"name": "uncalibrated"}, headers=h).json()
+    session = api.client.post(
+        "/api/v1/sessions",
+        json={"patient_id": patient["id"], "rig_id": rig["id"], "recorded_at": "2026-03-01T09:00"},
+        headers=h,
+    ).json()
+    r = api.client.post(
+        f"/api/v1/sessions/{session['id']}/trials",
+        data={"hand": "left"},
+        files=trial_files(*video_pair),
+        headers=h,
+    )
+    assert r.status_code == 409
+    assert "calibration" in r.json()["detail"]
+    _assert_nothing_left(api)
