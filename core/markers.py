@@ -8,9 +8,9 @@ and measures each one:
 1. **Candidates.**  Full frame: the image is thresholded at
    ``background + max(min_contrast / 2, 4 sigma)`` (background and noise
    ``sigma`` from a histogram of a sub-sampled frame), the binary image is
-   max-pooled 4x4 and labelled with ``cv2.connectedComponentsWithStats``; each
-   component gives a small region of the full-resolution image.  Windowed
-   (``search_xy_px`` given): one region around each predicted position, with
+   max-pooled 4x4 and the bounding boxes of its outer contours give small
+   regions of the full-resolution image.  Windowed (``search_xy_px`` given):
+   one region around each predicted position (overlapping ones merged), with
    its own background.  In a region, the local maxima of the 3x3-smoothed
    image above the threshold are the seeds, brightest first.
 2. **Measurement** (the same code for both paths, so they agree): a window
@@ -18,8 +18,9 @@ and measures each one:
    the peak of the smoothed image, and the *core*: the connected half-maximum
    region containing the seed.  Its second moments give ``diameter_px`` (minor
    axis), ``roundness`` (minor / major axis) and ``fill`` (area over the area
-   of the moment ellipse).  Implausible blobs are rejected (see
-   :class:`MarkerParams`).  Seeds that fall inside an accepted core are not
+   of the moment ellipse); ``flatness`` tells a sphere's flat-topped disc from
+   a Gaussian glint.  Implausible blobs are rejected (see
+   :class:`MarkerParams`).  Seeds that fall inside a measured core are not
    measured again.
 3. **Sub-pixel centre** on the blob's support: the pixels above 10 % of the
    peak within half a diameter of the core, grown by 2 px, with other blobs
@@ -55,6 +56,8 @@ _MARGIN_PX = 3  # support of the centre estimators beyond the half-maximum core
 _MAX_SEEDS_PER_REGION = 64
 _DISC5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
 _ONES3 = np.ones((3, 3), np.uint8)
+_RING_DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])  # 8 directions, times the ring radius
+_RING_DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 
 
 @dataclass(frozen=True)
@@ -451,6 +454,16 @@ def _search_region(
     if ys.size == 0:
         return []
     vals = sm[ys, xs]
+    if ys.size > 1:
+        # cheap pre-check of the local contrast against 8 pixels at the distance of
+        # the measurement ring, so that a bright textured area (lit skin) does not
+        # cost one measurement per noise maximum
+        h, w = image.shape
+        gy = np.clip(ys[:, None] + (y0 + _RING_DY[None, :] * _ring_radius(params)), 0, h - 1)
+        gx = np.clip(xs[:, None] + (x0 + _RING_DX[None, :] * _ring_radius(params)), 0, w - 1)
+        ring = np.sort(image[gy, gx], axis=1).astype(np.float32)
+        keep = vals - 0.5 * (ring[:, 3] + ring[:, 4]) >= 0.8 * params.min_contrast
+        ys, xs, vals = ys[keep], xs[keep], vals[keep]
     order = np.lexsort((xs, ys, -vals))
     seeds_y, seeds_x = (ys[order] + y0).tolist(), (xs[order] + x0).tolist()
 
@@ -487,6 +500,11 @@ def _search_region(
 # ------------------------------------------------------------------- measurement
 
 
+def _ring_radius(params: MarkerParams) -> int:
+    """Half-size (px) of the first measurement window, whose border gives the background."""
+    return math.ceil(0.5 * params.diameter_px_max) + 3
+
+
 def _measure(
     image: NDArray[np.uint8],
     sx: int,
@@ -500,7 +518,7 @@ def _measure(
     window lies inside it (same values as :func:`_smooth` would give).
     """
     h, w = image.shape
-    half = math.ceil(0.5 * params.diameter_px_max) + 3
+    half = _ring_radius(params)
     half_limit = math.ceil(params.diameter_px_max * params.max_elongation) + _MARGIN_PX + 2
     reseeds = 0
     while True:
