@@ -29,7 +29,7 @@ white margin) when the size asked for is wrong; see
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -194,15 +194,47 @@ class BoardSpec:
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> BoardSpec:
-        """Inverse of :meth:`to_dict` (unknown keys are ignored)."""
-        return cls(
-            kind=doc["kind"],
-            cols=doc["cols"],
-            rows=doc["rows"],
-            square_mm=doc["square_mm"],
-            marker_mm=doc.get("marker_mm"),
-            dictionary=doc.get("dictionary"),
-        )
+        """Inverse of :meth:`to_dict`; also reads the service's form (``"board"`` for ``"kind"``).
+
+        Unknown keys are ignored.
+
+        Raises
+        ------
+        InputError
+            A key is missing or a value is invalid (the message says which).
+        """
+        from core.errors import InputError
+
+        if not isinstance(doc, dict):
+            raise InputError(
+                "the board description is not a JSON object; give kind, cols, rows, square_mm."
+            )
+        kind = doc.get("kind", doc.get("board"))
+        missing = [
+            k
+            for k, v in (
+                ("kind", kind),
+                ("cols", doc.get("cols")),
+                ("rows", doc.get("rows")),
+                ("square_mm", doc.get("square_mm")),
+            )
+            if v is None
+        ]
+        if missing:
+            raise InputError(
+                f"the board description lacks {', '.join(missing)}; give kind, cols, rows, square_mm."
+            )
+        try:
+            return cls(
+                kind=cast(BoardKind, kind),
+                cols=doc["cols"],
+                rows=doc["rows"],
+                square_mm=doc["square_mm"],
+                marker_mm=doc.get("marker_mm"),
+                dictionary=doc.get("dictionary"),
+            )
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"the board description is invalid: {exc}.") from exc
 
 
 def _aruco_dictionary(name: str) -> Any:
@@ -331,7 +363,7 @@ def _detect_chessboard(
         ok, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
         if not ok or corners is None:
             return None
-        win = _subpix_window(corners.reshape(-1, 2), pattern)
+        win = _subpix_window(np.asarray(corners, dtype=np.float64).reshape(-1, 2), pattern)
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
         corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (win, win), (-1, -1), criteria)
         pts = corners.reshape(-1, 2).astype(np.float64)

@@ -42,6 +42,9 @@ from core.progress import ProgressCallback, report
 
 FloatArray = NDArray[np.float64]
 
+# OpenCV's type stubs reject None and float64 where the functions accept them.
+_cv: Any = cv2
+
 #: Fewest usable stereo views a calibration accepts.
 MIN_VIEWS = 6
 #: A view is an outlier if its RMS reprojection error exceeds both this (px)...
@@ -163,8 +166,8 @@ def _iter_pairs(
         return
     wanted = set(indices)
     stop = max(indices) + 1 if indices else 0
-    frames_l = iter_frames(left.path, gray=True, stop=stop)
-    frames_r = iter_frames(right.path, gray=True, stop=stop)
+    frames_l: Any = iter_frames(left.path, gray=True, stop=stop)
+    frames_r: Any = iter_frames(right.path, gray=True, stop=stop)
     try:
         for i, (fl, fr) in enumerate(zip(frames_l, frames_r, strict=False)):
             if i in wanted:
@@ -260,6 +263,7 @@ def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) ->
 
     indices = _sample_indices(n_total, _PROBE_FRAMES)
     found = {"left": 0, "right": 0}
+    img: Any
     for side, src in (("left", src_l), ("right", src_r)):
         cap = None if kind == "images" else cv2.VideoCapture(str(src.path), cv2.CAP_FFMPEG)
         try:
@@ -456,7 +460,7 @@ def _calibrate_camera(
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     K0 = None if K is None else K.copy()
     d0 = None if dist is None else dist.copy()
-    rms, K_out, d_out, rvecs, tvecs, _si, _se, per_view = cv2.calibrateCameraExtended(
+    rms, K_out, d_out, rvecs, tvecs, _si, _se, per_view = _cv.calibrateCameraExtended(
         obj, img, tuple(size), K0, d0, flags=flags, criteria=criteria
     )
     return (
@@ -472,8 +476,8 @@ def _calibrate_camera(
 def _relative_pose(
     rl: FloatArray, tl: FloatArray, rr: FloatArray, tr: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    Rl, _ = cv2.Rodrigues(rl)
-    Rr, _ = cv2.Rodrigues(rr)
+    Rl, _ = _cv.Rodrigues(rl)
+    Rr, _ = _cv.Rodrigues(rr)
     R = Rr @ Rl.T
     return R, tr - R @ tl
 
@@ -508,13 +512,13 @@ def _reconcile_numbering(
     """
     candidates: list[list[tuple[BoardDetection, FloatArray, FloatArray]]] = []
     for dl, dr in zip(lefts, rights, strict=True):
-        opts = [dr] if board.kind == "charuco" else [dr, dr.flipped(board)]
+        numberings = [dr] if board.kind == "charuco" else [dr, dr.flipped(board)]
         view_opts = []
-        ok_l, rl, tl = cv2.solvePnP(
+        ok_l, rl, tl = _cv.solvePnP(
             _cv_obj(dl), _cv_img(dl), K_l, d_l, flags=cv2.SOLVEPNP_ITERATIVE
         )
-        for o in opts:
-            ok_r, rr, tr = cv2.solvePnP(
+        for o in numberings:
+            ok_r, rr, tr = _cv.solvePnP(
                 _cv_obj(o), _cv_img(o), K_r, d_r, flags=cv2.SOLVEPNP_ITERATIVE
             )
             if ok_l and ok_r:
@@ -527,7 +531,7 @@ def _reconcile_numbering(
     scale = float(np.median([np.linalg.norm(t) for _, t in all_opts])) or 1.0
 
     def agree(a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> bool:
-        return (
+        return bool(
             _rotation_angle(a[0], b[0]) < np.deg2rad(3.0)
             and np.linalg.norm(a[1] - b[1]) < 0.05 * scale
         )
@@ -578,7 +582,7 @@ def _stereo_calibrate(
         img_r.append(_cv_img(dr, ids))
     flags = cv2.CALIB_FIX_INTRINSIC if fix_intrinsic else cv2.CALIB_USE_INTRINSIC_GUESS
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    out = cv2.stereoCalibrateExtended(
+    out = _cv.stereoCalibrateExtended(
         obj,
         img_l,
         img_r,

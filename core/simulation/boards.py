@@ -26,6 +26,9 @@ from core.camera import Camera, ImageSize, StereoRig, write_rig
 
 FloatArray = NDArray[np.float64]
 
+# OpenCV's type stubs reject some argument types the functions accept.
+_cv: Any = cv2
+
 #: Texture resolution of the printed board (texels per mm).
 _TEXELS_PER_MM = 8.0
 #: White border printed around the pattern, in squares.
@@ -248,7 +251,7 @@ def render_board_view(
     bg = np.ascontiguousarray(img[pr0:pr1, pc0:pc1], dtype=np.float32)
     dst = cv2.resize(bg, up_size, interpolation=cv2.INTER_NEAREST) if n > 1 else bg.copy()
     # Pixels whose ray misses the printed board keep the background (transparent border).
-    cv2.remap(
+    _cv.remap(
         texture.radiance,
         maps.astype(np.float32),
         None,
@@ -272,9 +275,9 @@ def _background(size: ImageSize, level: float) -> NDArray[np.float32]:
 
 
 def _finish(
-    img: FloatArray, rng: np.random.Generator, noise_std: float, blur_sigma_px: float
+    img: NDArray[Any], rng: np.random.Generator, noise_std: float, blur_sigma_px: float
 ) -> NDArray[np.uint8]:
-    out = img.astype(np.float32)
+    out: Any = img.astype(np.float32)
     if blur_sigma_px > 0:
         out = cv2.GaussianBlur(out, (0, 0), blur_sigma_px)
     if noise_std > 0:
@@ -286,7 +289,7 @@ def _finish(
 
 
 def _rodrigues(rvec: FloatArray) -> FloatArray:
-    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+    R, _ = _cv.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
     return np.asarray(R, dtype=np.float64)
 
 
@@ -382,7 +385,7 @@ def _slerp_pose(
 ) -> tuple[FloatArray, FloatArray]:
     R0, t0 = p0
     R1, t1 = p1
-    rvec, _ = cv2.Rodrigues(R0.T @ R1)
+    rvec, _ = _cv.Rodrigues(R0.T @ R1)
     R = R0 @ _rodrigues(rvec.reshape(3) * s)
     return R, (1 - s) * t0 + s * t1
 

@@ -234,3 +234,14 @@ def test_rendered_corner_is_where_the_camera_model_puts_it():
     if np.abs(det.corners_px[::-1] - truth).mean() < np.abs(err).mean():
         err = det.corners_px[::-1] - truth
     np.testing.assert_allclose(err, 0.0, atol=0.1)  # px; a row/column swap would be ~10 px off
+
+
+def test_boardspec_from_the_service_form_and_bad_documents():
+    from core.errors import InputError
+
+    doc = {"board": "chessboard", "cols": 9, "rows": 6, "square_mm": 25.0, "valid_from": None}
+    assert BoardSpec.from_dict(doc) == DEFAULT_CHESSBOARD
+    with pytest.raises(InputError, match="lacks square_mm"):
+        BoardSpec.from_dict({"kind": "chessboard", "cols": 9, "rows": 6})
+    with pytest.raises(InputError, match="symmetric"):
+        BoardSpec.from_dict({"kind": "chessboard", "cols": 7, "rows": 7, "square_mm": 20})
