@@ -175,3 +175,43 @@ def test_interfaces_flow_over_http(server: tuple[str, str], recording) -> None:
     html = api.get(f"/trials/{trial['id']}/report.html")
     assert html.status_code == 200 and "PD-0042" in html.text
     assert "default-src 'self'" in html.headers["content-security-policy"]
+
+
+def test_oversized_upload_is_refused_before_the_body_is_sent(
+    server: tuple[str, str], recording
+) -> None:
+    """Over a real socket: a declared body above the limit gets 413 at once, unread."""
+    base, key = server
+    api = httpx.Client(base_url=f"{base}/api/v1", headers={"Authorization": f"Bearer {key}"})
+    patient = _check(api.post("/patients", json={"code": "PD-BIG"}), 201)
+    rig = _check(api.post("/rigs", json={"name": "clinic-big"}), 201)
+    _check(
+        api.post(
+            f"/rigs/{rig['id']}/calibrations",
+            files={"rig_json": ("rig.json", recording.rig_path.read_bytes(), "application/json")},
+        ),
+        201,
+    )
+    session = _check(
+        api.post(
+            "/sessions",
+            json={"patient_id": patient["id"], "rig_id": rig["id"], "recorded_at": "2026-03-02"},
+        ),
+        201,
+    )
+    host, port = base.removeprefix("http://").split(":")
+    request = (
+        f"POST /api/v1/sessions/{session['id']}/trials HTTP/1.1\r\n"
+        f"Host: {host}\r\n"
+        f"Authorization: Bearer {key}\r\n"
+        "Content-Type: multipart/form-data; boundary=b\r\n"
+        f"Content-Length: {10**13}\r\n"  # 10 TB announced, nothing sent
+        "\r\n"
+    ).encode()
+    with socket.create_connection((host, int(port)), timeout=30) as sock:
+        sock.sendall(request)
+        answer = sock.recv(65536).decode("latin-1")
+    assert answer.split("\r\n", 1)[0].split()[1] == "413", answer
+    assert "BRADYSCOPE_MAX_UPLOAD_BYTES" in answer
+    trials = _check(api.get(f"/sessions/{session['id']}/trials"), 200)
+    assert trials == []
