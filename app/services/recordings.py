@@ -16,12 +16,13 @@ from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app import jobs
 from app.audit import audit
 from app.auth import Actor
-from app.errors import CalibrationMissingError, InvalidRequestError
+from app.errors import CalibrationMissingError, ConflictError, InvalidRequestError
 from app.models import Calibration, Job, Trial, Video, next_calibration_version, utcnow
 from app.services.common import load_rig, load_session, load_trial
 from app.uploads import (
@@ -321,6 +322,9 @@ def create_calibration(
             db.flush()
             audit(db, actor, "create", "calibration", cal.id)
             db.commit()
+        except IntegrityError as exc:
+            db.rollback()
+            raise _concurrent_calibration(rig.id) from exc
         except BaseException:
             db.rollback()
             raise
@@ -348,11 +352,22 @@ def create_calibration(
         job_id = job.id
         audit(db, actor, "create", "calibration", cal.id)
         db.commit()
+    except IntegrityError as exc:
+        db.rollback()
+        upload.discard()
+        raise _concurrent_calibration(rig.id) from exc
     except BaseException:
         db.rollback()
         upload.discard()
         raise
     return cal, job_id
+
+
+def _concurrent_calibration(rig_id: int) -> ConflictError:
+    """Two uploads took the same version number (UNIQUE (rig_id, version)); one must retry."""
+    return ConflictError(
+        f"Another calibration of rig {rig_id} was stored at the same moment; send this one again."
+    )
 
 
 def calibration_view(db: Session, cal: Calibration) -> dict[str, Any]:

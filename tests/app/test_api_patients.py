@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import pytest
 from api_support import (
     Api,
     api,  # noqa: F401 - pytest fixtures
+    video_pair,  # noqa: F401 - pytest fixtures
 )
 
 from app.models import Patient
@@ -157,3 +159,43 @@ def test_sessions_create_list_update_delete(api: Api) -> None:
     assert api.client.post("/api/v1/sessions", json=bad, headers=h).status_code == 404
     bad = {"patient_id": p["id"], "rig_id": rig["id"], "recorded_at": "0001-01-01T00:00:00+05:00"}
     assert api.client.post("/api/v1/sessions", json=bad, headers=h).status_code == 422
+
+
+@pytest.mark.postgres
+def test_api_on_postgresql(pg_settings, video_pair) -> None:
+    """The same use cases on PostgreSQL: search, conflicts, an upload, the audit trail."""
+    from api_support import Api, make_api_key, seed_recording_target, trial_files
+    from fastapi.testclient import TestClient
+    from sqlalchemy import func, select
+
+    from app.db import get_sessionmaker
+    from app.main import create_app
+    from app.models import AuditEvent
+
+    sessions = get_sessionmaker(pg_settings)
+    key = make_api_key(sessions)
+    with TestClient(create_app(pg_settings)) as client:
+        api = Api(client.app, client, pg_settings, sessions, key)
+        seeded = seed_recording_target(api)
+        h = api.headers
+        assert (
+            client.post("/api/v1/patients", json={"code": "pd-0042"}, headers=h).status_code == 409
+        )
+        found = client.get("/api/v1/patients", params={"q": "d-00", "limit": 1}, headers=h).json()
+        assert found["total"] == 1 and found["items"][0]["id"] == seeded.patient_id
+        r = client.post(
+            f"/api/v1/sessions/{seeded.session_id}/trials",
+            data={"hand": "left"},
+            files=trial_files(*video_pair),
+            headers=h,
+        )
+        assert r.status_code == 201, r.text
+        assert client.get("/api/v1/patients/99999", headers=h).status_code == 404
+        with sessions() as db:
+            outcomes = dict(
+                db.execute(
+                    select(AuditEvent.outcome, func.count()).group_by(AuditEvent.outcome)
+                ).all()
+            )
+        # created: patient, rig, calibration, session, trial; one list; one read that missed
+        assert outcomes == {"success": 6, "not_found": 1}
