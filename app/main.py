@@ -168,7 +168,8 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def unexpected(request: Request, exc: Exception) -> JSONResponse:
-        request_id = request_id_var.get()
+        # Runs in Starlette's outermost middleware, after ours: read the id from the scope.
+        request_id = request.scope.get("state", {}).get("request_id") or request_id_var.get()
         log.exception("unhandled error in request %s", request_id)
         return _error(500, f"Internal error; quote request id {request_id} to the administrator.")
 
