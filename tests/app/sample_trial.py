@@ -98,24 +98,27 @@ def synthetic_trial(
         "inter_tap_interval_cv": float(np.std(intervals) / np.mean(intervals)),
         "hesitation_count": 1,
         "halt_count": 0,
-        "metrics_first_10": {
-            "amplitude_mm_mean": float(np.mean(amplitudes[:10])),
-            "frequency_hz": frequency_hz,
-        },
-        "events": [
-            {
-                "kind": "hesitation",
-                "tap_index": pause_after_tap - 1,
-                "t_start_s": pause_start,
-                "t_end_s": pause_start + pause_s,
-            }
-        ],
     }
+    # As core.pipeline writes them: first-10 metrics and located events at the top level.
+    metrics_first_10 = {
+        "amplitude_mm_mean": float(np.mean(amplitudes[:10])),
+        "frequency_hz": frequency_hz,
+    }
+    events = [
+        {
+            "kind": "hesitation",
+            "tap_index": pause_after_tap,
+            "t_start_s": pause_start,
+            "duration_s": pause_s,
+        }
+    ]
     result = {
         "format": "bradyscope.result/1",
         "fps": FPS,
         "sync": {"offset_frames": 1.25, "method": "auto"},
         "metrics": metrics,
+        "metrics_first_10": metrics_first_10,
+        "events": events,
         "taps": taps,
         "quality": {
             "tracked_fraction": float(np.mean(status == "measured")),
