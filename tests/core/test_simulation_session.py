@@ -303,3 +303,28 @@ def test_cli_boards_writes_calibration_recordings_of_the_same_rig(tmp_path):
         read_rig(calib / "rig_true.json").right.t_cam_from_world_mm,
         read_rig(out / "rig.json").right.t_cam_from_world_mm,
     )
+
+
+def test_moving_distractors_are_no_ghosts_of_the_fingertips():
+    """Glints move with the hand's drift and their own wobble, not with the tapping."""
+    from core.simulation.kinematics import simulate_tapping
+    from core.simulation.session import StereoRenderer
+
+    truth = simulate_tapping(TappingScenario(duration_s=6.0), seed=4)
+    renderer = StereoRenderer(
+        truth, rig=default_rig(), imaging=ImagingScenario(distractors_moving=4), seed=4
+    )
+    doc = renderer.truth_document(video_names={"left": "l", "right": "r"})
+    index_v = np.diff(truth.positions_mm[:, 1], axis=0)  # mm/frame
+    for glint in doc["distractors"]["moving"]:
+        pos = np.array(glint["positions_mm"])
+        v = np.diff(pos, axis=0)
+        for axis in range(3):
+            corr = np.corrcoef(v[:, axis], index_v[:, axis])[0, 1]
+            assert abs(corr) < 0.3, (axis, corr)
+        # Slow and small next to the index (which moves ~50 mm at ~0.5 m/s).
+        assert np.ptp(pos, axis=0).max() < 25.0  # mm
+        assert np.linalg.norm(v, axis=1).max() * 100.0 < 60.0  # mm/s
+        # Never on top of a fingertip marker.
+        d = np.linalg.norm(truth.positions_mm[:, :2] - pos[:, None, :], axis=2)
+        assert d.min() > 20.0  # mm
