@@ -326,10 +326,12 @@ def test_elongated_streak_and_huge_glare_are_rejected() -> None:
     img = render_discs(SIZE, np.array([[80.4, 60.6]]), 12.0, blur_sigma_px=0.6)
     cv2.line(img, (150, 40), (280, 70), 230, 3)  # thin line-like glint, 130 px long
     cv2.circle(img, (220, 190), 40, 255, -1)  # saturated glare blob, 80 px wide
-    cv2.circle(img, (60, 200), 1, 200, -1)  # 3 px speck below the size limit? (kept if >= 3)
+    cv2.circle(img, (60, 200), 1, 200, -1)  # 3 px speck, below a 5 px lower size limit
     det = detect_markers(img, params=MarkerParams(diameter_px_min=5.0))
     assert len(det) == 1
     np.testing.assert_allclose(det.xy_px[0], [80.4, 60.6], atol=0.02)  # px
+    # the same speck is a (small) marker for the default 3 px limit
+    assert len(detect_markers(img)) == 2
 
 
 def test_dim_and_ragged_blobs_are_rejected() -> None:
@@ -373,6 +375,10 @@ def test_two_markers_close_together_are_both_found() -> None:
     err = match(det, truth)
     assert len(det) == 2 and np.isfinite(err).all()
     assert np.abs(err).max() <= 0.1  # px, the neighbour's halo is masked out
+    # overlapping search windows (one per predicted marker) give each marker once
+    win = detect_markers(img, search_xy_px=truth + 1.0, search_radius_px=10.0)
+    assert len(win) == 2
+    np.testing.assert_allclose(np.sort(win.xy_px, axis=0), np.sort(det.xy_px, axis=0), atol=1e-9)
 
 
 def test_markers_touching_the_border() -> None:
