@@ -219,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise InputError(f"invalid scenario: {exc}; see bradyscope simulate --help.") from exc
     with progress_bar() as progress:
-        simulate_session(
+        session = simulate_session(
             args.out, seed=args.seed, tapping=tapping, imaging=imaging, rig=rig, progress=progress
         )
     if args.boards:
@@ -231,4 +231,10 @@ def run(args: argparse.Namespace) -> int:
                 f" ({exc}); run without --boards."
             ) from exc
         write_board_recordings(rig, args.out / "calibration", seed=args.seed)
+    truth = session.truth
+    print(
+        f"wrote {args.out}: {session.left_video.name}, {session.right_video.name}"
+        f" ({truth['frame_count']} frames at {truth['fps']:g} fps), rig.json, truth.json"
+        f" ({truth['tap_count']} taps)" + (", calibration/" if args.boards else "")
+    )
     return 0

@@ -185,3 +185,18 @@ def test_noisy_copy_leaves_the_background_alone():
     assert np.all(bg == 10.0)
     assert frame.std() == pytest.approx(2.0, rel=0.15)  # gray levels, 3072 samples
     assert np.array_equal(SensorNoise(size, sigma=0.0, rng=np.random.default_rng(1)).noisy(bg), bg)
+
+
+@pytest.mark.parametrize("hand", ["right", "left"])
+def test_default_scenario_is_in_view_of_both_cameras(hand):
+    from core.simulation.kinematics import TappingScenario, simulate_tapping
+
+    truth = simulate_tapping(
+        TappingScenario(hand=hand, hand_marker=True, amplitude_mm=80.0, drift_mm=10.0), seed=2
+    )
+    pts = truth.positions_mm.reshape(-1, 3)
+    for cam in RIG.cameras:
+        assert cam.in_image(cam.project(pts), margin_px=30).all()
+        # The index marker is above the thumb marker in the image (y is down).
+        px = cam.project(truth.positions_mm[:, :2].reshape(-1, 3)).reshape(-1, 2, 2)
+        assert np.all(px[:, 1, 1] < px[:, 0, 1])

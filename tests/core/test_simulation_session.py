@@ -270,6 +270,7 @@ def test_cli_end_to_end(tmp_path, capsys):
         ]
     )
     assert status == 0
+    assert "30 frames at 100 fps" in capsys.readouterr().out
     doc = json.loads((out / "truth.json").read_text())
     assert doc["frame_count"] == 30 and doc["offset_frames"] == 2.0
     assert doc["marker_names"] == ["thumb", "index", "hand"]
