@@ -54,6 +54,7 @@ CENTRE_METHODS = ("centroid", "radial", "disc_fit")
 _POOL = 4  # max-pooling factor of the full-frame candidate mask
 _MARGIN_PX = 3  # support of the centre estimators beyond the half-maximum core
 _MAX_SEEDS_PER_REGION = 64
+_SIZE_TOL_PX = 0.5  # pixelisation of the measured diameter, allowed beyond the limits
 _DISC5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
 _ONES3 = np.ones((3, 3), np.uint8)
 _RING_DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])  # 8 directions, times the ring radius
@@ -68,7 +69,8 @@ class MarkerParams:
     ----------
     diameter_px_min, diameter_px_max : float
         Accepted range of the blob's diameter (px), measured as the minor axis
-        of its half-maximum region, so a motion streak keeps its width.
+        of its half-maximum region, so a motion streak keeps its width; 0.5 px
+        of pixelisation error is allowed beyond either limit.
     min_contrast : float
         Minimal peak above the local background (gray levels, after a 3x3
         mean) for a blob to count.
@@ -571,7 +573,9 @@ def _measure(
     measured = _Measured(core, x0, y0, None)
     if (
         peak < params.min_contrast
-        or not params.diameter_px_min <= diameter <= params.diameter_px_max
+        or not params.diameter_px_min - _SIZE_TOL_PX
+        <= diameter
+        <= params.diameter_px_max + _SIZE_TOL_PX
         or roundness * params.max_elongation < 1.0
         or fill < params.min_fill
         or (touches_border and params.reject_border)

@@ -260,6 +260,23 @@ def test_noisy_centres_within_tolerance(method: str) -> None:
     assert rms <= 0.08, (method, rms)  # px, noise sigma 4 gray levels on a 150 peak
 
 
+@pytest.mark.parametrize(
+    ("diameter_px", "peak"), [(3.0, 200), (5.0, 200), (34.0, 200), (12.0, 500)]
+)
+def test_small_large_and_saturated_markers(diameter_px: float, peak: float) -> None:
+    """From the 3 px lower limit to 34 px, and a disc saturated to a plateau (peak 500
+    before clipping to 255)."""
+    rng = np.random.default_rng(int(diameter_px))
+    truth = random_centres(rng, 6 if diameter_px > 20 else 12, SIZE)
+    img = render_discs(SIZE, truth, diameter_px, peak=peak, blur_sigma_px=0.6,
+                       noise_sigma=1.0, seed=2)  # fmt: skip
+    det = detect_markers(img)
+    err = match(det, truth)
+    assert len(det) == len(truth) and np.isfinite(err).all()
+    assert np.abs(err).max() <= 0.05  # px, noise sigma 1 (3 px discs have few edge pixels)
+    np.testing.assert_allclose(det.diameter_px, diameter_px, atol=0.15 * diameter_px + 0.5)  # px
+
+
 def test_motion_blur_centre_is_the_mid_exposure_position() -> None:
     rng = np.random.default_rng(5)
     truth = random_centres(rng, 12, SIZE)
