@@ -97,9 +97,11 @@ def demo_trials() -> list[DemoTrial]:
         for hand, table in (("right", right_off), ("left", left_off)):
             amp, freq, dec, hes, halts = table[visit]
             for med in ("off", "on"):
+                hes_m: tuple[int, ...]
+                halts_m: tuple[tuple[int, float], ...]
                 if med == "on":  # levodopa: bigger, faster, less decrement, fewer pauses
                     amp_m, freq_m, dec_m = amp + 7.0, freq + 0.4, dec * 0.5
-                    hes_m, halts_m = hes[:1] if len(hes) > 1 else (), ()
+                    hes_m, halts_m = (hes[:1] if len(hes) > 1 else ()), ()
                 else:
                     amp_m, freq_m, dec_m, hes_m, halts_m = amp, freq, dec, hes, halts
                 seed += 1
@@ -300,6 +302,8 @@ def _upload_trial(
         )
         with get_sessionmaker(settings)() as db:
             out = create_trial(db, actor, session_id, upload)
+        if out.job_id is None:
+            raise RuntimeError("the trial was stored without an analysis job")
         return int(out.job_id)
     finally:
         upload.close()

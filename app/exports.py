@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -98,9 +98,7 @@ class MarkerTable:
         return self.frames.astype(np.float64) / self.fps
 
 
-def read_markers_csv(
-    source: str | Path | io.TextIOBase, *, fps: float | None = None
-) -> MarkerTable:
+def read_markers_csv(source: str | Path | TextIO, *, fps: float | None = None) -> MarkerTable:
     """Read a ``markers.csv`` (INTERFACES.md) into a :class:`MarkerTable`.
 
     Parameters
@@ -111,7 +109,7 @@ def read_markers_csv(
     """
     if isinstance(source, str | Path):
         with open(source, newline="", encoding="utf-8") as fh:
-            return read_markers_csv(fh, fps=fps)  # type: ignore[arg-type]
+            return read_markers_csv(fh, fps=fps)
     reader = csv.DictReader(source)
     missing = [c for c in MARKERS_CSV_HEADER[:7] if c not in (reader.fieldnames or ())]
     if missing:

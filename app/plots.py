@@ -44,7 +44,7 @@ COLOURS = {
     "trend": "#555555",
 }
 
-_RC = {
+_RC: Any = {  # matplotlib rc parameters (typed as Any: its stubs want Literal keys)
     "svg.fonttype": "none",
     "svg.hashsalt": "bradyscope",
     "font.family": "DejaVu Sans",
@@ -387,7 +387,7 @@ def trend_plot(
     if not usable:
         _empty(fig, f"No {label.lower()} measured yet.")
         return _to_svg(fig, title=f"{label} over time: no data", name="trend")
-    styles = {
+    styles: dict[str, dict[str, Any]] = {
         "on": {"ls": "-", "marker": "o", "mfc": None},
         "off": {"ls": "--", "marker": "o", "mfc": "white"},
         "unknown": {"ls": ":", "marker": "x", "mfc": None},
@@ -402,7 +402,7 @@ def trend_plot(
                 )
                 if not series:
                     continue
-                xs = [_as_datetime(p.recorded_at) for p in series]
+                xs: Any = [_as_datetime(p.recorded_at) for p in series]
                 ys = [float(p.value) for p in series]  # type: ignore[arg-type]
                 colour = COLOURS[hand]
                 ax.plot(
@@ -424,7 +424,10 @@ def trend_plot(
         days = [_as_datetime(p.recorded_at) for p in usable]
         if max(days) - min(days) < timedelta(days=60):
             centre = min(days) + (max(days) - min(days)) / 2
-            ax.set_xlim(centre - timedelta(days=45), centre + timedelta(days=45))
+            ax.set_xlim(
+                mdates.date2num(centre - timedelta(days=45)),
+                mdates.date2num(centre + timedelta(days=45)),
+            )
     return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend")
 
 

@@ -454,6 +454,7 @@ def quality_verdict(
     doc = dict(quality or {})
     if rms_px is not None:
         doc.setdefault("rms_px", rms_px)
+    core_verdict: Any
     try:
         from core.calibration import quality_verdict as core_verdict
     except ImportError:
@@ -607,9 +608,9 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
         if method:
             text += f", {'estimated' if method == 'auto' else 'given'}"
         rows.append(QualityRow("Camera synchronisation offset", text))
-    fps = data.result.get("fps")
-    if fps:
-        rows.append(QualityRow("Frame rate", f"{float(fps):.1f} Hz"))
+    frame_rate = data.result.get("fps")
+    if frame_rate:
+        rows.append(QualityRow("Frame rate", f"{float(frame_rate):.1f} Hz"))
     return rows
 
 
@@ -711,7 +712,7 @@ def _refusing_fetcher() -> Any:
     """A WeasyPrint URL fetcher that refuses every URL except inline ``data:`` URLs."""
     from weasyprint.urls import URLFetcher
 
-    class RefusingURLFetcher(URLFetcher):  # type: ignore[misc]
+    class RefusingURLFetcher(URLFetcher):
         def fetch(self, url: str, headers: Any = None) -> Any:
             if url.startswith("data:"):
                 return super().fetch(url, headers)

@@ -29,7 +29,8 @@ def settings_of(request: Request) -> Any:
 
 def open_db(request: Request) -> Session:
     """A new database session from the app's factory (the caller closes it)."""
-    return request.app.state.session_factory()  # type: ignore[no-any-return]
+    db: Session = request.app.state.session_factory()
+    return db
 
 
 def page_user(request: Request, db: Session) -> Actor | None:

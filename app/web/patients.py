@@ -124,7 +124,7 @@ def patient_create(
         data = PatientCreate(
             code=code.strip(),
             birth_year=int(birth_year) if birth_year.strip() else None,
-            sex=sex or None,
+            sex=sex or None,  # type: ignore[arg-type]  # validated by PatientCreate
             notes=notes.strip() or None,
         )
         patient = create_patient(db, user, data)
@@ -391,7 +391,7 @@ def session_create(
 
 def trials_of_patient(db: Any, patient: Patient) -> list[Trial]:
     """Every visible trial of the patient that has a result, newest session first."""
-    out = []
+    out: list[Trial] = []
     for s in sorted(patient.sessions, key=lambda s: s.recorded_at, reverse=True):
         if s.deleted_at is not None:
             continue

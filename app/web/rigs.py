@@ -77,7 +77,8 @@ def _calibration_rows(db: Any, rig: Rig) -> list[dict[str, Any]]:
         job = db.scalars(
             select(Job).where(Job.calibration_id == cal.id).order_by(Job.id.desc()).limit(1)
         ).first()
-        verdict, reasons = (None, [])
+        verdict: str | None = None
+        reasons: list[str] = []
         if cal.status == "ready":
             verdict, reasons = quality_verdict(cal.quality, cal.rms_px)
         rows.append(
