@@ -38,7 +38,12 @@ sys.path.insert(0, str(REPO / "tests" / "core"))
 
 from test_markers import mp4v_roundtrip, random_centres, render_discs  # noqa: E402
 
-from core.markers import CENTRE_METHODS, MarkerParams, detect_markers  # noqa: E402
+from core.markers import (  # noqa: E402
+    CENTRE_METHODS,
+    MarkerParams,
+    detect_markers,
+    estimate_background,
+)
 
 PEER_THRESHOLD = 60  # gray levels: half way between the background (~12) and dim markers
 
@@ -198,7 +203,7 @@ def accuracy_simulator(n_frames: int) -> None:
                     f = canvas.copy()
                     render.SensorNoise(size, sigma=c["noise"], rng=rng).add_to(f)
                     stack.append(render.to_uint8(f))
-                backgrounds.append(np.median(np.array(stack), axis=0).astype(np.uint8))
+                backgrounds.append(estimate_background(stack))
             else:
                 backgrounds.append(None)
             shot = (rng, c["shot"]) if c["shot"] > 0 else None

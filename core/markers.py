@@ -39,6 +39,7 @@ centre of the top-left pixel.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -349,6 +350,50 @@ def detect_markers(
                         m.blob = None  # outside the search discs; keep the core as "seen"
             measured.extend(found)
     return _to_detections([m.blob for m in measured if m.blob is not None])
+
+
+def estimate_background(
+    frames: Sequence[NDArray[Any]], *, quantile: float = 0.5
+) -> NDArray[np.uint8]:
+    """Image of the static scene from frames in which the markers have moved.
+
+    Parameters
+    ----------
+    frames : sequence of ndarray, each (H, W) uint8
+        Frames spread over the recording (e.g. 9-15 frames, seconds apart), so
+        that every pixel a marker covers in one frame is free in most others.
+    quantile : float
+        Per-pixel quantile over the frames: 0.5 (median) by default; lower
+        (e.g. 0.2) if markers may rest at one place for up to half of the
+        frames.  The result is biased low by about ``(0.5 - quantile)`` noise
+        sigmas, which does not matter (detection measures the background
+        around each blob again).
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint8
+        To pass as ``detect_markers(..., background=...)``.  A marker that did
+        not move in most of the frames is part of this image and would be
+        subtracted away: choose frames from the whole recording.
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` is empty, or the frames are not uint8 (H, W) of one
+        size, or ``quantile`` is outside [0, 1].
+    """
+    if len(frames) == 0:
+        raise ValueError("frames is empty; pass at least one (H, W) uint8 frame")
+    if not 0 <= quantile <= 1:
+        raise ValueError(f"quantile must be in [0, 1], got {quantile}")
+    shape = np.shape(frames[0])
+    for f in frames:
+        if not isinstance(f, np.ndarray) or f.dtype != np.uint8 or f.ndim != 2 or f.shape != shape:
+            desc = f"{f.shape} {f.dtype}" if isinstance(f, np.ndarray) else type(f).__name__
+            raise ValueError(f"frames must all be uint8 (H, W) of shape {shape}, got {desc}")
+    stack = np.stack(frames)
+    k = round(quantile * (len(frames) - 1))  # a sample quantile (no interpolation)
+    return np.ascontiguousarray(np.partition(stack, k, axis=0)[k])
 
 
 # ------------------------------------------------------------------- candidates

@@ -22,6 +22,7 @@ from core.markers import (
     MarkerDetections,
     MarkerParams,
     detect_markers,
+    estimate_background,
     params_for,
 )
 
@@ -334,6 +335,31 @@ def test_static_background_subtraction_removes_texture_bias() -> None:
         detect_markers(img, background=bg_img[:-1])
     with pytest.raises(ValueError, match="background"):
         detect_markers(img, background=bg_img.astype(np.float32))
+
+
+def test_estimate_background_from_moving_markers() -> None:
+    rng = np.random.default_rng(14)
+    fine = cv2.GaussianBlur(rng.standard_normal((SIZE[1], SIZE[0])), (0, 0), 1.2)
+    texture = 14.0 + 8.0 * fine / fine.std()
+    frames = []
+    for i in range(9):  # markers at new places in every frame, fresh noise
+        centres = rng.uniform((10, 10), (SIZE[0] - 10, SIZE[1] - 10), (10, 2))
+        markers = render_discs(SIZE, centres, 12.0, background=0.0, noise_sigma=2.0,
+                               seed=i).astype(np.float64)  # fmt: skip
+        frames.append(np.clip(np.rint(markers + texture), 0, 255).astype(np.uint8))
+    bg = estimate_background(frames)
+    assert bg.shape == frames[0].shape and bg.dtype == np.uint8
+    diff = bg.astype(np.float64) - np.clip(texture, 0, 255)
+    assert np.abs(diff).max() < 12  # gray levels: no marker left in it
+    assert abs(diff.mean()) < 0.5 and diff.std() < 1.5  # gray levels: median of 9 noisy frames
+    low = estimate_background(frames, quantile=0.0)
+    assert np.all(low <= bg)
+    with pytest.raises(ValueError, match="empty"):
+        estimate_background([])
+    with pytest.raises(ValueError, match="uint8"):
+        estimate_background([frames[0], frames[1][:-1]])
+    with pytest.raises(ValueError, match="quantile"):
+        estimate_background(frames, quantile=1.5)
 
 
 # ------------------------------------------------------------------ distractors
