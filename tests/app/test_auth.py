@@ -77,6 +77,27 @@ def test_every_route_refuses_unauthenticated_callers(api: Api) -> None:
     assert checked >= 25  # the API alone has more routes than this
 
 
+def test_every_api_route_refuses_a_forged_key(api: Api) -> None:
+    forged = {"Authorization": "Bearer bsk_0123456789ab_" + "A" * 43}  # well-formed, unknown
+    client = TestClient(api.app, follow_redirects=False)
+    for method, path in _all_routes(api.app):
+        if not path.startswith("/api/v1/") or (method, path) in ALLOW_LIST:
+            continue
+        r = client.request(method, re.sub(r"\{[^}]+\}", "1", path), headers=forged)
+        assert r.status_code == 401, f"{method} {path} -> {r.status_code}"
+
+
+def test_a_key_without_scopes_reaches_no_patient_data(api: Api) -> None:
+    from test_audit import CASES
+
+    bare = make_api_key(api.sessions, name="no-scopes", scopes=())
+    h = {"Authorization": f"Bearer {bare}"}
+    for case in CASES:
+        url = re.sub(r"\{[^}]+\}", "1", case.route)
+        r = api.client.request(case.method, url, headers=h)
+        assert r.status_code == 403, f"{case.method} {case.route} -> {r.status_code}"
+
+
 def test_allow_listed_routes_hold_no_patient_data(api: Api) -> None:
     api.client.post("/api/v1/patients", json={"code": "PD-HIDDEN-1"}, headers=api.headers)
     anonymous = TestClient(api.app)
