@@ -17,11 +17,12 @@ import contextlib
 import fcntl
 import logging
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import Connection, Engine
@@ -109,15 +110,18 @@ def session_scope(settings: Settings) -> Iterator[Session]:
 # --------------------------------------------------------------------------- migrations
 
 
-def alembic_config(url: str, *, connection: Connection | None = None) -> Any:
+def alembic_config(
+    url: str, *, connection: Connection | None = None, stdout: TextIO | None = None
+) -> Any:
     """An Alembic ``Config`` for ``url`` pointing at ``migrations/``.
 
     With ``connection``, ``env.py`` runs the migration on that connection
     (used to hold the PostgreSQL advisory lock on the same connection).
+    Alembic's messages go to ``stdout`` (default: the current ``sys.stdout``).
     """
     from alembic.config import Config
 
-    cfg = Config()
+    cfg = Config(stdout=stdout if stdout is not None else sys.stdout)
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     # ConfigParser interpolation: a literal '%' in a URL (encoded password) must be doubled.
     cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))

@@ -127,3 +127,8 @@ def test_set_password_replaces_hash(fresh_dir, monkeypatch):
     with _db(fresh_dir) as db:
         assert verify_password(db.scalars(select(User)).one().password_hash, "second-pass")
     assert main(["admin", "set-password", "nobody@b.org"]) == 2
+
+
+def test_check_migrations_passes_on_a_fresh_data_dir(fresh_dir, capsys):
+    assert main(["admin", "check-migrations"]) == 0
+    assert "agree" in capsys.readouterr().err
