@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request, status
+from fastapi import APIRouter, Depends, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
 from app.api.responses import AUTH, IdPath, errors
@@ -17,6 +17,7 @@ router = APIRouter(tags=["trials"])
 
 Uploader = Annotated[Actor, Depends(require_scope("recordings:write"))]
 Reader = Annotated[Actor, Depends(require_scope("patients:read"))]
+Deleter = Annotated[Actor, Depends(require_scope("patients:write"))]
 
 TRIAL_BODY = multipart_body(
     {
@@ -77,6 +78,18 @@ def list_trials(session_id: IdPath, actor: Reader, db: SessionDep) -> list[Trial
 )
 def get_trial(trial_id: IdPath, actor: Reader, db: SessionDep) -> TrialRead:
     return TrialRead(**recordings.get_trial(db, actor, trial_id))
+
+
+@router.delete(
+    "/trials/{trial_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    response_class=Response,
+    responses=errors(*AUTH, 404),
+    summary="Delete a trial (soft: kept for the audit trail)",
+)
+def delete_trial(trial_id: IdPath, actor: Deleter, db: SessionDep) -> Response:
+    recordings.delete_trial(db, actor, trial_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.get(

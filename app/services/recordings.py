@@ -215,6 +215,14 @@ def get_trial(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
     return view
 
 
+def delete_trial(db: Session, actor: Actor, trial_id: int) -> None:
+    """Soft-delete a trial: it answers 404 and leaves the lists; rows, files, audit stay."""
+    trial = load_trial(db, actor, trial_id, "delete")
+    trial.deleted_at = utcnow()
+    audit(db, actor, "delete", "trial", trial.id, trial.session.patient_id)
+    db.commit()
+
+
 def get_job(db: Session, actor: Actor, job_id: int) -> Job:
     """A job's status. Holds no clinical values, so it is not audited (clients poll it)."""
     from app.errors import NotFoundError
@@ -430,6 +438,7 @@ __all__ = [
     "check_trial_target",
     "create_calibration",
     "create_trial",
+    "delete_trial",
     "get_calibration",
     "get_job",
     "get_trial",

@@ -41,6 +41,9 @@ def test_trial_job_and_listing(api: Api, video_pair) -> None:
     listed = api.client.get(f"/api/v1/sessions/{up['session_id']}/trials", headers=h).json()
     assert [t["id"] for t in listed] == [up["id"]]
     assert api.client.get("/api/v1/jobs/999", headers=h).status_code == 404
+    assert api.client.delete(f"/api/v1/trials/{up['id']}", headers=h).status_code == 204
+    assert api.client.get(f"/api/v1/trials/{up['id']}", headers=h).status_code == 404
+    assert api.client.get(f"/api/v1/sessions/{up['session_id']}/trials", headers=h).json() == []
 
 
 def test_result_is_409_until_the_analysis_succeeded(api: Api, video_pair) -> None:

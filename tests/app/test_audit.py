@@ -59,6 +59,7 @@ CASES = [
     Case("GET", "/api/v1/trials/{trial_id}/report.html", "export", "report_html"),
     Case("GET", "/api/v1/trials/{trial_id}/report.pdf", "export", "report_pdf"),
     Case("GET", "/api/v1/trials/{trial_id}/fhir", "export", "fhir_bundle"),
+    Case("DELETE", "/api/v1/trials/{trial_id}", "delete", "trial"),
 ]
 
 
