@@ -278,12 +278,14 @@ def detect_markers(
         Radius (px) of the windowed search; default
         ``params.search_radius_px``.
     background : ndarray, shape (H, W), uint8, optional
-        Image of the static scene without markers (e.g. the per-pixel median
-        of frames spread over the recording), subtracted (saturating at 0)
-        before detection.  It removes the fixed background texture under the
-        markers, the largest error left on a textured background with motion
-        blur (see ``docs/markers.md``).  The reported ``peak`` and
-        ``background`` are then relative to it.
+        Image of the static scene without markers (see
+        :func:`estimate_background`).  Around each blob it is subtracted
+        before the sub-pixel centre is computed, which removes the fixed
+        background texture under the markers, the largest error left on a
+        textured background with motion blur (see ``docs/markers.md``); where
+        the image holds a bright blob itself (a marker that rested there), it
+        is ignored for that blob.  Finding and measuring the blobs (``peak``,
+        ``background``, shape) always use the frame itself.
 
     Returns
     -------
@@ -324,14 +326,16 @@ def detect_markers(
             raise ValueError(
                 f"background must be a uint8 array of the image's shape {image.shape}, got {desc}"
             )
-        image = cast("NDArray[np.uint8]", cv2.subtract(image, np.ascontiguousarray(background)))
+        background = np.ascontiguousarray(background)
 
     measured: list[_Measured] = []
     if search_xy_px is None:
         bg, sigma = _background_and_noise(image[::8, ::8])
         thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
         for x0, y0, x1, y1 in _full_frame_regions(image, thr, params):
-            measured.extend(_search_region(image, (x0, y0, x1, y1), thr, params, measured))
+            measured.extend(
+                _search_region(image, (x0, y0, x1, y1), thr, params, measured, background)
+            )
     else:
         pts = np.asarray(search_xy_px, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 2:
@@ -342,7 +346,7 @@ def detect_markers(
         for (x0, y0, x1, y1), group in _merged_windows(pts, reach, image.shape):
             bg, sigma = _background_and_noise(image[y0:y1:3, x0:x1:3])
             thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
-            found = _search_region(image, (x0, y0, x1, y1), thr, params, measured)
+            found = _search_region(image, (x0, y0, x1, y1), thr, params, measured, background)
             for m in found:
                 if m.blob is not None:
                     d2 = np.sum((group - np.asarray(m.blob.xy_px)) ** 2, axis=1)
@@ -492,6 +496,7 @@ def _search_region(
     thr: float,
     params: MarkerParams,
     known: list[_Measured],
+    background: NDArray[np.uint8] | None = None,
 ) -> list[_Measured]:
     """Seeds (local maxima above ``thr``) of one region, each blob measured once."""
     x0, y0, x1, y1 = region
@@ -534,7 +539,7 @@ def _search_region(
     for sy, sx in zip(seeds_y, seeds_x, strict=True):
         if taken[sy - y0, sx - x0]:
             continue
-        m = _measure(image, sx, sy, params, cache)
+        m = _measure(image, sx, sy, params, cache, background)
         taken[sy - y0, sx - x0] = 1
         mark(m)
         if m.core is not None:
@@ -558,6 +563,7 @@ def _measure(
     sy: int,
     params: MarkerParams,
     cache: tuple[NDArray[np.float32], int, int] | None = None,
+    background: NDArray[np.uint8] | None = None,
 ) -> _Measured:
     """Measure the blob around seed pixel ``(sx, sy)``; deterministic given the image.
 
@@ -650,6 +656,15 @@ def _measure(
     sx1, sy1 = min(x1 - x0, bx + bw + e), min(y1 - y0, by + bh + e)
     sub = win[sy0:sy1, sx0:sx1].astype(np.float64) - bg
     sup = support[sy0:sy1, sx0:sx1].view(bool)
+    if background is not None:
+        # subtract the static scene where it is only background texture; where it
+        # holds a bright blob (a marker that rested there) keep the flat level
+        bgw = background[y0 + sy0 : y0 + sy1, x0 + sx0 : x0 + sx1].astype(np.float64)
+        level = float(np.median(bgw))
+        if float(bgw[sup].max()) - level < 0.25 * peak:
+            diff = win[sy0:sy1, sx0:sx1] - bgw
+            edge = np.concatenate((diff[0], diff[-1], diff[1:-1, 0], diff[1:-1, -1]))
+            sub = diff - float(np.median(edge))
     mx, my = mom["m10"] / mom["m00"] - sx0, mom["m01"] / mom["m00"] - sy0
     cx, cy = _centre(sub, sup, peak, mx, my, params.centre_method)
     if not (math.isfinite(cx) and math.isfinite(cy)) or math.hypot(cx - mx, cy - my) > 0.5 * (

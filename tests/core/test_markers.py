@@ -331,6 +331,10 @@ def test_static_background_subtraction_removes_texture_bias() -> None:
     rms_sub = math.sqrt(np.mean(np.sum(err_sub**2, axis=1)))
     assert rms_sub <= 0.02  # px, only the rounding of the two images is left
     assert rms_sub < 0.5 * rms_raw, (rms_raw, rms_sub)
+    # a background image that holds the markers themselves (they rested there) is
+    # ignored around them instead of erasing them
+    same = detect_markers(img, background=img)
+    np.testing.assert_allclose(same.xy_px, detect_markers(img).xy_px, atol=1e-12)  # px
     with pytest.raises(ValueError, match="background"):
         detect_markers(img, background=bg_img[:-1])
     with pytest.raises(ValueError, match="background"):
