@@ -28,7 +28,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.audit import client_ip_var, request_id_var
-from app.errors import AppError
+from app.errors import AppError, PayloadTooLargeError
 from app.storage import Storage
 from core.errors import BradyscopeError
 
@@ -109,6 +109,66 @@ class SecurityHeadersMiddleware:
         finally:
             request_id_var.reset(token)
             client_ip_var.reset(ip_token)
+
+
+MAX_JSON_BODY_BYTES = 1024 * 1024
+# The streamed upload routes enforce their own (per-file) limit in app.uploads.
+_UPLOAD_ROUTE_RE = re.compile(r"^/api/v1/(sessions/[^/]+/trials|rigs/[^/]+/calibrations)/?$")
+
+
+class BodyLimitMiddleware:
+    """Refuse API request bodies above ``max_bytes`` (HTTP 413), except the upload routes.
+
+    A declared ``Content-Length`` above the limit is answered at once, unread;
+    a chunked body is cut off when it passes the limit.
+    """
+
+    def __init__(self, app: ASGIApp, *, max_bytes: int = MAX_JSON_BODY_BYTES) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path: str = scope.get("path", "")
+        if (
+            scope["type"] != "http"
+            or not path.startswith(API_PREFIX + "/")
+            or (scope.get("method") == "POST" and _UPLOAD_ROUTE_RE.match(path))
+        ):
+            await self.app(scope, receive, send)
+            return
+        detail = (
+            f"The request body is larger than {self.max_bytes // 1024} KiB;"
+            " send recordings to the upload routes."
+        )
+        for name, value in scope.get("headers", []):
+            if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
+                await _error(413, detail)(scope, receive, send)
+                return
+        received = 0
+        too_large = False
+        replaced = False
+
+        async def limited_receive() -> Message:
+            nonlocal received, too_large
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    too_large = True
+                    raise PayloadTooLargeError(detail)
+            return message
+
+        async def checked_send(message: Message) -> None:
+            # FastAPI turns any failure while reading a body into its own 400;
+            # when the cause was the size, answer 413 instead.
+            nonlocal replaced
+            if not too_large:
+                await send(message)
+            elif message["type"] == "http.response.start" and not replaced:
+                replaced = True
+                await _error(413, detail)(scope, receive, send)
+
+        await self.app(scope, limited_receive, checked_send)
 
 
 def _error(status: int, detail: str, **extra: Any) -> JSONResponse:
@@ -220,6 +280,7 @@ def create_app(settings: Any = None) -> FastAPI:
     app.state.storage = Storage.from_settings(settings)
 
     _install_error_handlers(app)
+    app.add_middleware(BodyLimitMiddleware)
     app.add_middleware(
         SecurityHeadersMiddleware, hsts=bool(getattr(settings, "secure_cookies", False))
     )

@@ -26,7 +26,7 @@ class WhoAmI(BaseModel):
 @router.post(
     "/login",
     response_model=LoginResponse,
-    responses=errors(401, 422, 429, 400),
+    responses=errors(401, 422, 429, 400, 413),
     summary="Log a browser in (sets the HttpOnly session cookie)",
 )
 async def login(

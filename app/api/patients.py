@@ -22,7 +22,7 @@ Writer = Annotated[Actor, Depends(require_scope("patients:write"))]
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=PatientRead,
-    responses=errors(*AUTH, 409, 400),
+    responses=errors(*AUTH, 409, 400, 413),
     summary="Create a patient (pseudonymous code)",
 )
 def create_patient(data: PatientCreate, actor: Writer, db: SessionDep) -> PatientRead:
@@ -66,7 +66,7 @@ def get_patient(patient_id: IdPath, actor: Reader, db: SessionDep) -> PatientRea
 @router.patch(
     "/{patient_id}",
     response_model=PatientRead,
-    responses=errors(*AUTH, 404, 409, 400),
+    responses=errors(*AUTH, 404, 409, 400, 413),
     summary="Change a patient's code or optional fields",
 )
 def update_patient(

@@ -14,7 +14,7 @@ _TEXT = {
     403: "The key lacks the scope, or the browser request lacks its CSRF token.",
     404: "No such resource (or it was deleted).",
     409: "Conflicts with the current state (duplicate, or not ready yet).",
-    413: "An uploaded file is larger than the limit.",
+    413: "An uploaded file, or a JSON body above 1 MiB, is larger than the limit.",
     415: "The upload is not multipart/form-data, or a file is not a readable video.",
     422: "The request is well-formed but its content is invalid.",
     429: "Too many attempts; wait and retry.",

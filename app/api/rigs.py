@@ -46,7 +46,7 @@ CALIBRATION_BODY = multipart_body(
     "/rigs",
     status_code=status.HTTP_201_CREATED,
     response_model=RigRead,
-    responses=errors(*AUTH, 409, 400),
+    responses=errors(*AUTH, 409, 400, 413),
     summary="Create a rig (a two-camera set-up)",
 )
 def create_rig(data: RigCreate, actor: RigWriter, db: SessionDep) -> RigRead:

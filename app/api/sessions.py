@@ -21,7 +21,7 @@ Writer = Annotated[Actor, Depends(require_scope("patients:write"))]
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=SessionRead,
-    responses=errors(*AUTH, 404, 400),
+    responses=errors(*AUTH, 404, 400, 413),
     summary="Create a session (patient, rig, date, medication state)",
 )
 def create_session(data: SessionCreate, actor: Writer, db: SessionDep) -> SessionRead:
@@ -65,7 +65,7 @@ def get_session(session_id: IdPath, actor: Reader, db: SessionDep) -> SessionRea
 @router.patch(
     "/{session_id}",
     response_model=SessionRead,
-    responses=errors(*AUTH, 404, 400),
+    responses=errors(*AUTH, 404, 400, 413),
     summary="Change a session's states, notes, rating or calibration choice",
 )
 def update_session(

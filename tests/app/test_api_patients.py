@@ -199,3 +199,19 @@ def test_api_on_postgresql(pg_settings, video_pair) -> None:
             )
         # created: patient, rig, calibration, session, trial; one list; one read that missed
         assert outcomes == {"success": 6, "not_found": 1}
+
+
+def test_json_bodies_are_capped_at_1_mib(api: Api) -> None:
+    h = {**api.headers, "Content-Type": "application/json"}
+    big = b'{"code": "PD-BIG", "notes": "' + b"x" * 1_100_000 + b'"}'
+    r = api.client.post("/api/v1/patients", content=big, headers=h)
+    assert r.status_code == 413  # declared length: refused unread
+    assert "1024 KiB" in r.json()["detail"]
+
+    def chunked():  # no length announced: cut off while streaming
+        for i in range(0, len(big), 65536):
+            yield big[i : i + 65536]
+
+    r = api.client.post("/api/v1/patients", content=chunked(), headers=h)
+    assert r.status_code == 413
+    assert api.client.get("/api/v1/patients", headers=api.headers).json()["total"] == 0
