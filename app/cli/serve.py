@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -131,7 +132,27 @@ def run(args: argparse.Namespace) -> int:
     finally:
         stop_event.set()
         for thread in threads:
-            # A running job finishes its current step; if it takes longer, the
-            # process exits and the job's lease expires so another worker resumes it.
             thread.join(timeout=10)
+    exit_if_threads_linger(0)
     return 0
+
+
+def exit_if_threads_linger(status: int) -> None:
+    """Leave at once if background threads still run (a long job, the demo's simulation).
+
+    Letting the interpreter finalise under a thread that is inside OpenCV's C++
+    code aborts the process ("terminate called without an active exception").
+    Their work is not lost: a job's lease expires and a worker takes it over;
+    the demo resumes its missing recordings at the next start.
+    """
+    lingering = [t.name for t in threading.enumerate() if t is not threading.main_thread()]
+    if not lingering:
+        return
+    from app.db import dispose_engines
+
+    log.info("exiting while background threads still run: %s", ", ".join(lingering))
+    dispose_engines()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)

@@ -63,6 +63,15 @@ def run(args: argparse.Namespace) -> int:
         f"bradyscope worker: polling the job queue of {settings.display_database}.",
         file=sys.stderr,
     )
-    count = run_worker(settings, once=args.once, stop_event=stop_event, worker_name=args.name)
+    from app.cli.serve import exit_if_threads_linger
+
+    try:
+        count = run_worker(settings, once=args.once, stop_event=stop_event, worker_name=args.name)
+    except KeyboardInterrupt:
+        # Second signal: stop now. The job's lease expires and another worker resumes it.
+        print("bradyscope worker: interrupted.", file=sys.stderr)
+        exit_if_threads_linger(130)
+        raise
     print(f"bradyscope worker: stopped after {count} job(s).", file=sys.stderr)
+    exit_if_threads_linger(0)
     return 0
