@@ -23,6 +23,14 @@ Fixtures
     the ``CI`` environment variable is set: then it fails.
 ``pg_admin_url`` : str
     URL of the maintenance database ``test`` (for creating/dropping databases).
+``pg_empty_url`` : str
+    URL of a new, empty PostgreSQL database (dropped after the test).
+``wait_for`` : callable ``(condition, *, timeout_s, what)``
+    Poll ``condition()`` until truthy; fails with ``what`` after the deadline.
+``worker_script`` : Path
+    A worker process script whose ``analyze_trial`` handler blocks on a gate file.
+``kill9_scenario`` : callable ``(settings, worker_script)``
+    The kill -9 take-over scenario (used on SQLite and PostgreSQL).
 
 Engines are cached per database URL by ``app.db.get_engine``; every fixture
 disposes them at teardown.
