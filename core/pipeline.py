@@ -11,8 +11,8 @@ Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
    numbers per frame. After a full-frame search, each frame is only searched
    around the positions predicted from the previous frames; a full-frame
    search is repeated every ``FULL_SEARCH_EVERY`` frames and whenever fewer
-   markers are found than the last full searches all saw (so a marker that
-   reappears after a short occlusion is picked up at once).
+   markers are found than the last full searches typically saw (so a marker
+   that reappears after a short occlusion is picked up at once).
 3. **Synchronisation** (:mod:`core.sync`): the frame offset from the marker
    motion, or the one given.
 4. **Matching and triangulation** (:mod:`core.matching`,
@@ -56,9 +56,9 @@ RESULT_FORMAT = "bradyscope.result/1"
 CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "reprojection_px")
 
 #: A full-frame marker search at least this often (frames), to pick up new markers.
-FULL_SEARCH_EVERY = 10
+FULL_SEARCH_EVERY = 5
 #: The last few full-frame searches define how many markers to expect.
-EXPECTED_COUNT_FULL_SEARCHES = 3
+EXPECTED_COUNT_FULL_SEARCHES = 5
 #: Pairs farther from the epipolar constraint are not stereo candidates (px).
 MAX_EPIPOLAR_PX = 3.0
 #: Stereo candidates with a larger reprojection error are dropped (px).
@@ -185,10 +185,11 @@ def _default_detector(params: Any | None) -> Detector:
 class _CameraDetections:
     """Per-frame detections of one camera, with predicted search windows.
 
-    Prediction: each detection of the previous frame moves on by the
+    Prediction: each detection of the previous frame may move on by the
     displacement from its nearest neighbour in the frame before (a
-    constant-velocity guess); the search radius covers the marker size and
-    what the velocity guess may miss.
+    constant-velocity guess) or stay; the search window is centred between
+    the two and its radius covers both, the marker size and what the
+    velocity guess may miss.
     """
 
     def __init__(self, detect: Detector, *, full_every: int = FULL_SEARCH_EVERY) -> None:
@@ -202,10 +203,13 @@ class _CameraDetections:
         self._diam = 10.0
 
     def _expected(self) -> int:
-        # Markers reliably seen: the fewest of the last few full searches (a
-        # flickering glint does not count; a marker hidden for a moment does).
+        # Markers reliably seen: the median count of the last few full searches
+        # (one search during a short occlusion does not lower it, so the marker
+        # is picked up again as soon as it reappears).
         self._recent_full = self._recent_full[-EXPECTED_COUNT_FULL_SEARCHES:]
-        return min((c for _, c in self._recent_full), default=0)
+        if not self._recent_full:
+            return 0
+        return int(np.floor(np.median([c for _, c in self._recent_full])))
 
     def _predict(self) -> tuple[FloatArray | None, float]:
         prev = self._prev
@@ -218,7 +222,9 @@ class _CameraDetections:
             j = np.argmin(d, axis=1)
             near = d[np.arange(len(prev)), j] < 4 * self._diam + 40.0
             vel = np.where(near[:, None], prev - self._prev2[j], 0.0)
-            pred = prev + vel
+            # Centre between "stays" and "moves on": right whether or not the
+            # nearest-neighbour velocity belongs to this marker.
+            pred = prev + 0.5 * vel
             step = np.linalg.norm(vel, axis=1)
         radius = 1.5 * self._diam + 12.0 + 0.5 * float(step.max(initial=0.0))
         return pred, radius
@@ -227,7 +233,8 @@ class _CameraDetections:
         frame = len(self.frames)
         pred, radius = self._predict()
         expected = self._expected()
-        full = pred is None or frame % self.full_every == 0
+        scheduled = pred is None or frame % self.full_every == 0
+        full = scheduled
         xy = np.zeros((0, 2))
         diam = q = np.zeros(0)
         if not full:
@@ -237,7 +244,8 @@ class _CameraDetections:
         if full:
             xy, diam, q = self.detect(image, None, None)
             self.n_full += 1
-            self._recent_full.append((frame, len(xy)))
+            if scheduled:  # searches made because something was missing would bias the count
+                self._recent_full.append((frame, len(xy)))
         if len(xy) > MAX_DETECTIONS_PER_FRAME:
             keep = np.argsort(-q, kind="stable")[:MAX_DETECTIONS_PER_FRAME]
             xy, diam = xy[keep], diam[keep]
