@@ -210,8 +210,9 @@ def migrate(settings: Settings, *, revision: str = "head") -> None:
                     conn.execute(text("RESET lock_timeout"))
                     conn.commit()
     except OperationalError as exc:
+        reason = " ".join(str(exc.orig).split())[:300]
         raise ServiceUnavailableError(
-            f"the database at {_redacted(url)} cannot be reached ({exc.orig}); check "
+            f"the database at {_redacted(url)} cannot be reached ({reason}); check "
             "BRADYSCOPE_DATABASE_URL and that the database server is running."
         ) from exc
     log.info("database %s is at revision %s", _redacted(url), revision)

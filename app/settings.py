@@ -62,7 +62,7 @@ class Settings(BaseSettings):
     def effective_database_url(self) -> str:
         """``database_url``, or the default SQLite file in ``data_dir``."""
         if self.database_url:
-            return self.database_url
+            return normalise_database_url(self.database_url)
         return f"sqlite:///{self.data_dir / 'bradyscope.sqlite3'}"
 
     @property
@@ -83,6 +83,18 @@ class Settings(BaseSettings):
     def heartbeat_s(self) -> float:
         """Heartbeat period of a running job (seconds)."""
         return self.job_heartbeat_s if self.job_heartbeat_s is not None else self.job_lease_s / 4
+
+
+def normalise_database_url(url: str) -> str:
+    """Use the installed psycopg 3 driver for plain ``postgres(ql)://`` URLs.
+
+    SQLAlchemy would otherwise look for psycopg2, which bradyscope does not install.
+    """
+    url = url.strip()
+    for plain in ("postgres://", "postgresql://"):
+        if url.startswith(plain):
+            return "postgresql+psycopg://" + url[len(plain) :]
+    return url
 
 
 def settings_with(**overrides: Any) -> Settings:

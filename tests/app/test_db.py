@@ -213,3 +213,45 @@ def test_audit_events_are_append_only_postgres(pg_settings):
         with pytest.raises(DBAPIError, match="append-only"):
             db.execute(sa.text("TRUNCATE audit_events"))
         db.rollback()
+
+
+@pytest.mark.parametrize(
+    ("given", "used"),
+    [
+        ("postgresql://u@h:5432/d", "postgresql+psycopg://u@h:5432/d"),
+        ("postgres://u:p@h/d", "postgresql+psycopg://u:p@h/d"),
+        ("postgresql+psycopg://u@h/d", "postgresql+psycopg://u@h/d"),
+        ("sqlite:////srv/x.sqlite3", "sqlite:////srv/x.sqlite3"),
+    ],
+)
+def test_database_urls_use_the_installed_driver(tmp_path, given, used):
+    from app.settings import Settings
+
+    assert Settings(data_dir=tmp_path, database_url=given).effective_database_url == used
+
+
+def test_default_database_is_sqlite_in_the_data_dir(tmp_path, monkeypatch):
+    from app.settings import Settings
+
+    monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
+    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(tmp_path / "d"))
+    settings = Settings()
+    assert settings.data_dir == tmp_path / "d"
+    assert settings.effective_database_url == f"sqlite:///{tmp_path / 'd' / 'bradyscope.sqlite3'}"
+
+
+def test_unreachable_database_is_one_sentence(tmp_path, capsys, monkeypatch):
+    import socket
+
+    from app.cli import main
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("BRADYSCOPE_DATABASE_URL", f"postgresql://nobody:secret@127.0.0.1:{port}/x")
+    assert main(["admin", "migrate"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot be reached" in err and "BRADYSCOPE_DATABASE_URL" in err
+    assert "secret" not in err  # the password is not echoed
+    assert len(err.strip().splitlines()) == 1
