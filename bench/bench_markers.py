@@ -224,6 +224,48 @@ def accuracy_simulator(n_frames: int) -> None:
                   f"| {s['rms']:.4f} | {s['p95']:.4f} | {s['max']:.4f} |")  # fmt: skip
 
 
+def accuracy_session(duration_s: float) -> None:
+    """Frames of a simulated tapping trial (core.simulation.session.StereoRenderer)."""
+    try:
+        from core.simulation.kinematics import TappingScenario, simulate_tapping
+        from core.simulation.rig import default_rig
+        from core.simulation.session import ImagingScenario, StereoRenderer
+    except ImportError:
+        print("\n(core.simulation.session not available: trial scenario skipped)")
+        return
+    from core.markers import params_for
+
+    rig = default_rig()
+    truth = simulate_tapping(TappingScenario(duration_s=duration_s), seed=4)
+    imaging = ImagingScenario(distractors_static=4, distractors_moving=2)
+    renderer = StereoRenderer(truth, rig=rig, imaging=imaging, seed=4)
+    n = renderer.n_frames
+    raw = [renderer.render(j) for j in range(n)]
+    truths = {
+        c: [cam.project(renderer.model.positions_mm(np.array([renderer.times[c][j]]))[0])
+            for j in range(n)]
+        for c, cam in (("left", rig.left), ("right", rig.right))
+    }  # fmt: skip
+    print(f"\n## Accuracy on a simulated trial: {n} frames ({duration_s} s at 100 fps) x 2 cameras")
+    print("1280x1024, simulator defaults (texture 5, noise 2, 3 ms exposure) + 4 static and")
+    print("2 moving distractors; thumb and index markers; params_for(5 mm, f, (350, 700) mm)\n")
+    print("| video | method | found | false/frame | RMS px | P95 px | max px |")
+    print("|---|---|---|---|---|---|---|")
+    for video in ("lossless", "mp4v"):
+        frames = {"left": [p[0] for p in raw], "right": [p[1] for p in raw]}
+        if video == "mp4v":
+            frames = {c: mp4v_roundtrip(f) for c, f in frames.items()}
+        for m in CENTRE_METHODS:
+            found, tru = [], []
+            for c, cam in (("left", rig.left), ("right", rig.right)):
+                p = params_for(5.0, float(cam.K[0, 0]), (350.0, 700.0), centre_method=m)
+                found += [detect_markers(f, params=p).xy_px for f in frames[c]]
+                tru += truths[c]
+            s = score(found, tru)
+            print(f"| {video} | {m} | {s['found']:.4f} | {s['false']:.2f} "
+                  f"| {s['rms']:.4f} | {s['p95']:.4f} | {s['max']:.4f} |")  # fmt: skip
+
+
 def timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
     """Best wall-clock and best process-CPU time (s) of ``repeat`` runs after a warm-up.
 
@@ -316,6 +358,7 @@ def main() -> None:
     print(f"OpenCV {cv2.__version__}, numpy {np.__version__}, cv2 threads 1")
     accuracy(2 if args.quick else 6)
     accuracy_simulator(3 if args.quick else 10)
+    accuracy_session(0.3 if args.quick else 1.0)
     speed(30 if args.quick else 100)
 
 
