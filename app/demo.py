@@ -246,7 +246,22 @@ def _missing_trials(
     return out
 
 
-def _simulate(trial: DemoTrial, out_dir: Path, *, clip_s: float) -> tuple[Path, Path]:
+class _Stopped(Exception):
+    """The server is shutting down: stop simulating."""
+
+
+def _should_stop(stop_event: threading.Event | None) -> bool:
+    # The generator thread is not a daemon (a daemon killed inside the video
+    # encoder aborts the process); it stops by itself once the main thread
+    # (the server) has ended, or when asked to.
+    return (
+        stop_event is not None and stop_event.is_set()
+    ) or not threading.main_thread().is_alive()
+
+
+def _simulate(
+    trial: DemoTrial, out_dir: Path, *, clip_s: float, stop_event: threading.Event | None = None
+) -> tuple[Path, Path]:
     from core.camera import ImageSize
     from core.simulation.kinematics import TappingScenario
     from core.simulation.session import ImagingScenario, simulate_session
@@ -254,9 +269,15 @@ def _simulate(trial: DemoTrial, out_dir: Path, *, clip_s: float) -> tuple[Path, 
     n_taps = clip_s * trial.frequency_hz
     hesitations = tuple(k for k in trial.hesitations if k < n_taps - 2)
     halts = tuple((k, d) for k, d in trial.halts if k < n_taps - 2)
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if _should_stop(stop_event):
+            raise _Stopped
+
     sim = simulate_session(
         out_dir,
         seed=trial.seed,
+        progress=progress,
         tapping=TappingScenario(
             duration_s=clip_s,
             fps=FPS,
@@ -322,11 +343,11 @@ def generate_recordings(
     work.mkdir(parents=True, exist_ok=True)
     done = 0
     for trial, session_id in todo:
-        if stop_event is not None and stop_event.is_set():
+        if _should_stop(stop_event):
             break
         tmp = Path(tempfile.mkdtemp(prefix="demo-", dir=work))
         try:
-            left, right = _simulate(trial, tmp, clip_s=clip_s)
+            left, right = _simulate(trial, tmp, clip_s=clip_s, stop_event=stop_event)
             job_id = _upload_trial(settings, user_id, session_id, trial.hand, left, right)
             log.info(
                 "demo: queued visit %d, %s hand, medication %s (job %d)",
@@ -336,6 +357,9 @@ def generate_recordings(
                 job_id,
             )
             done += 1
+        except _Stopped:
+            log.info("demo: stopped; the remaining recordings are made at the next start")
+            break
         except Exception:
             log.exception("demo: could not prepare a simulated recording; skipping it")
         finally:
@@ -358,8 +382,9 @@ def seed_demo(
     settings : app.settings.Settings
         The database must be migrated.
     background : bool
-        Simulate the recordings in a daemon thread (default) so the server
-        starts at once; ``False`` simulates them before returning (tests).
+        Simulate the recordings in a background thread (default) so the server
+        starts at once; it ends with the main thread. ``False`` simulates them
+        before returning (tests).
     clip_s : float
         Length of each simulated recording (s).
     max_trials : int, optional
@@ -387,7 +412,7 @@ def seed_demo(
                 args=(settings, seeded["user_id"], todo),
                 kwargs={"clip_s": clip_s},
                 name="bradyscope-demo-recordings",
-                daemon=True,
+                daemon=False,
             )
             thread.start()
             _threads.append(thread)

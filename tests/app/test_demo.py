@@ -96,3 +96,36 @@ def test_seed_demo_is_idempotent_and_its_trials_are_measured(app_settings, db_se
             metrics["amplitude_mm_mean"] < planned.amplitude_mm + 3
         )  # mm; decrement shrinks later taps
         assert metrics["tap_count"] >= 6
+
+
+def test_generation_stops_when_asked(app_settings, db_sessionmaker):
+    import threading
+
+    demo.seed_demo(app_settings, background=False, max_trials=0, now=NOW)
+    with db_sessionmaker() as db:
+        sessions = {(i, med): s.id for i, med, s in _sessions(db)}
+        todo = demo._missing_trials(db, sessions)
+    assert len(todo) == len(demo.demo_trials())
+    stop = threading.Event()
+    stop.set()
+    assert demo.generate_recordings(app_settings, 1, todo, clip_s=3.0, stop_event=stop) == 0
+    assert _counts(db_sessionmaker)["Trial"] == 0
+    assert not list((app_settings.data_dir / "tmp").glob("demo-*"))  # nothing left behind
+
+
+def _sessions(db):
+    rows = db.scalars(select(RecordingSession)).all()
+    for s in rows:
+        visit = int(re.match(r"\[demo visit (\d+)\]", s.notes).group(1))
+        yield visit, s.medication_state, s
+
+
+def test_a_running_simulation_stops_promptly(tmp_path):
+    import threading
+
+    import pytest
+
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(demo._Stopped):
+        demo._simulate(demo.demo_trials()[0], tmp_path, clip_s=2.0, stop_event=stop)
