@@ -243,7 +243,7 @@ def _wait_for(condition, *, timeout_s: float, what: str):  # type: ignore[no-unt
         time.sleep(0.02)
 
 
-def kill9_takeover(settings: Settings, script: Path, *, lease_s: float = 1.0) -> None:
+def kill9_takeover(settings: Settings, script: Path, *, lease_s: float = 3.0) -> None:
     """Kill -9 a worker mid-job; a second worker must complete the job with one Result."""
     import signal
     import subprocess

@@ -66,7 +66,7 @@ def test_several_worker_processes_run_each_job_exactly_once(pg_settings, worker_
         str(worker_script),
         str(pg_settings.data_dir),
         pg_settings.database_url,
-        "5",
+        "30",  # lease (s): long, so that a worker starved of CPU is not presumed dead here
         "0",  # drain the queue, then exit
     ]
     procs = [subprocess.Popen(args) for _ in range(n_workers)]
