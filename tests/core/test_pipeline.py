@@ -272,3 +272,32 @@ def test_bad_inputs_give_one_sentence(
     write_rig(small_rig, tmp_path / "rig.json")
     with pytest.raises(DetectionError, match="markers were found in only 0 of 20 frames"):
         analyze_recording(read_rig(tmp_path / "rig.json"), a, a)
+
+
+# --------------------------------------------------------------------------- calibrated rig
+
+
+def test_end_to_end_with_a_calibrated_rig(
+    clean: tuple[SimulatedSession, Analysis], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """Rig from simulated chessboard recordings (not the true rig): aperture within 0.1 mm."""
+    from core.calibration import calibrate_stereo_from_paths
+    from core.simulation.boards import DEFAULT_CHESSBOARD, write_board_recordings
+
+    session, _ = clean
+    true_rig = read_rig(session.rig_path)
+    out = tmp_path_factory.mktemp("boards")
+    write_board_recordings(
+        true_rig, out, seed=3, board="chessboard", duration_s=3.0, fps=10.0, pose_interval_s=0.1
+    )
+    rig = calibrate_stereo_from_paths(
+        out / "chessboard_left.mkv", out / "chessboard_right.mkv", DEFAULT_CHESSBOARD
+    ).rig
+    assert not np.allclose(
+        rig.right.t_cam_from_world_mm, true_rig.right.t_cam_from_world_mm, atol=1e-6
+    )
+    analysis = analyze_recording(rig, session.left_video, session.right_video)
+    meas = np.all(analysis.status == "measured", axis=1)
+    assert np.mean(meas) >= 0.99
+    ap = aperture_error_mm(analysis, session)
+    assert np.sqrt(np.mean(ap[meas] ** 2)) <= 0.1  # mm (acceptance, estimated rig)

@@ -1,0 +1,203 @@
+"""Speed and memory of ``analyze`` against decoding alone and a plain OpenCV peer pipeline.
+
+Usage::
+
+    python bench/bench_analyze.py                  # simulate 5-s and 10-s 1280x1024 100-fps pairs
+    python bench/bench_analyze.py --codec mp4v     # the same with MPEG-4 compression
+    python bench/bench_analyze.py --dir DIR        # an existing session (left.*, right.*, rig.json)
+
+Prints, measured in the same run on the same files:
+
+- decode only: both videos decoded concurrently (one thread each, as analyze does);
+- analyze: ``core.pipeline.analyze_recording`` (detection, sync, triangulation,
+  tracking, metrics), and its ratio to decoding (target <= 1.5);
+- peer: a plain OpenCV pipeline (fixed threshold, ``connectedComponentsWithStats``
+  centroids, the two largest blobs sorted by image row, ``cv2.undistortPoints``,
+  ``cv2.triangulatePoints``), its ratio to decoding, and both pipelines' 3D RMS
+  error against the simulator's truth when a ``truth.json`` is there;
+- peak memory (max RSS of a fresh process running analyze) for the 5-s and the
+  10-s clip: it must not grow with the length of the video.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _videos(d: Path) -> tuple[Path, Path]:
+    left = next(p for p in sorted(d.glob("left.*")))
+    right = next(p for p in sorted(d.glob("right.*")))
+    return left, right
+
+
+def simulate(out: Path, seconds: float, codec: str) -> Path:
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario, simulate_session
+
+    simulate_session(
+        out,
+        seed=7,
+        tapping=TappingScenario(duration_s=seconds, fps=100.0),
+        imaging=ImagingScenario(codec=codec, distractors_static=2, distractors_moving=1),
+    )
+    return out
+
+
+def decode_only(left: Path, right: Path) -> float:
+    from core.video import iter_frames
+
+    def run(path: Path) -> None:
+        for _ in iter_frames(path, gray=True):
+            pass
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=run, args=(p,)) for p in (left, right)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return time.perf_counter() - t0
+
+
+def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
+    """Threshold + connected components + cv2.triangulatePoints; (seconds, (T, 2, 3) mm)."""
+    import cv2
+
+    from core.camera import read_rig
+    from core.video import iter_frames
+
+    rig = read_rig(d / "rig.json")
+    left, right = _videos(d)
+    results: dict[int, list[np.ndarray]] = {0: [], 1: []}
+
+    def run(k: int, path: Path) -> None:
+        for img in iter_frames(path, gray=True):
+            _, binary = cv2.threshold(img, 100, 255, cv2.THRESH_BINARY)
+            n, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+            order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:2] + 1
+            pts = centroids[order]
+            pts = pts[np.argsort(-pts[:, 1])] if len(pts) == 2 else np.full((2, 2), np.nan)
+            results[k].append(pts)  # [lower (thumb), upper (index)]
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=run, args=(k, p)) for k, p in enumerate((left, right))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    n = min(len(results[0]), len(results[1]))
+    lp = np.concatenate(results[0][:n]).reshape(-1, 1, 2)
+    rp = np.concatenate(results[1][:n]).reshape(-1, 1, 2)
+    ln = cv2.undistortPoints(lp, rig.left.K, rig.left.dist).reshape(-1, 2)
+    rn = cv2.undistortPoints(rp, rig.right.K, rig.right.dist).reshape(-1, 2)
+    h = cv2.triangulatePoints(
+        rig.left.projection_matrix_normalized, rig.right.projection_matrix_normalized, ln.T, rn.T
+    )
+    pts = (h[:3] / h[3]).T.reshape(n, 2, 3)
+    return time.perf_counter() - t0, pts
+
+
+def analyze_in_child(d: Path) -> tuple[float, float]:
+    """Run analyze in a fresh process; (seconds, peak RSS in MB)."""
+    code = (
+        "import sys, time; sys.path.insert(0, %r)\n"
+        "from pathlib import Path\n"
+        "from core.camera import read_rig\n"
+        "from core.pipeline import analyze_recording\n"
+        "d = Path(%r)\n"
+        "left = sorted(d.glob('left.*'))[0]; right = sorted(d.glob('right.*'))[0]\n"
+        "t = time.perf_counter()\n"
+        "analyze_recording(read_rig(d / 'rig.json'), left, right)\n"
+        "print(time.perf_counter() - t)\n"
+    ) % (str(ROOT), str(d))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    out = proc.stdout.read() if proc.stdout else ""
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise SystemExit(f"analyze failed on {d}")
+    return float(out.strip().splitlines()[-1]), usage.ru_maxrss / 1024.0
+
+
+def accuracy(d: Path, positions_mm: np.ndarray) -> float | None:
+    truth_path = d / "truth.json"
+    if not truth_path.exists():
+        return None
+    truth = np.asarray(json.loads(truth_path.read_text())["positions_mm"], dtype=float)[:, :2]
+    n = min(len(truth), len(positions_mm))
+    err = np.linalg.norm(positions_mm[:n] - truth[:n], axis=2)
+    return float(np.sqrt(np.nanmean(err**2)))
+
+
+def bench(d: Path) -> None:
+    from core.camera import read_rig
+    from core.pipeline import analyze_recording
+
+    left, right = _videos(d)
+    t_dec = decode_only(left, right)
+    t0 = time.perf_counter()
+    analysis = analyze_recording(read_rig(d / "rig.json"), left, right)
+    t_ana = time.perf_counter() - t0
+    t_peer, peer_pts = peer_pipeline(d)
+    n = len(analysis.frame_numbers)
+    print(f"{d.name}: {n} frames of {left.name} + {right.name}")
+    print(f"  decode only (both, concurrent) {t_dec:7.2f} s  ({n / t_dec:6.1f} frame pairs/s)")
+    print(f"  analyze                        {t_ana:7.2f} s  ratio to decode {t_ana / t_dec:5.2f}")
+    print(
+        f"  peer (threshold+CC+triangulatePoints) {t_peer:7.2f} s  ratio to decode {t_peer / t_dec:5.2f}"
+    )
+    acc_ours = accuracy(d, analysis.positions_mm)
+    acc_peer = accuracy(d, peer_pts)
+    if acc_ours is not None:
+        print(f"  3D RMS error vs truth: analyze {acc_ours:.4f} mm, peer {acc_peer:.4f} mm")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--dir", type=Path, help="an existing session folder (left.*, right.*, rig.json)"
+    )
+    ap.add_argument("--codec", default="lossless", choices=("lossless", "mp4v"))
+    ap.add_argument(
+        "--keep", type=Path, help="simulate into this folder (default: a temporary one)"
+    )
+    args = ap.parse_args()
+    if args.dir is not None:
+        bench(args.dir)
+        t, rss = analyze_in_child(args.dir)
+        print(f"  peak RSS of a fresh analyze process: {rss:.0f} MB ({t:.1f} s)")
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        base = args.keep if args.keep is not None else Path(tmp)
+        dirs = {}
+        for seconds in (5.0, 10.0):
+            d = base / f"session_{int(seconds)}s_{args.codec}"
+            if not (d / "rig.json").exists():
+                print(f"simulating {seconds:g} s ({args.codec}) into {d} ...", flush=True)
+                simulate(d, seconds, args.codec)
+            dirs[seconds] = d
+        bench(dirs[10.0])
+        for seconds, d in dirs.items():
+            t, rss = analyze_in_child(d)
+            print(f"  peak RSS of analyze, {seconds:4.0f}-s clip: {rss:6.0f} MB ({t:.1f} s)")
+
+
+if __name__ == "__main__":
+    main()
