@@ -86,7 +86,7 @@ def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
     def run(k: int, path: Path) -> None:
         for img in iter_frames(path, gray=True):
             _, binary = cv2.threshold(img, 100, 255, cv2.THRESH_BINARY)
-            n, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+            _n, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
             order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:2] + 1
             pts = centroids[order]
             pts = pts[np.argsort(-pts[:, 1])] if len(pts) == 2 else np.full((2, 2), np.nan)
@@ -113,16 +113,16 @@ def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
 def analyze_in_child(d: Path) -> tuple[float, float]:
     """Run analyze in a fresh process; (seconds, peak RSS in MB)."""
     code = (
-        "import sys, time; sys.path.insert(0, %r)\n"
+        f"import sys, time; sys.path.insert(0, {str(ROOT)!r})\n"
         "from pathlib import Path\n"
         "from core.camera import read_rig\n"
         "from core.pipeline import analyze_recording\n"
-        "d = Path(%r)\n"
+        f"d = Path({str(d)!r})\n"
         "left = sorted(d.glob('left.*'))[0]; right = sorted(d.glob('right.*'))[0]\n"
         "t = time.perf_counter()\n"
         "analyze_recording(read_rig(d / 'rig.json'), left, right)\n"
         "print(time.perf_counter() - t)\n"
-    ) % (str(ROOT), str(d))
+    )
     proc = subprocess.Popen(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
     )
