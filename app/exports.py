@@ -313,8 +313,8 @@ def _observation(
             "coding": [
                 {
                     "system": "http://terminology.hl7.org/CodeSystem/data-absent-reason",
-                    "code": "not-performed",
-                    "display": "Not Performed",
+                    "code": "not-applicable",
+                    "display": "Not Applicable",
                 }
             ]
         }

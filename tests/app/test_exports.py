@@ -159,3 +159,32 @@ def test_fhir_bundle_rejects_a_malformed_resource(monkeypatch):
     monkeypatch.setattr(exports, "_observation", without_status)
     with pytest.raises(pydantic.ValidationError, match="status"):
         exports.fhir_bundle(data, None)
+
+
+def test_fhir_undefined_metric_has_a_data_absent_reason_and_guessed_units():
+    import dataclasses
+
+    from fhir.resources.R4B.bundle import Bundle
+
+    data = sample_report_data()
+    metrics = dict(data.result["metrics"])
+    metrics["amplitude_decrement_onset_tap"] = None  # undefined: no clear decrement
+    metrics["tapping_time_s"] = 7.5  # not in the catalogue: unit guessed from the name
+    data = dataclasses.replace(data, result={**data.result, "metrics": metrics})
+    doc = exports.fhir_bundle(data, None)
+    Bundle.model_validate(doc)
+    obs = {
+        e["resource"]["code"]["coding"][0]["code"]: e["resource"]
+        for e in doc["entry"]
+        if e["resource"]["resourceType"] == "Observation"
+    }
+    assert "valueQuantity" not in obs["amplitude_decrement_onset_tap"]
+    assert (
+        obs["amplitude_decrement_onset_tap"]["dataAbsentReason"]["coding"][0]["code"]
+        == "not-performed"
+    )
+    assert obs["tapping_time_s"]["valueQuantity"]["code"] == "s"
+    report = next(
+        e["resource"] for e in doc["entry"] if e["resource"]["resourceType"] == "DiagnosticReport"
+    )
+    assert "presentedForm" not in report  # no PDF given, none attached

@@ -371,3 +371,151 @@ def test_job_status_json_for_polling(client, seeded, db_sessionmaker):
     page = client.get(f"/jobs/{job_id}")
     assert page.status_code == 200 and "data-job-status-url" in page.text
     assert client.get("/jobs/99999/status").status_code == 404
+
+
+@pytest.fixture(scope="module")
+def tiny_videos(tmp_path_factory):
+    """Two short, real, decodable videos of the rig's size (640 x 512, 100 fps)."""
+    import numpy as np
+
+    from core.camera import ImageSize
+    from core.video import VideoWriter
+
+    out = tmp_path_factory.mktemp("videos")
+    paths = []
+    for side in ("left", "right"):
+        path = out / f"{side}.mkv"
+        with VideoWriter(path, fps=100.0, image_size=ImageSize(640, 512)) as w:
+            for i in range(10):
+                w.write(np.full((512, 640), 10 + i, dtype=np.uint8))
+        paths.append(path)
+    return paths
+
+
+def _new_session(client, seeded, token) -> str:
+    r = client.post(
+        f"/patients/{seeded['patient_id']}/sessions",
+        data={
+            "rig_id": str(seeded["rig_id"]),
+            "recorded_at": "2025-06-01T10:30",
+            "csrf_token": token,
+        },
+        follow_redirects=False,
+    )
+    assert r.status_code == 303
+    return r.headers["location"].split("?")[0]
+
+
+def _stored_files(app_settings) -> list:
+    return sorted(p for p in (app_settings.data_dir / "files").rglob("*") if p.is_file())
+
+
+def test_trial_upload_plain_form_and_script(
+    client, seeded, tiny_videos, db_sessionmaker, app_settings
+):
+    token = login(client)
+    session_url = _new_session(client, seeded, token)
+    left, right = tiny_videos
+    files = {
+        "left_video": ("left.mkv", left.read_bytes(), "video/x-matroska"),
+        "right_video": ("right.mkv", right.read_bytes(), "video/x-matroska"),
+    }
+    # Without JavaScript: the form posts, the answer is the job page.
+    r = client.post(
+        f"{session_url}/trials",
+        data={"hand": "left", "csrf_token": token},
+        files=files,
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text
+    assert re.fullmatch(r"/jobs/\d+", r.headers["location"])
+    job_page = client.get(r.headers["location"])
+    assert "Waiting for a worker" in job_page.text and 'data-status="queued"' in job_page.text
+    # With the script: CSRF in the header, JSON answer.
+    r = client.post(
+        f"{session_url}/trials",
+        data={"hand": "right"},
+        files=files,
+        headers={"X-CSRF-Token": token, "Accept": "application/json"},
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["job_url"] == f"/jobs/{r.json()['job_id']}"
+    with db_sessionmaker() as db:
+        hands = sorted(db.scalars(select(Trial.hand).where(Trial.status == "queued")))
+        assert hands == ["left", "right"]
+
+
+def test_rejected_uploads_leave_nothing(client, seeded, tiny_videos, db_sessionmaker, app_settings):
+    token = login(client)
+    session_url = _new_session(client, seeded, token)
+    files_before = _stored_files(app_settings)
+    with db_sessionmaker() as db:
+        trials_before = db.scalar(select(func.count()).select_from(Trial))
+    left, _ = tiny_videos
+    not_a_video = ("right.mkv", b"this is not a video at all" * 100, "video/x-matroska")
+    good = ("left.mkv", left.read_bytes(), "video/x-matroska")
+    # A file that does not decode: a clear sentence, status 4xx, the session page again.
+    r = client.post(
+        f"{session_url}/trials",
+        data={"hand": "left", "csrf_token": token},
+        files={"left_video": good, "right_video": not_a_video},
+    )
+    assert 400 <= r.status_code < 500 and "right video" in r.text.lower()
+    assert "Upload the left hand" in r.text
+    # The script gets the same sentence as JSON.
+    r = client.post(
+        f"{session_url}/trials",
+        data={"hand": "left"},
+        files={"left_video": good, "right_video": not_a_video},
+        headers={"X-CSRF-Token": token, "Accept": "application/json"},
+    )
+    assert 400 <= r.status_code < 500 and "right video" in r.json()["detail"].lower()
+    # A forged token: refused before anything is stored.
+    r = client.post(
+        f"{session_url}/trials",
+        data={"hand": "left", "csrf_token": "forged"},
+        files={"left_video": good, "right_video": good},
+    )
+    assert r.status_code == 403
+    with db_sessionmaker() as db:
+        assert db.scalar(select(func.count()).select_from(Trial)) == trials_before
+    assert _stored_files(app_settings) == files_before
+    assert not [p for p in (app_settings.data_dir / "tmp").rglob("*") if p.is_file()]
+
+
+def test_failed_job_is_explained_in_plain_words(client, seeded, db_sessionmaker):
+    login(client)
+    message = "The markers were found in 3 of 400 left frames; check the lighting and retry."
+    with db_sessionmaker() as db:
+        trial = db.get(Trial, seeded["trials"][(0, "right")])
+        job = Job(
+            kind="analyze_trial",
+            trial_id=trial.id,
+            status="failed",
+            progress=0.3,
+            stage="detection",
+            error=message,
+        )
+        db.add(job)
+        db.commit()
+        job_id = job.id
+    page = client.get(f"/jobs/{job_id}")
+    assert page.status_code == 200
+    assert message in page.text and "could not be completed" in page.text
+    assert client.get(f"/jobs/{job_id}/status").json()["stage_label"] == "Stopped with an error"
+
+
+def test_calibration_upload_needs_one_kind_of_input(client, seeded):
+    token = login(client)
+    r = client.post(
+        f"/rigs/{seeded['rig_id']}/calibrations",
+        data={"csrf_token": token},
+        files={"x": ("x", b"", "text/plain")},
+    )
+    assert r.status_code == 422 and "either a rig file" in r.text
+    r = client.post(
+        f"/rigs/{seeded['rig_id']}/calibrations",
+        data={"csrf_token": token},
+        files={"rig_json": ("rig.json", b"{not json", "application/json")},
+    )
+    assert 400 <= r.status_code < 500 and 'class="alert"' in r.text
