@@ -181,7 +181,7 @@ def test_fhir_undefined_metric_has_a_data_absent_reason_and_guessed_units():
     assert "valueQuantity" not in obs["amplitude_decrement_onset_tap"]
     assert (
         obs["amplitude_decrement_onset_tap"]["dataAbsentReason"]["coding"][0]["code"]
-        == "not-performed"
+        == "not-applicable"
     )
     assert obs["tapping_time_s"]["valueQuantity"]["code"] == "s"
     report = next(
