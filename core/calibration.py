@@ -53,7 +53,7 @@ _OUTLIER_FLOOR_PX = 1.0
 _OUTLIER_FACTOR = 4.0
 #: A view is blurred if its edge width exceeds both this (px) and this factor x the median.
 _BLUR_FLOOR_PX = 1.5
-_BLUR_FACTOR = 1.6
+_BLUR_FACTOR = 1.3
 #: Pose-descriptor distance under which two views count as the same pose.
 _DUPLICATE_DISTANCE = 0.03
 #: A calibration whose final RMS exceeds this (px) is refused: the board spec is wrong.

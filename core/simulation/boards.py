@@ -403,41 +403,71 @@ def board_frame_poses(
     n_frames: int,
     fps: float,
     pose_interval_s: float = 1.0,
-) -> list[tuple[FloatArray, FloatArray]]:
-    """Per-frame board poses (left-camera frame): key poses every ``pose_interval_s``,
-    held for half the interval and moved smoothly during the other half."""
+    exposure_s: float = 0.0,
+) -> list[list[tuple[FloatArray, FloatArray]]]:
+    """Board poses (left-camera frame) during each frame's exposure.
+
+    Key poses come every ``pose_interval_s``; the board holds still for the
+    first half of the interval and moves smoothly (cosine ease) to the next
+    key pose during the second half. Frame ``i`` is exposed from ``i / fps``
+    to ``i / fps + exposure_s``.
+
+    Returns
+    -------
+    list of list of (R, t)
+        Per frame, the pose at the start of the exposure alone when the board
+        is still (or ``exposure_s`` is 0), else 5 poses spread over the exposure.
+    """
     rng = np.random.default_rng(seed)
     frames_per_key = max(1.0, pose_interval_s * fps)
-    n_keys = int(np.ceil(n_frames / frames_per_key)) + 1
+    n_keys = int(np.ceil(n_frames / frames_per_key)) + 2
     keys = random_board_poses(rig, board, n_keys, rng=rng, allow_partial=board.kind == "charuco")
-    poses = []
-    for i in range(n_frames):
-        k = i / frames_per_key
+
+    def at(k: float) -> tuple[FloatArray, FloatArray]:
         k0 = int(np.floor(k))
         frac = k - k0
         s = 0.0 if frac < 0.5 else 0.5 - 0.5 * np.cos(np.pi * (frac - 0.5) / 0.5)
-        poses.append(_slerp_pose(keys[k0], keys[min(k0 + 1, n_keys - 1)], float(s)))
-    return poses
+        return _slerp_pose(keys[k0], keys[min(k0 + 1, n_keys - 1)], float(s))
+
+    frames = []
+    for i in range(n_frames):
+        k_start = i / frames_per_key
+        k_end = (i + exposure_s * fps) / frames_per_key
+        moving = exposure_s > 0 and (
+            (k_start - np.floor(k_start)) >= 0.5 or (k_end - np.floor(k_start)) > 0.5
+        )
+        if moving:
+            frames.append([at(k) for k in np.linspace(k_start, k_end, 5)])
+        else:
+            frames.append([at(k_start)])
+    return frames
 
 
 def render_stereo_frame(
     rig: StereoRig,
     board: BoardSpec,
     texture: BoardTexture,
-    pose: tuple[FloatArray, FloatArray],
+    pose: tuple[FloatArray, FloatArray] | list[tuple[FloatArray, FloatArray]],
     *,
     rng: np.random.Generator,
     supersample: int = 3,
     noise_std: float = 1.5,
+    blur_sigma_px: float = 0.5,
 ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-    """The left and right images of one board pose ``(R_left_from_board, t_left_from_board_mm)``."""
-    R_lb, t_lb = pose
+    """The left and right images of a board pose ``(R_left_from_board, t_left_from_board_mm)``.
+
+    A list of poses is the board's path during the exposure: the images are
+    their mean (motion blur).
+    """
+    poses = pose if isinstance(pose, list) else [pose]
     images = []
     for cam in rig.cameras:
-        R = cam.R_cam_from_world @ R_lb
-        t = cam.R_cam_from_world @ t_lb + cam.t_cam_from_world_mm
-        images.append(
-            render_board_view(
+        acc = None
+        for R_lb, t_lb in poses:
+            R = cam.R_cam_from_world @ R_lb
+            t = cam.R_cam_from_world @ t_lb + cam.t_cam_from_world_mm
+            single = len(poses) == 1
+            img = render_board_view(
                 cam,
                 texture,
                 R,
@@ -445,9 +475,17 @@ def render_stereo_frame(
                 board=board,
                 rng=rng,
                 supersample=supersample,
-                noise_std=noise_std,
+                noise_std=noise_std if single else 0.0,
+                blur_sigma_px=blur_sigma_px if single else 0.0,
             )
-        )
+            if single:
+                acc = img
+            else:
+                acc = img.astype(np.float32) if acc is None else acc + img
+        assert acc is not None
+        if len(poses) > 1:
+            acc = _finish(acc / len(poses), rng, noise_std, blur_sigma_px)
+        images.append(acc)
     return images[0], images[1]
 
 
@@ -465,6 +503,7 @@ def write_board_recordings(
     as_images: bool = False,
     supersample: int = 3,
     noise_std: float = 1.5,
+    exposure_s: float = 0.0,
 ) -> list[Path]:
     """Write simulated stereo board recordings of ``rig`` into ``out_dir``.
 
@@ -496,6 +535,9 @@ def write_board_recordings(
         Anti-aliasing samples per pixel along each axis.
     noise_std : float
         Sensor noise (gray levels).
+    exposure_s : float
+        Exposure time (s): frames taken while the board moves are motion-blurred
+        over it; 0 for instantaneous (sharp) frames.
 
     Returns
     -------
@@ -529,6 +571,7 @@ def write_board_recordings(
             n_frames=n_frames,
             fps=fps,
             pose_interval_s=pose_interval_s,
+            exposure_s=exposure_s,
         )
         texture = board_texture(spec)
         rng = np.random.default_rng([seed, k, 1])

@@ -359,3 +359,35 @@ def test_image_coverage():
 
 def test_stereo_view_both():
     assert not StereoView(0, None, None).both
+
+
+def test_motion_blurred_frames_are_dropped(tmp_path):
+    """A board moved between still poses: frames taken while it moves fast are not used."""
+    rig = example_rig(image_size=ImageSize(640, 512))
+    fps = 10.0
+    write_board_recordings(
+        rig,
+        tmp_path,
+        seed=5,
+        board="chessboard",
+        duration_s=2.0,
+        fps=fps,
+        pose_interval_s=1.0,
+        exposure_s=0.01,
+        supersample=2,
+    )
+    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
+    collection = collect_views(
+        tmp_path / "chessboard_left.mkv", tmp_path / "chessboard_right.mkv", board
+    )
+    sel = select_views(collection)
+    blurred = [collection.views[i].frame for i in sel.blurred]
+    # The board holds still for frames 0-4 of every second and moves during frames 5-9.
+    assert len(blurred) >= 3
+    assert all(f % 10 >= 5 for f in blurred)
+    widths = np.array([v.edge_width_px for v in collection.views if v.both])
+    still = np.array([v.edge_width_px for v in collection.views if v.both and v.frame % 10 < 5])
+    assert np.max(still) < 1.3 * np.median(widths)  # no still frame is called blurred
+    result = calibrate_stereo(collection, board)
+    assert result.quality["views_blurred"] == len(blurred)
+    assert abs(result.rig.baseline_mm - rig.baseline_mm) < 2.0  # mm, from a few views at 640x512
