@@ -282,6 +282,19 @@ def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
         if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
             raise InvalidUpload(f"dictionary {dictionary[:40]!r} is not an ArUco dictionary name.")
         fields["dictionary"] = dictionary
+    from core.boards import BoardSpec
+
+    try:  # the measurement library's own rules for a board, too
+        BoardSpec(
+            kind=board,
+            cols=fields["cols"],
+            rows=fields["rows"],
+            square_mm=fields["square_mm"],
+            marker_mm=fields.get("marker_mm"),
+            dictionary=fields.get("dictionary"),
+        )
+    except ValueError as exc:
+        raise InvalidUpload(f"The board description is invalid: {exc}.") from exc
     return fields
 
 

@@ -274,6 +274,7 @@ def test_calibration_from_board_videos_queues_a_calibrate_job(api: Api, video_pa
         ({"board": "circles", "cols": "7", "rows": "5", "square_mm": "30"}, "board"),
         ({"board": "chessboard", "cols": "1", "rows": "5", "square_mm": "30"}, "cols"),
         ({"board": "chessboard", "cols": "9", "rows": "6", "square_mm": "-3"}, "square_mm"),
+        ({"board": "chessboard", "cols": "7", "rows": "7", "square_mm": "25"}, "symmetric"),
     ],
 )
 def test_calibration_with_bad_board_fields_leaves_nothing(
