@@ -147,8 +147,8 @@ def params_for(
     MarkerParams
         Diameter limits from the projected sizes with 40 % slack below (small
         markers lose their anti-aliased rim at half maximum) and 30 % + 2 px
-        above (defocus and blur widen them); search radius of one largest
-        diameter + 10 px.
+        above (defocus and blur widen them); default search radius 1.3 largest
+        diameters + 10 px.
     """
     z_near, z_far = (float(v) for v in distance_mm)
     if not (marker_diameter_mm > 0 and focal_px > 0 and 0 < z_near <= z_far):
