@@ -137,6 +137,11 @@ def _demo_rig_doc() -> dict[str, Any]:
     return doc
 
 
+def _visit_tag(i: int) -> str:
+    """The start of a demo session's notes; it identifies the visit at the next start."""
+    return f"Demo visit {i + 1} of {len(VISITS)}."
+
+
 def _visit_time(now: datetime, visit: DemoVisit, medication_state: str) -> datetime:
     day = (now - timedelta(days=round(30.44 * visit.months_ago))).replace(
         hour=9, minute=0, second=0, microsecond=0
@@ -199,7 +204,7 @@ def _seed_rows(db: Session, settings: Any, now: datetime) -> dict[str, Any]:
                 (
                     s
                     for (when, state), s in existing.items()
-                    if state == med and s.notes and s.notes.startswith(f"[demo visit {i}]")
+                    if state == med and s.notes and s.notes.startswith(_visit_tag(i))
                 ),
                 None,
             )
@@ -212,7 +217,7 @@ def _seed_rows(db: Session, settings: Any, now: datetime) -> dict[str, Any]:
                     medication_state=med,
                     dbs_state="none",
                     updrs_34_rating=visit.rating_off if med == "off" else visit.rating_on,
-                    notes=f"[demo visit {i}] {visit.note}"
+                    notes=f"{_visit_tag(i)} {visit.note}"
                     + (
                         " Two hours after 200 mg levodopa."
                         if med == "on"

@@ -116,7 +116,7 @@ def test_generation_stops_when_asked(app_settings, db_sessionmaker):
 def _sessions(db):
     rows = db.scalars(select(RecordingSession)).all()
     for s in rows:
-        visit = int(re.match(r"\[demo visit (\d+)\]", s.notes).group(1))
+        visit = int(re.match(r"Demo visit (\d+) of", s.notes).group(1)) - 1
         yield visit, s.medication_state, s
 
 
