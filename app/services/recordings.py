@@ -286,7 +286,7 @@ def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
 
     try:  # the measurement library's own rules for a board, too
         BoardSpec(
-            kind=board,
+            kind=board,  # type: ignore[arg-type]  # checked against BOARDS above
             cols=fields["cols"],
             rows=fields["rows"],
             square_mm=fields["square_mm"],
