@@ -485,6 +485,14 @@ def analyze_recording(
         rig, left_px, right_px, left_norm, right_norm, sync.offset_frames
     )
     report(progress, "triangulation", 1, 1)
+    paired = [o for o in obs if len(o.left_px) and len(o.right_px)]
+    with_candidates = sum(1 for o in paired if len(o.candidates_mm))
+    if paired and with_candidates < 0.5 * len(paired):
+        raise DetectionError(
+            f"the markers seen by the two cameras agree with the rig's geometry in only"
+            f" {with_candidates} of {len(paired)} frames; check that the left and right videos are"
+            " not swapped and that the rig file belongs to these cameras."
+        )
 
     report(progress, "tracking", 0, 1)
     tracks = track_markers(rig, obs, fps=fps, max_gap_s=max_gap_s, swap_labels=swap_labels)
