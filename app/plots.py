@@ -150,6 +150,12 @@ def copy_with_new_ids(svg: str, prefix: str) -> str:
     return svg
 
 
+def _value(tap: Mapping[str, Any], key: str) -> float:
+    """A tap's number, NaN when absent or null."""
+    v = tap.get(key)
+    return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else math.nan
+
+
 def _empty(fig: Figure, message: str) -> None:
     ax = fig.add_subplot()
     ax.set_axis_off()
@@ -212,10 +218,13 @@ def aperture_plot(
                 ax.plot(t, gap, color=COLOURS["interpolated"], lw=1.2, label="interpolated")
         ax.plot(t, measured, color=COLOURS["aperture"], lw=1.2, label="aperture")
         if taps:
-            t_peak = np.array([float(tp["t_max_aperture_s"]) for tp in taps])
+            t_peak = np.array([_value(tp, "t_max_aperture_s") for tp in taps])
             a_peak = np.interp(t_peak, t[np.isfinite(a)], a[np.isfinite(a)])
+            a_peak[~np.isfinite(t_peak)] = np.nan
             ax.plot(t_peak, a_peak, "o", ms=3.5, color=COLOURS["tap"], label="tap peak")
             for tp, x, y in zip(taps, t_peak, a_peak, strict=True):
+                if not (np.isfinite(x) and np.isfinite(y)):
+                    continue
                 ax.annotate(
                     str(int(tp.get("index", 0)) + 1),
                     (x, y),
@@ -226,7 +235,8 @@ def aperture_plot(
                     color="#3e4c59",
                 )
             for tp in taps:
-                ax.axvline(float(tp["t_start_s"]), color="#cbd2d9", lw=0.5, zorder=0)
+                if math.isfinite(_value(tp, "t_start_s")):
+                    ax.axvline(_value(tp, "t_start_s"), color="#cbd2d9", lw=0.5, zorder=0)
         kinds = {ev.kind for ev in events}
         if "hesitation" in kinds:
             ax.fill_between([], [], color=COLOURS["hesitation"], alpha=0.3, label="hesitation")
@@ -260,18 +270,31 @@ def tap_amplitude_plot(
         line passes through the mean tap; without a slope it is fitted here.
     """
     fig = _figure(3.6, 2.6)
-    amp = np.array([float(tp["amplitude_mm"]) for tp in taps], dtype=np.float64)
-    if amp.size == 0:
+    amp = np.array([_value(tp, "amplitude_mm") for tp in taps], dtype=np.float64)
+    if amp.size == 0 or not np.isfinite(amp).any():
         _empty(fig, "No taps were found.")
         return _to_svg(fig, title="Tap amplitude: no taps", name="amplitude")
     n = np.arange(1, amp.size + 1, dtype=np.float64)
     with matplotlib.rc_context(_RC):
         ax = fig.add_subplot()
-        ax.bar(n, amp, width=0.7, color="#9ec5e0", edgecolor=COLOURS["aperture"], lw=0.6)
+        # Unreliable taps (peak or closure on filled-in frames) are drawn pale:
+        # the metrics leave them out of amplitude statistics.
+        reliable = np.array([tp.get("reliable", True) is not False for tp in taps])
+        ok = np.isfinite(amp)
+        ax.bar(
+            n[reliable & ok], amp[reliable & ok], width=0.7, color="#9ec5e0",
+            edgecolor=COLOURS["aperture"], lw=0.6,
+        )  # fmt: skip
+        if (~reliable & ok).any():
+            ax.bar(
+                n[~reliable & ok], amp[~reliable & ok], width=0.7, color="#eef2f5",
+                edgecolor="#9aa5b1", lw=0.6, hatch="//", label="unreliable tap",
+            )  # fmt: skip
+        fit = reliable & ok if (reliable & ok).sum() >= 2 else ok
         slope = decrement_mm_per_tap
         if slope is None or not math.isfinite(slope):
-            slope = float(np.polyfit(n, amp, 1)[0]) if amp.size >= 2 else 0.0
-        intercept = float(np.mean(amp) - slope * np.mean(n))
+            slope = float(np.polyfit(n[fit], amp[fit], 1)[0]) if fit.sum() >= 2 else 0.0
+        intercept = float(np.mean(amp[fit]) - slope * np.mean(n[fit]))
         ax.plot(
             n,
             intercept + slope * n,
@@ -281,7 +304,7 @@ def tap_amplitude_plot(
         )
         ax.set_xlabel("tap number")
         ax.set_ylabel("amplitude (mm)")
-        ax.set_ylim(0, float(np.max(amp)) * 1.2)
+        ax.set_ylim(0, float(np.nanmax(amp)) * 1.2)
         ax.legend(loc="lower left", facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
     return _to_svg(
@@ -298,8 +321,8 @@ def velocity_plot(taps: Sequence[Mapping[str, Any]]) -> str:
         _empty(fig, "No taps were found.")
         return _to_svg(fig, title="Opening and closing velocity: no taps", name="velocity")
     n = np.arange(1, len(taps) + 1)
-    v_open = np.array([float(tp.get("opening_velocity_mm_s_max", np.nan)) for tp in taps])
-    v_close = np.array([float(tp.get("closing_velocity_mm_s_max", np.nan)) for tp in taps])
+    v_open = np.array([_value(tp, "opening_velocity_mm_s_max") for tp in taps])
+    v_close = np.array([_value(tp, "closing_velocity_mm_s_max") for tp in taps])
     with matplotlib.rc_context(_RC):
         ax = fig.add_subplot()
         ax.plot(n, v_open, "o-", ms=3, lw=1.2, color=COLOURS["opening"], label="opening")

@@ -134,3 +134,19 @@ def test_trend_plot_separates_hands_and_medication():
     # One series with a single medication state has a single legend entry.
     only_on = plots.trend_plot([p for p in pts if p.medication_state == "on"], label="A", unit="mm")
     assert "left, off" not in only_on
+
+
+def test_missing_and_unreliable_tap_values_do_not_break_the_plots(trial):
+    markers, result = trial
+    taps = [dict(tp) for tp in result["taps"]]
+    taps[3]["opening_velocity_mm_s_max"] = None
+    taps[4]["amplitude_mm"] = None
+    taps[5]["reliable"] = False
+    svg = plots.tap_amplitude_plot(taps)
+    assert "unreliable tap" in svg
+    # The decrement is fitted on reliable, measured taps only: still the true slope.
+    assert "decrement -0.80 mm/tap" in svg
+    assert plots.velocity_plot(taps).startswith("<svg")
+    a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
+    taps[6]["t_max_aperture_s"] = None
+    assert plots.aperture_plot(markers.time_s, a, taps=taps).startswith("<svg")

@@ -208,3 +208,17 @@ def test_blank_plot_check_catches_a_report_without_data(data, tmp_path):
     assert set(regions) == {"aperture", "amplitude", "velocity", "paths"}
     for name, (page, box) in regions.items():
         assert _coloured_fraction(pdf, page, box, tmp_path) < 0.0005, name
+
+
+def test_null_values_render_as_a_dash(data):
+    taps = [dict(tp) for tp in data.result["taps"]]
+    taps[0]["amplitude_mm"] = None
+    taps[1]["reliable"] = False
+    metrics = {**data.result["metrics"], "amplitude_decrement_mm_per_tap": None}
+    odd = dataclasses.replace(data, result={**data.result, "taps": taps, "metrics": metrics})
+    html = render_report_html(odd)
+    row = re.search(r'<tr data-metric="amplitude_decrement_mm_per_tap">.*?</tr>', html, re.S).group(
+        0
+    )
+    assert '<td class="num">–</td>' in row
+    assert "Unreliable tap" in html
