@@ -189,8 +189,9 @@ def markers_csv(table: MarkerTable) -> str:
 def write_c3d(path: str | Path, table: MarkerTable) -> Path:
     """Write the trajectories as a C3D file (ezc3d), in mm, frame rate ``table.fps``.
 
-    Missing samples get residual -1 (C3D's "invalid"); others residual 0 for
-    measured and 1 for interpolated samples... so readers can tell them apart.
+    Missing samples get residual -1 (C3D's "invalid") and zero coordinates;
+    measured samples residual 0 and interpolated ones residual 1, so that
+    readers can tell them apart.
     The first frame number in the header is the first left-video frame + 1.
     """
     import ezc3d
