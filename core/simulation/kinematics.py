@@ -11,10 +11,10 @@ The model (equations in ``docs/simulator.md``):
    closing, with the smootherstep ``S(x) = 6x^5 - 15x^4 + 10x^3``, whose first
    and second derivatives vanish at both ends, so the motion is C2 everywhere
    (also across pauses).
-3. Geometry in a hand frame (u distal along the index, v dorsal / "up",
-   w = u x v), origin at the index MCP joint: the thumb-tip marker moves a
+3. Geometry in a hand frame (u distal along the index, v radial / "up",
+   w = u x v dorsal), origin at the index MCP joint: the thumb-tip marker moves a
    little (15 % of the opening, mostly down); the index-tip marker lies on a
-   circle of radius ``index_length_mm`` about the MCP joint, and its angle is
+   circle of radius ``INDEX_LENGTH_MM`` about the MCP joint, and its angle is
    solved in closed form so that the thumb-index distance is *exactly*
    ``closed_distance_mm + o(t)``. The aperture the metrics measure is thus the
    model's aperture, not an approximation of it.
@@ -38,27 +38,31 @@ FloatArray = NDArray[np.float64]
 MARKER_NAMES = ("thumb", "index")
 HAND_MARKER_NAME = "hand"
 
-# Hand geometry (mm, radians), in the hand frame (u distal, v dorsal/up, w = u x v).
+# Hand geometry (mm, radians), in the hand frame of a right hand: u distal along the
+# index, v radial ("up", towards the thumb side), w = u x v dorsal (the back of the hand).
 INDEX_LENGTH_MM = 85.0  # MCP joint to the index-nail marker centre
 _INDEX_CLOSED_ANGLE_RAD = np.deg2rad(-15.0)  # index angle above u when the fingers touch
-_THUMB_FROM_INDEX_DIR = np.array([-0.10, -0.93, 0.35])  # closed thumb marker, from index marker
-_THUMB_MOTION_PER_MM = np.array([-0.03, -0.15, 0.02])  # thumb displacement per mm of opening
-_HAND_MARKER_LOCAL_MM = np.array([-40.0, 15.0, -12.0])  # back of the hand, behind the MCP joints
-# Orientation of the right hand in the world frame: fingers point left in the
-# image, slightly down and towards the cameras; the index opens upwards (-y).
-_RIGHT_HAND_U = np.array([-1.0, 0.12, -0.35])
+_THUMB_FROM_INDEX_DIR = np.array([-0.10, -0.93, -0.35])  # closed thumb marker (palmar of index)
+_THUMB_MOTION_PER_MM = np.array([-0.03, -0.15, -0.02])  # thumb displacement per mm of opening
+_HAND_MARKER_LOCAL_MM = np.array([-40.0, -20.0, 15.0])  # back of the hand, behind the knuckles
+# Orientation of the right hand in the world frame (the rig films it from the
+# patient's right, seeing the back of the hand): the fingers point to the image's
+# right (forwards), slightly down and towards the cameras; the index opens upwards (-y).
+_RIGHT_HAND_U = np.array([1.0, 0.12, -0.35])
 _RIGHT_HAND_V_HINT = np.array([0.0, -1.0, 0.0])
 
 # The body as capsules (start, end, radius), hand frame, mm, for drawing the skin:
-# palm/metacarpals, the curled middle/ring/little fingers, the forearm. The index
-# runs from the MCP joint (origin) to its marker, the thumb from THUMB_BASE to its marker.
+# the metacarpals (two capsules side by side), the middle to little fingers curled
+# into the palm, the forearm. The index runs from the MCP joint (origin) to its
+# marker, the thumb from THUMB_BASE_MM (its base, palmar) to its marker.
 HAND_BODY_CAPSULES_MM = (
-    ((-85.0, -5.0, 30.0), (-5.0, 0.0, 30.0), 20.0),
-    ((0.0, -8.0, 20.0), (20.0, -25.0, 25.0), 10.0),
-    ((-85.0, -5.0, 30.0), (-330.0, -30.0, 30.0), 28.0),
+    ((-85.0, -20.0, -5.0), (-5.0, -15.0, -5.0), 20.0),
+    ((-85.0, -50.0, -5.0), (-10.0, -50.0, -5.0), 20.0),
+    ((0.0, -25.0, -10.0), (10.0, -45.0, -40.0), 10.0),
+    ((-85.0, -35.0, -5.0), (-330.0, -45.0, -5.0), 28.0),
 )
 INDEX_RADIUS_MM = 9.0
-THUMB_BASE_MM = (-45.0, -30.0, 10.0)
+THUMB_BASE_MM = (-50.0, -10.0, -20.0)
 THUMB_RADIUS_MM = 10.0
 
 # Timeline constants (s).
@@ -291,7 +295,7 @@ class TappingModel:
         t_s : array_like, shape (N,)
         local_points_mm : array_like, shape (P, 3)
             Points in the hand frame (mm): origin at the index MCP joint, u
-            distal along the index, v dorsal ("up"), w = u x v.
+            distal along the index, v radial ("up"), w = u x v dorsal (right hand).
         """
         t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
         pts = np.asarray(local_points_mm, dtype=np.float64)
@@ -443,7 +447,7 @@ def _local_positions(
     cos_arg = (L * L + np.sum(thumb * thumb, axis=1) - d * d) / (2 * L * rho)
     if np.any(np.abs(cos_arg) > 1):
         raise ValueError("the requested aperture is out of reach of the hand model")
-    phi = psi + np.arccos(cos_arg)  # the index is above (dorsal to) the thumb
+    phi = psi + np.arccos(cos_arg)  # the index is above (radial to) the thumb
     index = np.column_stack([L * np.cos(phi), L * np.sin(phi), np.zeros_like(phi)])
     markers = [thumb, index]
     if hand_marker:

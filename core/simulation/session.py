@@ -265,10 +265,10 @@ def _choose_static(
 # the back of the hand and the wrist, away from the tapping fingertips.
 _MOVING_ANCHORS_MM = np.array(
     [
-        [-120.0, 10.0, 5.0],  # watch on the wrist
-        [-70.0, 18.0, -10.0],  # back of the hand
-        [-15.0, -5.0, 30.0],  # ring on the middle finger's base
-        [-100.0, -10.0, 20.0],  # wrist, palm side
+        [-120.0, -35.0, 25.0],  # watch on the back of the wrist
+        [-70.0, -45.0, 18.0],  # back of the hand
+        [0.0, -30.0, 8.0],  # ring on the middle finger's base
+        [-100.0, -5.0, 20.0],  # wrist, thumb side
     ]
 )
 
