@@ -218,6 +218,13 @@ def run(args: argparse.Namespace) -> int:
         rig = default_rig(image_size=imaging.image_size)
     except ValueError as exc:
         raise InputError(f"invalid scenario: {exc}; see bradyscope simulate --help.") from exc
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(
+            f"cannot create the output folder {args.out} ({exc.strerror});"
+            " choose a folder you can write to."
+        ) from exc
     with progress_bar() as progress:
         session = simulate_session(
             args.out, seed=args.seed, tapping=tapping, imaging=imaging, rig=rig, progress=progress

@@ -289,6 +289,11 @@ def test_cli_bad_input_is_one_sentence(tmp_path, capsys):
     assert "invalid scenario" in err and "Traceback" not in err
     status = cli_main(["simulate", "-o", str(tmp_path), "--occlusion", "left:pinky:0:1"])
     assert status == 2
+    a_file = tmp_path / "not-a-folder"
+    a_file.write_text("x")
+    status = cli_main(["simulate", "-o", str(a_file), "--duration", "0.1"])
+    assert status == 2
+    assert "cannot create the output folder" in capsys.readouterr().err
 
 
 def test_cli_boards_writes_calibration_recordings_of_the_same_rig(tmp_path):
