@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python bench/bench_markers.py            # about a minute on one idle core
+    python bench/bench_markers.py            # a few minutes (renders a 3 s simulated trial)
     python bench/bench_markers.py --quick    # fewer frames
 
 Accuracy: discs rendered at known sub-pixel centres (supersampled, see
