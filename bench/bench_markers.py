@@ -9,7 +9,10 @@ Accuracy: discs rendered at known sub-pixel centres (supersampled, see
 ``tests/core/test_markers.py::render_discs``), diameters 8-20 px, in five
 scenarios; every centre estimator of ``core.markers`` and the plain OpenCV
 peer (global threshold + ``cv2.connectedComponentsWithStats`` centroids) are
-scored on the same images.  Errors are Euclidean centre errors (px).
+scored on the same images.  Then markers drawn by ``core.simulation.render``
+one effect at a time, and a simulated tapping trial (``StereoRenderer``, both
+cameras, distractors, lossless and mp4v, with and without
+``estimate_background``).  Errors are Euclidean centre errors (px).
 
 Speed: a 1280x1024 mp4v clip with three moving markers, noise and two glints
 is written with ``cv2.VideoWriter`` and decoded with ``cv2.VideoCapture`` (the
