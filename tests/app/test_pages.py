@@ -519,3 +519,32 @@ def test_calibration_upload_needs_one_kind_of_input(client, seeded):
         files={"rig_json": ("rig.json", b"{not json", "application/json")},
     )
     assert 400 <= r.status_code < 500 and 'class="alert"' in r.text
+
+
+def test_board_recordings_become_a_calibration_job(client, seeded, tiny_videos):
+    token = login(client)
+    left, right = tiny_videos
+    r = client.post(
+        f"/rigs/{seeded['rig_id']}/calibrations",
+        data={
+            "csrf_token": token,
+            "board": "charuco",
+            "cols": "7",
+            "rows": "5",
+            "square_mm": "30",
+            "marker_mm": "22",
+            "dictionary": "DICT_4X4_1000",
+            "valid_from": "",
+        },
+        files={
+            "left_video": ("board-left.mkv", left.read_bytes(), "video/x-matroska"),
+            "right_video": ("board-right.mkv", right.read_bytes(), "video/x-matroska"),
+        },
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text
+    assert re.fullmatch(r"/jobs/\d+", r.headers["location"])
+    page = client.get(r.headers["location"]).text
+    assert "Computing a calibration" in page and "Waiting for a worker" in page
+    rig_page = client.get(f"/rigs/{seeded['rig_id']}").text
+    assert "Version 2" in rig_page and "follow the computation" in rig_page
