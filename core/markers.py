@@ -10,9 +10,11 @@ and measures each one:
    ``sigma`` from a histogram of a sub-sampled frame), the binary image is
    max-pooled 4x4 and the bounding boxes of its outer contours give small
    regions of the full-resolution image.  Windowed (``search_xy_px`` given):
-   one region around each predicted position (overlapping ones merged), with
-   its own background.  In a region, the local maxima of the 3x3-smoothed
-   image above the threshold are the seeds, brightest first.
+   one region around each predicted position (overlapping ones merged), same
+   threshold from every 16th pixel.  In a region, the local maxima of the
+   3x3-smoothed image above the threshold whose contrast against 8 pixels at
+   the measurement ring's distance reaches 0.8 ``min_contrast`` are the
+   seeds, brightest first.
 2. **Measurement** (the same code for both paths, so they agree): a window
    around the seed, the local background as the median of the window's border,
    the peak of the smoothed image, and the *core*: the connected half-maximum
@@ -343,9 +345,11 @@ def detect_markers(
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         # seeds are blob maxima: within the radius plus a streak's half length
         reach = radius_px + 0.5 * params.diameter_px_max
-        for (x0, y0, x1, y1), group in _merged_windows(pts, reach, image.shape):
-            bg, sigma = _background_and_noise(image[y0:y1:3, x0:x1:3])
+        windows = _merged_windows(pts, reach, image.shape)
+        if windows:
+            bg, sigma = _background_and_noise(image[::16, ::16])
             thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
+        for (x0, y0, x1, y1), group in windows:
             found = _search_region(image, (x0, y0, x1, y1), thr, params, measured, background)
             for m in found:
                 if m.blob is not None:
@@ -511,8 +515,9 @@ def _search_region(
         # the measurement ring, so that a bright textured area (lit skin) does not
         # cost one measurement per noise maximum
         h, w = image.shape
-        gy = np.clip(ys[:, None] + (y0 + _RING_DY[None, :] * _ring_radius(params)), 0, h - 1)
-        gx = np.clip(xs[:, None] + (x0 + _RING_DX[None, :] * _ring_radius(params)), 0, w - 1)
+        r = _ring_radius(params)
+        gy = np.minimum(np.maximum(ys[:, None] + (y0 + r * _RING_DY[None, :]), 0), h - 1)
+        gx = np.minimum(np.maximum(xs[:, None] + (x0 + r * _RING_DX[None, :]), 0), w - 1)
         ring = np.sort(image[gy, gx], axis=1).astype(np.float32)
         keep = vals - 0.5 * (ring[:, 3] + ring[:, 4]) >= 0.8 * params.min_contrast
         ys, xs, vals = ys[keep], xs[keep], vals[keep]
