@@ -43,7 +43,14 @@ def safe_next(target: str | None) -> str:
     if not target:
         return "/patients"
     parts = urlsplit(target)
-    if parts.scheme or parts.netloc or not target.startswith("/") or target.startswith("//"):
+    if (
+        parts.scheme
+        or parts.netloc
+        or not target.startswith("/")
+        or target.startswith("//")
+        or "\\" in target  # browsers read "/\\evil.example" as "//evil.example"
+        or any(ord(c) < 32 for c in target)
+    ):
         return "/patients"
     return target
 

@@ -548,3 +548,21 @@ def test_board_recordings_become_a_calibration_job(client, seeded, tiny_videos):
     assert "Computing a calibration" in page and "Waiting for a worker" in page
     rig_page = client.get(f"/rigs/{seeded['rig_id']}").text
     assert "Version 2" in rig_page and "follow the computation" in rig_page
+
+
+@pytest.mark.parametrize(
+    "target",
+    [
+        "https://evil.example/",
+        "//evil.example/",
+        "/\\evil.example/",
+        "/\\/evil.example",
+        "javascript:alert(1)",
+        "/patients\r\nSet-Cookie: x=1",
+    ],
+)
+def test_safe_next_stays_on_site(target):
+    from app.web.common import safe_next
+
+    assert safe_next(target) == "/patients"
+    assert safe_next("/trials/3?compare=4") == "/trials/3?compare=4"
