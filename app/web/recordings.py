@@ -123,13 +123,20 @@ def _upload_error(
         db.close()
 
 
-def _user_and_session(request: Request, session_id: int) -> tuple[Any, bool]:
+def _user_and_target(request: Request, session_id: int) -> tuple[Any, AppError | None]:
+    """The logged-in user, and why the session cannot take a trial (before the body is read)."""
+    from app.services.recordings import check_trial_target
+
     db = open_db(request)
     try:
         user = page_user(request, db)
-        exists = _visible_session(db, session_id) is not None
-        db.rollback()
-        return user, exists
+        if user is None:
+            return None, None
+        try:
+            check_trial_target(db, user, session_id)  # 404 unknown session, 409 no calibration
+        except AppError as exc:
+            return user, exc
+        return user, None
     finally:
         db.close()
 
@@ -153,7 +160,7 @@ async def trial_upload(request: Request, session_id: int) -> Response:
     from app.storage import Storage
     from app.uploads import receive_multipart
 
-    user, exists = await run_in_threadpool(_user_and_session, request, session_id)
+    user, refusal = await run_in_threadpool(_user_and_target, request, session_id)
     if user is None:
         if wants_json(request):
             return JSONResponse({"detail": "Please log in again."}, status_code=401)
@@ -161,9 +168,9 @@ async def trial_upload(request: Request, session_id: int) -> Response:
     header_token = csrf_from_header(request)
     if header_token is not None and not csrf_ok(user, header_token):
         return await run_in_threadpool(_upload_error, request, user, session_id, 403, _CSRF_MESSAGE)
-    if not exists:
+    if refusal is not None:
         return await run_in_threadpool(
-            _upload_error, request, user, session_id, 404, f"Session {session_id} does not exist."
+            _upload_error, request, user, session_id, status_of(refusal), str(refusal)
         )
     settings = settings_of(request)
     try:

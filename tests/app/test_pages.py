@@ -566,3 +566,32 @@ def test_safe_next_stays_on_site(target):
 
     assert safe_next(target) == "/patients"
     assert safe_next("/trials/3?compare=4") == "/trials/3?compare=4"
+
+
+def test_upload_to_a_rig_without_calibration_is_refused_early(
+    client, seeded, tiny_videos, db_sessionmaker
+):
+    token = login(client)
+    with db_sessionmaker() as db:
+        rig = Rig(name="uncalibrated")
+        db.add(rig)
+        db.commit()
+        rig_id = rig.id
+    r = client.post(
+        f"/patients/{seeded['patient_id']}/sessions",
+        data={"rig_id": str(rig_id), "recorded_at": "2025-06-01T10:30", "csrf_token": token},
+        follow_redirects=False,
+    )
+    session_url = r.headers["location"].split("?")[0]
+    assert "none usable" in client.get(session_url).text  # the page warns before any upload
+    left, right = tiny_videos
+    r = client.post(
+        f"{session_url}/trials",
+        data={"hand": "left"},
+        files={
+            "left_video": ("l.mkv", left.read_bytes()),
+            "right_video": ("r.mkv", right.read_bytes()),
+        },
+        headers={"X-CSRF-Token": token, "Accept": "application/json"},
+    )
+    assert r.status_code == 409 and "calibration" in r.json()["detail"]
