@@ -860,6 +860,6 @@ def _disc_fit(
                 step_ok = True
                 break
             lam *= 10
-        if not step_ok or float(np.abs(delta[:2]).max()) < 1e-5:
+        if not step_ok or float(np.abs(delta[:2]).max()) < 1e-3:  # px, far below the noise
             break
     return float(p[0]), float(p[1])
