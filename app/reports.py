@@ -651,6 +651,15 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
                 "Marker reprojection error (median)", f"{float(reproj):.2f} px", float(reproj) > 1.0
             )
         )
+    p95 = q.get("reprojection_px_p95")
+    if isinstance(p95, int | float):
+        rows.append(
+            QualityRow(
+                "Marker reprojection error (95th percentile)",
+                f"{float(p95):.2f} px",
+                float(p95) > 2.0,
+            )
+        )
     tracked = q.get("tracked_fraction")
     if tracked is not None:
         rows.append(
