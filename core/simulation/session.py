@@ -231,12 +231,12 @@ def _choose_static(
 ) -> list[_StaticDistractor]:
     """Static reflections in the room behind the hand, visible to both cameras, off the markers' paths."""
     out: list[_StaticDistractor] = []
-    centre = np.array([0.0, 0.0, 0.0])
     for k in range(n):
         best = None
         for _ in range(200):
             z = rng.uniform(650.0, 1100.0)
-            p = centre + np.array([rng.uniform(-0.45, 0.45) * z, rng.uniform(-0.35, 0.35) * z, z])
+            # Within the left camera's field of view (world frame = left camera frame).
+            p = np.array([rng.uniform(-0.45, 0.45) * z, rng.uniform(-0.35, 0.35) * z, z])
             ok = True
             for cam, mpx in zip(rig.cameras, marker_px, strict=True):
                 q = cam.project(p[None])[0]
