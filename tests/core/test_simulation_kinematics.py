@@ -7,6 +7,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core.simulation.kinematics import (
     TappingScenario,
@@ -159,3 +161,45 @@ def test_invalid_scenarios(kwargs):
 def test_pause_beyond_last_tap_is_an_error():
     with pytest.raises(ValueError, match="do not fit"):
         simulate_tapping(TappingScenario(duration_s=2.0, hesitations=(40,)), seed=0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    amplitude_mm=st.floats(5.0, 100.0),
+    frequency_hz=st.floats(1.0, 6.0),
+    decrement=st.floats(-2.0, 1.0),
+    jitter=st.floats(0.0, 0.2),
+    amplitude_jitter=st.floats(0.0, 0.2),
+    fps=st.sampled_from([30.0, 60.0, 100.0, 240.0]),
+    hand=st.sampled_from(["right", "left"]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_truth_is_self_consistent_for_any_scenario(
+    amplitude_mm, frequency_hz, decrement, jitter, amplitude_jitter, fps, hand, seed
+):
+    scenario = TappingScenario(
+        duration_s=4.0,
+        fps=fps,
+        amplitude_mm=amplitude_mm,
+        frequency_hz=frequency_hz,
+        decrement_mm_per_tap=decrement,
+        rhythm_jitter=jitter,
+        amplitude_jitter=amplitude_jitter,
+        hand=hand,
+    )
+    truth = simulate_tapping(scenario, seed=seed)
+    d = truth.aperture_mm
+    assert d.min() == pytest.approx(18.0, abs=1e-9)  # mm: the closed distance
+    assert np.all(d >= 18.0 - 1e-9)
+    for tap in truth.taps:
+        seg = d[tap.frame_start : tap.frame_end + 1]
+        assert seg.max() - seg[0] == pytest.approx(tap.amplitude_mm, abs=1e-6)  # mm
+        assert tap.amplitude_mm <= tap.amplitude_model_mm + 1e-9  # sampling can only miss the peak
+        assert tap.t_start_s < tap.t_max_aperture_s < tap.t_end_s
+    for prev, nxt in itertools.pairwise(truth.taps):
+        assert nxt.t_start_s == pytest.approx(prev.t_end_s, abs=1e-12)  # no pauses requested
+    if truth.taps:
+        cycles = [t.t_end_s - t.t_start_s for t in truth.taps]
+        assert truth.frequency_hz == pytest.approx(1.0 / np.mean(cycles))
+    px_ok = np.all(truth.positions_mm[:, 1, 1] < truth.positions_mm[:, 0, 1])
+    assert px_ok  # the index stays above the thumb (y down)
