@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core.camera import Camera, FloatArray, ImageSize, StereoRig, write_rig
+from core.errors import InputError
 from core.progress import ProgressCallback, report
 from core.simulation.kinematics import (
     HAND_BODY_CAPSULES_MM,
@@ -549,6 +550,32 @@ def simulate_session(
     truth_path = out / "truth.json"
     truth_path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     return SimulatedSession(paths["left"], paths["right"], rig_path, truth_path, doc)
+
+
+def read_truth(path: str | Path) -> dict[str, Any]:
+    """Read a ``truth.json`` written by :func:`simulate_session`.
+
+    Raises
+    ------
+    InputError
+        The file is missing, not JSON, or not a ``bradyscope.truth/1`` document.
+    """
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"cannot read the truth file {p.name}: {exc.strerror}.") from exc
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(
+            f"{p.name} is not a JSON truth file written by bradyscope simulate."
+        ) from exc
+    if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else None
+        raise InputError(
+            f"{p.name} has format {found!r}, expected {TRUTH_FORMAT!r};"
+            " simulate the session again with this version of bradyscope."
+        )
+    return doc
 
 
 def _frame_intervals(mask: NDArray[np.bool_]) -> list[list[int]]:

@@ -11,10 +11,11 @@ import pytest
 
 from app.cli import main as cli_main
 from core.camera import ImageSize, read_rig
+from core.errors import InputError
 from core.simulation.kinematics import TappingScenario
 from core.simulation.render import intensity_centroid
 from core.simulation.rig import default_rig
-from core.simulation.session import ImagingScenario, simulate_session
+from core.simulation.session import ImagingScenario, read_truth, simulate_session
 
 SIZE = ImageSize(640, 512)  # small but markers are still ~6 px wide (f = 625 px)
 TAPPING = TappingScenario(duration_s=0.8, fps=100.0, hesitations=(), drift_mm=3.0)
@@ -77,7 +78,7 @@ def test_files_and_video_properties(session):
 
 def test_truth_document(session):
     result, _ = session
-    doc = json.loads(result.truth_path.read_text())
+    doc = read_truth(result.truth_path)
     assert doc == result.truth
     assert doc["format"] == "bradyscope.truth/1"
     assert doc["fps"] == 100.0 and doc["frame_count"] == 80
@@ -334,3 +335,15 @@ def test_moving_distractors_are_no_ghosts_of_the_fingertips():
         # Never on top of a fingertip marker.
         d = np.linalg.norm(truth.positions_mm[:, :2] - pos[:, None, :], axis=2)
         assert d.min() > 20.0  # mm
+
+
+def test_read_truth_errors(tmp_path):
+    with pytest.raises(InputError, match="cannot read"):
+        read_truth(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(InputError, match="not a JSON truth file"):
+        read_truth(bad)
+    bad.write_text(json.dumps({"format": "bradyscope.rig/1"}))
+    with pytest.raises(InputError, match=r"bradyscope\.truth/1"):
+        read_truth(bad)
