@@ -46,7 +46,13 @@ from core.camera import StereoRig
 from core.errors import DetectionError, InputError
 from core.matching import epipolar_distances_px
 from core.progress import ProgressCallback, report
-from core.sync import SyncEstimate, estimate_offset, given_offset
+from core.sync import (
+    SyncEstimate,
+    estimate_offset,
+    given_offset,
+    refine_offset,
+    right_points_for_left_frames,
+)
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
 
@@ -448,8 +454,8 @@ def analyze_recording(
         detect,
         progress,
     )
-    n_left = len(left_px)
-    if n_left == 0 or len(right_px) == 0:
+    n_left, n_right = len(left_px), len(right_px)
+    if n_left == 0 or n_right == 0:
         raise InputError("a video decoded to no frames; check that the files are complete.")
     for name, frames in (("left", left_px), ("right", right_px)):
         seen = sum(1 for f in frames if len(f) > 0)
@@ -462,6 +468,7 @@ def analyze_recording(
     report(progress, "synchronisation", 0, 1)
     left_norm = _undistort_all(rig.left, left_px)
     right_norm = _undistort_all(rig.right, right_px)
+    max_step_px = 0.05 * rig.right.image_size.width  # 2D linking gate for sub-frame pairing
     if offset_frames is None:
         max_off = max(1, min(round(max_offset_s * fps), max(n_left, len(right_px)) // 2))
         sync: SyncEstimate = estimate_offset(rig, left_norm, right_norm, max_offset_frames=max_off)
@@ -471,19 +478,27 @@ def analyze_recording(
                 f" {sync.confidence:.2f}, best guess {sync.offset_frames} frames); give it with"
                 " --offset-frames if the cameras are not synchronised"
             )
+        else:
+            sync = refine_offset(rig, left_norm, right_px, sync, max_step_px=max_step_px)
     else:
         sync = given_offset(float(offset_frames))
         if abs(sync.offset_frames) >= n_left:
             raise InputError(
-                f"an offset of {sync.offset_frames} frames leaves no common frames in videos of"
+                f"an offset of {offset_frames:g} frames leaves no common frames in videos of"
                 f" {n_left} frames; check --offset-frames."
             )
+    if sync.fractional:
+        right_px = right_points_for_left_frames(
+            right_px, n_left, sync.used_offset, max_step_px=max_step_px
+        )
+        right_norm = _undistort_all(rig.right, right_px)
+        pairing_offset = 0
+    else:
+        pairing_offset = sync.offset_frames
     report(progress, "synchronisation", 1, 1)
 
     report(progress, "triangulation", 0, 1)
-    obs, n_rejected = _observations(
-        rig, left_px, right_px, left_norm, right_norm, sync.offset_frames
-    )
+    obs, n_rejected = _observations(rig, left_px, right_px, left_norm, right_norm, pairing_offset)
     report(progress, "triangulation", 1, 1)
     paired = [o for o in obs if len(o.left_px) and len(o.right_px)]
     with_candidates = sum(1 for o in paired if len(o.candidates_mm))
@@ -524,7 +539,7 @@ def analyze_recording(
         "reprojection_px_p95": float(np.percentile(reproj, 95)) if len(reproj) else None,
         "rejected_candidates": n_rejected,
         "frames_left": n_left,
-        "frames_right": len(right_px),
+        "frames_right": n_right,
         **det_info,
     }
     sync_doc = sync.to_result()

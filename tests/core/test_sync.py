@@ -87,3 +87,51 @@ def test_given_offset_and_errors() -> None:
         estimate_offset(RIG, [], [], max_offset_frames=-1)
     est = estimate_offset(RIG, [], [], max_offset_frames=3)
     assert est.confidence == 0.0
+
+
+def test_subframe_offset_is_refined_and_used() -> None:
+    from core.sync import refine_offset
+
+    k_true = 2.4  # frames: cameras not triggered together
+    rng = np.random.default_rng(9)
+    n = TRUTH.positions_mm.shape[0]
+    right_times = (np.arange(n) + k_true) / TRUTH.fps
+    right_pos = TRUTH.model.positions_mm(right_times)  # (T, 3, 3) at the right exposures
+    left_px = [
+        RIG.left.project(TRUTH.positions_mm[i]) + rng.normal(0, 0.1, (3, 2)) for i in range(n)
+    ]
+    right_px = [RIG.right.project(right_pos[j]) + rng.normal(0, 0.1, (3, 2)) for j in range(n)]
+    ln = [RIG.left.undistort_points(p) for p in left_px]
+    rn = [RIG.right.undistort_points(p) for p in right_px]
+    est = estimate_offset(RIG, ln, rn, max_offset_frames=12)
+    assert est.offset_frames == 2 and not est.fractional
+    ref = refine_offset(RIG, ln, right_px, est, max_step_px=60.0)
+    assert abs(ref.offset_subframe - k_true) < 0.05  # frames
+    assert ref.fractional and ref.used_offset == pytest.approx(ref.offset_subframe)
+    assert ref.to_result()["offset_frames"] == pytest.approx(k_true, abs=0.05)
+
+
+def test_points_at_interpolates_along_2d_tracks() -> None:
+    from core.sync import link_points, points_at, right_points_for_left_frames
+
+    t = np.arange(20, dtype=float)
+    a = np.column_stack([100 + 3 * t + 0.1 * t**2, 200 - 2 * t])  # a moving blob (cubic-exact)
+    b = np.tile([[400.0, 300.0]], (20, 1))  # a static one
+    frames = [np.vstack([a[i], b[i]]) if i % 2 else np.vstack([b[i], a[i]]) for i in range(20)]
+    links = link_points(frames, max_step_px=20.0)
+    assert links[0].tolist() == [0, 1] or links[0].tolist() == [1, 0]
+    got = points_at(frames, links, 7.25)
+    tt = 7.25
+    want_a = [100 + 3 * tt + 0.1 * tt**2, 200 - 2 * tt]
+    assert min(np.linalg.norm(got - want_a, axis=1)) < 1e-9  # px: exact for a polynomial path
+    assert min(np.linalg.norm(got - [400.0, 300.0], axis=1)) < 1e-9
+    assert len(points_at(frames, links, -0.5)) == 0 and len(points_at(frames, links, 19.5)) == 0
+    paired = right_points_for_left_frames(frames, 20, 0.5, max_step_px=20.0)
+    assert len(paired) == 20 and len(paired[0]) == 0  # right time -0.5 does not exist
+    np.testing.assert_allclose(sorted(paired[3][:, 0]), sorted([100 + 3 * 2.5 + 0.1 * 6.25, 400.0]))
+
+
+def test_given_fractional_offset() -> None:
+    g = given_offset(-3.3)
+    assert g.fractional and g.used_offset == -3.3 and g.offset_frames == -3
+    assert given_offset(4.1).used_offset == 4.0  # within 0.2 frame of a whole frame: whole
