@@ -13,6 +13,7 @@ and board detection do not depend on.
 
 from __future__ import annotations
 
+import atexit
 import queue
 import threading
 from collections.abc import Iterator
@@ -129,6 +130,51 @@ def probe_video(path: str | Path) -> VideoInfo:
     )
 
 
+class _QuietOpenCV:
+    """Raise OpenCV's log level to ERROR while at least one luma reader runs.
+
+    OpenCV warns on every frame that it hands out the raw planar buffer
+    ("yuv420p ... treated as 8UC1"), which is exactly what we ask for. The
+    level is process-wide, so it is reference-counted across reader threads.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._users = 0
+        self._saved = 0
+
+    def __enter__(self) -> None:
+        with self._lock:
+            if self._users == 0:
+                self._saved = cv2.utils.logging.getLogLevel()
+                cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+            self._users += 1
+
+    def __exit__(self, *exc: object) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users == 0:
+                cv2.utils.logging.setLogLevel(self._saved)
+
+
+_quiet_opencv = _QuietOpenCV()
+
+# Decoder threads still running. They are stopped at interpreter exit: a
+# daemon thread frozen inside OpenCV while Python finalises aborts the process.
+_live_readers: dict[threading.Thread, threading.Event] = {}
+_live_lock = threading.Lock()
+
+
+@atexit.register
+def _stop_readers() -> None:
+    with _live_lock:
+        readers = list(_live_readers.items())
+    for _, halt in readers:
+        halt.set()
+    for thread, _ in readers:
+        thread.join(timeout=5.0)
+
+
 def _reader(
     path: Path,
     gray: bool,
@@ -146,49 +192,60 @@ def _reader(
                 pix = _fourcc_to_str(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
                 if pix in _LUMA_FIRST_FORMATS:
                     luma = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
-            if start > 0:
-                # Seeking is not frame-exact in every container: grab instead.
-                for _ in range(start):
-                    if not cap.grab():
-                        break
-            index = start
-            width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
-            height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-            while not halt.is_set() and (stop is None or index < stop):
-                if luma and index == start:
-                    # OpenCV warns once that it hands out the raw planar buffer.
-                    level = cv2.utils.logging.getLogLevel()
-                    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-                    try:
-                        ok, frame = cap.read()
-                    finally:
-                        cv2.utils.logging.setLogLevel(level)
-                else:
-                    ok, frame = cap.read()
-                if not ok or frame is None:
-                    break
-                if gray:
-                    if luma:
-                        if frame.ndim != 2 or frame.shape[0] < height or frame.shape[1] != width:
-                            raise InputError(
-                                f"{path.name} decodes to an unexpected raw layout {frame.shape};"
-                                " re-encode it (for example as MP4)."
-                            )
-                        frame = frame[:height]
-                    elif frame.ndim == 3:
-                        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-                while not halt.is_set():
-                    try:
-                        out.put(frame, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                index += 1
+            if luma:
+                with _quiet_opencv:
+                    _decode_loop(cap, path, gray, luma, start, stop, out, halt)
+            else:
+                _decode_loop(cap, path, gray, luma, start, stop, out, halt)
         finally:
             cap.release()
         out.put(None)
     except BaseException as exc:  # handed to the consumer, which re-raises it
         out.put(exc)
+    finally:
+        with _live_lock:
+            _live_readers.pop(threading.current_thread(), None)
+
+
+def _decode_loop(
+    cap: cv2.VideoCapture,
+    path: Path,
+    gray: bool,
+    luma: bool,
+    start: int,
+    stop: int | None,
+    out: queue.Queue[Any],
+    halt: threading.Event,
+) -> None:
+    if start > 0:
+        # Seeking is not frame-exact in every container: grab instead.
+        for _ in range(start):
+            if not cap.grab():
+                break
+    index = start
+    width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+    height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    while not halt.is_set() and (stop is None or index < stop):
+        ok, frame = cap.read()
+        if not ok or frame is None:
+            break
+        if gray:
+            if luma:
+                if frame.ndim != 2 or frame.shape[0] < height or frame.shape[1] != width:
+                    raise InputError(
+                        f"{path.name} decodes to an unexpected raw layout {frame.shape};"
+                        " re-encode it (for example as MP4)."
+                    )
+                frame = frame[:height]
+            elif frame.ndim == 3:
+                frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        while not halt.is_set():
+            try:
+                out.put(frame, timeout=0.1)
+                break
+            except queue.Full:
+                continue
+        index += 1
 
 
 def iter_frames(
@@ -231,6 +288,8 @@ def iter_frames(
     thread = threading.Thread(
         target=_reader, args=(p, gray, start, stop, out, halt), name=f"decode-{p.name}", daemon=True
     )
+    with _live_lock:
+        _live_readers[thread] = halt
     thread.start()
     n = 0
     try:

@@ -167,3 +167,23 @@ def _empty(tmp_path):
     d = tmp_path / "empty"
     d.mkdir()
     return d
+
+
+def test_abandoned_reader_exits_cleanly_and_quietly(tmp_path):
+    """A script that stops reading early and exits must neither abort nor spam OpenCV warnings."""
+    import subprocess
+    import sys
+
+    path = _write(tmp_path / "clip.mp4", _frames(60), codec="mp4v")
+    script = (
+        "from core.video import iter_frames\n"
+        f"it = iter_frames({str(path)!r}, prefetch=2)\n"
+        "for i, f in enumerate(it):\n"
+        "    if i == 3:\n"
+        "        break\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    assert "WARN" not in done.stderr and "FATAL" not in done.stderr
