@@ -332,7 +332,7 @@ def refine_offset(
         return estimate
     left = _pad(left_points_norm)
     t_left = left.shape[0]
-    frames = np.unique(np.linspace(0, t_left - 1, min(t_left, 600)).round().astype(int))
+    frames = np.unique(np.linspace(0, t_left - 1, min(t_left, 300)).round().astype(int))
     links = link_points(right_px, max_step_px=max_step_px)
     E = rig.essential_matrix
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
