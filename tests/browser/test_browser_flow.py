@@ -199,10 +199,12 @@ def test_clinician_flow(browser, served, recording, screenshot_dir, tmp_path):
 
     # 6. The patient's page now shows the trend plots.
     page.click("nav.crumbs >> text=PD-7777")
+    page.wait_for_url(re.compile(r"/patients/\d+$"))
     pages.check("patient page with result")
     assert page.locator("svg[data-plot=trend]").count() == 5
     _shots(page, "patient", screenshot_dir)
     page.go_back()
+    page.wait_for_url(re.compile(r"/trials/\d+$"))
 
     # 7. Download the PDF report and read it.
     with page.expect_download() as info:
