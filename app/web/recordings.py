@@ -68,7 +68,19 @@ def _session_context(db: Any, session: RecordingSession) -> dict[str, Any]:
         "calibration_problem": calibration_problem,
         "hands": ("left", "right"),
         "done_hands": {t.hand for t in trials if t.status != "failed"},
+        "hand_pair": _hand_pair(trials),
     }
+
+
+def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
+    """(right, left) trial ids with results, newest of each hand, for a left/right comparison."""
+    newest: dict[str, Trial] = {}
+    for t in trials:
+        if t.result is not None and (t.hand not in newest or t.id > newest[t.hand].id):
+            newest[t.hand] = t
+    if "right" in newest and "left" in newest:
+        return newest["right"].id, newest["left"].id
+    return None
 
 
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)

@@ -285,6 +285,17 @@ def test_new_session_form_and_creation(client, seeded, db_sessionmaker):
     assert r.status_code == 422 and "Please correct the form" in r.text
 
 
+def test_session_page_offers_the_left_right_comparison(client, seeded, db_sessionmaker):
+    login(client)
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, seeded["trials"][(1, "right")]).session_id
+    html = client.get(f"/sessions/{session_id}").text
+    right, left = seeded["trials"][(1, "right")], seeded["trials"][(1, "left")]
+    assert f'href="/trials/{right}?compare={left}#compare"' in html
+    page = client.get(f"/trials/{right}?compare={left}")
+    assert page.status_code == 200 and "Compared trial" in page.text
+
+
 def test_trial_page_has_every_plot_metrics_and_quality(client, seeded, db_sessionmaker):
     login(client)
     t = seeded["trials"][(1, "right")]
