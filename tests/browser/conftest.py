@@ -91,8 +91,9 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
 @pytest.fixture(scope="session")
 def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     data_dir = tmp_path_factory.mktemp("served-data")
-    env = {
-        **os.environ,
+    # A private SQLite database in the temporary data directory, whatever the caller's setup.
+    env = {k: v for k, v in os.environ.items() if k != "BRADYSCOPE_DATABASE_URL"}
+    env |= {
         "BRADYSCOPE_DATA_DIR": str(data_dir),
         "BRADYSCOPE_PASSWORD": PASSWORD,
         "BRADYSCOPE_WORKER_POLL_S": "0.2",
