@@ -169,6 +169,7 @@ def aperture_plot(
     taps: Sequence[Mapping[str, Any]] = (),
     events: Sequence[PlotEvent] = (),
     interpolated: ArrayLike | None = None,
+    top_mm: float | None = None,
 ) -> str:
     """Aperture (thumb–index distance) over time with taps, hesitations and halts marked.
 
@@ -185,6 +186,8 @@ def aperture_plot(
         Hesitations (shaded amber) and halts (shaded red).
     interpolated : (T,) bool, optional
         Frames whose position was gap-filled; drawn in grey.
+    top_mm : float, optional
+        Upper end of the distance axis (mm), to draw two trials on one scale.
 
     Returns
     -------
@@ -247,7 +250,8 @@ def aperture_plot(
         ax.set_xlabel("time (s)")
         ax.set_ylabel("thumb–index distance (mm)")
         ax.set_xlim(float(t[0]), float(t[-1]))
-        ax.set_ylim(bottom=min(0.0, float(np.nanmin(a))), top=float(np.nanmax(a)) * 1.12)
+        top = float(np.nanmax(a)) * 1.12 if top_mm is None else float(top_mm)
+        ax.set_ylim(bottom=min(0.0, float(np.nanmin(a))), top=top)
         fig.legend(loc="outside upper right", ncols=5)
     n_h = sum(ev.kind == "hesitation" for ev in events)
     n_halt = sum(ev.kind == "halt" for ev in events)
@@ -259,6 +263,7 @@ def tap_amplitude_plot(
     taps: Sequence[Mapping[str, Any]],
     *,
     decrement_mm_per_tap: float | None = None,
+    top_mm: float | None = None,
 ) -> str:
     """Amplitude of each tap with the decrement line.
 
@@ -268,6 +273,8 @@ def tap_amplitude_plot(
     decrement_mm_per_tap : float, optional
         Slope of the decrement line (``amplitude_decrement_mm_per_tap``). The
         line passes through the mean tap; without a slope it is fitted here.
+    top_mm : float, optional
+        Upper end of the amplitude axis (mm), to draw two trials on one scale.
     """
     fig = _figure(3.6, 2.6)
     amp = np.array([_value(tp, "amplitude_mm") for tp in taps], dtype=np.float64)
@@ -304,7 +311,7 @@ def tap_amplitude_plot(
         )
         ax.set_xlabel("tap number")
         ax.set_ylabel("amplitude (mm)")
-        ax.set_ylim(0, float(np.nanmax(amp)) * 1.2)
+        ax.set_ylim(0, float(np.nanmax(amp)) * 1.2 if top_mm is None else float(top_mm))
         ax.legend(loc="lower left", facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
     return _to_svg(

@@ -23,6 +23,7 @@ from app.models import Trial
 from app.reports import (
     ReportData,
     build_report_data,
+    comparison_plots,
     format_metric,
     metric_rows,
     report_context,
@@ -83,7 +84,8 @@ def _comparison(db: Any, data: ReportData, other: ReportData) -> dict[str, Any]:
                 "unit": rows_a[key].unit,
             }
         )
-    return {"rows": rows, "context": report_context(other)}
+    plots_a, plots_b = comparison_plots(data, other)
+    return {"rows": rows, "plots_a": plots_a, "plots_b": plots_b}
 
 
 def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]:
