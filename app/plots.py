@@ -140,16 +140,6 @@ def _to_svg(fig: Figure, *, title: str, name: str) -> str:
     return svg
 
 
-def copy_with_new_ids(svg: str, prefix: str) -> str:
-    """``svg`` with every element id (and its references) prefixed, to show it twice on a page."""
-    ids = set(_ID_RE.findall(svg))
-    for old in sorted(ids, key=len, reverse=True):
-        svg = svg.replace(f'id="{old}"', f'id="{prefix}{old}"')
-        svg = svg.replace(f"#{old})", f"#{prefix}{old})")
-        svg = svg.replace(f'href="#{old}"', f'href="#{prefix}{old}"')
-    return svg
-
-
 def _value(tap: Mapping[str, Any], key: str) -> float:
     """A tap's number, NaN when absent or null."""
     v = tap.get(key)

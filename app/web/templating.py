@@ -14,8 +14,6 @@ from typing import Any
 from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoescape
 from starlette.templating import Jinja2Templates
 
-from app.plots import copy_with_new_ids
-
 TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
 
 
@@ -46,7 +44,6 @@ def _make_env() -> Environment:
     env.filters["datetime"] = _datetime
     env.filters["date"] = _date
     env.filters["percent"] = _percent
-    env.filters["svg_copy"] = copy_with_new_ids
     return env
 
 
