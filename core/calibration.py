@@ -284,9 +284,21 @@ def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) ->
         if found[side] == 0:
             raise DetectionError(
                 f"the board ({board.describe()}) was found in 0 of {len(indices)} {side} frames"
-                " tried across the recording; check --cols/--rows (a chessboard counts inner"
-                " corners, a ChArUco board squares) and that the recording shows the board."
+                f" tried across the recording; {_board_hint(board)}."
             )
+
+
+def _board_hint(board: BoardSpec) -> str:
+    """What to check when a board is not found (ends without a full stop)."""
+    if board.kind == "chessboard":
+        return (
+            "check --cols/--rows (a chessboard counts inner corners, e.g. 9x6 for 10x7 squares)"
+            " and that the whole board is in view of the camera"
+        )
+    return (
+        "check --cols/--rows (a ChArUco board counts squares) and --dictionary, and that the"
+        " recording shows the board"
+    )
 
 
 def edge_width_px(image: NDArray[np.uint8], detection: BoardDetection) -> float:
@@ -405,7 +417,6 @@ def select_views(
     first = int(np.argmax(D[:, 2] + D[:, 7] + weight))
     order: list[int] = []
     nxt = first
-    duplicates = 0
     while True:
         order.append(nxt)
         d = np.linalg.norm(D - D[nxt], axis=1)
@@ -416,11 +427,14 @@ def select_views(
         if score[best] < 0:
             break
         if min_dist[best] < _DUPLICATE_DISTANCE:
-            duplicates = int(np.sum(score >= 0))
             break
         if len(order) >= max_views + max_held_out:
             break
         nxt = best
+    # Views left out that repeat a chosen pose.
+    left_out = np.ones(len(candidates), dtype=bool)
+    left_out[order] = False
+    duplicates = int(np.sum(left_out & (min_dist < _DUPLICATE_DISTANCE)))
     chosen = [candidates[k] for k in order]
     used = sorted(chosen[:max_views])
     held = sorted(chosen[max_views:])
@@ -675,8 +689,7 @@ def calibrate_stereo(
         if n < MIN_VIEWS:
             raise DetectionError(
                 f"the board ({board.describe()}) was found in {n} of {n_tried} {side} frames;"
-                f" at least {MIN_VIEWS} are needed — check --cols/--rows (and for a chessboard that"
-                " the whole board is in view) and that the recording shows the board."
+                f" at least {MIN_VIEWS} are needed — {_board_hint(board)}."
             )
     report(progress, "calibration", 0, 4)
     selection = select_views(collection, max_views=max_views, max_held_out=max_held_out)
