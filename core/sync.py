@@ -40,7 +40,7 @@ FloatArray = NDArray[np.float64]
 #: At most this many detections per frame enter the estimate (the rest are clutter).
 MAX_POINTS_PER_FRAME = 12
 #: At most this many left frames are used (evenly spaced) to bound the cost.
-MAX_FRAMES_USED = 3000
+MAX_FRAMES_USED = 400
 #: Offsets this far from a whole frame are applied as sub-frame offsets (frames).
 SUBFRAME_MIN = 0.2
 
@@ -332,7 +332,7 @@ def refine_offset(
         return estimate
     left = _pad(left_points_norm)
     t_left = left.shape[0]
-    frames = np.unique(np.linspace(0, t_left - 1, min(t_left, 300)).round().astype(int))
+    frames = np.unique(np.linspace(0, t_left - 1, min(t_left, 200)).round().astype(int))
     links = link_points(right_px, max_step_px=max_step_px)
     E = rig.essential_matrix
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
