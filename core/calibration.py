@@ -516,7 +516,9 @@ def _reconcile_numbering(
     transform, which must be the same in every view. A chessboard's right
     detection may be numbered a half turn off; that numbering is tried too
     and the one that agrees with the consensus is kept. Views that agree in
-    neither numbering (a mis-detection, a sub-board) are flagged.
+    neither numbering (a mis-detection, a sub-board) are flagged: their
+    transform is off the consensus by more than 3 degrees or 5 % of the
+    baseline and by more than five times the views' median scatter.
 
     Returns
     -------
@@ -544,20 +546,28 @@ def _reconcile_numbering(
         return rights, [False] * len(rights)
     scale = float(np.median([np.linalg.norm(t) for _, t in all_opts])) or 1.0
 
-    def agree(a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> bool:
-        return bool(
-            _rotation_angle(a[0], b[0]) < np.deg2rad(3.0)
-            and np.linalg.norm(a[1] - b[1]) < 0.05 * scale
+    def dist(a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> float:
+        """Disagreement of two transforms, in units of (3 degrees, 5 % of the baseline)."""
+        return max(
+            _rotation_angle(a[0], b[0]) / np.deg2rad(3.0),
+            float(np.linalg.norm(a[1] - b[1])) / (0.05 * scale),
         )
 
-    support = [sum(agree(a, b) for b in all_opts) for a in all_opts]
-    ref = all_opts[int(np.argmax(support))]
+    # Consensus: the transform nearest (in the median) to the best numbering of every view.
+    def nearest(a: tuple[FloatArray, FloatArray]) -> list[float]:
+        return [min((dist(a, (R, t)) for _, R, t in opts), default=np.inf) for opts in candidates]
+
+    ref = min(all_opts, key=lambda a: float(np.median(nearest(a))))
+    devs = np.array(nearest(ref))
+    finite = devs[np.isfinite(devs)]
+    # Far beyond the views' own scatter (and beyond 3 degrees / 5 % of the baseline) disagrees.
+    limit = max(1.0, 5.0 * float(np.median(finite))) if len(finite) else 1.0
     out: list[BoardDetection] = []
     consistent: list[bool] = []
-    for dr, opts in zip(rights, candidates, strict=True):
-        good = [o for (o, R, t) in opts if agree((R, t), ref)]
-        if good:
-            out.append(good[0])
+    for dr, opts, dev in zip(rights, candidates, devs, strict=True):
+        if opts and dev <= limit:
+            best = min(opts, key=lambda o: dist(ref, (o[1], o[2])))
+            out.append(best[0])
             consistent.append(True)
         else:
             out.append(dr)

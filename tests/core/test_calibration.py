@@ -239,6 +239,29 @@ def test_outlier_view_is_rejected(sim):
     _assert_rig_close(result.rig, true)
 
 
+def test_half_turn_numbering_is_reconciled_and_shifted_grid_rejected(sim):
+    """A right view numbered a half turn off is renumbered; one shifted by a square is dropped."""
+    from core.boards import BoardDetection
+
+    true, board, collection, _ = sim["chessboard"]
+    views = list(collection.views)
+    both = [i for i, v in enumerate(views) if v.both]
+    k_flip, k_shift = both[0], both[1]
+    views[k_flip] = dataclasses.replace(views[k_flip], right=views[k_flip].right.flipped(board))
+    det = views[k_shift].right
+    cols = board.cols
+    keep = det.ids % cols != 0  # drop column 0, call column c column c - 1
+    ids = det.ids[keep] - 1
+    shifted = BoardDetection(ids, det.corners_px[keep], board.object_points()[ids], det.image_size)
+    views[k_shift] = dataclasses.replace(views[k_shift], right=shifted)
+    result = calibrate_stereo(dataclasses.replace(collection, views=views), board)
+    rejected = result.quality["views_rejected_frames"]
+    assert views[k_shift].frame in rejected
+    assert views[k_flip].frame not in rejected
+    assert views[k_flip].frame in [pv["frame"] for pv in result.quality["per_view"]]
+    _assert_rig_close(result.rig, true)
+
+
 def test_held_out_views_check_the_square_length(sim):
     _true, board, collection, _ = sim["chessboard"]
     result = calibrate_stereo(collection, board, max_views=14, max_held_out=6)
