@@ -86,6 +86,14 @@ def test_bad_input_is_one_sentence(
     err = capsys.readouterr().err.strip()
     assert err.startswith("bradyscope analyze:") and "nope.mkv" in err and "\n" not in err
     assert "Traceback" not in err
+    # Convention: left and right exchanged must fail loudly, not measure garbage.
+    code = main(
+        ["analyze", "--rig", str(session.rig_path), "--left", str(session.right_video),
+         "--right", str(session.left_video), "-o", str(tmp_path / "out")]
+    )  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert "swapped" in err and "\n" not in err
     with pytest.raises(SystemExit):
         main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
               "--offset-frames", "1", "--auto-sync"])  # fmt: skip
