@@ -62,7 +62,7 @@ RESULT_FORMAT = "bradyscope.result/1"
 CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "reprojection_px")
 
 #: A full-frame marker search at least this often (frames), to pick up new markers.
-FULL_SEARCH_EVERY = 5
+FULL_SEARCH_EVERY = 10
 #: The last few full-frame searches define how many markers to expect.
 EXPECTED_COUNT_FULL_SEARCHES = 5
 #: Pairs farther from the epipolar constraint are not stereo candidates (px).
