@@ -27,6 +27,7 @@ The path from two recordings to a rig (``calibrate_stereo_from_paths``):
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -235,21 +236,36 @@ def collect_views(
         _probe(kind_l, src_l, src_r, board, n_total)
     indices = _sample_indices(n_total, max_candidates)
     views: list[StereoView] = []
-    for done, (i, img_l, img_r) in enumerate(_iter_pairs(kind_l, src_l, src_r, indices)):
-        if ImageSize.of_image(img_l) != size_l or ImageSize.of_image(img_r) != size_l:
-            a, b = ImageSize.of_image(img_l), ImageSize.of_image(img_r)
-            raise InputError(
-                f"frame pair {i} is {a.width}x{a.height} (left) and {b.width}x{b.height} (right),"
-                f" not {size_l.width}x{size_l.height}; all images must have one size."
-            )
-        det_l = detect_board(img_l, board)
-        det_r = detect_board(img_r, board)
-        width = np.nan
-        if det_l is not None and det_r is not None:
-            width = max(edge_width_px(img_l, det_l), edge_width_px(img_r, det_r))
-        views.append(StereoView(i, det_l, det_r, float(width)))
-        report(progress, "detection", done + 1, len(indices))
+    # Left and right are searched at once: OpenCV releases the GIL while it detects.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for done, (i, img_l, img_r) in enumerate(_iter_pairs(kind_l, src_l, src_r, indices)):
+            views.append(_detect_pair(pool, i, img_l, img_r, board, size_l))
+            report(progress, "detection", done + 1, len(indices))
     return ViewCollection(views, size_l, n_total, kind_l)
+
+
+def _detect_pair(
+    pool: ThreadPoolExecutor,
+    i: int,
+    img_l: NDArray[np.uint8],
+    img_r: NDArray[np.uint8],
+    board: BoardSpec,
+    size_l: ImageSize,
+) -> StereoView:
+    """Detect the board in one frame pair (left in a worker thread) and measure its blur."""
+    if ImageSize.of_image(img_l) != size_l or ImageSize.of_image(img_r) != size_l:
+        a, b = ImageSize.of_image(img_l), ImageSize.of_image(img_r)
+        raise InputError(
+            f"frame pair {i} is {a.width}x{a.height} (left) and {b.width}x{b.height} (right),"
+            f" not {size_l.width}x{size_l.height}; all images must have one size."
+        )
+    future_l = pool.submit(detect_board, img_l, board)
+    det_r = detect_board(img_r, board)
+    det_l = future_l.result()
+    width = np.nan
+    if det_l is not None and det_r is not None:
+        width = max(edge_width_px(img_l, det_l), edge_width_px(img_r, det_r))
+    return StereoView(i, det_l, det_r, float(width))
 
 
 def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) -> None:
