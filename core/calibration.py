@@ -897,6 +897,14 @@ def image_coverage(
     return float(len(set(zip(cx.tolist(), cy.tolist(), strict=True)))) / (gc * gr)
 
 
+def _nan_stat(stat: Any, values: FloatArray) -> float | None:
+    """A statistic of the finite values (rounded), or None when there are none."""
+    values = np.asarray(values, dtype=np.float64)
+    if not np.any(np.isfinite(values)):
+        return None
+    return _round(float(stat(values)))
+
+
 def _round(x: float, nd: int = 4) -> float | None:
     return round(float(x), nd) if np.isfinite(x) else None
 
@@ -953,13 +961,13 @@ def _quality(
         "rms_px_right": _round(float(np.sqrt(np.mean(fit.per_view[:, 1] ** 2)))),
         "view_rms_px_max": _round(float(fit.per_view.max())),
         "per_view": per_view,
-        "epipolar_px_mean": _round(float(np.mean(epi_used))),
-        "epipolar_px_max": _round(float(np.max(epi_used))),
-        "epipolar_px_mean_check": _round(float(np.mean(epi_held))) if len(epi_held) else None,
+        "epipolar_px_mean": _nan_stat(np.nanmean, epi_used),
+        "epipolar_px_max": _nan_stat(np.nanmax, epi_used),
+        "epipolar_px_mean_check": _nan_stat(np.nanmean, epi_held),
         "square_mm": board.square_mm,
-        "square_mm_measured": _round(float(np.mean(lengths))) if len(lengths) else None,
-        "square_error_mm_mean": _round(float(np.mean(err))) if len(err) else None,
-        "square_error_mm_rms": _round(float(np.sqrt(np.mean(err**2)))) if len(err) else None,
+        "square_mm_measured": _nan_stat(np.nanmean, lengths),
+        "square_error_mm_mean": _nan_stat(np.nanmean, err),
+        "square_error_mm_rms": _nan_stat(lambda e: np.sqrt(np.nanmean(e**2)), err),
         "square_check_views": len(held_pairs),
         "square_check_method": method,
         "coverage_left": _round(image_coverage(pts_l, size), 3),

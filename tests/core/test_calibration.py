@@ -414,3 +414,31 @@ def test_motion_blurred_frames_are_dropped(tmp_path):
     result = calibrate_stereo(collection, board)
     assert result.quality["views_blurred"] == len(blurred)
     assert abs(result.rig.baseline_mm - rig.baseline_mm) < 2.0  # mm, from a few views at 640x512
+
+
+def test_recordings_as_image_folders_calibrate_from_folders(tmp_path):
+    rig = example_rig(image_size=ImageSize(640, 512))
+    written = write_board_recordings(
+        rig,
+        tmp_path,
+        seed=2,
+        board="charuco",
+        duration_s=1.0,
+        fps=10.0,
+        pose_interval_s=0.1,
+        as_images=True,
+        supersample=2,
+    )
+    assert [p.name for p in written] == [
+        "charuco_left",
+        "charuco_right",
+        "charuco.json",
+        "rig_true.json",
+    ]
+    assert len(list((tmp_path / "charuco_left").glob("*.png"))) == 10
+    board = BoardSpec.from_dict(json.loads((tmp_path / "charuco.json").read_text()))
+    result = calibrate_stereo_from_paths(
+        tmp_path / "charuco_left", tmp_path / "charuco_right", board
+    )
+    assert result.quality["source"] == "images"
+    assert abs(result.rig.baseline_mm - rig.baseline_mm) < 2.0  # mm, 10 views at 640x512
