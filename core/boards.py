@@ -423,3 +423,58 @@ def _charuco_detector(board: BoardSpec) -> Any:
             _DETECTORS.clear()
         _DETECTORS[board] = det
     return det
+
+
+def chessboard_extends(image: NDArray[Any], detection: BoardDetection, board: BoardSpec) -> bool:
+    """Whether chessboard corners continue past an edge of the detected grid.
+
+    A chessboard larger than the ``cols x rows`` asked for is often found as a
+    sub-grid. One grid step beyond each edge (extrapolated quadratically along
+    the grid lines) there is then another X-shaped corner, where a correctly
+    sized board has its outer edge. A point is X-shaped when the intensity on
+    a circle of 0.3 grid steps around it is dominated by its second harmonic
+    (two dark and two light sectors); a side continues when at least 80 % of
+    its points inside the image are X-shaped.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W) or (H, W, 3)
+    detection : BoardDetection
+        A whole-chessboard detection of ``board`` in ``image``.
+    board : BoardSpec
+        A chessboard.
+    """
+    if board.kind != "chessboard" or len(detection) != board.n_corners:
+        raise ValueError("chessboard_extends needs a whole-chessboard detection")
+    gray = _to_gray(image).astype(np.float32)
+    h, w = gray.shape
+    c, r = board.corner_grid
+    g = detection.corners_px.reshape(r, c, 2)
+    edges = (
+        (g[:, 0], g[:, 1], g[:, 2]),
+        (g[:, -1], g[:, -2], g[:, -3]),
+        (g[0], g[1], g[2]),
+        (g[-1], g[-2], g[-3]),
+    )
+    theta = np.linspace(0.0, 2.0 * np.pi, 32, endpoint=False)
+    h1_basis = np.exp(-1j * theta)
+    h2_basis = np.exp(-2j * theta)
+    for p0, p1, p2 in edges:
+        beyond = 3 * p0 - 3 * p1 + p2
+        radius = 0.3 * np.linalg.norm(beyond - p0, axis=1)
+        xs = beyond[:, :1] + radius[:, None] * np.cos(theta)[None, :]
+        ys = beyond[:, 1:] + radius[:, None] * np.sin(theta)[None, :]
+        inside = (xs.min(axis=1) >= 0) & (ys.min(axis=1) >= 0)
+        inside &= (xs.max(axis=1) <= w - 1) & (ys.max(axis=1) <= h - 1)
+        if np.sum(inside) < 3:
+            continue
+        v = cv2.remap(
+            gray, xs[inside].astype(np.float32), ys[inside].astype(np.float32), cv2.INTER_LINEAR
+        ).astype(np.float64)
+        v -= v.mean(axis=1, keepdims=True)
+        h1 = np.abs(v @ h1_basis)
+        h2 = np.abs(v @ h2_basis)
+        x_shaped = h2 / (h1 + h2 + 1e-9) > 0.85
+        if np.mean(x_shaped) >= 0.8:
+            return True
+    return False

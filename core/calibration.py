@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from core.boards import BoardDetection, BoardSpec, detect_board
+from core.boards import BoardDetection, BoardSpec, chessboard_extends, detect_board
 from core.camera import Camera, ImageSize, StereoRig
 from core.errors import CalibrationError, DetectionError, InputError
 from core.progress import ProgressCallback, report
@@ -61,6 +61,8 @@ _DUPLICATE_DISTANCE = 0.03
 _FAIL_RMS_PX = 3.0
 #: Frames searched by the quick check that the board is in the recording at all.
 _PROBE_FRAMES = 12
+#: Left views checked for a chessboard larger than described.
+_SIZE_CHECKS = 8
 #: Coverage grid (columns, rows) over the image.
 _COVERAGE_GRID = (10, 8)
 
@@ -237,11 +239,30 @@ def collect_views(
     indices = _sample_indices(n_total, max_candidates)
     views: list[StereoView] = []
     # Left and right are searched at once: OpenCV releases the GIL while it detects.
+    checked: list[bool] = []
     with ThreadPoolExecutor(max_workers=2) as pool:
         for done, (i, img_l, img_r) in enumerate(_iter_pairs(kind_l, src_l, src_r, indices)):
-            views.append(_detect_pair(pool, i, img_l, img_r, board, size_l))
+            view = _detect_pair(pool, i, img_l, img_r, board, size_l)
+            views.append(view)
+            if board.kind == "chessboard" and view.left is not None and len(checked) < _SIZE_CHECKS:
+                checked.append(chessboard_extends(img_l, view.left, board))
+                if len(checked) == _SIZE_CHECKS:
+                    _check_board_size(checked, board)
             report(progress, "detection", done + 1, len(indices))
+    if len(checked) >= 2:
+        _check_board_size(checked, board)
     return ViewCollection(views, size_l, n_total, kind_l)
+
+
+def _check_board_size(extends: list[bool], board: BoardSpec) -> None:
+    """Refuse a chessboard that is larger than described (found as a sub-grid)."""
+    n = sum(extends)
+    if n >= max(2, len(extends) / 2):
+        raise DetectionError(
+            f"the chessboard has more inner corners than the {board.cols}x{board.rows} given"
+            f" (its corners continue past the grid found in {n} of {len(extends)} views checked);"
+            " check --cols/--rows: count the inner corners, e.g. 9x6 for a board of 10x7 squares."
+        )
 
 
 def _detect_pair(

@@ -80,6 +80,37 @@ def test_calibrate_writes_a_rig_file(tmp_path, capsys):
     assert "rig.json" in printed and "RMS" in printed
 
 
+def test_board_larger_than_described(tmp_path, capsys):
+    """OpenCV's 9x6 board described as 8x6: found as a sub-grid, refused with a sentence."""
+    if not DATA.is_dir():
+        pytest.skip(f"OpenCV's stereo sample images are not in {DATA}")
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        for f in sorted(DATA.glob(f"{side}*.jpg")):
+            (tmp_path / side / f.name).symlink_to(f)
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(tmp_path / "left"),
+            "--right",
+            str(tmp_path / "right"),
+            "--board",
+            "chessboard",
+            "--cols",
+            "8",
+            "--rows",
+            "6",
+            "--square-mm",
+            "25",
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    assert "more inner corners than the 8x6 given" in _one_sentence_error(capsys)
+
+
 def test_board_never_in_view(tmp_path, capsys):
     left = _blank_video(tmp_path / "l.mkv", SMALL, 10, seed=1)
     right = _blank_video(tmp_path / "r.mkv", SMALL, 10, seed=2)

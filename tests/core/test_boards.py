@@ -245,3 +245,22 @@ def test_boardspec_from_the_service_form_and_bad_documents():
         BoardSpec.from_dict({"kind": "chessboard", "cols": 9, "rows": 6})
     with pytest.raises(InputError, match="symmetric"):
         BoardSpec.from_dict({"kind": "chessboard", "cols": 7, "rows": 7, "square_mm": 20})
+
+
+def test_a_larger_chessboard_found_as_a_sub_grid_is_noticed(rig):
+    from core.boards import BoardDetection, chessboard_extends
+
+    board = DEFAULT_CHESSBOARD
+    smaller = BoardSpec("chessboard", cols=board.cols - 1, rows=board.rows, square_mm=25.0)
+    for k, pose in enumerate(random_board_poses(rig, board, 3, rng=np.random.default_rng(9))):
+        img, _ = _render(rig, board, pose, seed=k)
+        det = detect_board(img, board)
+        assert det is not None
+        assert not chessboard_extends(img, det, board)
+        # The same corners minus the last column: an 8x6 grid inside a 9x6 board.
+        keep = det.ids % board.cols != board.cols - 1
+        ids = np.arange(smaller.n_corners)
+        sub = BoardDetection(ids, det.corners_px[keep], smaller.object_points(), det.image_size)
+        assert chessboard_extends(img, sub, smaller)
+    with pytest.raises(ValueError, match="whole-chessboard"):
+        chessboard_extends(img, sub, board)
