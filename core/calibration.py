@@ -388,6 +388,24 @@ def _pose_descriptor(det: BoardDetection, size: ImageSize) -> FloatArray | None:
     return np.array([centre[0], centre[1], 2.0 * np.sqrt(area), 1.5 * normal[0], 1.5 * normal[1]])
 
 
+def _square_of(det: BoardDetection) -> float:
+    """The grid step (mm) of a detection's object points."""
+    d = np.diff(np.unique(det.object_points_mm[:, 0]))
+    return float(d.min()) if len(d) else 1.0
+
+
+def _enough_common_corners(
+    left: BoardDetection, right: BoardDetection, *, board_square_mm: float
+) -> bool:
+    """Whether the corners seen in both images fix a board pose: >= 6 and not collinear."""
+    ids = np.intersect1d(left.ids, right.ids)
+    if len(ids) < 6:
+        return False
+    obj = left.object_points_mm[np.isin(left.ids, ids)][:, :2]
+    sv = np.linalg.svd(obj - obj.mean(axis=0), compute_uv=False)
+    return bool(sv[-1] >= 0.5 * board_square_mm)
+
+
 @dataclass(frozen=True)
 class ViewSelection:
     """Indices (into the collection's views) chosen for the fit and for the check."""
@@ -430,6 +448,8 @@ def select_views(
             and v.edge_width_px > _BLUR_FACTOR * median_width
         ):
             blurred.append(i)
+            continue
+        if not _enough_common_corners(v.left, v.right, board_square_mm=_square_of(v.left)):
             continue
         dl = _pose_descriptor(v.left, size)
         dr = _pose_descriptor(v.right, size)
@@ -698,6 +718,53 @@ def _orthonormal(R: FloatArray) -> FloatArray:
     return out
 
 
+def _short(exc: BaseException) -> str:
+    """The first line of an exception message, trimmed (OpenCV's are long)."""
+    text = str(exc).strip().splitlines()
+    line = next((t.strip() for t in text if "error:" in t), text[0] if text else type(exc).__name__)
+    return line[-120:].rstrip(".")
+
+
+def _fit(
+    used: list[int],
+    lefts_d: list[BoardDetection],
+    rights_d: list[BoardDetection],
+    board: BoardSpec,
+    size: ImageSize,
+    *,
+    progress: ProgressCallback | None,
+) -> tuple[_StereoFit, list[int], list[BoardDetection], list[BoardDetection], list[int]]:
+    """Steps 1-3 of :func:`calibrate_stereo`: returns the fit, the views kept and those rejected."""
+    # 1. Intrinsics of each camera, with outlier views removed.
+    rejected: list[int] = []
+    _, K_l, d_l, *_rest_l, pv_l = _calibrate_camera(lefts_d, size)
+    _, K_r, d_r, *_rest_r, pv_r = _calibrate_camera(rights_d, size)
+    report(progress, "calibration", 1, 4)
+    # 2. Consistent numbering and a consistent left-to-right transform.
+    rights_d, consistent = _reconcile_numbering(lefts_d, rights_d, board, K_l, d_l, K_r, d_r)
+    bad = ~np.array(consistent) | _outliers(np.column_stack([pv_l, pv_r]))
+    if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
+        rejected += [used[k] for k in np.flatnonzero(bad)]
+        keep = np.flatnonzero(~bad)
+        used = [used[k] for k in keep]
+        lefts_d = [lefts_d[k] for k in keep]
+        rights_d = [rights_d[k] for k in keep]
+        _, K_l, d_l, *_ = _calibrate_camera(lefts_d, size, K=K_l, dist=d_l)
+        _, K_r, d_r, *_ = _calibrate_camera(rights_d, size, K=K_r, dist=d_r)
+    report(progress, "calibration", 2, 4)
+    # 3. Joint refinement, once more without outliers.
+    fit = _stereo_calibrate(lefts_d, rights_d, size, K_l, d_l, K_r, d_r)
+    bad = _outliers(fit.per_view)
+    if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
+        rejected += [used[k] for k in np.flatnonzero(bad)]
+        keep = np.flatnonzero(~bad)
+        used = [used[k] for k in keep]
+        lefts_d = [lefts_d[k] for k in keep]
+        rights_d = [rights_d[k] for k in keep]
+        fit = _stereo_calibrate(lefts_d, rights_d, size, fit.K_l, fit.d_l, fit.K_r, fit.d_r)
+    return fit, used, lefts_d, rights_d, rejected
+
+
 def calibrate_stereo(
     collection: ViewCollection,
     board: BoardSpec,
@@ -755,40 +822,26 @@ def calibrate_stereo(
     lefts_d: list[BoardDetection] = [d for d in lefts if d is not None]
     rights_d: list[BoardDetection] = [d for d in rights if d is not None]
 
-    # 1. Intrinsics of each camera, with outlier views removed.
-    rejected: list[int] = []
-    _, K_l, d_l, *_rest_l, pv_l = _calibrate_camera(lefts_d, size)
-    _, K_r, d_r, *_rest_r, pv_r = _calibrate_camera(rights_d, size)
-    report(progress, "calibration", 1, 4)
-    # 2. Consistent numbering and a consistent left-to-right transform.
-    rights_d, consistent = _reconcile_numbering(lefts_d, rights_d, board, K_l, d_l, K_r, d_r)
-    bad = ~np.array(consistent) | _outliers(np.column_stack([pv_l, pv_r]))
-    if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
-        rejected += [used[k] for k in np.flatnonzero(bad)]
-        keep = np.flatnonzero(~bad)
-        used = [used[k] for k in keep]
-        lefts_d = [lefts_d[k] for k in keep]
-        rights_d = [rights_d[k] for k in keep]
-        _, K_l, d_l, *_ = _calibrate_camera(lefts_d, size, K=K_l, dist=d_l)
-        _, K_r, d_r, *_ = _calibrate_camera(rights_d, size, K=K_r, dist=d_r)
-    report(progress, "calibration", 2, 4)
-    # 3. Joint refinement, once more without outliers.
-    fit = _stereo_calibrate(lefts_d, rights_d, size, K_l, d_l, K_r, d_r)
-    bad = _outliers(fit.per_view)
-    if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
-        rejected += [used[k] for k in np.flatnonzero(bad)]
-        keep = np.flatnonzero(~bad)
-        used = [used[k] for k in keep]
-        lefts_d = [lefts_d[k] for k in keep]
-        rights_d = [rights_d[k] for k in keep]
-        fit = _stereo_calibrate(lefts_d, rights_d, size, fit.K_l, fit.d_l, fit.K_r, fit.d_r)
+    failure = (
+        "the calibration could not be computed from these views ({});"
+        " record the board in more varied poses, tilted and across the whole image."
+    )
+    try:
+        fit, used, lefts_d, rights_d, rejected = _fit(
+            used, lefts_d, rights_d, board, size, progress=progress
+        )
+    except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:
+        raise CalibrationError(failure.format(_short(exc))) from exc
     report(progress, "calibration", 3, 4)
     if not np.isfinite(fit.rms) or fit.rms > _FAIL_RMS_PX:
         raise CalibrationError(
             f"the board corners do not fit one rig (reprojection error {fit.rms:.1f} px);"
             f" check that --cols/--rows/--square-mm describe the board filmed ({board.describe()})."
         )
-    rig = _rig_from_fit(fit, size, {})
+    try:
+        rig = _rig_from_fit(fit, size, {})
+    except ValueError as exc:
+        raise CalibrationError(failure.format(_short(exc))) from exc
     # 4. Quality.
     held = [views[i] for i in selection.held_out]
     quality = _quality(
