@@ -283,7 +283,7 @@ def test_end_to_end_with_a_calibrated_rig(
     true_rig = read_rig(session.rig_path)
     out = tmp_path_factory.mktemp("boards")
     write_board_recordings(
-        true_rig, out, seed=3, board="chessboard", duration_s=3.0, fps=10.0, pose_interval_s=0.1
+        true_rig, out, seed=3, board="chessboard", duration_s=2.4, fps=10.0, pose_interval_s=0.1
     )
     rig = calibrate_stereo_from_paths(
         out / "chessboard_left.mkv", out / "chessboard_right.mkv", DEFAULT_CHESSBOARD
@@ -296,3 +296,26 @@ def test_end_to_end_with_a_calibrated_rig(
     assert np.mean(meas) >= 0.99
     ap = aperture_error_mm(analysis, session)
     assert np.sqrt(np.mean(ap[meas] ** 2)) <= 0.1  # mm (acceptance, estimated rig)
+
+
+# --------------------------------------------------------------------------- sub-frame offset
+
+
+def test_fractional_offset_is_found_and_used(tmp_path: Path) -> None:
+    """Cameras not triggered together: a -3.5-frame offset, found and paired sub-frame."""
+    session = simulate_session(
+        tmp_path,
+        seed=12,
+        tapping=TappingScenario(duration_s=2.5, fps=100.0, frequency_hz=3.0),
+        imaging=ImagingScenario(image_size=ImageSize(640, 512), offset_frames=-3.5),
+    )
+    analysis = analyze_recording(
+        read_rig(session.rig_path), session.left_video, session.right_video
+    )
+    assert analysis.sync["offset_frames"] == pytest.approx(-3.5, abs=0.05)  # frames
+    meas = analysis.status == "measured"
+    assert np.mean(meas) > 0.95
+    err = errors_mm(analysis, session)[meas]
+    # 640x512 halves the resolution. Pairing whole frames instead (offset -4) measured
+    # 63 % of the frames with 0.28 mm RMS and 1.3 mm worst error on such a recording.
+    assert np.sqrt(np.mean(err**2)) <= 0.06  # mm
