@@ -234,7 +234,7 @@ def collect_views(
         check_stereo_videos(src_l, src_r)
         size_l = src_l.image_size
         n_total = min(src_l.frame_count, src_r.frame_count)
-    if kind_l == "video" or n_total > 2 * _PROBE_FRAMES:
+    if kind_l == "video" or n_total > _PROBE_FRAMES:
         _probe(kind_l, src_l, src_r, board, n_total)
     indices = _sample_indices(n_total, max_candidates)
     views: list[StereoView] = []
