@@ -8,7 +8,7 @@ Sessions are rendered once per test run (module scope) and shared:
   frame offset of -7 frames (not given), the index hidden from the right
   camera for 0.08 s while it moves fast, and the thumb hidden from the left
   camera for 0.3 s (too long to fill).
-- ``clean``: 1280x1024, 100 fps, lossless, default noise and blur, 3 s (the
+- ``clean``: 1280x1024, 100 fps, lossless, default noise and blur, 2 s (the
   accuracy figure does not depend on the length; 10 s is the bench's job).
 """
 
@@ -90,7 +90,7 @@ def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, A
     session = simulate_session(
         out,
         seed=5,
-        tapping=TappingScenario(duration_s=3.0, fps=100.0, frequency_hz=3.5),
+        tapping=TappingScenario(duration_s=2.0, fps=100.0, frequency_hz=3.5),
         imaging=ImagingScenario(image_size=FULL, codec="lossless"),
     )
     analysis = analyze_recording(
