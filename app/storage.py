@@ -238,6 +238,14 @@ class IncomingFile:
         self._sha.update(chunk)
         self._fh.write(chunk)
 
+    def flush(self) -> None:
+        """Make the bytes written so far readable at ``temp_path`` (no-op once closed).
+
+        For checks that read the received file before :meth:`commit` publishes it.
+        """
+        if not self._fh.closed:
+            self._fh.flush()
+
     def commit(self) -> StoredFile:
         """fsync and move the file to its final path; returns what to store in the database."""
         if self._committed is not None:

@@ -234,9 +234,7 @@ class _Receiver:
         if self._incoming is not None:
             # Complete: make the bytes readable at temp_path for the checks; the
             # use case publishes (fsync + rename) the accepted ones.
-            fh = getattr(self._incoming, "_fh", None)
-            if fh is not None and not fh.closed:
-                fh.flush()
+            self._incoming.flush()
             self._incoming = None
         else:
             self.result.fields[self._name] = self._text.decode("utf-8", "replace")

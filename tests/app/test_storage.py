@@ -30,6 +30,17 @@ def test_received_file_is_published_with_size_and_checksum(storage):
     assert _leftovers(storage) == []
 
 
+def test_flush_makes_received_bytes_readable_before_commit(storage):
+    with storage.receive("videos", ".mp4") as incoming:
+        incoming.write(b"frame-bytes")
+        incoming.flush()
+        assert incoming.temp_path.read_bytes() == b"frame-bytes"
+        assert not storage.exists(incoming.path)
+        incoming.commit()
+        incoming.flush()  # harmless once the file is closed
+    assert _leftovers(storage) == []
+
+
 def test_oversized_upload_leaves_nothing(storage):
     with pytest.raises(PayloadTooLargeError, match="larger than the limit"):
         with storage.receive("videos", ".mp4", max_bytes=100) as incoming:
