@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from typing import Any, TypeVar
 
+from sqlalchemy import Select, select
 from sqlalchemy.orm import Session
 
+from app import jobs
 from app.audit import audit_failure
 from app.auth import Actor
 from app.errors import NotFoundError
-from app.models import Patient, RecordingSession, Rig, Trial
+from app.models import Job, Patient, RecordingSession, Rig, Trial
 
 T = TypeVar("T")
 
@@ -53,3 +55,18 @@ def load_rig(db: Session, actor: Actor, rig_id: int, action: str) -> Rig:
     if rig is None:
         raise not_found(db, actor, action, "rig", rig_id, "The rig")
     return rig
+
+
+DELETED_MESSAGE = "the recording was deleted before its measurement finished."
+
+
+def cancel_trial_jobs(db: Session, trial_ids: Select[tuple[int]]) -> int:
+    """Cancel the queued or running jobs of the trials ``trial_ids`` selects (being deleted).
+
+    In the caller's transaction; a worker still measuring one of them loses its
+    lease and stores nothing. Returns how many jobs were cancelled.
+    """
+    job_ids = db.scalars(
+        select(Job.id).where(Job.trial_id.in_(trial_ids), Job.status.in_(("queued", "running")))
+    ).all()
+    return sum(jobs.cancel(db, job_id, DELETED_MESSAGE) for job_id in job_ids)

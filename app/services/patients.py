@@ -15,9 +15,9 @@ from sqlalchemy.orm import Session
 from app.audit import audit
 from app.auth import Actor
 from app.errors import ConflictError
-from app.models import Patient, utcnow
+from app.models import Patient, RecordingSession, Trial, utcnow
 from app.schemas import PatientCreate, PatientUpdate
-from app.services.common import load_patient
+from app.services.common import cancel_trial_jobs, load_patient
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
@@ -98,8 +98,14 @@ def update_patient(db: Session, actor: Actor, patient_id: int, data: PatientUpda
 
 
 def delete_patient(db: Session, actor: Actor, patient_id: int) -> None:
-    """Soft-delete a patient (see the module's deletion rule)."""
+    """Soft-delete a patient (see the module's deletion rule); jobs of its trials are cancelled."""
     patient = load_patient(db, actor, patient_id, "delete")
     patient.deleted_at = utcnow()
+    cancel_trial_jobs(
+        db,
+        select(Trial.id)
+        .join(RecordingSession, Trial.session_id == RecordingSession.id)
+        .where(RecordingSession.patient_id == patient.id),
+    )
     audit(db, actor, "delete", "patient", patient.id, patient.id)
     db.commit()

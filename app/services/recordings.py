@@ -24,7 +24,7 @@ from app.audit import audit
 from app.auth import Actor
 from app.errors import CalibrationMissingError, ConflictError, InvalidRequestError
 from app.models import Calibration, Job, Trial, Video, next_calibration_version, utcnow
-from app.services.common import load_rig, load_session, load_trial
+from app.services.common import cancel_trial_jobs, load_rig, load_session, load_trial
 from app.uploads import (
     InvalidUpload,
     ParsedUpload,
@@ -216,9 +216,13 @@ def get_trial(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
 
 
 def delete_trial(db: Session, actor: Actor, trial_id: int) -> None:
-    """Soft-delete a trial: it answers 404 and leaves the lists; rows, files, audit stay."""
+    """Soft-delete a trial: it answers 404 and leaves the lists; rows, files, audit stay.
+
+    Its queued or running job is cancelled (nobody could see the result).
+    """
     trial = load_trial(db, actor, trial_id, "delete")
     trial.deleted_at = utcnow()
+    cancel_trial_jobs(db, select(Trial.id).where(Trial.id == trial.id))
     audit(db, actor, "delete", "trial", trial.id, trial.session.patient_id)
     db.commit()
 

@@ -12,9 +12,9 @@ from sqlalchemy.orm import Session
 from app.audit import audit
 from app.auth import Actor
 from app.errors import InvalidRequestError
-from app.models import Calibration, RecordingSession, Rig, utcnow
+from app.models import Calibration, RecordingSession, Rig, Trial, utcnow
 from app.schemas import SessionCreate, SessionUpdate
-from app.services.common import load_patient, load_session, not_found
+from app.services.common import cancel_trial_jobs, load_patient, load_session, not_found
 
 
 def _check_calibration(db: Session, calibration_id: int, rig_id: int) -> None:
@@ -90,7 +90,9 @@ def update_session(
 
 
 def delete_session(db: Session, actor: Actor, session_id: int) -> None:
+    """Soft-delete a session; the queued or running jobs of its trials are cancelled."""
     row = load_session(db, actor, session_id, "delete")
     row.deleted_at = utcnow()
+    cancel_trial_jobs(db, select(Trial.id).where(Trial.session_id == row.id))
     audit(db, actor, "delete", "session", row.id, row.patient_id)
     db.commit()

@@ -7,6 +7,7 @@ import csv
 import io
 import sys
 
+import pytest
 from api_support import Api, add_result, api, seed_recording_target, trial_files, video_pair  # noqa: F401 - pytest fixtures
 
 
@@ -44,6 +45,67 @@ def test_trial_job_and_listing(api: Api, video_pair) -> None:
     assert api.client.delete(f"/api/v1/trials/{up['id']}", headers=h).status_code == 204
     assert api.client.get(f"/api/v1/trials/{up['id']}", headers=h).status_code == 404
     assert api.client.get(f"/api/v1/sessions/{up['session_id']}/trials", headers=h).json() == []
+
+
+def _job(api: Api, job_id: int) -> dict:
+    r = api.client.get(f"/api/v1/jobs/{job_id}", headers=api.headers)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_deleting_a_trial_cancels_its_queued_job(api: Api, video_pair) -> None:
+    up = _upload(api, video_pair)
+    assert _job(api, up["job_id"])["status"] == "queued"
+    assert api.client.delete(f"/api/v1/trials/{up['id']}", headers=api.headers).status_code == 204
+    job = _job(api, up["job_id"])
+    assert job["status"] == "failed" and "deleted" in job["error"]
+
+
+def test_deleting_a_session_or_patient_cancels_the_jobs_of_its_trials(api: Api, video_pair) -> None:
+    from app import jobs
+
+    up = _upload(api, video_pair)
+    h = api.headers
+    # The worker is measuring it: a cancelled running job loses its lease.
+    claimed = jobs.claim_next(api.sessions, worker_name="test", lease_s=60.0)
+    assert claimed is not None and claimed.id == up["job_id"]
+    assert api.client.delete(f"/api/v1/sessions/{up['session_id']}", headers=h).status_code == 204
+    job = _job(api, up["job_id"])
+    assert job["status"] == "failed" and "deleted" in job["error"]
+    with pytest.raises(jobs.LeaseLostError):
+        jobs.heartbeat(api.sessions, claimed, lease_s=60.0)
+
+    patient_id, rig_id = _patient_and_rig(api, up["session_id"])
+    second = api.client.post(
+        "/api/v1/sessions",
+        json={
+            "patient_id": patient_id,
+            "rig_id": rig_id,
+            "recorded_at": "2026-03-02T09:30:00Z",
+            "medication_state": "on",
+        },
+        headers=h,
+    )
+    assert second.status_code == 201, second.text
+    r = api.client.post(
+        f"/api/v1/sessions/{second.json()['id']}/trials",
+        data={"hand": "right"},
+        files=trial_files(*video_pair),
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    assert api.client.delete(f"/api/v1/patients/{patient_id}", headers=h).status_code == 204
+    job = _job(api, r.json()["job_id"])
+    assert job["status"] == "failed" and "deleted" in job["error"]
+
+
+def _patient_and_rig(api: Api, session_id: int) -> tuple[int, int]:
+    from app.models import RecordingSession
+
+    with api.sessions() as db:
+        row = db.get(RecordingSession, session_id)
+        assert row is not None
+        return row.patient_id, row.rig_id
 
 
 def test_result_is_409_until_the_analysis_succeeded(api: Api, video_pair) -> None:
@@ -117,6 +179,7 @@ def test_rig_file_calibration_round_trip(api: Api) -> None:
     assert cal["valid_from"] == "2026-01-01T00:00:00Z"
     back = api.client.get(f"/api/v1/calibrations/{cal['id']}/rig.json", headers=h).json()
     assert back["cameras"][1]["t"] == doc["cameras"][1]["t"]
+    patient_id, rig_id = _patient_and_rig(api, up["session_id"])
     second = api.client.post(
         f"/api/v1/rigs/{rig['id']}/calibrations",
         files={"rig_json": ("rig.json", json.dumps(doc).encode(), "application/json")},
