@@ -179,7 +179,6 @@ def test_rig_file_calibration_round_trip(api: Api) -> None:
     assert cal["valid_from"] == "2026-01-01T00:00:00Z"
     back = api.client.get(f"/api/v1/calibrations/{cal['id']}/rig.json", headers=h).json()
     assert back["cameras"][1]["t"] == doc["cameras"][1]["t"]
-    patient_id, rig_id = _patient_and_rig(api, up["session_id"])
     second = api.client.post(
         f"/api/v1/rigs/{rig['id']}/calibrations",
         files={"rig_json": ("rig.json", json.dumps(doc).encode(), "application/json")},
