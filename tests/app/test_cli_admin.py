@@ -12,7 +12,7 @@ from sqlalchemy import select
 from app.apikeys import hash_api_key, parse_api_key, verify_api_key
 from app.cli import main
 from app.db import dispose_engines, get_sessionmaker
-from app.models import ApiClient, User
+from app.models import ApiClient, BrowserSession, User
 from app.passwords import verify_password
 from app.settings import Settings
 
@@ -127,6 +127,31 @@ def test_set_password_replaces_hash(fresh_dir, monkeypatch):
     with _db(fresh_dir) as db:
         assert verify_password(db.scalars(select(User)).one().password_hash, "second-pass")
     assert main(["admin", "set-password", "nobody@b.org"]) == 2
+
+
+def test_set_password_logs_the_user_out_of_every_browser(fresh_dir, monkeypatch):
+    from app.auth import authenticate_session_cookie, login_user
+
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "first-pass")
+    main(["admin", "create-user", "a@b.org", "--role", "clinician"])
+    main(["admin", "create-user", "c@b.org", "--role", "clinician"])
+    settings = Settings(data_dir=fresh_dir)
+    with _db(fresh_dir) as db:
+        tokens = [
+            login_user(db, settings=settings, email=email, password="first-pass").token
+            for email in ("a@b.org", "a@b.org", "c@b.org")
+        ]
+        assert all(authenticate_session_cookie(db, t) is not None for t in tokens)
+        db.commit()
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "second-pass")
+    assert main(["admin", "set-password", "a@b.org"]) == 0
+    with _db(fresh_dir) as db:
+        assert [row.user.email for row in db.scalars(select(BrowserSession))] == ["c@b.org"]
+        assert [authenticate_session_cookie(db, t) is not None for t in tokens] == [
+            False,
+            False,
+            True,  # another user's browser stays logged in
+        ]
 
 
 def test_check_migrations_passes_on_a_fresh_data_dir(fresh_dir, capsys):
