@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from sqlalchemy.orm import Session
 
-from app.models import AuditEvent
+from app.models import ACTOR_ANONYMOUS, AuditEvent
 
 if TYPE_CHECKING:
     from app.auth import Actor
@@ -33,18 +33,23 @@ Action = Literal[
 ]
 Outcome = Literal["success", "denied", "not_found", "invalid", "error"]
 
+ANONYMOUS: Literal["anonymous"] = ACTOR_ANONYMOUS
+"""Pass as the actor when nobody is authenticated (e.g. a failed login); no ``actor_id``."""
+
 
 def _event(
-    actor: Actor | None,
+    actor: Actor | Literal["anonymous"] | None,
     action: str,
     resource_type: str,
     resource_id: Any,
     patient_id: int | None,
     outcome: str,
 ) -> AuditEvent:
+    actor_type: str = "system" if actor is None else ANONYMOUS if actor == ANONYMOUS else actor.type
+    actor_id = None if actor is None or actor == ANONYMOUS else str(actor.id)
     return AuditEvent(
-        actor_type=actor.type if actor is not None else "system",
-        actor_id=str(actor.id) if actor is not None else None,
+        actor_type=actor_type,
+        actor_id=actor_id,
         action=action,
         resource_type=resource_type,
         resource_id=None if resource_id is None else str(resource_id),
@@ -57,7 +62,7 @@ def _event(
 
 def audit(
     db: Session,
-    actor: Actor | None,
+    actor: Actor | Literal["anonymous"] | None,
     action: Action | str,
     resource_type: str,
     resource_id: Any = None,
@@ -70,8 +75,9 @@ def audit(
     ----------
     db : Session
         The session of the use case; the caller commits.
-    actor : Actor or None
-        Who acts (``None`` = the system, e.g. the worker).
+    actor : Actor, ANONYMOUS or None
+        Who acts: ``None`` = the system (e.g. the worker); :data:`ANONYMOUS` =
+        nobody authenticated (e.g. a failed login).
     action : str
         ``list``, ``read``, ``create``, ``update``, ``delete``, ``export``...
     resource_type : str
@@ -95,7 +101,7 @@ def audit(
 
 def audit_failure(
     db: Session,
-    actor: Actor | None,
+    actor: Actor | Literal["anonymous"] | None,
     action: Action | str,
     resource_type: str,
     resource_id: Any = None,

@@ -39,7 +39,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.apikeys import SCOPES, parse_api_key, verify_api_key
-from app.audit import audit, audit_failure
+from app.audit import ANONYMOUS, audit, audit_failure
 from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
 from app.models import ApiClient, BrowserSession, LoginAttempt, User, utcnow
 from app.passwords import DUMMY_HASH, hash_password, needs_rehash, verify_password
@@ -406,7 +406,7 @@ def login_user(
     ok = ok and user is not None and user.is_active
     db.add(LoginAttempt(email_hash=e_hash, ip=ip, success=bool(ok)))
     if not ok or user is None:
-        audit(db, None, "login", "user", user.id if user else None, outcome="denied")
+        audit(db, ANONYMOUS, "login", "user", user.id if user else None, outcome="denied")
         db.commit()
         raise AuthenticationError("The e-mail address or the password is wrong.")
     if replace_token:

@@ -32,7 +32,7 @@ Service function
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Final
 
 import sqlalchemy as sa
 from sqlalchemy import (
@@ -67,7 +67,9 @@ CALIBRATION_STATUSES = ("pending", "ready", "failed")
 TRIAL_STATUSES = ("queued", "running", "succeeded", "failed")
 JOB_KINDS = ("analyze_trial", "calibrate")
 JOB_STATUSES = ("queued", "running", "succeeded", "failed")
-ACTOR_TYPES = ("user", "api_client", "system")
+ACTOR_TYPES = ("user", "api_client", "system", "anonymous")
+ACTOR_ANONYMOUS: Final = "anonymous"
+"""Actor type of a request by nobody known yet, e.g. a failed login (no ``actor_id``)."""
 
 # Stable constraint names, so that batch migrations on SQLite can address them.
 NAMING_CONVENTION = {
@@ -448,7 +450,8 @@ class AuditEvent(Base):
     """Who did what to which patient's data, when, with what outcome. Append-only.
 
     No foreign keys (the trail outlives deleted rows) and no clinical values.
-    ``actor_id`` is the user or API-client id as text (NULL for ``system``).
+    ``actor_id`` is the user or API-client id as text (NULL for ``system``
+    and ``anonymous``).
     """
 
     __tablename__ = "audit_events"
@@ -530,6 +533,7 @@ def calibration_for(db: DbSession, session: RecordingSession) -> Calibration:
 
 
 __all__ = [
+    "ACTOR_ANONYMOUS",
     "ACTOR_TYPES",
     "CALIBRATION_SOURCES",
     "CALIBRATION_STATUSES",

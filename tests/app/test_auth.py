@@ -218,6 +218,20 @@ def test_login_is_throttled_per_email_and_per_ip(app_settings, db_sessionmaker) 
     assert r.status_code == 429
 
 
+def test_failed_login_is_audited_as_anonymous(api: Api) -> None:
+    user_id = make_user(api.sessions, "doc@example.org", PASSWORD)
+    assert _login(api.client, "doc@example.org", "wrong password").status_code == 401
+    assert _login(api.client, "nobody@example.org", "wrong password").status_code == 401
+    logins = [e for e in api.audit_events() if e.action == "login"]
+    assert [(e.actor_type, e.actor_id, e.outcome, e.resource_id) for e in logins] == [
+        ("anonymous", None, "denied", str(user_id)),
+        ("anonymous", None, "denied", None),
+    ]
+    assert _login(api.client, "doc@example.org", PASSWORD).status_code == 200
+    event = [e for e in api.audit_events() if e.action == "login"][-1]
+    assert (event.actor_type, event.actor_id, event.outcome) == ("user", str(user_id), "success")
+
+
 def test_logout_and_expiry_end_the_session(api: Api) -> None:
     make_user(api.sessions, "doc@example.org", PASSWORD)
     browser = TestClient(api.app)

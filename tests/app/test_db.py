@@ -11,6 +11,7 @@ from sqlalchemy.exc import DBAPIError, IntegrityError, StatementError
 from app.db import current_revision, get_engine, head_revision
 from app.errors import CalibrationMissingError
 from app.models import (
+    ACTOR_TYPES,
     AuditEvent,
     Calibration,
     Job,
@@ -198,6 +199,18 @@ def _assert_append_only(db, event_id) -> None:
             db.execute(statement)
         db.rollback()
     assert db.get(AuditEvent, event_id).outcome == "success"
+
+
+@pytest.mark.parametrize("actor_type", ACTOR_TYPES)
+def test_audit_actor_types_are_the_models_and_the_migrations(db_session, actor_type):
+    db_session.add(AuditEvent(actor_type=actor_type, action="login", resource_type="user"))
+    db_session.commit()
+
+
+def test_audit_actor_type_is_constrained(db_session):
+    db_session.add(AuditEvent(actor_type="robot", action="login", resource_type="user"))
+    with pytest.raises(IntegrityError):
+        db_session.flush()
 
 
 def test_audit_events_are_append_only_sqlite(db_session):
