@@ -308,6 +308,7 @@ def analyze_trial(ctx: JobContext) -> None:
 
 def calibrate(ctx: JobContext) -> None:
     """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
+    from core.boards import BoardSpec
     from core.calibration import calibrate_stereo_from_paths
     from core.camera import rig_to_dict
 
@@ -331,7 +332,9 @@ def calibrate(ctx: JobContext) -> None:
         left = ctx.storage.absolute(videos["left"].path)
         right = ctx.storage.absolute(videos["right"].path)
         _require_files(ctx, (left, right), what=f"calibration {cal.id}")
-    board = _board_spec(board_doc, calibration_id=ctx.job.calibration_id)
+    # Reads both stored forms (BoardSpec.to_dict()'s "kind" and the upload form's
+    # "board"); an incomplete one is an InputError, kept as the job's message.
+    board = BoardSpec.from_dict(dict(board_doc))
     outcome = calibrate_stereo_from_paths(left, right, board, progress=ctx.progress)
     rig_doc = rig_to_dict(outcome.rig)
     quality = _calibration_quality(outcome)
@@ -360,31 +363,6 @@ def calibrate(ctx: JobContext) -> None:
         )
 
     ctx.finish(write)
-
-
-def _board_spec(doc: Mapping[str, Any], *, calibration_id: int | None) -> Any:
-    """A ``core.boards.BoardSpec`` from a stored board description.
-
-    Accepts ``BoardSpec.to_dict()`` documents (key ``kind``) and the upload form's
-    fields (key ``board``).
-    """
-    from core.boards import BoardSpec
-
-    try:
-        return BoardSpec(
-            kind=doc.get("kind") or doc["board"],
-            cols=int(doc["cols"]),
-            rows=int(doc["rows"]),
-            square_mm=float(doc["square_mm"]),
-            marker_mm=float(doc["marker_mm"]) if doc.get("marker_mm") is not None else None,
-            dictionary=doc.get("dictionary"),
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InvalidRequestError(
-            f"the board description of calibration {calibration_id} is incomplete or invalid "
-            f"({exc}); upload the board videos again with the board's kind, cols, rows and "
-            "square_mm."
-        ) from exc
 
 
 def _calibration_quality(outcome: Any) -> dict[str, Any]:

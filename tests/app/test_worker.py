@@ -420,9 +420,43 @@ def test_kill9_of_bradyscope_worker_during_a_real_analysis(
     assert [p for p in storage.tmp_dir.iterdir()] == []  # nothing half-written left behind
 
 
+def test_calibration_with_an_incomplete_board_fails_with_a_sentence(
+    app_settings, db_sessionmaker, storage, tmp_path
+):
+    from api_support import write_video
+
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        rig = Rig(name="board-rig")
+        db.add(rig)
+        db.flush()
+        cal = Calibration(
+            rig_id=rig.id,
+            version=1,
+            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
+            source="board_videos",
+            status="pending",
+            board={"board": "chessboard", "cols": 9},
+        )
+        db.add(cal)
+        db.flush()
+        for side in ("left", "right"):
+            path = write_video(tmp_path / f"{side}.mp4")
+            _store_video(storage, db, path, side=side, calibration_id=cal.id)
+        cal_id = cal.id
+        job_id = jobs.enqueue(db, "calibrate", calibration_id=cal.id).id
+    assert run_worker(app_settings, once=True) == 1
+    job = _job(sm, job_id)
+    assert (job.status, job.attempts) == ("failed", 1)  # a domain error: no retry
+    assert job.error.startswith("the board description lacks rows, square_mm")
+    with sm() as db:
+        assert db.get(Calibration, cal_id).status == "failed"
+
+
 def test_board_descriptions_in_both_stored_forms():
-    from app.worker import _board_spec
+    # The worker reads a calibration's stored board with BoardSpec.from_dict.
     from core.boards import BoardSpec
+    from core.errors import InputError
 
     spec = BoardSpec(
         "charuco", cols=10, rows=7, square_mm=25.0, marker_mm=18.0, dictionary="DICT_4X4_1000"
@@ -435,7 +469,7 @@ def test_board_descriptions_in_both_stored_forms():
         "marker_mm": 18.0,
         "dictionary": "DICT_4X4_1000",
     }
-    assert _board_spec(spec.to_dict(), calibration_id=1) == spec
-    assert _board_spec(form, calibration_id=1) == spec
-    with pytest.raises(InvalidRequestError, match="calibration 3 is incomplete"):
-        _board_spec({"board": "chessboard", "cols": 9}, calibration_id=3)
+    assert BoardSpec.from_dict(spec.to_dict()) == spec
+    assert BoardSpec.from_dict(form) == spec
+    with pytest.raises(InputError, match="lacks rows, square_mm"):
+        BoardSpec.from_dict({"board": "chessboard", "cols": 9})
