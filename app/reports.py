@@ -127,8 +127,8 @@ METRICS: dict[str, MetricSpec] = {
         "",
         "1",
         0,
-        "Interruptions of the rhythm: taps whose cycle is over 1.5 times the local median "
-        "cycle (without a halt).",
+        "Interruptions of the rhythm: taps (without a halt) whose cycle is over 1.5 times "
+        "the median of the neighbouring taps, or that follow a closed pause of at least 0.2 s.",
     ),
     "halt_count": MetricSpec(
         "Halts",

@@ -47,6 +47,17 @@ def test_format_metric_uses_the_catalogue_decimals():
     assert format_metric("frequency_hz", None) == "–"
 
 
+def test_hesitation_definition_matches_docs_metrics():
+    # Both criteria of docs/metrics.md, with its thresholds, are what users read.
+    from app.reports import METRICS
+
+    docs = (Path(__file__).resolve().parents[2] / "docs" / "metrics.md").read_text()
+    assert "longer than **1.5 ×** the" in docs and "of at least **0.2 s**" in docs
+    definition = METRICS["hesitation_count"].definition
+    assert "over 1.5 times the median of the neighbouring taps" in definition
+    assert "or that follow a closed pause of at least 0.2 s" in definition
+
+
 def test_metric_rows_follow_the_catalogue_and_show_first_10(data):
     rows = metric_rows(data.result)
     assert [r.key for r in rows][:3] == ["tap_count", "frequency_hz", "amplitude_mm_mean"]
