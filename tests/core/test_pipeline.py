@@ -319,3 +319,37 @@ def test_fractional_offset_is_found_and_used(tmp_path: Path) -> None:
     # 640x512 halves the resolution. Pairing whole frames instead (offset -4) measured
     # 63 % of the frames with 0.28 mm RMS and 1.3 mm worst error on such a recording.
     assert np.sqrt(np.mean(err**2)) <= 0.06  # mm
+
+
+def test_batched_subframe_refinement_equals_core_sync() -> None:
+    """The pipeline's one-call undistortion gives core.sync.refine_offset's result exactly."""
+    import cv2
+
+    from core.camera import Camera, StereoRig
+    from core.pipeline import _refine_offset, _undistort_all
+    from core.simulation.kinematics import simulate_tapping
+    from core.sync import estimate_offset, refine_offset
+
+    size = FULL
+    K = np.array([[1800.0, 0, 645.0], [0, 1795.0, 508.0], [0, 0, 1]])
+    R = np.asarray(cv2.Rodrigues(np.array([0.01, -0.31, 0.005]))[0], dtype=np.float64)
+    rig = StereoRig(
+        Camera("left", size, K, np.array([-0.12, 0.08, 0.0005, -0.0003, -0.02])),
+        Camera("right", size, K, np.array([-0.10, 0.05, -0.0004, 0.0002, 0.0]), R,
+               -R @ np.array([160.0, 2.0, 0.0])),
+    )  # fmt: skip
+    truth = simulate_tapping(TappingScenario(duration_s=2.0, fps=100.0), seed=4)
+    k_true = -1.3  # frames
+    n = truth.positions_mm.shape[0]
+    right_pos = truth.model.positions_mm((np.arange(n) + k_true) / truth.fps)
+    rng = np.random.default_rng(2)
+    left_px = [rig.left.project(p) + rng.normal(0, 0.1, (len(p), 2)) for p in truth.positions_mm]
+    right_px = [rig.right.project(p) + rng.normal(0, 0.1, (len(p), 2)) for p in right_pos]
+    right_px[10] = np.zeros((0, 2))  # a frame without detections
+    left_norm, right_norm = _undistort_all(rig.left, left_px), _undistort_all(rig.right, right_px)
+    est = estimate_offset(rig, left_norm, right_norm, max_offset_frames=10)
+    ours = _refine_offset(rig, left_norm, right_px, est, max_step_px=60.0)
+    ref = refine_offset(rig, left_norm, right_px, est, max_step_px=60.0)
+    assert ours.offset_subframe == pytest.approx(ref.offset_subframe, abs=1e-9)  # frames
+    assert ours.offset_frames == ref.offset_frames
+    assert abs(ours.offset_subframe - k_true) < 0.05  # frames
