@@ -60,7 +60,7 @@ def load_rig(db: Session, actor: Actor, rig_id: int, action: str) -> Rig:
 DELETED_MESSAGE = "the recording was deleted before its measurement finished."
 
 
-def cancel_trial_jobs(db: Session, trial_ids: Select[tuple[int]]) -> int:
+def cancel_trial_jobs(db: Session, trial_ids: Select[Any]) -> int:
     """Cancel the queued or running jobs of the trials ``trial_ids`` selects (being deleted).
 
     In the caller's transaction; a worker still measuring one of them loses its

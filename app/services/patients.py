@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from app.audit import audit
+from app.audit import audit, audit_failure
 from app.auth import Actor
 from app.errors import ConflictError
 from app.models import Patient, RecordingSession, Trial, utcnow
@@ -36,18 +36,30 @@ def _conflict(existing: Patient) -> ConflictError:
     return ConflictError(f"A patient with the code {existing.code} exists already.")
 
 
+def _refused(
+    db: Session, actor: Actor, action: str, patient_id: int | None, error: ConflictError
+) -> ConflictError:
+    """Audit a change refused for a taken code (outcome ``denied``); returns ``error`` to raise.
+
+    ``patient_id`` is the patient being changed, or the one holding the code (``None``
+    when a concurrent request took it).
+    """
+    audit_failure(db, actor, action, "patient", patient_id, patient_id, outcome="denied")
+    return error
+
+
 def create_patient(db: Session, actor: Actor, data: PatientCreate) -> Patient:
     """Create a patient (409 if the code exists, case-insensitively)."""
     existing = _code_taken(db, data.code)
     if existing is not None:
-        raise _conflict(existing)
+        raise _refused(db, actor, "create", existing.id, _conflict(existing))
     patient = Patient(**data.model_dump())
     db.add(patient)
     try:
         db.flush()
     except IntegrityError as exc:  # a concurrent request took the code
-        db.rollback()
-        raise ConflictError(f"A patient with the code {data.code} exists already.") from exc
+        error = ConflictError(f"A patient with the code {data.code} exists already.")
+        raise _refused(db, actor, "create", None, error) from exc
     audit(db, actor, "create", "patient", patient.id, patient.id)
     db.commit()
     return patient
@@ -84,14 +96,14 @@ def update_patient(db: Session, actor: Actor, patient_id: int, data: PatientUpda
     if "code" in changes:
         existing = _code_taken(db, changes["code"], exclude_id=patient.id)
         if existing is not None:
-            raise _conflict(existing)
+            raise _refused(db, actor, "update", patient_id, _conflict(existing))
     for name, value in changes.items():
         setattr(patient, name, value)
     try:
         db.flush()
     except IntegrityError as exc:
-        db.rollback()
-        raise ConflictError("Another patient took this code meanwhile; choose another.") from exc
+        error = ConflictError("Another patient took this code meanwhile; choose another.")
+        raise _refused(db, actor, "update", patient_id, error) from exc
     audit(db, actor, "update", "patient", patient.id, patient.id)
     db.commit()
     return patient

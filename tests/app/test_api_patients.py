@@ -197,8 +197,9 @@ def test_api_on_postgresql(pg_settings, video_pair) -> None:
                     select(AuditEvent.outcome, func.count()).group_by(AuditEvent.outcome)
                 ).all()
             )
-        # created: patient, rig, calibration, session, trial; one list; one read that missed
-        assert outcomes == {"success": 6, "not_found": 1}
+        # created: patient, rig, calibration, session, trial; one list; one read that
+        # missed; one create refused for a taken code
+        assert outcomes == {"success": 6, "not_found": 1, "denied": 1}
 
 
 def test_json_bodies_are_capped_at_1_mib(api: Api) -> None:

@@ -10,7 +10,7 @@ from api_support import Api, add_result, api, seed_recording_target, trial_files
 from fastapi.routing import iter_route_contexts
 from sqlalchemy import func, select
 
-from app.models import AuditEvent, Result
+from app.models import AuditEvent, Patient, Result
 
 NOTES = "tremor worse after coffee, lives alone"  # a clinical free text that must never be audited
 # API routes that serve no patient data (not audited): rigs and calibrations, job
@@ -180,11 +180,31 @@ def test_failed_lookups_and_refusals_are_audited(api: Api) -> None:
 
 def test_a_failed_change_is_not_audited_as_success(api: Api) -> None:
     h = api.headers
-    assert api.client.post("/api/v1/patients", json={"code": "PD-7"}, headers=h).status_code == 201
+    first = api.client.post("/api/v1/patients", json={"code": "PD-7"}, headers=h)
+    assert first.status_code == 201
     r = api.client.post("/api/v1/patients", json={"code": "pd-7"}, headers=h)
     assert r.status_code == 409
     with api.sessions() as db:
         creates = db.scalar(
-            select(func.count()).select_from(AuditEvent).where(AuditEvent.action == "create")
+            select(func.count())
+            .select_from(AuditEvent)
+            .where(AuditEvent.action == "create", AuditEvent.outcome == "success")
         )
     assert creates == 1
+
+
+def test_a_duplicate_code_is_audited_as_denied(api: Api) -> None:
+    h = api.headers
+    first = api.client.post("/api/v1/patients", json={"code": "PD-7"}, headers=h).json()["id"]
+    other = api.client.post("/api/v1/patients", json={"code": "PD-8"}, headers=h).json()["id"]
+    before = {e.id for e in api.audit_events()}
+    assert api.client.post("/api/v1/patients", json={"code": "pd-7"}, headers=h).status_code == 409
+    r = api.client.patch(f"/api/v1/patients/{other}", json={"code": "PD-7"}, headers=h)
+    assert r.status_code == 409
+    new = [e for e in api.audit_events() if e.id not in before]
+    assert [(e.action, e.resource_type, e.patient_id, e.outcome, e.actor_type) for e in new] == [
+        ("create", "patient", first, "denied", "api_client"),  # the patient holding the code
+        ("update", "patient", other, "denied", "api_client"),
+    ]
+    with api.sessions() as db:
+        assert db.get(Patient, other).code == "PD-8"  # the refused change changed nothing
