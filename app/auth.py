@@ -316,6 +316,14 @@ def require_scope(*scopes: str) -> Callable[..., Any]:
     return dependency
 
 
+# The actors of the routes, one alias per scope (shared by the API routers).
+PatientReader = Annotated[Actor, Depends(require_scope("patients:read"))]
+PatientWriter = Annotated[Actor, Depends(require_scope("patients:write"))]
+RecordingWriter = Annotated[Actor, Depends(require_scope("recordings:write"))]
+ResultReader = Annotated[Actor, Depends(require_scope("results:read"))]
+RigWriter = Annotated[Actor, Depends(require_scope("rigs:write"))]
+
+
 # --------------------------------------------------------------------------- login / logout
 
 

@@ -4,18 +4,17 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Response, status
+from fastapi import APIRouter, Query, Response, status
 
-from app.api.responses import AUTH, IdPath, Limit, Offset, errors
-from app.auth import Actor, SessionDep, require_scope
+from app.api.responses import AUTH, IdPath, Limit, Offset, errors, page
+from app.auth import PatientReader as Reader
+from app.auth import PatientWriter as Writer
+from app.auth import SessionDep
 from app.schemas import Page, PatientCreate, PatientRead, PatientUpdate, SessionRead
 from app.services import patients as service
 from app.services import sessions as session_service
 
 router = APIRouter(prefix="/patients", tags=["patients"])
-
-Reader = Annotated[Actor, Depends(require_scope("patients:read"))]
-Writer = Annotated[Actor, Depends(require_scope("patients:write"))]
 
 
 @router.post(
@@ -45,12 +44,7 @@ def list_patients(
     offset: Offset = 0,
 ) -> Page[PatientRead]:
     items, total = service.list_patients(db, actor, q=q, limit=limit, offset=offset)
-    return Page[PatientRead](
-        items=[PatientRead.model_validate(p) for p in items],
-        total=total,
-        limit=limit,
-        offset=offset,
-    )
+    return page(PatientRead, items, total, limit=limit, offset=offset)
 
 
 @router.get(
@@ -99,9 +93,4 @@ def list_patient_sessions(
     items, total = session_service.list_sessions(
         db, actor, patient_id=patient_id, limit=limit, offset=offset
     )
-    return Page[SessionRead](
-        items=[SessionRead.model_validate(s) for s in items],
-        total=total,
-        limit=limit,
-        offset=offset,
-    )
+    return page(SessionRead, items, total, limit=limit, offset=offset)

@@ -1,12 +1,17 @@
-"""Documented error answers shared by the routes (OpenAPI ``responses=``)."""
+"""What the routes share: documented error answers (OpenAPI ``responses=``), path
+and paging parameters, and building a :class:`~app.schemas.Page`."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from collections.abc import Iterable
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Path, Query
+from pydantic import BaseModel
 
-from app.schemas import MAX_ID, ErrorResponse
+from app.schemas import MAX_ID, ErrorResponse, Page
+
+S = TypeVar("S", bound=BaseModel)
 
 _TEXT = {
     400: "The request body is malformed.",
@@ -46,3 +51,10 @@ AUTH = (401, 403, 422)
 IdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="Numeric id.")]
 Limit = Annotated[int, Query(ge=1, le=200, description="Items per page.")]
 Offset = Annotated[int, Query(ge=0, le=10_000_000, description="Items to skip.")]
+
+
+def page(schema: type[S], rows: Iterable[Any], total: int, *, limit: int, offset: int) -> Page[S]:
+    """One page of ``rows`` (ORM objects), each read as ``schema``."""
+    return Page[schema](  # type: ignore[valid-type]
+        items=[schema.model_validate(row) for row in rows], total=total, limit=limit, offset=offset
+    )

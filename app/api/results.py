@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
 from app.api.responses import AUTH, IdPath, errors, json_errors
-from app.auth import Actor, SessionDep, require_scope
+from app.auth import ResultReader, SessionDep
 from app.services import results as service
 
 router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
 
-ResultReader = Annotated[Actor, Depends(require_scope("results:read"))]
 EXPORT_ERRORS = json_errors(*AUTH, 404, 409)
 
 

@@ -2,21 +2,18 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, Request, status
-from starlette.concurrency import run_in_threadpool
+from fastapi import APIRouter, Request, status
 
-from app.api.responses import AUTH, IdPath, Limit, Offset, errors
+from app.api.responses import AUTH, IdPath, Limit, Offset, errors, page
 from app.api.uploads import BINARY, multipart_body, run_upload
-from app.auth import Actor, CurrentActor, SessionDep, require_scope
+from app.auth import CurrentActor, RigWriter, SessionDep
 from app.schemas import CalibrationCreated, CalibrationRead, Page, RigCreate, RigRead
 from app.services import recordings
 from app.services import rigs as service
 
 router = APIRouter(tags=["rigs"])
-
-RigWriter = Annotated[Actor, Depends(require_scope("rigs:write"))]
 
 CALIBRATION_BODY = multipart_body(
     {
@@ -58,9 +55,7 @@ def list_rigs(
     actor: CurrentActor, db: SessionDep, limit: Limit = 50, offset: Offset = 0
 ) -> Page[RigRead]:
     items, total = service.list_rigs(db, actor, limit=limit, offset=offset)
-    return Page[RigRead](
-        items=[RigRead.model_validate(r) for r in items], total=total, limit=limit, offset=offset
-    )
+    return page(RigRead, items, total, limit=limit, offset=offset)
 
 
 @router.get(
@@ -81,8 +76,6 @@ def get_rig(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> RigRead:
 async def create_calibration(
     rig_id: IdPath, request: Request, actor: RigWriter, db: SessionDep
 ) -> CalibrationCreated:
-    await run_in_threadpool(service.get_rig, db, actor, rig_id)  # 404 before the body
-
     def use_case(upload: Any) -> CalibrationCreated:
         cal, job_id = recordings.create_calibration(db, actor, rig_id, upload)
         return CalibrationCreated(id=cal.id, job_id=job_id, status=cal.status)  # type: ignore[arg-type]
@@ -91,6 +84,7 @@ async def create_calibration(
         request,
         file_fields=recordings.CALIBRATION_FILE_FIELDS,
         text_fields=recordings.CALIBRATION_TEXT_FIELDS,
+        check=lambda: service.get_rig(db, actor, rig_id),  # 404 before the body
         use_case=use_case,
     )
 

@@ -4,17 +4,16 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Response, status
+from fastapi import APIRouter, Query, Response, status
 
-from app.api.responses import AUTH, IdPath, Limit, Offset, errors
-from app.auth import Actor, SessionDep, require_scope
+from app.api.responses import AUTH, IdPath, Limit, Offset, errors, page
+from app.auth import PatientReader as Reader
+from app.auth import PatientWriter as Writer
+from app.auth import SessionDep
 from app.schemas import MAX_ID, Page, SessionCreate, SessionRead, SessionUpdate
 from app.services import sessions as service
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
-
-Reader = Annotated[Actor, Depends(require_scope("patients:read"))]
-Writer = Annotated[Actor, Depends(require_scope("patients:write"))]
 
 
 @router.post(
@@ -44,12 +43,7 @@ def list_sessions(
     items, total = service.list_sessions(
         db, actor, patient_id=patient_id, limit=limit, offset=offset
     )
-    return Page[SessionRead](
-        items=[SessionRead.model_validate(s) for s in items],
-        total=total,
-        limit=limit,
-        offset=offset,
-    )
+    return page(SessionRead, items, total, limit=limit, offset=offset)
 
 
 @router.get(

@@ -2,22 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends, Request, Response, status
-from starlette.concurrency import run_in_threadpool
+from fastapi import APIRouter, Request, Response, status
 
 from app.api.responses import AUTH, IdPath, errors
 from app.api.uploads import BINARY, multipart_body, run_upload
-from app.auth import Actor, CurrentActor, SessionDep, require_scope
+from app.auth import CurrentActor, SessionDep
+from app.auth import PatientReader as Reader
+from app.auth import PatientWriter as Deleter
+from app.auth import RecordingWriter as Uploader
 from app.schemas import JobRead, TrialCreated, TrialRead
 from app.services import recordings
 
 router = APIRouter(tags=["trials"])
-
-Uploader = Annotated[Actor, Depends(require_scope("recordings:write"))]
-Reader = Annotated[Actor, Depends(require_scope("patients:read"))]
-Deleter = Annotated[Actor, Depends(require_scope("patients:write"))]
 
 TRIAL_BODY = multipart_body(
     {
@@ -46,8 +44,6 @@ TRIAL_BODY = multipart_body(
 async def create_trial(
     session_id: IdPath, request: Request, actor: Uploader, db: SessionDep
 ) -> TrialCreated:
-    await run_in_threadpool(recordings.check_trial_target, db, actor, session_id)
-
     def use_case(upload: Any) -> TrialCreated:
         out = recordings.create_trial(db, actor, session_id, upload)
         return TrialCreated(id=out.trial.id, job_id=out.job_id or 0, warnings=out.warnings)
@@ -56,6 +52,7 @@ async def create_trial(
         request,
         file_fields=recordings.TRIAL_FILE_FIELDS,
         text_fields=recordings.TRIAL_TEXT_FIELDS,
+        check=lambda: recordings.check_trial_target(db, actor, session_id),
         use_case=use_case,
     )
 

@@ -38,9 +38,12 @@ async def run_upload(
     *,
     file_fields: dict[str, str],
     text_fields: frozenset[str],
+    check: Callable[[], Any],
     use_case: Callable[..., T],
 ) -> T:
-    """Stream the body into storage, run ``use_case(upload)`` in the thread pool, clean up."""
+    """Run ``check()`` (e.g. the target exists: a 404 before the body is read), stream the
+    body into storage, run ``use_case(upload)`` in the thread pool, clean up."""
+    await run_in_threadpool(check)
     settings = request.app.state.settings
     upload = await receive_multipart(
         request,
