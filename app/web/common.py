@@ -10,17 +10,24 @@ shown as a page in plain words, with the status the API would have used.
 from __future__ import annotations
 
 import hmac
+from collections.abc import Callable, Iterable
 from typing import Any
 from urllib.parse import quote, urlsplit
 
 from fastapi import Request
-from fastapi.responses import HTMLResponse, RedirectResponse
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from app.auth import CSRF_HEADER, Actor, get_optional_user
+from app.errors import AppError
+from app.uploads import ParsedUpload
 from app.web.templating import templates
 
 NAV = (("patients", "/patients", "Patients"), ("rigs", "/rigs", "Calibration"))
+
+CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
 
 
 def settings_of(request: Request) -> Any:
@@ -128,3 +135,85 @@ def error_page(
 
 def status_of(exc: BaseException) -> int:
     return int(getattr(exc, "http_status", 400))
+
+
+def validation_message(exc: ValidationError) -> str:
+    """The first problems of a form as one sentence."""
+    parts = []
+    for err in exc.errors()[:3]:
+        field = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
+        parts.append(f"{field.replace('_', ' ')}: {err.get('msg', 'invalid')}")
+    return "Please correct the form — " + "; ".join(parts) + "."
+
+
+async def run_page_upload(
+    request: Request,
+    user: Actor | None,
+    *,
+    refusal: AppError | None,
+    file_fields: dict[str, str],
+    text_fields: Iterable[str],
+    fail: Callable[[int, str], Response],
+    use_case: Callable[[ParsedUpload], Response],
+    prepare: Callable[[ParsedUpload], None] | None = None,
+) -> Response:
+    """A page's upload: log-in, CSRF and target checks, streaming, the use case, clean-up.
+
+    Parameters
+    ----------
+    user : Actor or None
+        The logged-in user (``None``: log in again, 401 for the upload script).
+    refusal : AppError or None
+        Why the target cannot take the upload, found before the body is read.
+    file_fields, text_fields
+        Accepted parts (``csrf_token`` is always accepted).
+    fail : callable
+        ``fail(status, message)`` renders an error answer (run in the thread pool).
+    use_case : callable
+        ``use_case(upload)`` stores the upload and returns the success answer (run in
+        the thread pool); an ``AppError`` or a core error becomes ``fail`` and removes
+        every file of the upload.
+    prepare : callable, optional
+        Adjusts the parsed form before the use case (e.g. drops unused empty parts).
+    """
+    from app.storage import Storage
+    from app.uploads import receive_multipart
+    from core.errors import BradyscopeError
+
+    if user is None:
+        if wants_json(request):
+            return JSONResponse({"detail": "Please log in again."}, status_code=401)
+        return login_redirect(request)
+    header_token = csrf_from_header(request)
+    if header_token is not None and not csrf_ok(user, header_token):
+        return await run_in_threadpool(fail, 403, CSRF_MESSAGE)
+    if refusal is not None:
+        return await run_in_threadpool(fail, status_of(refusal), str(refusal))
+    settings = settings_of(request)
+    try:
+        upload = await receive_multipart(
+            request,
+            storage=Storage.from_settings(settings),
+            file_fields=file_fields,
+            text_fields=frozenset(text_fields) | {"csrf_token"},
+            max_file_bytes=int(settings.max_upload_bytes),
+        )
+    except AppError as exc:
+        return await run_in_threadpool(fail, status_of(exc), str(exc))
+    try:
+        if header_token is None and not csrf_ok(user, upload.fields.get("csrf_token")):
+            upload.discard()
+            return await run_in_threadpool(fail, 403, CSRF_MESSAGE)
+        if prepare is not None:
+            prepare(upload)
+        try:
+            return await run_in_threadpool(use_case, upload)
+        except (AppError, BradyscopeError) as exc:  # a core error while checking the videos
+            upload.discard()
+            status = status_of(exc) if isinstance(exc, AppError) else 422
+            return await run_in_threadpool(fail, status, str(exc))
+        except BaseException:
+            upload.discard()
+            raise
+    finally:
+        upload.close()

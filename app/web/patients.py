@@ -30,25 +30,19 @@ from app.models import (
 from app.plots import TrendPoint, trend_plot
 from app.reports import TREND_METRICS, format_metric
 from app.web.common import (
+    CSRF_MESSAGE,
     csrf_ok,
     error_page,
     login_redirect,
     page_user,
     render,
     status_of,
+    validation_message,
 )
 
 router = APIRouter()
 
 PAGE_SIZE = 50
-
-
-def validation_message(exc: ValidationError) -> str:
-    parts = []
-    for err in exc.errors()[:3]:
-        field = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
-        parts.append(f"{field.replace('_', ' ')}: {err.get('msg', 'invalid')}")
-    return "Please correct the form — " + "; ".join(parts) + "."
 
 
 @router.get("/patients", response_class=HTMLResponse)
@@ -119,7 +113,7 @@ def patient_create(
         return login_redirect(request)
     form = {"code": code, "birth_year": birth_year, "sex": sex, "notes": notes}
     if not csrf_ok(user, csrf_token):
-        return _list_with_error(request, db, user, _CSRF_MESSAGE, 403, form)
+        return _list_with_error(request, db, user, CSRF_MESSAGE, 403, form)
     try:
         data = PatientCreate(
             code=code.strip(),
@@ -138,9 +132,6 @@ def patient_create(
     except AppError as exc:
         return _list_with_error(request, db, user, str(exc), status_of(exc), form)
     return RedirectResponse(f"/patients/{patient.id}?msg=Patient+created.", status_code=303)
-
-
-_CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
 
 
 def _list_with_error(
@@ -341,7 +332,7 @@ def session_create(
     }
     if not csrf_ok(user, csrf_token):
         return _session_form(
-            request, user, patient, _rigs(db), values, error=_CSRF_MESSAGE, status_code=403
+            request, user, patient, _rigs(db), values, error=CSRF_MESSAGE, status_code=403
         )
     try:
         when = datetime.fromisoformat(recorded_at.strip()) if recorded_at.strip() else None

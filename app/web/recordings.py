@@ -24,15 +24,12 @@ from app.auth import SessionDep
 from app.errors import AppError
 from app.models import Job, RecordingSession, Trial, calibration_for
 from app.web.common import (
-    csrf_from_header,
-    csrf_ok,
     error_page,
     login_redirect,
     open_db,
     page_user,
     render,
-    settings_of,
-    status_of,
+    run_page_upload,
     wants_json,
 )
 
@@ -153,74 +150,14 @@ def _user_and_target(request: Request, session_id: int) -> tuple[Any, AppError |
         db.close()
 
 
-def _create_trial(request: Request, user: Any, session_id: int, upload: Any) -> Any:
+def _create_trial(request: Request, user: Any, session_id: int, upload: Any) -> Response:
     from app.services.recordings import create_trial
 
     db = open_db(request)
     try:
-        return create_trial(db, user, session_id, upload)
+        out = create_trial(db, user, session_id, upload)
     finally:
         db.close()
-
-
-_CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
-
-
-@router.post("/sessions/{session_id}/trials")
-async def trial_upload(request: Request, session_id: int) -> Response:
-    from app.services.recordings import TRIAL_FILE_FIELDS, TRIAL_TEXT_FIELDS
-    from app.storage import Storage
-    from app.uploads import receive_multipart
-
-    user, refusal = await run_in_threadpool(_user_and_target, request, session_id)
-    if user is None:
-        if wants_json(request):
-            return JSONResponse({"detail": "Please log in again."}, status_code=401)
-        return login_redirect(request)
-    header_token = csrf_from_header(request)
-    if header_token is not None and not csrf_ok(user, header_token):
-        return await run_in_threadpool(_upload_error, request, user, session_id, 403, _CSRF_MESSAGE)
-    if refusal is not None:
-        return await run_in_threadpool(
-            _upload_error, request, user, session_id, status_of(refusal), str(refusal)
-        )
-    settings = settings_of(request)
-    try:
-        upload = await receive_multipart(
-            request,
-            storage=Storage.from_settings(settings),
-            file_fields=TRIAL_FILE_FIELDS,
-            text_fields=frozenset(TRIAL_TEXT_FIELDS) | {"csrf_token"},
-            max_file_bytes=int(settings.max_upload_bytes),
-        )
-    except AppError as exc:
-        return await run_in_threadpool(
-            _upload_error, request, user, session_id, status_of(exc), str(exc)
-        )
-    try:
-        if header_token is None and not csrf_ok(user, upload.fields.get("csrf_token")):
-            upload.discard()
-            return await run_in_threadpool(
-                _upload_error, request, user, session_id, 403, _CSRF_MESSAGE
-            )
-        try:
-            out = await run_in_threadpool(_create_trial, request, user, session_id, upload)
-        except AppError as exc:
-            upload.discard()
-            return await run_in_threadpool(
-                _upload_error, request, user, session_id, status_of(exc), str(exc)
-            )
-        except Exception as exc:  # a core error while checking the videos
-            from core.errors import BradyscopeError
-
-            upload.discard()
-            if isinstance(exc, BradyscopeError):
-                return await run_in_threadpool(
-                    _upload_error, request, user, session_id, 422, str(exc)
-                )
-            raise
-    finally:
-        upload.close()
     job_url = f"/jobs/{out.job_id}"
     if wants_json(request):
         return JSONResponse(
@@ -233,6 +170,22 @@ async def trial_upload(request: Request, session_id: int) -> Response:
             status_code=201,
         )
     return RedirectResponse(job_url, status_code=303)
+
+
+@router.post("/sessions/{session_id}/trials")
+async def trial_upload(request: Request, session_id: int) -> Response:
+    from app.services.recordings import TRIAL_FILE_FIELDS, TRIAL_TEXT_FIELDS
+
+    user, refusal = await run_in_threadpool(_user_and_target, request, session_id)
+    return await run_page_upload(
+        request,
+        user,
+        refusal=refusal,
+        file_fields=TRIAL_FILE_FIELDS,
+        text_fields=TRIAL_TEXT_FIELDS,
+        fail=lambda status, message: _upload_error(request, user, session_id, status, message),
+        use_case=lambda upload: _create_trial(request, user, session_id, upload),
+    )
 
 
 # --------------------------------------------------------------------------- jobs

@@ -17,26 +17,24 @@ from pydantic import ValidationError
 from sqlalchemy import select
 
 from app.auth import SessionDep
-from app.errors import AppError
-from app.models import Calibration, Job, Rig
+from app.errors import AppError, NotFoundError
+from app.models import Job, Rig
 from app.reports import quality_verdict
 from app.web.common import (
-    csrf_from_header,
+    CSRF_MESSAGE,
     csrf_ok,
     error_page,
     login_redirect,
     open_db,
     page_user,
     render,
-    settings_of,
+    run_page_upload,
     status_of,
+    validation_message,
     wants_json,
 )
-from app.web.patients import validation_message
 
 router = APIRouter()
-
-_CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
 
 # Quality figures shown on the calibration report, in this order, with labels and units.
 QUALITY_LABELS: dict[str, tuple[str, str]] = {
@@ -149,7 +147,7 @@ def rig_create(
         return login_redirect(request)
     form = {"name": name, "description": description}
     if not csrf_ok(user, csrf_token):
-        return _rig_list(request, db, user, error=_CSRF_MESSAGE, status_code=403, form=form)
+        return _rig_list(request, db, user, error=CSRF_MESSAGE, status_code=403, form=form)
     try:
         rig = create_rig(
             db, user, RigCreate(name=name.strip(), description=description.strip() or None)
@@ -210,88 +208,26 @@ def _upload_error(request: Request, user: Any, rig_id: int, status: int, message
         db.close()
 
 
-def _user_and_rig(request: Request, rig_id: int) -> tuple[Any, bool]:
+def _user_and_rig(request: Request, rig_id: int) -> tuple[Any, AppError | None]:
+    """The logged-in user, and a 404 if the rig does not exist (before the body is read)."""
     db = open_db(request)
     try:
         user = page_user(request, db)
         exists = db.get(Rig, rig_id) is not None
         db.rollback()
-        return user, exists
+        return user, None if exists else NotFoundError(f"Rig {rig_id} does not exist.")
     finally:
         db.close()
 
 
-def _create(
-    request: Request, user: Any, rig_id: int, upload: Any
-) -> tuple[Calibration, int | None]:
+def _create(request: Request, user: Any, rig_id: int, upload: Any) -> Response:
     from app.services.recordings import create_calibration
 
     db = open_db(request)
     try:
-        return create_calibration(db, user, rig_id, upload)
+        cal, job_id = create_calibration(db, user, rig_id, upload)
     finally:
         db.close()
-
-
-@router.post("/rigs/{rig_id}/calibrations")
-async def calibration_upload(request: Request, rig_id: int) -> Response:
-    from app.services.recordings import CALIBRATION_FILE_FIELDS, CALIBRATION_TEXT_FIELDS
-    from app.storage import Storage
-    from app.uploads import receive_multipart
-    from core.errors import BradyscopeError
-
-    user, exists = await run_in_threadpool(_user_and_rig, request, rig_id)
-    if user is None:
-        if wants_json(request):
-            return JSONResponse({"detail": "Please log in again."}, status_code=401)
-        return login_redirect(request)
-    header_token = csrf_from_header(request)
-    if header_token is not None and not csrf_ok(user, header_token):
-        return await run_in_threadpool(_upload_error, request, user, rig_id, 403, _CSRF_MESSAGE)
-    if not exists:
-        return await run_in_threadpool(
-            _upload_error, request, user, rig_id, 404, f"Rig {rig_id} does not exist."
-        )
-    settings = settings_of(request)
-    try:
-        upload = await receive_multipart(
-            request,
-            storage=Storage.from_settings(settings),
-            file_fields=CALIBRATION_FILE_FIELDS,
-            text_fields=frozenset(CALIBRATION_TEXT_FIELDS) | {"csrf_token", "kind"},
-            max_file_bytes=int(settings.max_upload_bytes),
-        )
-    except AppError as exc:
-        return await run_in_threadpool(
-            _upload_error, request, user, rig_id, status_of(exc), str(exc)
-        )
-    try:
-        if header_token is None and not csrf_ok(user, upload.fields.get("csrf_token")):
-            upload.discard()
-            return await run_in_threadpool(_upload_error, request, user, rig_id, 403, _CSRF_MESSAGE)
-        # Empty file inputs of the form that was not used arrive as empty parts: drop them.
-        for name in list(upload.files):
-            staged = upload.files[name]
-            if staged.size_bytes == 0 and not (staged.filename or ""):
-                staged.incoming.abort()
-                upload.files.pop(name)
-        for name in ("valid_from",):
-            if not (upload.fields.get(name) or "").strip():
-                upload.fields.pop(name, None)
-        try:
-            cal, job_id = await run_in_threadpool(_create, request, user, rig_id, upload)
-        except (AppError, BradyscopeError) as exc:
-            upload.discard()
-            return await run_in_threadpool(
-                _upload_error,
-                request,
-                user,
-                rig_id,
-                status_of(exc) if isinstance(exc, AppError) else 422,
-                str(exc),
-            )
-    finally:
-        upload.close()
     target = (
         f"/jobs/{job_id}"
         if job_id is not None
@@ -302,3 +238,32 @@ async def calibration_upload(request: Request, rig_id: int) -> Response:
             {"calibration_id": cal.id, "job_id": job_id, "job_url": target}, status_code=201
         )
     return RedirectResponse(target, status_code=303)
+
+
+def _drop_unused_parts(upload: Any) -> None:
+    """The form has a rig-file and a board-video part: the one not used arrives empty."""
+    for name in list(upload.files):
+        staged = upload.files[name]
+        if staged.size_bytes == 0 and not (staged.filename or ""):
+            staged.incoming.abort()
+            upload.files.pop(name)
+    for name in ("valid_from",):
+        if not (upload.fields.get(name) or "").strip():
+            upload.fields.pop(name, None)
+
+
+@router.post("/rigs/{rig_id}/calibrations")
+async def calibration_upload(request: Request, rig_id: int) -> Response:
+    from app.services.recordings import CALIBRATION_FILE_FIELDS, CALIBRATION_TEXT_FIELDS
+
+    user, refusal = await run_in_threadpool(_user_and_rig, request, rig_id)
+    return await run_page_upload(
+        request,
+        user,
+        refusal=refusal,
+        file_fields=CALIBRATION_FILE_FIELDS,
+        text_fields=CALIBRATION_TEXT_FIELDS | {"kind"},
+        fail=lambda status, message: _upload_error(request, user, rig_id, status, message),
+        use_case=lambda upload: _create(request, user, rig_id, upload),
+        prepare=_drop_unused_parts,
+    )
