@@ -349,12 +349,14 @@ def detect_markers(
         if windows:
             bg, sigma = _background_and_noise(image[::16, ::16])
             thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
+        r2 = radius_px**2
         for (x0, y0, x1, y1), group in windows:
             found = _search_region(image, (x0, y0, x1, y1), thr, params, measured, background)
+            centres = group.tolist()
             for m in found:
                 if m.blob is not None:
-                    d2 = np.sum((group - np.asarray(m.blob.xy_px)) ** 2, axis=1)
-                    if d2.min() > radius_px**2:
+                    bx, by = m.blob.xy_px
+                    if min((gx - bx) ** 2 + (gy - by) ** 2 for gx, gy in centres) > r2:
                         m.blob = None  # outside the search discs; keep the core as "seen"
             measured.extend(found)
     return _to_detections([m.blob for m in measured if m.blob is not None])
@@ -505,6 +507,8 @@ def _search_region(
     """Seeds (local maxima above ``thr``) of one region, each blob measured once."""
     x0, y0, x1, y1 = region
     sm = _smooth(image, x0, y0, x1, y1)
+    if float(sm.max()) <= thr:  # no seed (most full-frame regions: a noise pixel above thr)
+        return []
     dil = cv2.dilate(sm, _ONES3)
     ys, xs = np.nonzero((sm >= dil) & (sm > thr))
     if ys.size == 0:
@@ -643,12 +647,15 @@ def _measure(
     sigma = max((float(ring[(3 * n_ring) // 4]) - float(ring[n_ring // 4])) / 1.349, 0.7)
     low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).view(np.uint8)
     k = 2 * margin + 1
-    near = cast("NDArray[np.uint8]", cv2.dilate(core, np.ones((k, k), np.uint8)))
-    support = cast("NDArray[np.uint8]", cv2.dilate(low_mask & near, _DISC5))
-    outside = low_mask & (1 - near)
-    other_cores = (mask == 1).view(np.uint8)  # other blobs above this one's half maximum
-    has_neighbour = bool(other_cores.any())
-    if has_neighbour or outside.any():
+    near = cast("NDArray[np.uint8]", cv2.dilate(core, _square_kernel(k)))
+    low_near = low_mask & near
+    support = cast("NDArray[np.uint8]", cv2.dilate(low_near, _DISC5))
+    # other blobs above this one's half maximum (mask == 1; the core is 2) or low
+    # pixels beyond the core's reach: counted first, masks only built when needed
+    has_neighbour = cv2.countNonZero(mask) > area
+    if has_neighbour or cv2.countNonZero(low_mask) > cv2.countNonZero(low_near):
+        outside = low_mask & (1 - near)
+        other_cores = (mask == 1).view(np.uint8)
         others = outside | other_cores
         support &= 1 - cast("NDArray[np.uint8]", cv2.dilate(others, _DISC5))
         if has_neighbour:  # split by distance
@@ -659,7 +666,7 @@ def _measure(
     e = margin + 3
     sx0, sy0 = max(0, bx - e), max(0, by - e)
     sx1, sy1 = min(x1 - x0, bx + bw + e), min(y1 - y0, by + bh + e)
-    sub = win[sy0:sy1, sx0:sx1].astype(np.float64) - bg
+    sub = np.subtract(win[sy0:sy1, sx0:sx1], bg, dtype=np.float64)
     sup = support[sy0:sy1, sx0:sx1].view(bool)
     if background is not None:
         # subtract the static scene where it is only background texture; where it
@@ -696,6 +703,17 @@ def _measure(
         flatness=flatness,
     )
     return measured
+
+
+_SQUARE_KERNELS: dict[int, NDArray[np.uint8]] = {}
+
+
+def _square_kernel(k: int) -> NDArray[np.uint8]:
+    """``np.ones((k, k), np.uint8)``, cached (one allocation per size, not per blob)."""
+    kern = _SQUARE_KERNELS.get(k)
+    if kern is None:
+        kern = _SQUARE_KERNELS.setdefault(k, np.ones((k, k), np.uint8))
+    return kern
 
 
 def _shape(mom: dict[str, float]) -> tuple[float, float, float, tuple[float, float, float]]:
@@ -759,7 +777,9 @@ def _centre(
 
 def _centroid(sub: FloatArray, support: NDArray[np.bool_], peak: float) -> tuple[float, float]:
     """Intensity-weighted centroid of ``max(I - bg - 0.1 peak, 0)`` on the support."""
-    wgt = np.where(support, np.maximum(sub - 0.1 * peak, 0.0), 0.0)
+    wgt = sub - 0.1 * peak
+    np.maximum(wgt, 0.0, out=wgt)
+    wgt *= support  # 0 outside the support (the same values as np.where, one temporary less)
     s = wgt.sum()
     if s <= 0:
         return math.nan, math.nan
