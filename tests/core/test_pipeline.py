@@ -353,3 +353,36 @@ def test_batched_subframe_refinement_equals_core_sync() -> None:
     assert ours.offset_subframe == pytest.approx(ref.offset_subframe, abs=1e-9)  # frames
     assert ours.offset_frames == ref.offset_frames
     assert abs(ours.offset_subframe - k_true) < 0.05  # frames
+
+
+def test_fallback_searches_back_off_but_reacquire_within_one_frame() -> None:
+    """A blob gone for a while: full searches on its first two missing frames, then on
+    every other frame; when it comes back it is picked up at most one frame later."""
+    from core.pipeline import UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF, _CameraDetections
+
+    fixed = np.array([[100.0, 100.0], [300.0, 200.0]])  # px, always visible
+    extra = np.array([[600.0, 500.0]])  # px, hidden in frames 23..34
+    hidden = range(23, 35)
+    calls: list[tuple[int, bool]] = []
+
+    def detect(image, search_xy_px, radius_px):
+        frame = int(image[0, 0])
+        calls.append((frame, search_xy_px is None))
+        pts = fixed if frame in hidden else np.vstack([fixed, extra])
+        if search_xy_px is not None:  # windowed: only blobs near a predicted position
+            d = np.linalg.norm(pts[:, None] - search_xy_px[None], axis=2).min(axis=1)
+            pts = pts[d <= radius_px]
+        return pts, np.full(len(pts), 10.0), np.ones(len(pts))
+
+    state = _CameraDetections(detect, full_every=10)
+    for frame in range(50):
+        state.process(np.full((4, 4), frame, np.uint8))
+    full_frames = sorted({f for f, full in calls if full})
+    fallbacks = [f for f in full_frames if f % 10 and f in hidden]
+    k = UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF
+    assert fallbacks[:k] == [23, 24]  # at once while it may just have moved out of its window
+    assert all(f % 2 == 0 for f in fallbacks[k:])  # then every other frame
+    assert len(fallbacks) < len([f for f in hidden if f % 10])  # fewer than one per frame
+    seen_again = min(f for f in range(35, 50) if len(state.frames[f]) == 3)
+    assert seen_again <= 36  # back in frame 35: found at most one frame later
+    assert all(len(state.frames[f]) == 3 for f in range(seen_again, 50))
