@@ -24,28 +24,52 @@ def not_found(
     return NotFoundError(f"{what} {resource_id} does not exist; check the id.")
 
 
-def load_patient(db: Session, actor: Actor, patient_id: int, action: str) -> Patient:
+def visible_patient(db: Session, patient_id: int) -> Patient | None:
+    """The patient, or None if it does not exist or was deleted (not audited)."""
     patient = db.get(Patient, patient_id)
-    if patient is None or patient.deleted_at is not None:
+    return None if patient is None or patient.deleted_at is not None else patient
+
+
+def visible_session(db: Session, session_id: int) -> RecordingSession | None:
+    """The session, or None if it, or its patient, does not exist or was deleted."""
+    row = db.get(RecordingSession, session_id)
+    if row is None or row.deleted_at is not None or row.patient.deleted_at is not None:
+        return None
+    return row
+
+
+def trial_is_visible(trial: Trial) -> bool:
+    """Neither the trial nor its session nor its patient was deleted."""
+    return (
+        trial.deleted_at is None
+        and trial.session.deleted_at is None
+        and trial.session.patient.deleted_at is None
+    )
+
+
+def visible_trial(db: Session, trial_id: int) -> Trial | None:
+    """The trial, or None if it, its session or its patient does not exist or was deleted."""
+    row = db.get(Trial, trial_id)
+    return row if row is not None and trial_is_visible(row) else None
+
+
+def load_patient(db: Session, actor: Actor, patient_id: int, action: str) -> Patient:
+    patient = visible_patient(db, patient_id)
+    if patient is None:
         raise not_found(db, actor, action, "patient", patient_id, "The patient")
     return patient
 
 
 def load_session(db: Session, actor: Actor, session_id: int, action: str) -> RecordingSession:
-    row = db.get(RecordingSession, session_id)
-    if row is None or row.deleted_at is not None or row.patient.deleted_at is not None:
+    row = visible_session(db, session_id)
+    if row is None:
         raise not_found(db, actor, action, "session", session_id, "The session")
     return row
 
 
 def load_trial(db: Session, actor: Actor, trial_id: int, action: str) -> Trial:
-    row = db.get(Trial, trial_id)
-    if (
-        row is None
-        or row.deleted_at is not None
-        or row.session.deleted_at is not None
-        or row.session.patient.deleted_at is not None
-    ):
+    row = visible_trial(db, trial_id)
+    if row is None:
         raise not_found(db, actor, action, "trial", trial_id, "The trial")
     return row
 

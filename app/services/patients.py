@@ -65,16 +65,27 @@ def create_patient(db: Session, actor: Actor, data: PatientCreate) -> Patient:
     return patient
 
 
-def list_patients(
-    db: Session, actor: Actor, *, q: str | None, limit: int, offset: int
+def search_patients(
+    db: Session, *, q: str | None, limit: int, offset: int
 ) -> tuple[list[Patient], int]:
-    """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total."""
+    """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total.
+
+    A query only: the caller audits the listing (API and patient list page).
+    """
     query = select(Patient).where(Patient.deleted_at.is_(None))
     if q:
         escaped = q.strip().lower().replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
         query = query.where(func.lower(Patient.code).like(f"%{escaped}%", escape="\\"))
     total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
     items = list(db.scalars(query.order_by(Patient.code, Patient.id).limit(limit).offset(offset)))
+    return items, int(total)
+
+
+def list_patients(
+    db: Session, actor: Actor, *, q: str | None, limit: int, offset: int
+) -> tuple[list[Patient], int]:
+    """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total."""
+    items, total = search_patients(db, q=q, limit=limit, offset=offset)
     audit(db, actor, "list", "patient")
     db.commit()
     return items, int(total)

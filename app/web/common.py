@@ -133,6 +133,22 @@ def error_page(
     )
 
 
+def missing_page(
+    request: Request, db: Session, user: Actor, action: str, resource_type: str, resource_id: int
+) -> HTMLResponse:
+    """Audit a lookup of patient data that missed (``not_found``) and answer a 404 page."""
+    from app.audit import audit
+
+    audit(db, user, action, resource_type, resource_id, outcome="not_found")
+    db.commit()
+    return error_page(
+        request,
+        user,
+        status_code=404,
+        message=f"{resource_type.capitalize()} {resource_id} does not exist.",
+    )
+
+
 def status_of(exc: BaseException) -> int:
     return int(getattr(exc, "http_status", 400))
 

@@ -29,11 +29,13 @@ from app.models import (
 )
 from app.plots import TrendPoint, trend_plot
 from app.reports import TREND_METRICS, format_metric
+from app.services.common import visible_patient
 from app.web.common import (
     CSRF_MESSAGE,
     csrf_ok,
     error_page,
     login_redirect,
+    missing_page,
     page_user,
     render,
     status_of,
@@ -57,16 +59,11 @@ def patient_list(request: Request, db: SessionDep, q: str = "", page: int = 1) -
 
 
 def _list_context(db: Any, q: str, page: int) -> dict[str, Any]:
+    from app.services.patients import search_patients
+
     q = q.strip()[:64]
     page = max(1, page)
-    query = select(Patient).where(Patient.deleted_at.is_(None))
-    if q:
-        escaped = q.lower().replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
-        query = query.where(func.lower(Patient.code).like(f"%{escaped}%", escape="\\"))
-    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
-    patients = list(
-        db.scalars(query.order_by(Patient.code).limit(PAGE_SIZE).offset((page - 1) * PAGE_SIZE))
-    )
+    patients, total = search_patients(db, q=q, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
     ids = [p.id for p in patients]
     last_seen: dict[int, Any] = {}
     counts: dict[int, int] = {}
@@ -154,9 +151,10 @@ def _list_with_error(
     )
 
 
-def _visible_patient(db: Any, patient_id: int) -> Patient | None:
-    patient = db.get(Patient, patient_id)
-    return None if patient is None or patient.deleted_at is not None else patient
+def _no_patient(request: Request, user: Any, patient_id: int) -> Response:
+    return error_page(
+        request, user, status_code=404, message=f"Patient {patient_id} does not exist."
+    )
 
 
 def _session_rows(db: Any, patient: Patient) -> list[dict[str, Any]]:
@@ -200,13 +198,9 @@ def patient_page(request: Request, db: SessionDep, patient_id: int) -> Response:
     user = page_user(request, db)
     if user is None:
         return login_redirect(request)
-    patient = _visible_patient(db, patient_id)
+    patient = visible_patient(db, patient_id)
     if patient is None:
-        audit(db, user, "read", "patient", patient_id, outcome="not_found")
-        db.commit()
-        return error_page(
-            request, user, status_code=404, message=f"Patient {patient_id} does not exist."
-        )
+        return missing_page(request, db, user, "read", "patient", patient_id)
     rows = _session_rows(db, patient)
     points = trend_points(patient)
     trends = [
@@ -252,11 +246,9 @@ def session_new(request: Request, db: SessionDep, patient_id: int) -> Response:
     user = page_user(request, db)
     if user is None:
         return login_redirect(request)
-    patient = _visible_patient(db, patient_id)
+    patient = visible_patient(db, patient_id)
     if patient is None:
-        return error_page(
-            request, user, status_code=404, message=f"Patient {patient_id} does not exist."
-        )
+        return _no_patient(request, user, patient_id)
     audit(db, user, "read", "patient", patient.id, patient.id)
     db.commit()
     return _session_form(request, user, patient, _rigs(db), {})
@@ -317,11 +309,9 @@ def session_create(
     user = page_user(request, db)
     if user is None:
         return login_redirect(request)
-    patient = _visible_patient(db, patient_id)
+    patient = visible_patient(db, patient_id)
     if patient is None:
-        return error_page(
-            request, user, status_code=404, message=f"Patient {patient_id} does not exist."
-        )
+        return _no_patient(request, user, patient_id)
     values = {
         "rig_id": rig_id,
         "recorded_at": recorded_at,
@@ -350,32 +340,19 @@ def session_create(
             notes=notes.strip() or None,
         )
         session = create_session(db, user, data)
-    except ValidationError as exc:
+    except (ValueError, AppError) as exc:  # ValidationError is a ValueError
+        if isinstance(exc, ValidationError):
+            error, status = validation_message(exc), 422
+        elif isinstance(exc, AppError):
+            error, status = str(exc), status_of(exc)
+        else:
+            error = (
+                "Choose a rig and give the date and time of the recording (rating 0–4 or empty)."
+            )
+            status = 422
         db.rollback()
         return _session_form(
-            request,
-            user,
-            patient,
-            _rigs(db),
-            values,
-            error=validation_message(exc),
-            status_code=422,
-        )
-    except ValueError:
-        db.rollback()
-        return _session_form(
-            request,
-            user,
-            patient,
-            _rigs(db),
-            values,
-            error="Choose a rig and give the date and time of the recording (rating 0–4 or empty).",
-            status_code=422,
-        )
-    except AppError as exc:
-        db.rollback()
-        return _session_form(
-            request, user, patient, _rigs(db), values, error=str(exc), status_code=status_of(exc)
+            request, user, patient, _rigs(db), values, error=error, status_code=status
         )
     return RedirectResponse(f"/sessions/{session.id}?msg=Session+created.", status_code=303)
 

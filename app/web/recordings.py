@@ -23,9 +23,11 @@ from app.audit import audit
 from app.auth import SessionDep
 from app.errors import AppError
 from app.models import Job, RecordingSession, Trial, calibration_for
+from app.services.common import trial_is_visible, visible_session
 from app.web.common import (
     error_page,
     login_redirect,
+    missing_page,
     open_db,
     page_user,
     render,
@@ -34,13 +36,6 @@ from app.web.common import (
 )
 
 router = APIRouter()
-
-
-def _visible_session(db: Any, session_id: int) -> RecordingSession | None:
-    row = db.get(RecordingSession, session_id)
-    if row is None or row.deleted_at is not None or row.patient.deleted_at is not None:
-        return None
-    return row
 
 
 def _latest_job(db: Any, trial_id: int) -> Job | None:
@@ -85,13 +80,9 @@ def session_page(request: Request, db: SessionDep, session_id: int) -> Response:
     user = page_user(request, db)
     if user is None:
         return login_redirect(request)
-    session = _visible_session(db, session_id)
+    session = visible_session(db, session_id)
     if session is None:
-        audit(db, user, "read", "session", session_id, outcome="not_found")
-        db.commit()
-        return error_page(
-            request, user, status_code=404, message=f"Session {session_id} does not exist."
-        )
+        return missing_page(request, db, user, "read", "session", session_id)
     context = _session_context(db, session)
     audit(db, user, "read", "session", session.id, session.patient_id)
     db.commit()
@@ -112,7 +103,7 @@ def _upload_error(
         return JSONResponse({"detail": message}, status_code=status)
     db = open_db(request)
     try:
-        session = _visible_session(db, session_id)
+        session = visible_session(db, session_id)
         if session is None:
             return error_page(request, user, status_code=status, message=message)
         context = _session_context(db, session)
@@ -251,14 +242,8 @@ def _visible_job(db: Any, job_id: int) -> Job | None:
     job = db.get(Job, job_id)
     if job is None:
         return None
-    if job.trial is not None:
-        trial: Trial = job.trial
-        if (
-            trial.deleted_at is not None
-            or trial.session.deleted_at is not None
-            or trial.session.patient.deleted_at is not None
-        ):
-            return None
+    if job.trial is not None and not trial_is_visible(job.trial):
+        return None
     return job
 
 

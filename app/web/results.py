@@ -28,7 +28,16 @@ from app.reports import (
     metric_rows,
     report_context,
 )
-from app.web.common import error_page, login_redirect, page_user, render, settings_of, status_of
+from app.services.common import visible_trial
+from app.web.common import (
+    error_page,
+    login_redirect,
+    missing_page,
+    page_user,
+    render,
+    settings_of,
+    status_of,
+)
 from app.web.patients import trials_of_patient
 
 router = APIRouter()
@@ -43,18 +52,6 @@ DOWNLOADS: dict[str, tuple[str, str, str]] = {
     "json": ("Result JSON", "application/json", "-result.json"),
     "fhir": ("FHIR R4 Bundle", "application/fhir+json", "-fhir.json"),
 }
-
-
-def _visible_trial(db: Any, trial_id: int) -> Trial | None:
-    trial = db.get(Trial, trial_id)
-    if (
-        trial is None
-        or trial.deleted_at is not None
-        or trial.session.deleted_at is not None
-        or trial.session.patient.deleted_at is not None
-    ):
-        return None
-    return trial
 
 
 def trial_label(trial: Trial) -> str:
@@ -125,13 +122,9 @@ def trial_page(
     user = page_user(request, db)
     if user is None:
         return login_redirect(request)
-    trial = _visible_trial(db, trial_id)
+    trial = visible_trial(db, trial_id)
     if trial is None:
-        audit(db, user, "read", "trial", trial_id, outcome="not_found")
-        db.commit()
-        return error_page(
-            request, user, status_code=404, message=f"Trial {trial_id} does not exist."
-        )
+        return missing_page(request, db, user, "read", "trial", trial_id)
     patient = trial.session.patient
     if trial.result is None:
         from app.web.recordings import _latest_job
@@ -156,7 +149,7 @@ def trial_page(
     comparison = None
     compare_error = None
     if compare is not None:
-        other = _visible_trial(db, compare)
+        other = visible_trial(db, compare)
         if other is None or other.result is None or other.session.patient_id != patient.id:
             compare_error = "That trial cannot be compared: it does not exist, has no result, or belongs to another patient."
         else:
@@ -197,13 +190,9 @@ def trial_download(request: Request, db: SessionDep, trial_id: int, kind: str) -
         return login_redirect(request)
     if kind not in DOWNLOADS:
         return error_page(request, user, status_code=404, message=f"There is no {kind!r} download.")
-    trial = _visible_trial(db, trial_id)
+    trial = visible_trial(db, trial_id)
     if trial is None:
-        audit(db, user, "export", "trial", trial_id, outcome="not_found")
-        db.commit()
-        return error_page(
-            request, user, status_code=404, message=f"Trial {trial_id} does not exist."
-        )
+        return missing_page(request, db, user, "export", "trial", trial_id)
     _, media_type, suffix = DOWNLOADS[kind]
     filename = f"{trial.session.patient.code}-trial{trial.id}-{trial.hand}{suffix}"
     settings = settings_of(request)
