@@ -181,13 +181,7 @@ def claim_next(
         row = db.execute(stmt).first()
         if row is None:
             return None
-        if row.trial_id is not None:
-            db.execute(
-                update(Trial)
-                .where(Trial.id == row.trial_id)
-                .values(status="running")
-                .execution_options(synchronize_session=False)
-            )
+        _set_trial_status(db, row.trial_id, "running")
     claimed = ClaimedJob(
         id=row.id,
         kind=row.kind,
@@ -211,6 +205,25 @@ def claim_next(
 
 def _guard(job: ClaimedJob) -> Any:
     return and_(Job.id == job.id, Job.lease_owner == job.lease_owner, Job.status == "running")
+
+
+def _update_held(db: Session, job: ClaimedJob, values: dict[str, Any]) -> None:
+    """Update ``job`` only if this claim still holds it; else :class:`LeaseLostError`."""
+    result = db.execute(
+        update(Job).where(_guard(job)).values(**values).execution_options(synchronize_session=False)
+    )
+    if result.rowcount != 1:  # type: ignore[attr-defined]
+        raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+
+
+def _set_trial_status(db: Session, trial_id: int | None, status: str) -> None:
+    if trial_id is not None:
+        db.execute(
+            update(Trial)
+            .where(Trial.id == trial_id)
+            .values(status=status)
+            .execution_options(synchronize_session=False)
+        )
 
 
 def heartbeat(
@@ -238,14 +251,7 @@ def heartbeat(
     if stage is not None:
         values["stage"] = stage[:64]
     with sessions() as db, db.begin():
-        result = db.execute(
-            update(Job)
-            .where(_guard(job))
-            .values(**values)
-            .execution_options(synchronize_session=False)
-        )
-        if result.rowcount != 1:  # type: ignore[attr-defined]
-            raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+        _update_held(db, job, values)
 
 
 def complete(db: Session, job: ClaimedJob) -> None:
@@ -262,39 +268,24 @@ def complete(db: Session, job: ClaimedJob) -> None:
         When the job was re-claimed by another worker (or finished): roll back.
     """
     now = utcnow()
-    result = db.execute(
-        update(Job)
-        .where(_guard(job))
-        .values(
-            status="succeeded",
-            progress=1.0,
-            stage="done",
-            error=None,
-            finished_at=now,
-            heartbeat_at=now,
-            lease_expires_at=None,
-        )
-        .execution_options(synchronize_session=False)
+    _update_held(
+        db,
+        job,
+        {
+            "status": "succeeded",
+            "progress": 1.0,
+            "stage": "done",
+            "error": None,
+            "finished_at": now,
+            "heartbeat_at": now,
+            "lease_expires_at": None,
+        },
     )
-    if result.rowcount != 1:  # type: ignore[attr-defined]
-        raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
-    if job.trial_id is not None:
-        db.execute(
-            update(Trial)
-            .where(Trial.id == job.trial_id)
-            .values(status="succeeded")
-            .execution_options(synchronize_session=False)
-        )
+    _set_trial_status(db, job.trial_id, "succeeded")
 
 
 def _mark_targets_failed(db: Session, trial_id: int | None, calibration_id: int | None) -> None:
-    if trial_id is not None:
-        db.execute(
-            update(Trial)
-            .where(Trial.id == trial_id)
-            .values(status="failed")
-            .execution_options(synchronize_session=False)
-        )
+    _set_trial_status(db, trial_id, "failed")
     if calibration_id is not None:
         db.execute(
             update(Calibration)
@@ -343,22 +334,9 @@ def fail(
                 "lease_expires_at": None,
                 "error": message,
             }
-        result = db.execute(
-            update(Job)
-            .where(_guard(job))
-            .values(**values)
-            .execution_options(synchronize_session=False)
-        )
-        if result.rowcount != 1:  # type: ignore[attr-defined]
-            raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+        _update_held(db, job, values)
         if retry:
-            if job.trial_id is not None:
-                db.execute(
-                    update(Trial)
-                    .where(Trial.id == job.trial_id)
-                    .values(status="queued")
-                    .execution_options(synchronize_session=False)
-                )
+            _set_trial_status(db, job.trial_id, "queued")
         else:
             _mark_targets_failed(db, job.trial_id, job.calibration_id)
     return str(values["status"])
