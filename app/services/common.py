@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, TypeVar
 
-from sqlalchemy import Select, select
+from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session
 
 from app import jobs
@@ -22,6 +22,15 @@ def not_found(
     """Audit a miss (outcome ``not_found``) and return the error to raise."""
     audit_failure(db, actor, action, resource_type, resource_id, outcome="not_found")
     return NotFoundError(f"{what} {resource_id} does not exist; check the id.")
+
+
+def paginate(
+    db: Session, query: Select[Any], *order_by: Any, limit: int, offset: int
+) -> tuple[list[Any], int]:
+    """One page of ``query``'s rows in the order ``order_by``, and how many match in all."""
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    items = list(db.scalars(query.order_by(*order_by).limit(limit).offset(offset)))
+    return items, int(total)
 
 
 def visible_patient(db: Session, patient_id: int) -> Patient | None:

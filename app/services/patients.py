@@ -17,7 +17,7 @@ from app.auth import Actor
 from app.errors import ConflictError
 from app.models import Patient, RecordingSession, Trial, utcnow
 from app.schemas import PatientCreate, PatientUpdate
-from app.services.common import cancel_trial_jobs, load_patient
+from app.services.common import cancel_trial_jobs, load_patient, paginate
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
@@ -76,9 +76,7 @@ def search_patients(
     if q:
         escaped = q.strip().lower().replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
         query = query.where(func.lower(Patient.code).like(f"%{escaped}%", escape="\\"))
-    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
-    items = list(db.scalars(query.order_by(Patient.code, Patient.id).limit(limit).offset(offset)))
-    return items, int(total)
+    return paginate(db, query, Patient.code, Patient.id, limit=limit, offset=offset)
 
 
 def list_patients(

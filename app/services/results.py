@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy.orm import Session
 
@@ -20,6 +20,8 @@ from app.errors import ConflictError, NotFoundError, ServiceUnavailableError
 from app.models import Job, Result, Trial
 from app.services.common import load_trial
 from app.storage import Storage
+
+T = TypeVar("T")
 
 
 def _result_of(db: Session, actor: Actor, trial_id: int, action: str) -> tuple[Trial, Result]:
@@ -35,6 +37,13 @@ def _result_of(db: Session, actor: Actor, trial_id: int, action: str) -> tuple[T
             " retry when it has succeeded."
         )
     return trial, result
+
+
+def _exported(db: Session, actor: Actor, trial: Trial, resource_type: str, value: T) -> T:
+    """Audit the export of ``trial``'s ``resource_type`` (committed); returns ``value``."""
+    audit(db, actor, "export", resource_type, trial.id, trial.session.patient_id)
+    db.commit()
+    return value
 
 
 def _renderer(module: str, name: str) -> Any:
@@ -61,9 +70,7 @@ def markers_csv_path(db: Session, actor: Actor, trial_id: int, storage: Storage)
     path = storage.absolute(result.markers_path) if result.markers_path else None
     if path is None or not path.is_file():
         raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
-    audit(db, actor, "export", "markers_csv", trial.id, trial.session.patient_id)
-    db.commit()
-    return path
+    return _exported(db, actor, trial, "markers_csv", path)
 
 
 def _report_data(db: Session, actor: Actor, trial_id: int, settings: Any) -> tuple[Trial, Any]:
@@ -75,19 +82,13 @@ def _report_data(db: Session, actor: Actor, trial_id: int, settings: Any) -> tup
 def report_html(db: Session, actor: Actor, trial_id: int, settings: Any) -> str:
     render = _renderer("app.reports", "render_report_html")
     trial, data = _report_data(db, actor, trial_id, settings)
-    html = str(render(data))
-    audit(db, actor, "export", "report_html", trial.id, trial.session.patient_id)
-    db.commit()
-    return html
+    return _exported(db, actor, trial, "report_html", str(render(data)))
 
 
 def report_pdf(db: Session, actor: Actor, trial_id: int, settings: Any) -> bytes:
     render = _renderer("app.reports", "render_report_pdf")
     trial, data = _report_data(db, actor, trial_id, settings)
-    pdf = bytes(render(data))
-    audit(db, actor, "export", "report_pdf", trial.id, trial.session.patient_id)
-    db.commit()
-    return pdf
+    return _exported(db, actor, trial, "report_pdf", bytes(render(data)))
 
 
 def fhir_bundle(db: Session, actor: Actor, trial_id: int, settings: Any) -> dict[str, Any]:
@@ -96,6 +97,4 @@ def fhir_bundle(db: Session, actor: Actor, trial_id: int, settings: Any) -> dict
     render_pdf = _renderer("app.reports", "render_report_pdf")
     trial, data = _report_data(db, actor, trial_id, settings)
     bundle = dict(make_bundle(data, bytes(render_pdf(data))))
-    audit(db, actor, "export", "fhir_bundle", trial.id, trial.session.patient_id)
-    db.commit()
-    return bundle
+    return _exported(db, actor, trial, "fhir_bundle", bundle)

@@ -11,7 +11,7 @@ from app.auth import Actor
 from app.errors import ConflictError
 from app.models import Rig
 from app.schemas import RigCreate
-from app.services.common import load_rig
+from app.services.common import load_rig, paginate
 
 
 def create_rig(db: Session, actor: Actor, data: RigCreate) -> Rig:
@@ -31,10 +31,9 @@ def create_rig(db: Session, actor: Actor, data: RigCreate) -> Rig:
 
 
 def list_rigs(db: Session, actor: Actor, *, limit: int, offset: int) -> tuple[list[Rig], int]:
-    total = db.scalar(select(func.count()).select_from(Rig)) or 0
-    items = list(db.scalars(select(Rig).order_by(Rig.name, Rig.id).limit(limit).offset(offset)))
+    items, total = paginate(db, select(Rig), Rig.name, Rig.id, limit=limit, offset=offset)
     db.rollback()
-    return items, int(total)
+    return items, total
 
 
 def get_rig(db: Session, actor: Actor, rig_id: int) -> Rig:

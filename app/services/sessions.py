@@ -6,7 +6,7 @@ from lists; rows, files and the audit trail are kept.
 
 from __future__ import annotations
 
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.audit import audit
@@ -14,7 +14,13 @@ from app.auth import Actor
 from app.errors import InvalidRequestError
 from app.models import Calibration, RecordingSession, Rig, Trial, utcnow
 from app.schemas import SessionCreate, SessionUpdate
-from app.services.common import cancel_trial_jobs, load_patient, load_session, not_found
+from app.services.common import (
+    cancel_trial_jobs,
+    load_patient,
+    load_session,
+    not_found,
+    paginate,
+)
 
 
 def _check_calibration(db: Session, calibration_id: int, rig_id: int) -> None:
@@ -51,13 +57,13 @@ def list_sessions(
     query = select(RecordingSession).where(
         RecordingSession.patient_id == patient.id, RecordingSession.deleted_at.is_(None)
     )
-    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
-    items = list(
-        db.scalars(
-            query.order_by(RecordingSession.recorded_at.desc(), RecordingSession.id.desc())
-            .limit(limit)
-            .offset(offset)
-        )
+    items, total = paginate(
+        db,
+        query,
+        RecordingSession.recorded_at.desc(),
+        RecordingSession.id.desc(),
+        limit=limit,
+        offset=offset,
     )
     audit(db, actor, "list", "session", None, patient.id)
     db.commit()
