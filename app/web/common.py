@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import hmac
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import quote, urlsplit
 
 from fastapi import Request
@@ -27,6 +27,8 @@ from app.web.templating import templates
 
 NAV = (("patients", "/patients", "Patients"), ("rigs", "/rigs", "Calibration"))
 
+T = TypeVar("T")
+
 CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
 
 
@@ -38,6 +40,18 @@ def open_db(request: Request) -> Session:
     """A new database session from the app's factory (the caller closes it)."""
     db: Session = request.app.state.session_factory()
     return db
+
+
+def with_own_db(request: Request, fn: Callable[..., T], *args: Any) -> T:
+    """``fn(db, *args)`` with a database session of its own, closed afterwards.
+
+    For work run in the thread pool by ``async`` routes (which have no ``SessionDep``).
+    """
+    db = open_db(request)
+    try:
+        return fn(db, *args)
+    finally:
+        db.close()
 
 
 def page_user(request: Request, db: Session) -> Actor | None:
@@ -169,8 +183,8 @@ async def run_page_upload(
     refusal: AppError | None,
     file_fields: dict[str, str],
     text_fields: Iterable[str],
-    fail: Callable[[int, str], Response],
-    use_case: Callable[[ParsedUpload], Response],
+    fail: Callable[[Session, int, str], Response],
+    use_case: Callable[[Session, ParsedUpload], Response],
     prepare: Callable[[ParsedUpload], None] | None = None,
 ) -> Response:
     """A page's upload: log-in, CSRF and target checks, streaming, the use case, clean-up.
@@ -184,11 +198,12 @@ async def run_page_upload(
     file_fields, text_fields
         Accepted parts (``csrf_token`` is always accepted).
     fail : callable
-        ``fail(status, message)`` renders an error answer (run in the thread pool).
+        ``fail(db, status, message)`` renders an error page (run in the thread pool
+        with a database session of its own); the upload script gets JSON instead.
     use_case : callable
-        ``use_case(upload)`` stores the upload and returns the success answer (run in
-        the thread pool); an ``AppError`` or a core error becomes ``fail`` and removes
-        every file of the upload.
+        ``use_case(db, upload)`` stores the upload and returns the success answer (run
+        likewise); an ``AppError`` or a core error becomes ``fail`` and removes every
+        file of the upload.
     prepare : callable, optional
         Adjusts the parsed form before the use case (e.g. drops unused empty parts).
     """
@@ -196,15 +211,20 @@ async def run_page_upload(
     from app.uploads import receive_multipart
     from core.errors import BradyscopeError
 
+    async def failed(status: int, message: str) -> Response:
+        if wants_json(request):
+            return JSONResponse({"detail": message}, status_code=status)
+        return await run_in_threadpool(with_own_db, request, fail, status, message)
+
     if user is None:
         if wants_json(request):
             return JSONResponse({"detail": "Please log in again."}, status_code=401)
         return login_redirect(request)
     header_token = csrf_from_header(request)
     if header_token is not None and not csrf_ok(user, header_token):
-        return await run_in_threadpool(fail, 403, CSRF_MESSAGE)
+        return await failed(403, CSRF_MESSAGE)
     if refusal is not None:
-        return await run_in_threadpool(fail, status_of(refusal), str(refusal))
+        return await failed(status_of(refusal), str(refusal))
     settings = settings_of(request)
     try:
         upload = await receive_multipart(
@@ -215,19 +235,19 @@ async def run_page_upload(
             max_file_bytes=int(settings.max_upload_bytes),
         )
     except AppError as exc:
-        return await run_in_threadpool(fail, status_of(exc), str(exc))
+        return await failed(status_of(exc), str(exc))
     try:
         if header_token is None and not csrf_ok(user, upload.fields.get("csrf_token")):
             upload.discard()
-            return await run_in_threadpool(fail, 403, CSRF_MESSAGE)
+            return await failed(403, CSRF_MESSAGE)
         if prepare is not None:
             prepare(upload)
         try:
-            return await run_in_threadpool(use_case, upload)
+            return await run_in_threadpool(with_own_db, request, use_case, upload)
         except (AppError, BradyscopeError) as exc:  # a core error while checking the videos
             upload.discard()
             status = status_of(exc) if isinstance(exc, AppError) else 422
-            return await run_in_threadpool(fail, status, str(exc))
+            return await failed(status, str(exc))
         except BaseException:
             upload.discard()
             raise

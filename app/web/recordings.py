@@ -28,11 +28,11 @@ from app.web.common import (
     error_page,
     login_redirect,
     missing_page,
-    open_db,
     page_user,
     render,
     run_page_upload,
     wants_json,
+    with_own_db,
 )
 
 router = APIRouter()
@@ -97,58 +97,45 @@ def session_page(request: Request, db: SessionDep, session_id: int) -> Response:
 
 
 def _upload_error(
-    request: Request, user: Any, session_id: int, status: int, message: str
+    db: Any, request: Request, user: Any, session_id: int, status: int, message: str
 ) -> Response:
-    if wants_json(request):
-        return JSONResponse({"detail": message}, status_code=status)
-    db = open_db(request)
-    try:
-        session = visible_session(db, session_id)
-        if session is None:
-            return error_page(request, user, status_code=status, message=message)
-        context = _session_context(db, session)
-        audit(db, user, "read", "session", session.id, session.patient_id)
-        db.commit()
-        return render(
-            request,
-            "session.html",
-            user,
-            status_code=status,
-            active="patients",
-            title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
-            error=message,
-            **context,
-        )
-    finally:
-        db.close()
+    """The session page (or an error page) showing why the upload was refused."""
+    session = visible_session(db, session_id)
+    if session is None:
+        return error_page(request, user, status_code=status, message=message)
+    context = _session_context(db, session)
+    audit(db, user, "read", "session", session.id, session.patient_id)
+    db.commit()
+    return render(
+        request,
+        "session.html",
+        user,
+        status_code=status,
+        active="patients",
+        title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
+        error=message,
+        **context,
+    )
 
 
-def _user_and_target(request: Request, session_id: int) -> tuple[Any, AppError | None]:
+def _user_and_target(db: Any, request: Request, session_id: int) -> tuple[Any, AppError | None]:
     """The logged-in user, and why the session cannot take a trial (before the body is read)."""
     from app.services.recordings import check_trial_target
 
-    db = open_db(request)
+    user = page_user(request, db)
+    if user is None:
+        return None, None
     try:
-        user = page_user(request, db)
-        if user is None:
-            return None, None
-        try:
-            check_trial_target(db, user, session_id)  # 404 unknown session, 409 no calibration
-        except AppError as exc:
-            return user, exc
-        return user, None
-    finally:
-        db.close()
+        check_trial_target(db, user, session_id)  # 404 unknown session, 409 no calibration
+    except AppError as exc:
+        return user, exc
+    return user, None
 
 
-def _create_trial(request: Request, user: Any, session_id: int, upload: Any) -> Response:
+def _create_trial(db: Any, request: Request, user: Any, session_id: int, upload: Any) -> Response:
     from app.services.recordings import create_trial
 
-    db = open_db(request)
-    try:
-        out = create_trial(db, user, session_id, upload)
-    finally:
-        db.close()
+    out = create_trial(db, user, session_id, upload)
     job_url = f"/jobs/{out.job_id}"
     if wants_json(request):
         return JSONResponse(
@@ -167,15 +154,19 @@ def _create_trial(request: Request, user: Any, session_id: int, upload: Any) -> 
 async def trial_upload(request: Request, session_id: int) -> Response:
     from app.services.recordings import TRIAL_FILE_FIELDS, TRIAL_TEXT_FIELDS
 
-    user, refusal = await run_in_threadpool(_user_and_target, request, session_id)
+    user, refusal = await run_in_threadpool(
+        with_own_db, request, _user_and_target, request, session_id
+    )
     return await run_page_upload(
         request,
         user,
         refusal=refusal,
         file_fields=TRIAL_FILE_FIELDS,
         text_fields=TRIAL_TEXT_FIELDS,
-        fail=lambda status, message: _upload_error(request, user, session_id, status, message),
-        use_case=lambda upload: _create_trial(request, user, session_id, upload),
+        fail=lambda db, status, message: _upload_error(
+            db, request, user, session_id, status, message
+        ),
+        use_case=lambda db, upload: _create_trial(db, request, user, session_id, upload),
     )
 
 

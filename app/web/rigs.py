@@ -25,13 +25,13 @@ from app.web.common import (
     csrf_ok,
     error_page,
     login_redirect,
-    open_db,
     page_user,
     render,
     run_page_upload,
     status_of,
     validation_message,
     wants_json,
+    with_own_db,
 )
 
 router = APIRouter()
@@ -198,36 +198,18 @@ def _rig_page(
     )
 
 
-def _upload_error(request: Request, user: Any, rig_id: int, status: int, message: str) -> Response:
-    if wants_json(request):
-        return JSONResponse({"detail": message}, status_code=status)
-    db = open_db(request)
-    try:
-        return _rig_page(request, db, user, rig_id, error=message, status_code=status)
-    finally:
-        db.close()
-
-
-def _user_and_rig(request: Request, rig_id: int) -> tuple[Any, AppError | None]:
+def _user_and_rig(db: Any, request: Request, rig_id: int) -> tuple[Any, AppError | None]:
     """The logged-in user, and a 404 if the rig does not exist (before the body is read)."""
-    db = open_db(request)
-    try:
-        user = page_user(request, db)
-        exists = db.get(Rig, rig_id) is not None
-        db.rollback()
-        return user, None if exists else NotFoundError(f"Rig {rig_id} does not exist.")
-    finally:
-        db.close()
+    user = page_user(request, db)
+    exists = db.get(Rig, rig_id) is not None
+    db.rollback()
+    return user, None if exists else NotFoundError(f"Rig {rig_id} does not exist.")
 
 
-def _create(request: Request, user: Any, rig_id: int, upload: Any) -> Response:
+def _create(db: Any, request: Request, user: Any, rig_id: int, upload: Any) -> Response:
     from app.services.recordings import create_calibration
 
-    db = open_db(request)
-    try:
-        cal, job_id = create_calibration(db, user, rig_id, upload)
-    finally:
-        db.close()
+    cal, job_id = create_calibration(db, user, rig_id, upload)
     target = (
         f"/jobs/{job_id}"
         if job_id is not None
@@ -256,14 +238,16 @@ def _drop_unused_parts(upload: Any) -> None:
 async def calibration_upload(request: Request, rig_id: int) -> Response:
     from app.services.recordings import CALIBRATION_FILE_FIELDS, CALIBRATION_TEXT_FIELDS
 
-    user, refusal = await run_in_threadpool(_user_and_rig, request, rig_id)
+    user, refusal = await run_in_threadpool(with_own_db, request, _user_and_rig, request, rig_id)
     return await run_page_upload(
         request,
         user,
         refusal=refusal,
         file_fields=CALIBRATION_FILE_FIELDS,
         text_fields=CALIBRATION_TEXT_FIELDS | {"kind"},
-        fail=lambda status, message: _upload_error(request, user, rig_id, status, message),
-        use_case=lambda upload: _create(request, user, rig_id, upload),
+        fail=lambda db, status, message: _rig_page(
+            request, db, user, rig_id, error=message, status_code=status
+        ),
+        use_case=lambda db, upload: _create(db, request, user, rig_id, upload),
         prepare=_drop_unused_parts,
     )
