@@ -11,13 +11,15 @@ Prints, measured in the same run on the same files:
 - decode only: both videos decoded concurrently (one thread each, as analyze does);
 - analyze: ``core.pipeline.analyze_recording`` (detection, sync, triangulation,
   tracking, metrics), and its ratio to decoding (target <= 1.5); both also as
-  process CPU time, the steadier figure when other jobs share the machine;
+  CPU time (this process and its worker processes), the steadier figure when
+  other jobs share the machine;
 - peer: a plain OpenCV pipeline (fixed threshold, ``connectedComponentsWithStats``
   centroids, the two largest blobs sorted by image row, ``cv2.undistortPoints``,
   ``cv2.triangulatePoints``), its ratio to decoding, and both pipelines' 3D RMS
   error against the simulator's truth when a ``truth.json`` is there;
-- peak memory (max RSS of a fresh process running analyze) for the 5-s and the
-  10-s clip: it must not grow with the length of the video.
+- peak memory (max RSS of a fresh process running analyze, and of the larger
+  of its two detection workers) for the 5-s and the 10-s clip: it must not
+  grow with the length of the video.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -111,8 +114,12 @@ def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
     return time.perf_counter() - t0, pts
 
 
-def analyze_in_child(d: Path) -> tuple[float, float]:
-    """Run analyze in a fresh process; (seconds, peak RSS in MB)."""
+def analyze_in_child(d: Path) -> tuple[float, float, float]:
+    """Run analyze in a fresh process; (seconds, its peak RSS, largest worker's peak RSS) in MB.
+
+    Long videos are searched by one worker process per camera, so the memory
+    of an analysis is at most the first figure plus twice the second.
+    """
     code = (
         f"import sys, time; sys.path.insert(0, {str(ROOT)!r})\n"
         "from pathlib import Path\n"
@@ -122,17 +129,22 @@ def analyze_in_child(d: Path) -> tuple[float, float]:
         "left = sorted(d.glob('left.*'))[0]; right = sorted(d.glob('right.*'))[0]\n"
         "t = time.perf_counter()\n"
         "analyze_recording(read_rig(d / 'rig.json'), left, right)\n"
+        "import resource\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,"
+        " resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
         "print(time.perf_counter() - t)\n"
     )
     proc = subprocess.Popen(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
     )
     out = proc.stdout.read() if proc.stdout else ""
-    _, status, usage = os.wait4(proc.pid, 0)
+    _, status, _usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise SystemExit(f"analyze failed on {d}")
-    return float(out.strip().splitlines()[-1]), usage.ru_maxrss / 1024.0
+    lines = out.strip().splitlines()
+    rss_self_kb, rss_worker_kb = (float(v) for v in lines[-2].split())
+    return float(lines[-1]), rss_self_kb / 1024.0, rss_worker_kb / 1024.0
 
 
 def accuracy(d: Path, positions_mm: np.ndarray) -> float | None:
@@ -145,18 +157,25 @@ def accuracy(d: Path, positions_mm: np.ndarray) -> float | None:
     return float(np.sqrt(np.nanmean(err**2)))
 
 
+def _cpu_s() -> float:
+    """CPU time (s) of this process and its finished children (analyze's detection workers)."""
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def bench(d: Path) -> None:
     from core.camera import read_rig
     from core.pipeline import analyze_recording
 
     left, right = _videos(d)
-    c0 = time.process_time()
+    c0 = _cpu_s()
     t_dec = decode_only(left, right)
-    c_dec = time.process_time() - c0
-    c0, t0 = time.process_time(), time.perf_counter()
+    c_dec = _cpu_s() - c0
+    c0, t0 = _cpu_s(), time.perf_counter()
     analysis = analyze_recording(read_rig(d / "rig.json"), left, right)
     t_ana = time.perf_counter() - t0
-    c_ana = time.process_time() - c0
+    c_ana = _cpu_s() - c0
     t_peer, peer_pts = peer_pipeline(d)
     n = len(analysis.frame_numbers)
     print(f"{d.name}: {n} frames of {left.name} + {right.name}")
@@ -191,8 +210,11 @@ def main() -> None:
     args = ap.parse_args()
     if args.dir is not None:
         bench(args.dir)
-        t, rss = analyze_in_child(args.dir)
-        print(f"  peak RSS of a fresh analyze process: {rss:.0f} MB ({t:.1f} s)")
+        t, rss, rss_w = analyze_in_child(args.dir)
+        print(
+            f"  peak RSS of a fresh analyze process: {rss:.0f} MB, largest worker {rss_w:.0f} MB"
+            f" ({t:.1f} s)"
+        )
         return
     with tempfile.TemporaryDirectory() as tmp:
         base = args.keep if args.keep is not None else Path(tmp)
@@ -205,8 +227,11 @@ def main() -> None:
             dirs[seconds] = d
         bench(dirs[10.0])
         for seconds, d in dirs.items():
-            t, rss = analyze_in_child(d)
-            print(f"  peak RSS of analyze, {seconds:4.0f}-s clip: {rss:6.0f} MB ({t:.1f} s)")
+            t, rss, rss_w = analyze_in_child(d)
+            print(
+                f"  peak RSS of analyze, {seconds:4.0f}-s clip: {rss:6.0f} MB,"
+                f" largest worker {rss_w:5.0f} MB ({t:.1f} s)"
+            )
 
 
 if __name__ == "__main__":

@@ -41,14 +41,13 @@ centre of the top-left pixel.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, cast
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
 FloatArray = NDArray[np.float64]
 
@@ -837,6 +836,8 @@ def _disc_fit(
     Levenberg-Marquardt on ``(cx, cy, R, s, A, B)`` started from the
     centroid; a motion streak is not a disc, but the fit stays symmetric.
     """
+    from scipy.special import ndtr  # here: a detection worker process need not import scipy
+
     ys, xs = np.nonzero(support)
     z = sub[ys, xs]
     xs_f, ys_f = xs.astype(np.float64), ys.astype(np.float64)
@@ -883,3 +884,202 @@ def _disc_fit(
         if not step_ok or float(np.abs(delta[:2]).max()) < 1e-3:  # px, far below the noise
             break
     return float(p[0]), float(p[1])
+
+
+# ------------------------------------------------------------ search along a video
+# Used by core.pipeline (one instance per camera, in a thread or a worker process).
+
+#: A full-frame marker search at least this often (frames), to pick up new markers.
+FULL_SEARCH_EVERY = 10
+#: The last few full-frame searches define how many markers to expect.
+EXPECTED_COUNT_FULL_SEARCHES = 5
+#: After this many fallback full searches in a row that found nothing the windowed search
+#: had missed (a reflection that flickers off, a marker hidden for a while), fall back
+#: only on every other frame until the count is reached again: a reappearing marker
+#: is picked up at most one frame later, at half the cost.
+UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF = 2
+#: At most this many detections per frame and camera go to matching (brightest/roundest).
+MAX_DETECTIONS_PER_FRAME = 16
+
+
+# A detector takes (gray image, predicted xy (K, 2) or None, search radius px or None)
+# and returns (xy_px (N, 2), diameter_px (N,), quality (N,)).
+Detector = Callable[
+    [NDArray[np.uint8], FloatArray | None, float | None], tuple[FloatArray, FloatArray, FloatArray]
+]
+
+
+def _default_detector(params: Any | None) -> Detector:
+    p = params if params is not None else MarkerParams()
+
+    def detect(
+        image: NDArray[np.uint8], search_xy_px: FloatArray | None, radius_px: float | None
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        d = detect_markers(image, params=p, search_xy_px=search_xy_px, search_radius_px=radius_px)
+        q = d.quality if len(d.quality) == len(d) else d.peak
+        return d.xy_px, d.diameter_px, q
+
+    return detect
+
+
+def _median(values: FloatArray) -> float:
+    """``np.median`` of a short 1-D array, without its ~20 us of overhead per call."""
+    v = sorted(np.asarray(values, dtype=np.float64).ravel().tolist())
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+class _CameraDetections:
+    """Per-frame detections of one camera, with predicted search windows.
+
+    Prediction: each detection of the previous frame may move on by the
+    displacement from its nearest neighbour in the frame before (a
+    constant-velocity guess) or stay; the search window is centred between
+    the two and its radius covers both, the marker size and what the
+    velocity guess may miss.
+    """
+
+    def __init__(self, detect: Detector, *, full_every: int = FULL_SEARCH_EVERY) -> None:
+        self.detect = detect
+        self.full_every = full_every
+        self.frames: list[FloatArray] = []
+        self.n_full = 0
+        self._recent_full: list[tuple[int, int]] = []  # (frame, count)
+        self._prev: FloatArray | None = None
+        self._prev2: FloatArray | None = None
+        self._diam = 10.0
+        self._unproductive = 0  # fallback full searches in a row that found nothing more
+
+    def _expected(self) -> int:
+        # Markers reliably seen: the median count of the last few full searches
+        # (one search during a short occlusion does not lower it, so the marker
+        # is picked up again as soon as it reappears).
+        self._recent_full = self._recent_full[-EXPECTED_COUNT_FULL_SEARCHES:]
+        if not self._recent_full:
+            return 0
+        counts = sorted(c for _, c in self._recent_full)
+        n = len(counts)
+        return (counts[(n - 1) // 2] + counts[n // 2]) // 2  # floor of the median
+
+    def _predict(self) -> tuple[FloatArray | None, float]:
+        prev = self._prev
+        if prev is None or len(prev) == 0:
+            return None, 0.0
+        pred = prev.copy()
+        step = np.zeros(len(prev))
+        if self._prev2 is not None and len(self._prev2):
+            d = np.linalg.norm(prev[:, None, :] - self._prev2[None, :, :], axis=2)
+            j = np.argmin(d, axis=1)
+            near = d[np.arange(len(prev)), j] < 4 * self._diam + 40.0
+            vel = np.where(near[:, None], prev - self._prev2[j], 0.0)
+            # Centre between "stays" and "moves on": right whether or not the
+            # nearest-neighbour velocity belongs to this marker.
+            pred = prev + 0.5 * vel
+            step = np.linalg.norm(vel, axis=1)
+        radius = 1.5 * self._diam + 12.0 + 0.5 * float(step.max(initial=0.0))
+        return pred, radius
+
+    def process(self, image: NDArray[np.uint8]) -> None:
+        frame = len(self.frames)
+        pred, radius = self._predict()
+        expected = self._expected()
+        scheduled = pred is None or frame % self.full_every == 0
+        full = scheduled
+        xy = np.zeros((0, 2))
+        diam = q = np.zeros(0)
+        n_windowed = -1
+        if not full:
+            xy, diam, q = self.detect(image, pred, radius)
+            if len(xy) >= expected:
+                self._unproductive = 0
+            elif self._unproductive < UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF or frame % 2 == 0:
+                full, n_windowed = True, len(xy)
+        if full:
+            xy, diam, q = self.detect(image, None, None)
+            self.n_full += 1
+            if scheduled:  # searches made because something was missing would bias the count
+                self._recent_full.append((frame, len(xy)))
+            elif len(xy) <= n_windowed:  # the missing blob is not anywhere in the frame
+                self._unproductive += 1
+            else:
+                self._unproductive = 0
+        if len(xy) > MAX_DETECTIONS_PER_FRAME:
+            keep = np.argsort(-q, kind="stable")[:MAX_DETECTIONS_PER_FRAME]
+            xy, diam = xy[keep], diam[keep]
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if len(diam):
+            self._diam = 0.9 * self._diam + 0.1 * _median(diam)
+        self.frames.append(xy)
+        self._prev2, self._prev = self._prev, xy
+
+
+def _video_detection_worker(
+    path: str, expected_count: int, params: MarkerParams | None, send: Callable[[Any], None]
+) -> None:
+    """Decode one video and search it frame by frame, as one camera's worker process.
+
+    Sends ``("progress", frames_done)`` every 50 frames and finally ``("done",
+    xy_px (M, 2), counts (T,), n_full)``: only the small per-frame detections
+    leave the worker, never a frame.  Any exception is sent as ``("error",
+    exception)`` (the original one when it pickles, else a ``RuntimeError``
+    with its type and message).  Stops by itself when the parent is gone.
+    """
+    import os
+    import pickle
+
+    from core.video import iter_frames
+
+    parent = os.getppid()
+    try:
+        state = _CameraDetections(_default_detector(params))
+        for i, image in enumerate(iter_frames(path, gray=True, expected_count=expected_count)):
+            state.process(image)
+            if i % 50 == 49:
+                if os.getppid() != parent:  # orphaned: nobody wants the result
+                    return
+                send(("progress", i + 1))
+        counts = np.array([len(f) for f in state.frames], dtype=np.int64)
+        flat = np.concatenate(state.frames) if state.frames else np.zeros((0, 2))
+        send(("done", flat, counts, state.n_full))
+    except BaseException as exc:
+        payload: BaseException
+        try:
+            payload = pickle.loads(pickle.dumps(exc))
+        except Exception:
+            payload = RuntimeError(f"{type(exc).__name__}: {exc}")
+        try:
+            send(("error", payload))
+        except OSError:  # the parent is gone
+            pass
+
+
+def _video_detection_main() -> None:
+    """Body of a worker process started by ``core.pipeline`` (``python -c``).
+
+    Reads ``(path, expected_count, params)`` pickled on stdin and writes the
+    pickled messages of :func:`_video_detection_worker` to stdout; anything
+    else that would be printed goes to stderr, so the message stream stays
+    clean.  A plain interpreter, not ``multiprocessing``: the caller's main
+    module is never re-imported, and only this module and ``core.video`` are
+    (~0.2 s, no scipy).
+    """
+    import os
+    import pickle
+    import sys
+
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    path, expected_count, params = pickle.load(sys.stdin.buffer)
+
+    def send(msg: Any) -> None:
+        pickle.dump(msg, out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+    try:
+        _video_detection_worker(path, expected_count, params, send)
+    finally:
+        try:
+            out.close()
+        except OSError:
+            pass

@@ -35,8 +35,8 @@ import csv
 import io
 import json
 import math
+import sys
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -46,6 +46,20 @@ from numpy.typing import NDArray
 
 from core.camera import StereoRig
 from core.errors import DetectionError, InputError
+from core.markers import EXPECTED_COUNT_FULL_SEARCHES as EXPECTED_COUNT_FULL_SEARCHES
+from core.markers import FULL_SEARCH_EVERY as FULL_SEARCH_EVERY
+from core.markers import MAX_DETECTIONS_PER_FRAME as MAX_DETECTIONS_PER_FRAME
+from core.markers import (
+    UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF as UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF,
+)
+from core.markers import (  # the per-camera search lives with the detector (light to import)
+    Detector,
+    _CameraDetections,
+    _default_detector,
+)
+from core.markers import (
+    _video_detection_main as _video_detection_main,
+)
 from core.matching import epipolar_distances_px
 from core.progress import ProgressCallback, report
 from core.sync import (
@@ -71,27 +85,13 @@ FloatArray = NDArray[np.float64]
 RESULT_FORMAT = "bradyscope.result/1"
 CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "reprojection_px")
 
-#: A full-frame marker search at least this often (frames), to pick up new markers.
-FULL_SEARCH_EVERY = 10
-#: The last few full-frame searches define how many markers to expect.
-EXPECTED_COUNT_FULL_SEARCHES = 5
-#: After this many fallback full searches in a row that found nothing the windowed search
-#: had missed (a reflection that flickers off, a marker hidden for a while), fall back
-#: only on every other frame until the count is reached again: a reappearing marker
-#: is picked up at most one frame later, at half the cost.
-UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF = 2
+#: Videos of at least this many frames are searched by one worker process per camera
+#: (no shared GIL); shorter ones by one thread per camera (starting a worker costs ~0.3 s).
+PROCESS_MIN_FRAMES = 300
 #: Pairs farther from the epipolar constraint are not stereo candidates (px).
 MAX_EPIPOLAR_PX = 3.0
 #: Stereo candidates with a larger reprojection error are dropped (px).
 MAX_CANDIDATE_REPROJECTION_PX = 2.0
-#: At most this many detections per frame and camera go to matching (brightest/roundest).
-MAX_DETECTIONS_PER_FRAME = 16
-
-# A detector takes (gray image, predicted xy (K, 2) or None, search radius px or None)
-# and returns (xy_px (N, 2), diameter_px (N,), quality (N,)).
-Detector = Callable[
-    [NDArray[np.uint8], FloatArray | None, float | None], tuple[FloatArray, FloatArray, FloatArray]
-]
 
 
 @dataclass(frozen=True)
@@ -188,122 +188,32 @@ def _json_clean(obj: Any) -> Any:
 # ----------------------------------------------------------------------------- detection
 
 
-def _default_detector(params: Any | None) -> Detector:
-    from core.markers import MarkerParams, detect_markers
-
-    p = params if params is not None else MarkerParams()
-
-    def detect(
-        image: NDArray[np.uint8], search_xy_px: FloatArray | None, radius_px: float | None
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        d = detect_markers(image, params=p, search_xy_px=search_xy_px, search_radius_px=radius_px)
-        q = d.quality if len(d.quality) == len(d) else d.peak
-        return d.xy_px, d.diameter_px, q
-
-    return detect
-
-
-def _median(values: FloatArray) -> float:
-    """``np.median`` of a short 1-D array, without its ~20 us of overhead per call."""
-    v = sorted(np.asarray(values, dtype=np.float64).ravel().tolist())
-    n = len(v)
-    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
-
-
-class _CameraDetections:
-    """Per-frame detections of one camera, with predicted search windows.
-
-    Prediction: each detection of the previous frame may move on by the
-    displacement from its nearest neighbour in the frame before (a
-    constant-velocity guess) or stay; the search window is centred between
-    the two and its radius covers both, the marker size and what the
-    velocity guess may miss.
-    """
-
-    def __init__(self, detect: Detector, *, full_every: int = FULL_SEARCH_EVERY) -> None:
-        self.detect = detect
-        self.full_every = full_every
-        self.frames: list[FloatArray] = []
-        self.n_full = 0
-        self._recent_full: list[tuple[int, int]] = []  # (frame, count)
-        self._prev: FloatArray | None = None
-        self._prev2: FloatArray | None = None
-        self._diam = 10.0
-        self._unproductive = 0  # fallback full searches in a row that found nothing more
-
-    def _expected(self) -> int:
-        # Markers reliably seen: the median count of the last few full searches
-        # (one search during a short occlusion does not lower it, so the marker
-        # is picked up again as soon as it reappears).
-        self._recent_full = self._recent_full[-EXPECTED_COUNT_FULL_SEARCHES:]
-        if not self._recent_full:
-            return 0
-        counts = sorted(c for _, c in self._recent_full)
-        n = len(counts)
-        return (counts[(n - 1) // 2] + counts[n // 2]) // 2  # floor of the median
-
-    def _predict(self) -> tuple[FloatArray | None, float]:
-        prev = self._prev
-        if prev is None or len(prev) == 0:
-            return None, 0.0
-        pred = prev.copy()
-        step = np.zeros(len(prev))
-        if self._prev2 is not None and len(self._prev2):
-            d = np.linalg.norm(prev[:, None, :] - self._prev2[None, :, :], axis=2)
-            j = np.argmin(d, axis=1)
-            near = d[np.arange(len(prev)), j] < 4 * self._diam + 40.0
-            vel = np.where(near[:, None], prev - self._prev2[j], 0.0)
-            # Centre between "stays" and "moves on": right whether or not the
-            # nearest-neighbour velocity belongs to this marker.
-            pred = prev + 0.5 * vel
-            step = np.linalg.norm(vel, axis=1)
-        radius = 1.5 * self._diam + 12.0 + 0.5 * float(step.max(initial=0.0))
-        return pred, radius
-
-    def process(self, image: NDArray[np.uint8]) -> None:
-        frame = len(self.frames)
-        pred, radius = self._predict()
-        expected = self._expected()
-        scheduled = pred is None or frame % self.full_every == 0
-        full = scheduled
-        xy = np.zeros((0, 2))
-        diam = q = np.zeros(0)
-        n_windowed = -1
-        if not full:
-            xy, diam, q = self.detect(image, pred, radius)
-            if len(xy) >= expected:
-                self._unproductive = 0
-            elif self._unproductive < UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF or frame % 2 == 0:
-                full, n_windowed = True, len(xy)
-        if full:
-            xy, diam, q = self.detect(image, None, None)
-            self.n_full += 1
-            if scheduled:  # searches made because something was missing would bias the count
-                self._recent_full.append((frame, len(xy)))
-            elif len(xy) <= n_windowed:  # the missing blob is not anywhere in the frame
-                self._unproductive += 1
-            else:
-                self._unproductive = 0
-        if len(xy) > MAX_DETECTIONS_PER_FRAME:
-            keep = np.argsort(-q, kind="stable")[:MAX_DETECTIONS_PER_FRAME]
-            xy, diam = xy[keep], diam[keep]
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if len(diam):
-            self._diam = 0.9 * self._diam + 0.1 * _median(diam)
-        self.frames.append(xy)
-        self._prev2, self._prev = self._prev, xy
-
-
 def _detect_videos(
     paths: tuple[Path, Path],
     expected_counts: tuple[int, int],
-    detect: Detector,
+    detect: Detector | None,
     progress: ProgressCallback | None,
+    *,
+    marker_params: Any | None = None,
+    use_processes: bool | None = None,
 ) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
-    """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays."""
+    """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays.
+
+    ``detect`` None means ``core.markers.detect_markers`` with ``marker_params``.
+    ``use_processes`` None: one worker process per camera for the default
+    detector and videos of at least ``PROCESS_MIN_FRAMES`` frames, else one
+    thread per camera (a custom detector need not be picklable).
+    """
+    if use_processes is None:
+        use_processes = (
+            detect is None and min(expected_counts) >= PROCESS_MIN_FRAMES and bool(sys.executable)
+        )
+    if use_processes:
+        return _detect_videos_in_processes(paths, expected_counts, marker_params, progress)
     from core.video import iter_frames
 
-    states = [_CameraDetections(detect), _CameraDetections(detect)]
+    detector = detect if detect is not None else _default_detector(marker_params)
+    states = [_CameraDetections(detector), _CameraDetections(detector)]
     errors: list[BaseException] = []
     halt = threading.Event()
 
@@ -332,6 +242,108 @@ def _detect_videos(
         raise errors[0]
     info = {"full_searches_left": states[0].n_full, "full_searches_right": states[1].n_full}
     return states[0].frames, states[1].frames, info
+
+
+_WORKER_CODE = "from core.markers import _video_detection_main; _video_detection_main()"
+
+
+def _detect_videos_in_processes(
+    paths: tuple[Path, Path],
+    expected_counts: tuple[int, int],
+    marker_params: Any | None,
+    progress: ProgressCallback | None,
+) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
+    """:func:`_detect_videos` with one worker process per camera (no shared GIL).
+
+    Each worker (``core.markers._video_detection_main``, a plain ``python -c``
+    interpreter: the caller's main module is not re-imported) decodes its
+    video itself and sends back only the per-frame detections, pickled over
+    its stdout.  An exception in a worker is re-raised here with its original
+    type and message; on any error or interrupt both workers are killed and
+    waited for, so none outlives the call (a worker whose parent disappears
+    stops by itself).
+    """
+    import os
+    import pickle
+    import queue
+    import subprocess
+    import sys
+
+    import core
+
+    env = dict(os.environ)
+    root = str(Path(next(iter(core.__path__))).resolve().parent)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    messages: queue.Queue[tuple[int, Any]] = queue.Queue()
+    procs: list[subprocess.Popen[bytes]] = []
+
+    def read(k: int, stream: Any) -> None:
+        try:
+            while True:
+                msg = pickle.load(stream)
+                messages.put((k, msg))
+                if msg[0] != "progress":
+                    return
+        except Exception:  # EOF or a broken stream: the worker is gone
+            messages.put((k, None))
+
+    results: list[tuple[FloatArray, NDArray[np.int64], int] | None] = [None, None]
+    done = [0, 0]
+    total = int(sum(expected_counts))
+    try:
+        for k in (0, 1):
+            proc = subprocess.Popen(
+                [sys.executable, "-c", _WORKER_CODE],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                env=env,
+            )
+            procs.append(proc)
+            assert proc.stdin is not None
+            proc.stdin.write(pickle.dumps((str(paths[k]), int(expected_counts[k]), marker_params)))
+            proc.stdin.close()
+            threading.Thread(
+                target=read, args=(k, proc.stdout), name=f"detect-reader-{k}", daemon=True
+            ).start()
+        report(progress, "detection", 0, total)
+        pending = {0, 1}
+        while pending:
+            try:
+                k, msg = messages.get(timeout=0.25)
+            except queue.Empty:
+                continue
+            if msg is None:
+                code = procs[k].wait(timeout=5.0)
+                raise RuntimeError(
+                    f"marker detection in the {('left', 'right')[k]} video stopped unexpectedly"
+                    f" (worker exit code {code})"
+                )
+            if msg[0] == "progress":
+                done[k] = int(msg[1])
+            elif msg[0] == "done":
+                results[k] = (msg[1], msg[2], int(msg[3]))
+                done[k] = len(msg[2])
+                pending.discard(k)
+            else:
+                raise msg[1]
+            report(progress, "detection", min(total, sum(done)), total)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+        for proc in procs:
+            proc.wait()
+            if proc.stdout is not None:
+                proc.stdout.close()
+    frames: list[list[FloatArray]] = []
+    n_full: list[int] = []
+    for res in results:
+        assert res is not None
+        flat, counts, n = res
+        frames.append(list(np.split(flat, np.cumsum(counts)[:-1])) if len(counts) else [])
+        n_full.append(n)
+    info = {"full_searches_left": n_full[0], "full_searches_right": n_full[1]}
+    return frames[0], frames[1], info
 
 
 def _undistort_all(cam: Any, frames: list[FloatArray]) -> list[FloatArray]:
@@ -539,13 +551,12 @@ def analyze_recording(
     right_info = probe_video(right_video)
     warnings = list(check_stereo_videos(left_info, right_info, rig=rig))
     fps = float(left_info.fps)
-    detect = detector if detector is not None else _default_detector(marker_params)
-
     left_px, right_px, det_info = _detect_videos(
         (left_info.path, right_info.path),
         (left_info.frame_count, right_info.frame_count),
-        detect,
+        detector,
         progress,
+        marker_params=marker_params,
     )
     n_left, n_right = len(left_px), len(right_px)
     if n_left == 0 or n_right == 0:

@@ -358,7 +358,7 @@ def test_batched_subframe_refinement_equals_core_sync() -> None:
 def test_fallback_searches_back_off_but_reacquire_within_one_frame() -> None:
     """A blob gone for a while: full searches on its first two missing frames, then on
     every other frame; when it comes back it is picked up at most one frame later."""
-    from core.pipeline import UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF, _CameraDetections
+    from core.markers import UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF, _CameraDetections
 
     fixed = np.array([[100.0, 100.0], [300.0, 200.0]])  # px, always visible
     extra = np.array([[600.0, 500.0]])  # px, hidden in frames 23..34
@@ -386,3 +386,71 @@ def test_fallback_searches_back_off_but_reacquire_within_one_frame() -> None:
     seen_again = min(f for f in range(35, 50) if len(state.frames[f]) == 3)
     assert seen_again <= 36  # back in frame 35: found at most one frame later
     assert all(len(state.frames[f]) == 3 for f in range(seen_again, 50))
+
+
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory: pytest.TempPathFactory) -> SimulatedSession:
+    return simulate_session(
+        tmp_path_factory.mktemp("small"),
+        seed=8,
+        tapping=TappingScenario(duration_s=1.0, fps=100.0),
+        imaging=ImagingScenario(image_size=ImageSize(640, 512), codec="mp4v", distractors_static=1),
+    )
+
+
+def _worker_processes() -> list[int]:
+    """Pids of live detection workers whose parent is this process (Linux /proc)."""
+    import os
+
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == os.getpid() and b"_video_detection_main" in cmdline:
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_worker_processes_give_the_threads_detections(small_session: SimulatedSession) -> None:
+    """One process per camera returns exactly what the two threads return."""
+    from core.pipeline import _detect_videos
+    from core.video import probe_video
+
+    info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
+    paths = (info[0].path, info[1].path)
+    counts = (info[0].frame_count, info[1].frame_count)
+    stages: list[tuple[int, int]] = []
+    by_proc = _detect_videos(
+        paths, counts, None, lambda s, d, t: stages.append((d, t)), use_processes=True
+    )
+    by_thread = _detect_videos(paths, counts, None, None, use_processes=False)
+    for frames_p, frames_t in zip(by_proc[:2], by_thread[:2], strict=True):
+        assert len(frames_p) == len(frames_t) == counts[0]
+        assert all(np.array_equal(a, b) for a, b in zip(frames_p, frames_t, strict=True))
+    assert by_proc[2] == by_thread[2]
+    assert stages[-1] == (sum(counts), sum(counts))  # progress reaches the end
+    if Path("/proc/self").exists():
+        assert _worker_processes() == []
+
+
+def test_worker_error_is_reraised_with_its_message(small_session: SimulatedSession) -> None:
+    """A truncated video: the same one-sentence InputError as in threads, no worker left."""
+    from core.pipeline import _detect_videos
+    from core.video import probe_video
+
+    info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
+    paths = (info[0].path, info[1].path)
+    too_many = (info[0].frame_count + 40, info[1].frame_count)  # the left one looks truncated
+    with pytest.raises(InputError) as in_thread:
+        _detect_videos(paths, too_many, None, None, use_processes=False)
+    with pytest.raises(InputError) as in_process:
+        _detect_videos(paths, too_many, None, None, use_processes=True)
+    assert str(in_process.value) == str(in_thread.value)
+    if Path("/proc/self").exists():
+        assert _worker_processes() == []
