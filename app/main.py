@@ -294,8 +294,14 @@ def create_app(settings: Any = None) -> FastAPI:
         return {"status": "ok"}
 
     from app.web import router as web_router
+    from app.web.common import LoginRequired, login_redirect
 
     app.include_router(web_router)
+
+    @app.exception_handler(LoginRequired)
+    async def login_required(request: Request, exc: LoginRequired) -> Response:
+        return login_redirect(request)  # a page (PageUser) without a logged-in user
+
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app

@@ -11,16 +11,16 @@ from __future__ import annotations
 
 import hmac
 from collections.abc import Callable, Iterable
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 from urllib.parse import quote, urlsplit
 
-from fastapi import Request
+from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from app.auth import CSRF_HEADER, Actor, get_optional_user
+from app.auth import CSRF_HEADER, Actor, SessionDep, get_optional_user
 from app.errors import AppError
 from app.uploads import ParsedUpload
 from app.web.templating import templates
@@ -57,6 +57,22 @@ def with_own_db(request: Request, fn: Callable[..., T], *args: Any) -> T:
 def page_user(request: Request, db: Session) -> Actor | None:
     """The logged-in browser user, or None."""
     return get_optional_user(request, db)
+
+
+class LoginRequired(Exception):
+    """No logged-in browser user: the app answers with a redirect to the login page."""
+
+
+def require_page_user(request: Request, db: SessionDep) -> Actor:
+    """The logged-in browser user; else :class:`LoginRequired` (see ``app.main``)."""
+    user = page_user(request, db)
+    if user is None:
+        raise LoginRequired
+    return user
+
+
+PageUser = Annotated[Actor, Depends(require_page_user)]
+"""A page's user: a page without a logged-in user redirects to ``/login?next=...``."""
 
 
 def safe_next(target: str | None) -> str:

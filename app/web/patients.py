@@ -32,11 +32,10 @@ from app.reports import TREND_METRICS, format_metric
 from app.services.common import visible_patient
 from app.web.common import (
     CSRF_MESSAGE,
+    PageUser,
     csrf_ok,
     error_page,
-    login_redirect,
     missing_page,
-    page_user,
     render,
     status_of,
     validation_message,
@@ -48,10 +47,9 @@ PAGE_SIZE = 50
 
 
 @router.get("/patients", response_class=HTMLResponse)
-def patient_list(request: Request, db: SessionDep, q: str = "", page: int = 1) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def patient_list(
+    request: Request, db: SessionDep, user: PageUser, q: str = "", page: int = 1
+) -> Response:
     context = _list_context(db, q, page)
     audit(db, user, "list", "patient")
     db.commit()
@@ -96,6 +94,7 @@ def _list_context(db: Any, q: str, page: int) -> dict[str, Any]:
 def patient_create(
     request: Request,
     db: SessionDep,
+    user: PageUser,
     code: Annotated[str, Form(max_length=200)] = "",
     birth_year: Annotated[str, Form(max_length=10)] = "",
     sex: Annotated[str, Form(max_length=20)] = "",
@@ -105,9 +104,6 @@ def patient_create(
     from app.schemas import PatientCreate
     from app.services.patients import create_patient
 
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
     form = {"code": code, "birth_year": birth_year, "sex": sex, "notes": notes}
     if not csrf_ok(user, csrf_token):
         return _list_with_error(request, db, user, CSRF_MESSAGE, 403, form)
@@ -194,10 +190,7 @@ def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
 
 
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
-def patient_page(request: Request, db: SessionDep, patient_id: int) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
     patient = visible_patient(db, patient_id)
     if patient is None:
         return missing_page(request, db, user, "read", "patient", patient_id)
@@ -242,10 +235,7 @@ def _rigs(db: Any) -> list[Rig]:
 
 
 @router.get("/patients/{patient_id}/sessions/new", response_class=HTMLResponse)
-def session_new(request: Request, db: SessionDep, patient_id: int) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def session_new(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
     patient = visible_patient(db, patient_id)
     if patient is None:
         return _no_patient(request, user, patient_id)
@@ -294,6 +284,7 @@ def _session_form(
 def session_create(
     request: Request,
     db: SessionDep,
+    user: PageUser,
     patient_id: int,
     rig_id: Annotated[str, Form(max_length=20)] = "",
     recorded_at: Annotated[str, Form(max_length=40)] = "",
@@ -306,9 +297,6 @@ def session_create(
     from app.schemas import SessionCreate
     from app.services.sessions import create_session
 
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
     patient = visible_patient(db, patient_id)
     if patient is None:
         return _no_patient(request, user, patient_id)

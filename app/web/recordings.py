@@ -25,8 +25,8 @@ from app.errors import AppError
 from app.models import Job, RecordingSession, Trial, calibration_for
 from app.services.common import trial_is_visible, visible_session
 from app.web.common import (
+    PageUser,
     error_page,
-    login_redirect,
     missing_page,
     page_user,
     render,
@@ -76,10 +76,7 @@ def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
 
 
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)
-def session_page(request: Request, db: SessionDep, session_id: int) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def session_page(request: Request, db: SessionDep, user: PageUser, session_id: int) -> Response:
     session = visible_session(db, session_id)
     if session is None:
         return missing_page(request, db, user, "read", "session", session_id)
@@ -239,10 +236,7 @@ def _visible_job(db: Any, job_id: int) -> Job | None:
 
 
 @router.get("/jobs/{job_id}", response_class=HTMLResponse)
-def job_page(request: Request, db: SessionDep, job_id: int) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def job_page(request: Request, db: SessionDep, user: PageUser, job_id: int) -> Response:
     job = _visible_job(db, job_id)
     if job is None:
         return error_page(request, user, status_code=404, message=f"Job {job_id} does not exist.")

@@ -30,10 +30,9 @@ from app.reports import (
 )
 from app.services.common import visible_trial
 from app.web.common import (
+    PageUser,
     error_page,
-    login_redirect,
     missing_page,
-    page_user,
     render,
     settings_of,
     status_of,
@@ -117,11 +116,8 @@ def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]
 
 @router.get("/trials/{trial_id}", response_class=HTMLResponse)
 def trial_page(
-    request: Request, db: SessionDep, trial_id: int, compare: int | None = None
+    request: Request, db: SessionDep, user: PageUser, trial_id: int, compare: int | None = None
 ) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
     trial = visible_trial(db, trial_id)
     if trial is None:
         return missing_page(request, db, user, "read", "trial", trial_id)
@@ -182,12 +178,11 @@ def _attachment(name: str) -> dict[str, str]:
 
 
 @router.get("/trials/{trial_id}/download/{kind}")
-def trial_download(request: Request, db: SessionDep, trial_id: int, kind: str) -> Response:
+def trial_download(
+    request: Request, db: SessionDep, user: PageUser, trial_id: int, kind: str
+) -> Response:
     from app.services import results as svc
 
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
     if kind not in DOWNLOADS:
         return error_page(request, user, status_code=404, message=f"There is no {kind!r} download.")
     trial = visible_trial(db, trial_id)

@@ -22,9 +22,9 @@ from app.models import Job, Rig
 from app.reports import quality_verdict
 from app.web.common import (
     CSRF_MESSAGE,
+    PageUser,
     csrf_ok,
     error_page,
-    login_redirect,
     page_user,
     render,
     run_page_upload,
@@ -92,10 +92,7 @@ def _calibration_rows(db: Any, rig: Rig) -> list[dict[str, Any]]:
 
 
 @router.get("/rigs", response_class=HTMLResponse)
-def rig_list(request: Request, db: SessionDep) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def rig_list(request: Request, db: SessionDep, user: PageUser) -> Response:
     return _rig_list(request, db, user)
 
 
@@ -135,6 +132,7 @@ def _rig_list(
 def rig_create(
     request: Request,
     db: SessionDep,
+    user: PageUser,
     name: Annotated[str, Form(max_length=200)] = "",
     description: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
@@ -142,9 +140,6 @@ def rig_create(
     from app.schemas import RigCreate
     from app.services.rigs import create_rig
 
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
     form = {"name": name, "description": description}
     if not csrf_ok(user, csrf_token):
         return _rig_list(request, db, user, error=CSRF_MESSAGE, status_code=403, form=form)
@@ -164,10 +159,7 @@ def rig_create(
 
 
 @router.get("/rigs/{rig_id}", response_class=HTMLResponse)
-def rig_page(request: Request, db: SessionDep, rig_id: int) -> Response:
-    user = page_user(request, db)
-    if user is None:
-        return login_redirect(request)
+def rig_page(request: Request, db: SessionDep, user: PageUser, rig_id: int) -> Response:
     return _rig_page(request, db, user, rig_id)
 
 
