@@ -62,6 +62,23 @@ def _video_row(upload: ParsedUpload, name: str, info: Any, side: str) -> Video:
     )
 
 
+def _add_videos(
+    db: Session,
+    upload: ParsedUpload,
+    left: Any,
+    right: Any,
+    *,
+    trial_id: int | None = None,
+    calibration_id: int | None = None,
+) -> None:
+    """Publish the two checked videos and add their rows (of a trial or a calibration)."""
+    for name, info, side in (("left_video", left, "left"), ("right_video", right, "right")):
+        video = _video_row(upload, name, info, side)
+        video.trial_id = trial_id
+        video.calibration_id = calibration_id
+        db.add(video)
+
+
 def _validate_pair(upload: ParsedUpload, *, rig: Any = None) -> tuple[Any, Any, list[str]]:
     left_file = upload.require_file("left_video")
     right_file = upload.require_file("right_video")
@@ -146,10 +163,7 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
         trial = Trial(session_id=session.id, hand=hand, status="queued", offset_frames=offset)
         db.add(trial)
         db.flush()
-        for name, info, side in (("left_video", left, "left"), ("right_video", right, "right")):
-            video = _video_row(upload, name, info, side)
-            video.trial_id = trial.id
-            db.add(video)
+        _add_videos(db, upload, left, right, trial_id=trial.id)
         payload: dict[str, Any] = {"warnings": warnings}
         if offset is not None:
             payload["offset_frames"] = offset
@@ -369,10 +383,7 @@ def create_calibration(
         )
         db.add(cal)
         db.flush()
-        for name, info, side in (("left_video", left, "left"), ("right_video", right, "right")):
-            video = _video_row(upload, name, info, side)
-            video.calibration_id = cal.id
-            db.add(video)
+        _add_videos(db, upload, left, right, calibration_id=cal.id)
         job = jobs.enqueue(db, "calibrate", calibration_id=cal.id, payload={"board": board})
         job_id = job.id
         audit(db, actor, "create", "calibration", cal.id)

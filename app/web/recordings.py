@@ -75,31 +75,16 @@ def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
     return None
 
 
-@router.get("/sessions/{session_id}", response_class=HTMLResponse)
-def session_page(request: Request, db: SessionDep, user: PageUser, session_id: int) -> Response:
-    session = visible_session(db, session_id)
-    if session is None:
-        return missing_page(request, db, user, "read", "session", session_id)
-    context = _session_context(db, session)
-    audit(db, user, "read", "session", session.id, session.patient_id)
-    db.commit()
-    return render(
-        request,
-        "session.html",
-        user,
-        active="patients",
-        title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
-        **context,
-    )
-
-
-def _upload_error(
-    db: Any, request: Request, user: Any, session_id: int, status: int, message: str
+def _session_response(
+    request: Request,
+    db: Any,
+    user: Any,
+    session: RecordingSession,
+    *,
+    status: int = 200,
+    error: str | None = None,
 ) -> Response:
-    """The session page (or an error page) showing why the upload was refused."""
-    session = visible_session(db, session_id)
-    if session is None:
-        return error_page(request, user, status_code=status, message=message)
+    """The session page (audited as a read of the session)."""
     context = _session_context(db, session)
     audit(db, user, "read", "session", session.id, session.patient_id)
     db.commit()
@@ -110,9 +95,27 @@ def _upload_error(
         status_code=status,
         active="patients",
         title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
-        error=message,
+        error=error,
         **context,
     )
+
+
+@router.get("/sessions/{session_id}", response_class=HTMLResponse)
+def session_page(request: Request, db: SessionDep, user: PageUser, session_id: int) -> Response:
+    session = visible_session(db, session_id)
+    if session is None:
+        return missing_page(request, db, user, "read", "session", session_id)
+    return _session_response(request, db, user, session)
+
+
+def _upload_error(
+    db: Any, request: Request, user: Any, session_id: int, status: int, message: str
+) -> Response:
+    """The session page (or an error page) showing why the upload was refused."""
+    session = visible_session(db, session_id)
+    if session is None:
+        return error_page(request, user, status_code=status, message=message)
+    return _session_response(request, db, user, session, status=status, error=message)
 
 
 def _user_and_target(db: Any, request: Request, session_id: int) -> tuple[Any, AppError | None]:
