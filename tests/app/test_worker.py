@@ -201,6 +201,27 @@ def _store_video(storage, db, path, *, side, trial_id=None, calibration_id=None)
     return video
 
 
+def _enqueue_calibration_job(sm, storage, board, videos) -> tuple[int, int]:
+    """A pending board-video calibration of a new rig, its two stored videos and its job."""
+    with sm() as db, db.begin():
+        rig = Rig(name="board-rig")
+        db.add(rig)
+        db.flush()
+        cal = Calibration(
+            rig_id=rig.id,
+            version=1,
+            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
+            source="board_videos",
+            status="pending",
+            board=board,
+        )
+        db.add(cal)
+        db.flush()
+        for side, path in videos.items():
+            _store_video(storage, db, path, side=side, calibration_id=cal.id)
+        return cal.id, jobs.enqueue(db, "calibrate", calibration_id=cal.id).id
+
+
 @pytest.fixture(scope="module")
 def small_recording(simulated_session):
     from core.camera import ImageSize
@@ -328,25 +349,8 @@ def test_calibrate_handler_makes_a_ready_calibration(
     )
     board = json.loads((tmp_path / "chessboard.json").read_text())
     sm = db_sessionmaker
-    with sm() as db, db.begin():
-        rig = Rig(name="board-rig")
-        db.add(rig)
-        db.flush()
-        cal = Calibration(
-            rig_id=rig.id,
-            version=1,
-            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
-            source="board_videos",
-            status="pending",
-            board=board,
-        )
-        db.add(cal)
-        db.flush()
-        for side in ("left", "right"):
-            path = tmp_path / f"chessboard_{side}.mkv"
-            _store_video(storage, db, path, side=side, calibration_id=cal.id)
-        cal_id = cal.id
-        job_id = jobs.enqueue(db, "calibrate", calibration_id=cal.id).id
+    videos = {side: tmp_path / f"chessboard_{side}.mkv" for side in ("left", "right")}
+    cal_id, job_id = _enqueue_calibration_job(sm, storage, board, videos)
     assert run_worker(app_settings, once=True) == 1
     job = _job(sm, job_id)
     assert (job.status, job.error) == ("succeeded", None)
@@ -426,25 +430,9 @@ def test_calibration_with_an_incomplete_board_fails_with_a_sentence(
     from api_support import write_video
 
     sm = db_sessionmaker
-    with sm() as db, db.begin():
-        rig = Rig(name="board-rig")
-        db.add(rig)
-        db.flush()
-        cal = Calibration(
-            rig_id=rig.id,
-            version=1,
-            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
-            source="board_videos",
-            status="pending",
-            board={"board": "chessboard", "cols": 9},
-        )
-        db.add(cal)
-        db.flush()
-        for side in ("left", "right"):
-            path = write_video(tmp_path / f"{side}.mp4")
-            _store_video(storage, db, path, side=side, calibration_id=cal.id)
-        cal_id = cal.id
-        job_id = jobs.enqueue(db, "calibrate", calibration_id=cal.id).id
+    videos = {side: write_video(tmp_path / f"{side}.mp4") for side in ("left", "right")}
+    board = {"board": "chessboard", "cols": 9}
+    cal_id, job_id = _enqueue_calibration_job(sm, storage, board, videos)
     assert run_worker(app_settings, once=True) == 1
     job = _job(sm, job_id)
     assert (job.status, job.attempts) == ("failed", 1)  # a domain error: no retry
