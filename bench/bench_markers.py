@@ -4,6 +4,7 @@ Run from the repository root::
 
     python bench/bench_markers.py            # a few minutes (renders a 3 s simulated trial)
     python bench/bench_markers.py --quick    # fewer frames
+    python bench/bench_markers.py --speed-only   # only the speed table (~1 min)
 
 Accuracy: discs rendered at known sub-pixel centres (supersampled, see
 ``tests/core/test_markers.py::render_discs``), diameters 8-20 px, in five
@@ -367,9 +368,13 @@ def speed(n_frames: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames")
+    ap.add_argument("--speed-only", action="store_true", help="only the speed table")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     print(f"OpenCV {cv2.__version__}, numpy {np.__version__}, cv2 threads 1")
+    if args.speed_only:
+        speed(30 if args.quick else 100)
+        return
     accuracy(2 if args.quick else 6)
     accuracy_simulator(3 if args.quick else 10)
     accuracy_session(0.3 if args.quick else 3.0)

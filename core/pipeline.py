@@ -5,9 +5,10 @@ Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
 1. **Videos** (:mod:`core.video`): both are probed and checked against each
    other and the rig before any work.
 2. **Detection** (:mod:`core.markers`): both videos are decoded and searched
-   for markers at the same time, one thread per camera (OpenCV decodes in its
-   own thread and releases the GIL), keeping only the few detections of each
-   frame: memory does not grow with the length of the video beyond a few
+   for markers at the same time: one worker process per camera for videos of
+   at least ``PROCESS_MIN_FRAMES`` frames (no shared GIL; the worker decodes
+   its video itself and sends back only the detections), else one thread per
+   camera. Only the few detections of each frame are kept: memory does not grow with the length of the video beyond a few
    numbers per frame. After a full-frame search, each frame is only searched
    around the positions predicted from the previous frames; a full-frame
    search is repeated every ``FULL_SEARCH_EVERY`` frames and whenever fewer
