@@ -79,7 +79,7 @@ from core.triangulation import triangulate
 try:  # imported here, not inside the timed call (scipy's first import costs ~0.5 s)
     from core.metrics import compute_metrics
 except ImportError:  # INTEGRATION POINT: core/metrics.py not in this tree
-    compute_metrics = None
+    compute_metrics = None  # type: ignore[assignment]
 
 FloatArray = NDArray[np.float64]
 
