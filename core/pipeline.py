@@ -62,24 +62,19 @@ from core.markers import (
     _video_detection_main as _video_detection_main,
 )
 from core.matching import epipolar_distances_px
+
+# Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
+from core.metrics import compute_metrics
 from core.progress import ProgressCallback, report
 from core.sync import (
     SyncEstimate,
-    _offset_cost,
-    _pad,
     estimate_offset,
     given_offset,
-    link_points,
-    points_at,
+    refine_offset,
     right_points_for_left_frames,
 )
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
-
-try:  # imported here, not inside the timed call (scipy's first import costs ~0.5 s)
-    from core.metrics import compute_metrics
-except ImportError:  # INTEGRATION POINT: core/metrics.py not in this tree
-    compute_metrics = None  # type: ignore[assignment]
 
 FloatArray = NDArray[np.float64]
 
@@ -356,69 +351,6 @@ def _undistort_all(cam: Any, frames: list[FloatArray]) -> list[FloatArray]:
     return list(np.split(flat, np.cumsum(counts)[:-1]))
 
 
-def _refine_offset(
-    rig: StereoRig,
-    left_points_norm: list[FloatArray],
-    right_px: list[FloatArray],
-    estimate: SyncEstimate,
-    *,
-    max_step_px: float,
-    gate_px: float = 3.0,
-    steps: int = 10,
-) -> SyncEstimate:
-    """``core.sync.refine_offset`` with one undistortion call for all fractional offsets.
-
-    The same computation (sub-frame refinement: the epipolar cost at
-    ``steps + 1`` fractional offsets around the whole one, interpolated right
-    detections, a parabola through the minimum), but the interpolated right
-    points of every offset and frame are undistorted in one vectorised call
-    instead of one call per frame and offset (2200 calls, ~0.6 s, for a 10-s
-    recording).
-    """
-    if not np.any(np.isfinite(estimate.costs)):
-        return estimate
-    left = _pad(left_points_norm)
-    t_left = left.shape[0]
-    frames = np.unique(np.linspace(0, t_left - 1, min(t_left, 200)).round().astype(int))
-    links = link_points(right_px, max_step_px=max_step_px)
-    E = rig.essential_matrix
-    f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
-    f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
-    fracs = np.linspace(-0.5, 0.5, steps + 1)
-    pts_px = [
-        points_at(right_px, links, i - (estimate.offset_frames + frac))
-        for frac in fracs
-        for i in frames
-    ]
-    pts_norm = _undistort_all(rig.right, pts_px)
-    costs = np.full(len(fracs), np.nan)
-    for k in range(len(fracs)):
-        right = _pad(pts_norm[k * len(frames) : (k + 1) * len(frames)])
-        c, n = _offset_cost(
-            E, left[frames], right, 0, np.arange(len(frames)), f_left, f_right, gate_px
-        )
-        if n >= max(10, len(frames) // 10):
-            costs[k] = c
-    if not np.any(np.isfinite(costs)):
-        return estimate
-    best = int(np.nanargmin(costs))
-    sub = float(estimate.offset_frames + fracs[best])
-    if 0 < best < len(fracs) - 1 and np.all(np.isfinite(costs[best - 1 : best + 2])):
-        c_m, c_0, c_p = costs[best - 1], costs[best], costs[best + 1]
-        denom = c_m - 2 * c_0 + c_p
-        if denom > 0:
-            step = fracs[1] - fracs[0]
-            sub += float(np.clip(0.5 * (c_m - c_p) / denom, -0.5, 0.5)) * step
-    return SyncEstimate(
-        estimate.offset_frames,
-        sub,
-        estimate.confidence,
-        estimate.method,
-        estimate.offsets,
-        estimate.costs,
-    )
-
-
 def _observations(
     rig: StereoRig,
     left_px: list[FloatArray],
@@ -485,9 +417,7 @@ def _observations(
 def _compute_metrics(
     positions_mm: FloatArray, fps: float, status: NDArray[np.str_]
 ) -> tuple[Any, list[str]]:
-    """Tapping metrics (core.metrics); None with a warning when unavailable."""
-    if compute_metrics is None:
-        return None, ["tapping metrics are not available in this build"]
+    """Tapping metrics (core.metrics); None with a warning when they cannot be computed."""
     measured = status == MEASURED  # core.metrics: False where filled in or missing
     try:
         return compute_metrics(positions_mm, fps, measured=measured), []
@@ -584,7 +514,7 @@ def analyze_recording(
                 " --offset-frames if the cameras are not synchronised"
             )
         else:
-            sync = _refine_offset(rig, left_norm, right_px, sync, max_step_px=max_step_px)
+            sync = refine_offset(rig, left_norm, right_px, sync, max_step_px=max_step_px)
     else:
         sync = given_offset(float(offset_frames))
         if abs(sync.offset_frames) >= n_left:

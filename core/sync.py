@@ -338,11 +338,21 @@ def refine_offset(
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
     f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
     fracs = np.linspace(-0.5, 0.5, steps + 1)
+    # The interpolated right points of every offset and frame, undistorted in
+    # one vectorised call (one call per frame and offset cost ~0.5 s for 10 s).
+    pts_px = [
+        points_at(right_px, links, i - (estimate.offset_frames + frac))
+        for frac in fracs
+        for i in frames
+    ]
+    counts = [len(p) for p in pts_px]
+    if sum(counts) == 0:
+        return estimate
+    flat = rig.right.undistort_points(np.concatenate([p.reshape(-1, 2) for p in pts_px]))
+    pts_norm = np.split(flat, np.cumsum(counts)[:-1])
     costs = np.full(len(fracs), np.nan)
-    for k, frac in enumerate(fracs):
-        off = estimate.offset_frames + frac
-        pts = [points_at(right_px, links, i - off) for i in frames]
-        right = _pad([rig.right.undistort_points(p) if len(p) else p for p in pts])
+    for k in range(len(fracs)):
+        right = _pad(pts_norm[k * len(frames) : (k + 1) * len(frames)])
         c, n = _offset_cost(
             E, left[frames], right, 0, np.arange(len(frames)), f_left, f_right, gate_px
         )

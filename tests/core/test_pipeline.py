@@ -321,12 +321,12 @@ def test_fractional_offset_is_found_and_used(tmp_path: Path) -> None:
     assert np.sqrt(np.mean(err**2)) <= 0.06  # mm
 
 
-def test_batched_subframe_refinement_equals_core_sync() -> None:
-    """The pipeline's one-call undistortion gives core.sync.refine_offset's result exactly."""
+def test_subframe_refinement_survives_a_frame_without_detections() -> None:
+    """core.sync.refine_offset (batched undistortion) on the pipeline's per-frame arrays."""
     import cv2
 
     from core.camera import Camera, StereoRig
-    from core.pipeline import _refine_offset, _undistort_all
+    from core.pipeline import _undistort_all
     from core.simulation.kinematics import simulate_tapping
     from core.sync import estimate_offset, refine_offset
 
@@ -348,11 +348,9 @@ def test_batched_subframe_refinement_equals_core_sync() -> None:
     right_px[10] = np.zeros((0, 2))  # a frame without detections
     left_norm, right_norm = _undistort_all(rig.left, left_px), _undistort_all(rig.right, right_px)
     est = estimate_offset(rig, left_norm, right_norm, max_offset_frames=10)
-    ours = _refine_offset(rig, left_norm, right_px, est, max_step_px=60.0)
     ref = refine_offset(rig, left_norm, right_px, est, max_step_px=60.0)
-    assert ours.offset_subframe == pytest.approx(ref.offset_subframe, abs=1e-9)  # frames
-    assert ours.offset_frames == ref.offset_frames
-    assert abs(ours.offset_subframe - k_true) < 0.05  # frames
+    assert ref.offset_frames == round(k_true)
+    assert abs(ref.offset_subframe - k_true) < 0.05  # frames
 
 
 def test_fallback_searches_back_off_but_reacquire_within_one_frame() -> None:
