@@ -508,11 +508,23 @@ def _search_region(
     sm = _smooth(image, x0, y0, x1, y1)
     if float(sm.max()) <= thr:  # no seed (most full-frame regions: a noise pixel above thr)
         return []
-    dil = cv2.dilate(sm, _ONES3)
-    ys, xs = np.nonzero((sm >= dil) & (sm > thr))
-    if ys.size == 0:
+    # local maxima above thr: the 3x3 maximum only over the bounding box of the
+    # pixels above thr plus one pixel of context (the same values as over the
+    # whole region), compared at those pixels only (few, unlike the region's)
+    above = (sm > thr).view(np.uint8)
+    bx, by, bw, bh = cv2.boundingRect(above)
+    cx0, cy0 = max(0, bx - 1), max(0, by - 1)
+    part = sm[cy0 : by + bh + 1, cx0 : bx + bw + 1]
+    flat = part.ravel()
+    idx = np.flatnonzero(above[cy0 : by + bh + 1, cx0 : bx + bw + 1])
+    vals = flat[idx]
+    keep_max = vals >= cv2.dilate(part, _ONES3).ravel()[idx]
+    idx, vals = idx[keep_max], vals[keep_max]
+    if idx.size == 0:
         return []
-    vals = sm[ys, xs]
+    ys, xs = np.divmod(idx, part.shape[1])
+    ys += cy0
+    xs += cx0
     if ys.size > 1:
         # cheap pre-check of the local contrast against 8 pixels at the distance of
         # the measurement ring, so that a bright textured area (lit skin) does not
