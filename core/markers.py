@@ -623,7 +623,8 @@ def _measure(
         if (mx_l != lx or my_l != ly) and reseeds < 2:
             sx, sy, reseeds = mx_l + x0, my_l + y0, reseeds + 1
             continue
-        mom = cv2.moments(core, binaryImage=True)
+        # the core lies in its bounding box: moments of that box (shifted back)
+        mom = cv2.moments(core[by : by + bh, bx : bx + bw], binaryImage=True)
         diameter, roundness, fill, cov = _shape(mom)
         margin = max(_MARGIN_PX, math.ceil(0.5 * diameter))
         need = margin + 3 + max(lx - bx, bx + bw - 1 - lx, ly - by, by + bh - 1 - ly)
@@ -658,27 +659,24 @@ def _measure(
     sigma = max((float(ring[(3 * n_ring) // 4]) - float(ring[n_ring // 4])) / 1.349, 0.7)
     low_mask = (sm > bg + max(1.5 * sigma, 0.1 * peak)).view(np.uint8)
     k = 2 * margin + 1
-    near = cast("NDArray[np.uint8]", cv2.dilate(core, _square_kernel(k)))
-    low_near = low_mask & near
-    support = cast("NDArray[np.uint8]", cv2.dilate(low_near, _DISC5))
-    # other blobs above this one's half maximum (mask == 1; the core is 2) or low
-    # pixels beyond the core's reach: counted first, masks only built when needed
-    has_neighbour = cv2.countNonZero(mask) > area
-    if has_neighbour or cv2.countNonZero(low_mask) > cv2.countNonZero(low_near):
-        outside = low_mask & (1 - near)
-        other_cores = (mask == 1).view(np.uint8)
-        others = outside | other_cores
-        support &= 1 - cast("NDArray[np.uint8]", cv2.dilate(others, _DISC5))
-        if has_neighbour:  # split by distance
-            d_own = cv2.distanceTransform(1 - core, cv2.DIST_L2, 3)
-            d_other = cv2.distanceTransform(1 - other_cores, cv2.DIST_L2, 3)
-            support &= (d_own < d_other).view(np.uint8)
-        support |= core
     e = margin + 3
     sx0, sy0 = max(0, bx - e), max(0, by - e)
     sx1, sy1 = min(x1 - x0, bx + bw + e), min(y1 - y0, by + bh + e)
+    # other blobs above this one's half maximum (mask == 1; the core is 2) or low
+    # pixels beyond the core's reach: counted first, masks only built when needed
+    has_neighbour = cv2.countNonZero(mask) > area
+    sup: NDArray[np.bool_] | None = None
+    if _SUPPORT_ON_SUBRECT and not has_neighbour:
+        # The usual case, on the centre's rectangle only (the same pixels): ``near``
+        # reaches ``margin`` beyond the core's box, the support 2 px further, both
+        # inside the rectangle, which is ``margin + 3`` beyond the box.
+        near_s = cast("NDArray[np.uint8]", cv2.dilate(core[sy0:sy1, sx0:sx1], _square_kernel(k)))
+        low_near_s = low_mask[sy0:sy1, sx0:sx1] & near_s
+        if cv2.countNonZero(low_mask) == cv2.countNonZero(low_near_s):
+            sup = cast("NDArray[np.uint8]", cv2.dilate(low_near_s, _DISC5)).view(bool)
+    if sup is None:
+        sup = _support_full(core, mask, low_mask, k, has_neighbour)[sy0:sy1, sx0:sx1].view(bool)
     sub = np.subtract(win[sy0:sy1, sx0:sx1], bg, dtype=np.float64)
-    sup = support[sy0:sy1, sx0:sx1].view(bool)
     if background is not None:
         # subtract the static scene where it is only background texture; where it
         # holds a bright blob (a marker that rested there) keep the flat level
@@ -688,13 +686,21 @@ def _measure(
             diff = win[sy0:sy1, sx0:sx1] - bgw
             edge = np.concatenate((diff[0], diff[-1], diff[1:-1, 0], diff[1:-1, -1]))
             sub = diff - float(np.median(edge))
-    mx, my = mom["m10"] / mom["m00"] - sx0, mom["m01"] / mom["m00"] - sy0
+    mx, my = mom["m10"] / mom["m00"] + bx - sx0, mom["m01"] / mom["m00"] + by - sy0
     cx, cy = _centre(sub, sup, peak, mx, my, params.centre_method)
     if not (math.isfinite(cx) and math.isfinite(cy)) or math.hypot(cx - mx, cy - my) > 0.5 * (
         diameter + 4
     ):
         cx, cy = _centroid(sub, sup, peak)
-    flatness = int(np.count_nonzero(win[core.view(bool)] > bg + 0.75 * peak)) / area
+    # pixels of the core above 75 % of the peak (uint8 > t is uint8 > floor(t),
+    # which is how cv2.threshold compares a uint8 image)
+    t75 = bg + 0.75 * peak
+    if t75 < 255:
+        cb = core[by : by + bh, bx : bx + bw]
+        hi = cv2.threshold(win[by : by + bh, bx : bx + bw], max(t75, -1.0), 1, cv2.THRESH_BINARY)[1]
+        flatness = cv2.countNonZero(hi & cb) / area
+    else:
+        flatness = 0.0
     quality = (
         roundness
         * min(fill, 1.0)
@@ -714,6 +720,40 @@ def _measure(
         flatness=flatness,
     )
     return measured
+
+
+#: Build the centre's support on its rectangle only when no neighbour is near (the
+#: same pixels as on the whole window; False: always the whole window, for tests).
+_SUPPORT_ON_SUBRECT = True
+
+
+def _support_full(
+    core: NDArray[np.uint8],
+    mask: NDArray[np.uint8],
+    low_mask: NDArray[np.uint8],
+    k: int,
+    has_neighbour: bool,
+) -> NDArray[np.uint8]:
+    """Support of the centre estimators on the whole measurement window (0/1 uint8).
+
+    The low mask within ``(k - 1) / 2`` px of the core, grown by 2 px; low
+    pixels beyond that reach and other cores (``mask == 1``) masked out, a
+    neighbour split off by distance.
+    """
+    near = cast("NDArray[np.uint8]", cv2.dilate(core, _square_kernel(k)))
+    low_near = low_mask & near
+    support = cast("NDArray[np.uint8]", cv2.dilate(low_near, _DISC5))
+    if has_neighbour or cv2.countNonZero(low_mask) > cv2.countNonZero(low_near):
+        outside = low_mask & (1 - near)
+        other_cores = (mask == 1).view(np.uint8)
+        others = outside | other_cores
+        support &= 1 - cast("NDArray[np.uint8]", cv2.dilate(others, _DISC5))
+        if has_neighbour:  # split by distance
+            d_own = cv2.distanceTransform(1 - core, cv2.DIST_L2, 3)
+            d_other = cv2.distanceTransform(1 - other_cores, cv2.DIST_L2, 3)
+            support &= (d_own < d_other).view(np.uint8)
+        support |= core
+    return support
 
 
 _SQUARE_KERNELS: dict[int, NDArray[np.uint8]] = {}
@@ -791,12 +831,11 @@ def _centroid(sub: FloatArray, support: NDArray[np.bool_], peak: float) -> tuple
     wgt = sub - 0.1 * peak
     np.maximum(wgt, 0.0, out=wgt)
     wgt *= support  # 0 outside the support (the same values as np.where, one temporary less)
-    s = wgt.sum()
+    mom = cv2.moments(wgt)  # sums in float64, in one pass
+    s = mom["m00"]
     if s <= 0:
         return math.nan, math.nan
-    ys = np.arange(sub.shape[0], dtype=np.float64)
-    xs = np.arange(sub.shape[1], dtype=np.float64)
-    return float(wgt.sum(axis=0) @ xs / s), float(wgt.sum(axis=1) @ ys / s)
+    return float(mom["m10"] / s), float(mom["m01"] / s)
 
 
 def _radial_centre(sub: FloatArray, support: NDArray[np.bool_]) -> tuple[float, float]:

@@ -497,3 +497,52 @@ def test_simulator_rendered_markers() -> None:
     assert (
         np.abs(err).max() <= 0.08
     )  # px, read noise sigma 2 + shot noise (gain 0.025), 3 mm motion
+
+
+# ------------------------------------------------- lean measurement == reference
+
+
+def _centroid_reference(sub: np.ndarray, support: np.ndarray, peak: float) -> tuple[float, float]:
+    """The centroid as first written: numpy sums of ``max(sub - 0.1 peak, 0)`` on the support."""
+    wgt = np.where(support, np.maximum(sub - 0.1 * peak, 0.0), 0.0)
+    s = wgt.sum()
+    ys, xs = np.mgrid[0 : sub.shape[0], 0 : sub.shape[1]]
+    return float((wgt * xs).sum() / s), float((wgt * ys).sum() / s)
+
+
+def test_centroid_by_moments_equals_the_numpy_sums() -> None:
+    from core.markers import _centroid
+
+    rng = np.random.default_rng(21)
+    for i in range(20):
+        centre = rng.uniform(8.0, 24.0, 2)
+        img = render_discs((33, 29), centre[None], rng.uniform(4.0, 14.0), blur_sigma_px=0.7,
+                           noise_sigma=2.0, seed=i).astype(np.float64) - 12.0  # fmt: skip
+        support = rng.random(img.shape) < 0.9
+        got = _centroid(img, support, float(img.max()))
+        np.testing.assert_allclose(got, _centroid_reference(img, support, float(img.max())),
+                                   rtol=0, atol=1e-9)  # px, float64 summation order only  # fmt: skip
+
+
+def test_support_on_the_centre_rectangle_equals_the_whole_window(
+    compressed_frames: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every field of every detection is the same whether the centre's support is
+    built on its rectangle (fast path) or on the whole measurement window."""
+    import core.markers as markers_mod
+
+    close = render_discs(SIZE, np.array([[100.3, 100.6], [114.9, 103.2]]), 12.0,
+                         blur_sigma_px=0.6, noise_sigma=1.0, seed=8)  # fmt: skip
+    images = [*compressed_frames[0], close]
+    for method in CENTRE_METHODS:
+        params = MarkerParams(centre_method=method)
+        fast = [detect_markers(img, params=params) for img in images]
+        monkeypatch.setattr(markers_mod, "_SUPPORT_ON_SUBRECT", False)
+        full = [detect_markers(img, params=params) for img in images]
+        monkeypatch.setattr(markers_mod, "_SUPPORT_ON_SUBRECT", True)
+        assert sum(len(d) for d in fast) >= 3 * 14 + 2  # the markers are found at all
+        for a, b in zip(fast, full, strict=True):
+            assert len(a) == len(b)
+            np.testing.assert_allclose(a.xy_px, b.xy_px, rtol=0, atol=1e-6)  # px
+            np.testing.assert_array_equal(a.area_px, b.area_px)
+            np.testing.assert_array_equal(a.flatness, b.flatness)
