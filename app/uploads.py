@@ -383,7 +383,7 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> Any:
         announce up to two frames more than it holds (``core.video``'s slack);
         such a file is accepted.
     """
-    from core.video import probe_video
+    from core.video import decodes_frame, probe_video
 
     def why(exc: BaseException) -> str:
         return _sentence(exc).replace(path.name, filename or "the file")
@@ -397,26 +397,12 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> Any:
     # The last frame must decode too: a truncated file fails here even when its
     # header looks fine. Up to two frames of slack, as in core.video.
     last = info.frame_count - 1
-    if not any(_decodes_frame(path, index) for index in range(last, max(-1, last - 3), -1)):
+    if not any(decodes_frame(path, index) for index in range(last, max(-1, last - 3), -1)):
         raise UnsupportedUpload(
             f"{label} is damaged or incomplete: it announces {info.frame_count} frames but its"
             " last frames cannot be decoded; upload the complete recording again."
         )
     return info
-
-
-def _decodes_frame(path: Path, index: int) -> bool:
-    """True if frame ``index`` of the video decodes (seeking, so long videos stay fast)."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    try:
-        if not cap.isOpened() or not cap.set(cv2.CAP_PROP_POS_FRAMES, float(index)):
-            return False
-        ok, frame = cap.read()
-        return bool(ok) and frame is not None and frame.size > 0
-    finally:
-        cap.release()
 
 
 def validate_stereo_pair(left: Any, right: Any, *, rig: Any = None) -> list[str]:

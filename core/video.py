@@ -175,6 +175,23 @@ def _stop_readers() -> None:
         thread.join(timeout=5.0)
 
 
+def decodes_frame(path: str | Path, index: int) -> bool:
+    """True if frame ``index`` of the video decodes; seeks, so it is fast on long videos.
+
+    Used to catch truncated files whose header still announces every frame.
+    """
+    if index < 0:
+        raise ValueError(f"index must be >= 0, got {index}")
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        if not cap.isOpened() or not cap.set(cv2.CAP_PROP_POS_FRAMES, float(index)):
+            return False
+        ok, frame = cap.read()
+        return bool(ok) and frame is not None and frame.size > 0
+    finally:
+        cap.release()
+
+
 def _reader(
     path: Path,
     gray: bool,

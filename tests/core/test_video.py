@@ -11,6 +11,7 @@ from core.video import (
     VideoInfo,
     VideoWriter,
     check_stereo_videos,
+    decodes_frame,
     iter_frames,
     list_images,
     probe_video,
@@ -187,3 +188,14 @@ def test_abandoned_reader_exits_cleanly_and_quietly(tmp_path):
     )
     assert done.returncode == 0, done.stderr
     assert "WARN" not in done.stderr and "FATAL" not in done.stderr
+
+
+def test_decodes_frame_finds_truncation(tmp_path, lossless):
+    assert decodes_frame(lossless, 0) and decodes_frame(lossless, 39)
+    data = lossless.read_bytes()
+    cut = tmp_path / f"cut{lossless.suffix}"
+    cut.write_bytes(data[: len(data) // 2])
+    assert not decodes_frame(cut, 39)  # the header still announces 40 frames
+    assert not decodes_frame(tmp_path / "missing.mkv", 0)
+    with pytest.raises(ValueError, match="index"):
+        decodes_frame(lossless, -1)
