@@ -524,25 +524,44 @@ def test_centroid_by_moments_equals_the_numpy_sums() -> None:
                                    rtol=0, atol=1e-9)  # px, float64 summation order only  # fmt: skip
 
 
-def test_support_on_the_centre_rectangle_equals_the_whole_window(
-    compressed_frames: tuple, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Every field of every detection is the same whether the centre's support is
-    built on its rectangle (fast path) or on the whole measurement window."""
-    import core.markers as markers_mod
+def test_compiled_search_equals_the_opencv_formulation(compressed_frames: tuple) -> None:
+    """The compiled search (core/_blobs.pyx) gives, field by field, the detections of
+    the original OpenCV/numpy formulation (tests/core/markers_reference.py): on
+    compressed frames, touching and overlapping neighbours (the split by distance),
+    streaks, glare, markers at the border, full-frame and windowed searches."""
+    from markers_reference import detect_reference
 
-    close = render_discs(SIZE, np.array([[100.3, 100.6], [114.9, 103.2]]), 12.0,
-                         blur_sigma_px=0.6, noise_sigma=1.0, seed=8)  # fmt: skip
-    images = [*compressed_frames[0], close]
-    for method in CENTRE_METHODS:
-        params = MarkerParams(centre_method=method)
-        fast = [detect_markers(img, params=params) for img in images]
-        monkeypatch.setattr(markers_mod, "_SUPPORT_ON_SUBRECT", False)
-        full = [detect_markers(img, params=params) for img in images]
-        monkeypatch.setattr(markers_mod, "_SUPPORT_ON_SUBRECT", True)
-        assert sum(len(d) for d in fast) >= 3 * 14 + 2  # the markers are found at all
-        for a, b in zip(fast, full, strict=True):
-            assert len(a) == len(b)
-            np.testing.assert_allclose(a.xy_px, b.xy_px, rtol=0, atol=1e-6)  # px
-            np.testing.assert_array_equal(a.area_px, b.area_px)
-            np.testing.assert_array_equal(a.flatness, b.flatness)
+    rng = np.random.default_rng(31)
+    cases: list[tuple[np.ndarray, dict]] = [(img, {}) for img in compressed_frames[0]]
+    for i in range(12):
+        c = random_centres(rng, 8, SIZE)
+        diam = rng.uniform(4.0, 20.0, len(c))
+        # close pairs, blurred: neighbours whose skirts meet are split by distance
+        # (centre distance: the mean radius times 1.2-2, plus up to 6 px)
+        offset = rng.normal(size=(4, 2))
+        d2 = rng.uniform(4.0, 12.0, 4)
+        dist = 0.5 * (diam[:4] + d2) * rng.uniform(0.6, 1.0, 4) + rng.uniform(0.0, 6.0, 4)
+        offset *= (dist / np.hypot(*offset.T))[:, None]
+        c = np.concatenate([c, c[:4] + offset])
+        diam = np.concatenate([diam, d2])
+        img = render_discs(SIZE, c, diam, peak=rng.uniform(40, 255, len(c)),
+                           blur_sigma_px=rng.uniform(0.6, 2.2), noise_sigma=1.5, seed=i,
+                           streak_xy_px=rng.uniform(-6.0, 6.0, (len(c), 2)) * (i % 3 == 0))  # fmt: skip
+        cases.append((img, {}))
+        cases.append((img, {"search_xy_px": c[::2] + rng.normal(0.0, 3.0, (len(c[::2]), 2))}))
+    edge = render_discs(SIZE, np.array([[1.0, 100.0], [318.6, 30.0], [150.0, 0.5], [80.0, 80.0]]),
+                        np.array([10.0, 9.0, 12.0, 60.0]), seed=3)  # fmt: skip
+    cases.append((edge, {}))
+    n_found = 0
+    for img, kw in cases:
+        got = detect_markers(img, **kw)
+        want = detect_reference(img, **kw)
+        assert len(got) == len(want)
+        n_found += len(got)
+        np.testing.assert_allclose(got.xy_px, want.xy_px, rtol=0, atol=1e-9)  # px
+        for name in ("diameter_px", "peak", "roundness", "background", "area_px", "fill",
+                     "shape_cov_px2", "quality", "flatness"):  # fmt: skip
+            np.testing.assert_allclose(
+                getattr(got, name), getattr(want, name), rtol=1e-9, atol=1e-9
+            )
+    assert n_found >= 3 * 14 + 12 * 10  # the markers are found at all

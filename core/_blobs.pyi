@@ -1,0 +1,22 @@
+"""Type stub of the compiled marker search (core/_blobs.pyx)."""
+
+import numpy as np
+from numpy.typing import NDArray
+
+COLUMNS: tuple[str, ...]
+
+def search(
+    image: NDArray[np.uint8],
+    regions: NDArray[np.int32],
+    thr: float,
+    diameter_px_min: float,
+    diameter_px_max: float,
+    min_contrast: float,
+    max_elongation: float,
+    min_fill: float,
+    reject_border: bool,
+    ring_radius_px: int,
+    half_limit_px: int,
+    max_seeds_per_region: int,
+    want_support: bool,
+) -> tuple[NDArray[np.float64], list[NDArray[np.uint8]] | None]: ...

@@ -1,0 +1,768 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Compiled blob search and measurement behind :func:`core.markers.detect_markers`.
+
+``core/markers.py`` documents the method; this module is its per-pixel part:
+the seeds of each candidate region and the measurement of each blob (core,
+shape, support, centroid, flatness), which in Python cost ~20 small OpenCV
+and numpy calls per blob.  The numbers are OpenCV's: the 3x3 mean in float32
+as ``cv2.boxFilter(CV_32F)`` gives it, comparisons against it in float32 as
+numpy makes them, ``cv2.moments`` formulas, the 5x5 elliptic structuring
+element, and exact Euclidean distances as ``cv2.distanceTransform(DIST_L2,
+DIST_MASK_PRECISE)``.
+``tests/core/test_markers.py`` checks the results against ground truth.
+"""
+
+from libc.math cimport NAN, ceil, floor, sqrt
+from libc.stdlib cimport free, malloc, qsort, realloc
+from libc.string cimport memcpy, memset
+
+import numpy as np
+
+# one output row per blob (float64); the Python side reads these columns
+DEF NCOL = 20
+COLUMNS = (
+    "x", "y", "diameter", "peak", "roundness", "background", "area", "fill",
+    "cxx", "cxy", "cyy", "quality", "flatness",
+    "rect_x0", "rect_y0", "rect_x1", "rect_y1", "moment_x", "moment_y", "region",
+)
+
+DEF MARGIN_PX = 3        # support of the centroid beyond the half-maximum core
+DEF SIZE_TOL_PX = 0.5    # pixelisation of the measured diameter, allowed beyond the limits
+DEF EDT_BIG = 1e20       # "no such pixel" in a distance transform (px^2)
+DEF EDT_INF = 1e300
+DEF NO_PIXEL = 0x3fffffff
+
+cdef float NINTH = <float>(1.0 / 9.0)
+cdef int RING_DX[8]
+cdef int RING_DY[8]
+RING_DX[:] = [1, 1, 0, -1, -1, -1, 0, 1]
+RING_DY[:] = [0, 1, 1, 1, 0, -1, -1, -1]
+
+
+cdef struct Params:
+    double d_min
+    double d_max
+    double min_contrast
+    double max_elong
+    double min_fill
+    int reject_border
+    int ring_r
+    int half_limit
+    int max_seeds
+
+
+cdef struct Core:  # a measured half-maximum region: its box (absolute) and mask
+    int x0
+    int y0
+    int w
+    int h
+    size_t off
+
+
+cdef struct Seed:
+    float v
+    int y
+    int x
+
+
+cdef struct Buf:  # a growable byte buffer
+    unsigned char* p
+    size_t n
+    size_t cap
+
+
+cdef int buf_reserve(Buf* b, size_t extra) except -1 nogil:
+    cdef size_t cap
+    cdef unsigned char* p
+    if b.n + extra <= b.cap:
+        return 0
+    cap = max(2 * b.cap, b.n + extra, <size_t>4096)
+    p = <unsigned char*>realloc(b.p, cap)
+    if p == NULL:
+        with gil:
+            raise MemoryError()
+    b.p = p
+    b.cap = cap
+    return 0
+
+
+cdef struct Frame:
+    const unsigned char* img
+    int W
+    int H
+    Params prm
+    int want_support
+    Buf cores        # Core structs
+    Buf core_bits    # their masks, one byte per pixel
+    Buf rows         # double[NCOL] per blob
+    Buf supports     # support masks (when want_support), one byte per pixel
+    Buf work         # scratch for one measurement
+    int region
+
+
+cdef int cmp_seed(const void* a, const void* b) noexcept nogil:
+    cdef const Seed* s = <const Seed*>a
+    cdef const Seed* t = <const Seed*>b
+    if s.v > t.v:
+        return -1
+    if s.v < t.v:
+        return 1
+    if s.y != t.y:
+        return -1 if s.y < t.y else 1
+    if s.x != t.x:
+        return -1 if s.x < t.x else 1
+    return 0
+
+
+cdef inline int clampi(int v, int lo, int hi) noexcept nogil:
+    return lo if v < lo else (hi if v > hi else v)
+
+
+cdef void smooth(const Frame* f, int x0, int y0, int x1, int y1, float* out, int* colsum) noexcept nogil:
+    """3x3 mean of the image over [x0, x1) x [y0, y1), replicated at the image border.
+
+    ``colsum`` holds ``x1 - x0 + 2`` ints.  Simple loops, which the compiler
+    vectorises.
+    """
+    cdef int W = f.W, H = f.H, x, y, w = x1 - x0
+    cdef int left = x0 - 1 if x0 > 0 else 0
+    cdef int right = x1 if x1 < W else W - 1
+    cdef const unsigned char* ra
+    cdef const unsigned char* rb
+    cdef const unsigned char* rc
+    cdef float* o
+    for y in range(y0, y1):
+        ra = f.img + <size_t>(y - 1 if y > 0 else 0) * W
+        rb = f.img + <size_t>y * W
+        rc = f.img + <size_t>(y + 1 if y < H - 1 else H - 1) * W
+        colsum[0] = ra[left] + rb[left] + rc[left]
+        colsum[w + 1] = ra[right] + rb[right] + rc[right]
+        for x in range(w):
+            colsum[x + 1] = ra[x0 + x] + rb[x0 + x] + rc[x0 + x]
+        o = out + (y - y0) * w
+        for x in range(w):
+            o[x] = <float>(colsum[x] + colsum[x + 1] + colsum[x + 2]) * NINTH
+
+
+cdef int kth(const int* hist, int k) noexcept nogil:
+    """The k-th smallest (0-based) of values counted in a 256-bin histogram."""
+    cdef int v = 0, c = 0
+    for v in range(256):
+        c += hist[v]
+        if c > k:
+            return v
+    return 255
+
+
+cdef void dilate_square(const unsigned char* src, unsigned char* dst, unsigned char* tmp, int stride,
+                        int ax0, int ay0, int ax1, int ay1, int r) noexcept nogil:
+    """Binary dilation by a (2r+1)^2 square on the rectangle [ax0, ax1) x [ay0, ay1)
+    of images with row length ``stride`` (source pixels outside it ignored)."""
+    cdef int x, y, i, lo, hi
+    cdef unsigned char acc
+    for y in range(ay0, ay1):
+        for x in range(ax0, ax1):
+            lo = max(ax0, x - r)
+            hi = min(ax1 - 1, x + r)
+            acc = 0
+            for i in range(lo, hi + 1):
+                acc |= src[y * stride + i]
+            tmp[y * stride + x] = acc
+    for y in range(ay0, ay1):
+        lo = max(ay0, y - r)
+        hi = min(ay1 - 1, y + r)
+        for x in range(ax0, ax1):
+            dst[y * stride + x] = 0
+        for i in range(lo, hi + 1):
+            for x in range(ax0, ax1):
+                dst[y * stride + x] |= tmp[i * stride + x]
+
+
+cdef void dilate_disc5(const unsigned char* src, unsigned char* dst, unsigned char* tmp, int stride,
+                       int ax0, int ay0, int ax1, int ay1) noexcept nogil:
+    """Binary dilation by cv2.getStructuringElement(MORPH_ELLIPSE, (5, 5)) on a rectangle
+    (as :func:`dilate_square`): the 5x3 box of rows -1..1 and columns -2..2, plus the
+    pixels 2 rows above and below."""
+    cdef int x, y, i, lo, hi
+    cdef unsigned char acc
+    for y in range(ay0, ay1):
+        for x in range(ax0, ax1):
+            lo = max(ax0, x - 2)
+            hi = min(ax1 - 1, x + 2)
+            acc = 0
+            for i in range(lo, hi + 1):
+                acc |= src[y * stride + i]
+            tmp[y * stride + x] = acc
+    for y in range(ay0, ay1):
+        for x in range(ax0, ax1):
+            acc = tmp[y * stride + x]
+            if y > ay0:
+                acc |= tmp[(y - 1) * stride + x]
+            if y < ay1 - 1:
+                acc |= tmp[(y + 1) * stride + x]
+            if y > ay0 + 1:
+                acc |= src[(y - 2) * stride + x]
+            if y < ay1 - 2:
+                acc |= src[(y + 2) * stride + x]
+            dst[y * stride + x] = acc
+
+
+cdef void edt_1d(const double* f, double* out, int n, int* v, double* z) noexcept nogil:
+    """Squared distance transform of one line (Felzenszwalb & Huttenlocher 2012)."""
+    cdef int q, k = 0
+    cdef double s
+    v[0] = 0
+    z[0] = -EDT_INF
+    z[1] = EDT_INF
+    for q in range(1, n):
+        s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * q - 2.0 * v[k])
+        while s <= z[k]:
+            k -= 1
+            s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * q - 2.0 * v[k])
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = EDT_INF
+    k = 0
+    for q in range(n):
+        while z[k + 1] < q:
+            k += 1
+        out[q] = (q - v[k]) * (q - v[k]) + f[v[k]]
+
+
+cdef int edt(const unsigned char* zero, double* d, int w, int h) except -1 nogil:
+    """Exact squared Euclidean distance (px^2) to the nearest pixel with ``zero`` set, as
+    ``cv2.distanceTransform(DIST_L2, DIST_MASK_PRECISE)`` squared: integers, so that
+    comparisons of two maps have no rounding ties."""
+    cdef int n = max(w, h), x, y
+    cdef double* f = <double*>malloc((3 * n + 2) * sizeof(double) + n * sizeof(int))
+    if f == NULL:
+        with gil:
+            raise MemoryError()
+    cdef double* out = f + n
+    cdef double* z = out + n
+    cdef int* v = <int*>(z + n + 2)
+    for x in range(w):
+        for y in range(h):
+            f[y] = 0.0 if zero[y * w + x] else EDT_BIG
+        edt_1d(f, out, h, v, z)
+        for y in range(h):
+            d[y * w + x] = out[y]
+    for y in range(h):
+        edt_1d(d + y * w, out, w, v, z)
+        memcpy(d + y * w, out, w * sizeof(double))
+    free(f)
+    return 0
+
+
+cdef int store_core(Frame* f, const unsigned char* mask, int mw, int x0, int y0,
+                    int bx, int by, int bw, int bh) except -1 nogil:
+    """Remember the core (``mask == 2`` in its box) so later seeds inside it are skipped."""
+    cdef Core c
+    cdef int y, x
+    cdef unsigned char* bits
+    buf_reserve(&f.cores, sizeof(Core))
+    buf_reserve(&f.core_bits, <size_t>bw * bh)
+    c.x0 = x0 + bx
+    c.y0 = y0 + by
+    c.w = bw
+    c.h = bh
+    c.off = f.core_bits.n
+    bits = f.core_bits.p + f.core_bits.n
+    for y in range(bh):
+        for x in range(bw):
+            bits[y * bw + x] = mask[(by + y) * mw + bx + x] == 2
+    f.core_bits.n += <size_t>bw * bh
+    memcpy(f.cores.p + f.cores.n, &c, sizeof(Core))
+    f.cores.n += sizeof(Core)
+    return 0
+
+
+cdef void mark_core(const Frame* f, const Core* c, unsigned char* taken,
+                    int x0, int y0, int x1, int y1) noexcept nogil:
+    cdef int ax0 = max(x0, c.x0), ay0 = max(y0, c.y0)
+    cdef int ax1 = min(x1, c.x0 + c.w), ay1 = min(y1, c.y0 + c.h)
+    cdef int x, y
+    cdef const unsigned char* bits = f.core_bits.p + c.off
+    for y in range(ay0, ay1):
+        for x in range(ax0, ax1):
+            if bits[(y - c.y0) * c.w + x - c.x0]:
+                taken[(y - y0) * (x1 - x0) + x - x0] = 1
+
+
+
+# ------------------------------------------------------------------ one blob
+
+cdef int measure(Frame* f, int sx, int sy, int* has_core) except -1 nogil:
+    """Measure the blob around seed ``(sx, sy)``; append a row when it is a marker.
+
+    ``has_core`` is set when a half-maximum core was found; the core is then
+    stored, marker or not, so that later seeds inside it are skipped.
+    """
+    cdef Params* p = &f.prm
+    cdef int W = f.W, H = f.H
+    cdef int half = p.ring_r, reseeds = 0
+    cdef int wx0 = 0, wx1 = 0, wy0 = 0, wy1 = 0, ww = 0, wh = 0, n = 0, i, x, y, lx = 0, ly = 0
+    cdef int hist[256]
+    cdef size_t npx = 0
+    cdef float* sm = NULL
+    cdef int* colsum = NULL
+    cdef int* stack = NULL
+    cdef double* d_own = NULL
+    cdef double* d_other = NULL
+    cdef unsigned char* mask = NULL
+    cdef unsigned char* core = NULL
+    cdef unsigned char* low = NULL
+    cdef unsigned char* near = NULL
+    cdef unsigned char* low_near = NULL
+    cdef unsigned char* sup = NULL
+    cdef unsigned char* tmp = NULL
+    cdef int sp, area = 0, bx = 0, by = 0, bx1 = 0, by1 = 0, bw, bh, mx_l, my_l, px, py, nx, ny, dx, dy
+    cdef double bg = 0.0, contrast, peak_val = 0.0, m10, m01, m20, m02, m11, cxm = 0.0, cym = 0.0
+    cdef double mu20, mu02, mu11, cxx = 0.0, cyy = 0.0, cxy = 0.0, tr, det, disc, lam_max, lam_min
+    cdef double diameter = 0.0, roundness = 0.0, fill = 0.0
+    cdef float hm, fpk
+    cdef int margin = 0, need
+    has_core[0] = 0
+    while True:
+        wx0 = max(0, sx - half)
+        wx1 = min(W, sx + half + 1)
+        wy0 = max(0, sy - half)
+        wy1 = min(H, sy + half + 1)
+        ww = wx1 - wx0
+        wh = wy1 - wy0
+        npx = <size_t>ww * wh
+        # scratch: 2 pixel maps of 4 bytes, the column sums, 7 masks of 1 byte
+        f.work.n = 0
+        buf_reserve(&f.work, npx * (2 * 4 + 7) + <size_t>(ww + 2) * 4)
+        sm = <float*>f.work.p
+        stack = <int*>(sm + npx)
+        colsum = stack + npx
+        mask = <unsigned char*>(colsum + ww + 2)
+        core = mask + npx
+        low = core + npx
+        near = low + npx
+        low_near = near + npx
+        sup = low_near + npx
+        tmp = sup + npx
+        smooth(f, wx0, wy0, wx1, wy1, sm, colsum)
+        # background and noise from the window's border (its median and quartiles)
+        memset(hist, 0, sizeof(hist))
+        for x in range(ww):
+            hist[f.img[<size_t>wy0 * W + wx0 + x]] += 1
+            hist[f.img[<size_t>(wy1 - 1) * W + wx0 + x]] += 1
+        for y in range(wy0 + 1, wy1 - 1):
+            hist[f.img[<size_t>y * W + wx0]] += 1
+            hist[f.img[<size_t>y * W + wx1 - 1]] += 1
+        n = 2 * ww + 2 * (wh - 2)
+        bg = 0.5 * (<double>kth(hist, (n - 1) // 2) + <double>kth(hist, n // 2))
+        lx = sx - wx0
+        ly = sy - wy0
+        contrast = <double>sm[ly * ww + lx] - bg
+        if contrast < p.min_contrast:
+            return 0
+        hm = <float>(bg + 0.5 * contrast)
+        for i in range(<int>npx):
+            mask[i] = sm[i] > hm
+        # the core: the 8-connected half-maximum region of the seed, set to 2
+        area = 0
+        bx = bx1 = lx
+        by = by1 = ly
+        mask[ly * ww + lx] = 2
+        stack[0] = ly * ww + lx
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            i = stack[sp]
+            py = i // ww
+            px = i - py * ww
+            area += 1
+            bx = min(bx, px)
+            bx1 = max(bx1, px)
+            by = min(by, py)
+            by1 = max(by1, py)
+            for dy in range(-1, 2):
+                ny = py + dy
+                if ny < 0 or ny >= wh:
+                    continue
+                for dx in range(-1, 2):
+                    nx = px + dx
+                    if nx < 0 or nx >= ww or mask[ny * ww + nx] != 1:
+                        continue
+                    mask[ny * ww + nx] = 2
+                    stack[sp] = ny * ww + nx
+                    sp += 1
+        # the core's maximum, first in raster order (every seed of a blob measures the same)
+        fpk = -1.0
+        mx_l = my_l = 0
+        for y in range(by, by1 + 1):
+            for x in range(bx, bx1 + 1):
+                if mask[y * ww + x] == 2 and sm[y * ww + x] > fpk:
+                    fpk = sm[y * ww + x]
+                    mx_l = x
+                    my_l = y
+        peak_val = fpk
+        if (mx_l != lx or my_l != ly) and reseeds < 2:
+            sx = mx_l + wx0
+            sy = my_l + wy0
+            reseeds += 1
+            continue
+        # moments of the core (cv2.moments' formulas, origin at the box corner)
+        m10 = m01 = m20 = m02 = m11 = 0.0
+        for y in range(by1 - by + 1):
+            for x in range(bx1 - bx + 1):
+                if mask[(by + y) * ww + bx + x] == 2:
+                    m10 += x
+                    m01 += y
+                    m20 += x * x
+                    m02 += y * y
+                    m11 += x * y
+        cxm = m10 / area
+        cym = m01 / area
+        mu20 = m20 - m10 * cxm
+        mu11 = m11 - m10 * cym
+        mu02 = m02 - m01 * cym
+        # shape: each pixel a unit square (1/12 px^2), so that a tiny blob is no line
+        cxx = mu20 / area + 1.0 / 12
+        cyy = mu02 / area + 1.0 / 12
+        cxy = mu11 / area
+        tr = cxx + cyy
+        det = cxx * cyy - cxy * cxy
+        disc = sqrt(max(0.25 * tr * tr - det, 0.0))
+        lam_max = 0.5 * tr + disc
+        lam_min = max(0.5 * tr - disc, 1e-12)
+        diameter = 4.0 * sqrt(lam_min)
+        roundness = sqrt(lam_min / lam_max)
+        fill = area / (4.0 * 3.141592653589793 * sqrt(lam_min * lam_max))
+        margin = max(MARGIN_PX, <int>ceil(0.5 * diameter))
+        need = margin + 3 + max(max(lx - bx, bx1 - lx), max(ly - by, by1 - ly))
+        if ((lx >= need or wx0 == 0) and (ww - 1 - lx >= need or wx1 == W)
+                and (ly >= need or wy0 == 0) and (wh - 1 - ly >= need or wy1 == H)):
+            break
+        if area > p.max_elong * p.d_max * p.d_max or need > p.half_limit:  # a glare blob
+            has_core[0] = 1
+            store_core(f, mask, ww, wx0, wy0, bx, by, bx1 - bx + 1, by1 - by + 1)
+            return 0
+        half = need
+
+    has_core[0] = 1
+    bw = bx1 - bx + 1
+    bh = by1 - by + 1
+    store_core(f, mask, ww, wx0, wy0, bx, by, bw, bh)
+    cdef double peak = peak_val - bg
+    cdef int touches = ((bx == 0 and wx0 == 0) or (by == 0 and wy0 == 0)
+                        or (bx1 == ww - 1 and wx1 == W) or (by1 == wh - 1 and wy1 == H))
+    if (peak < p.min_contrast
+            or not (p.d_min - SIZE_TOL_PX <= diameter <= p.d_max + SIZE_TOL_PX)
+            or roundness * p.max_elong < 1.0
+            or fill < p.min_fill
+            or (touches and p.reject_border)):
+        return 0
+
+    # support of the centre: the blob down to 10 % of its peak (or 1.5 noise
+    # sigmas), at most ``margin`` beyond the core, grown by 2 px; low pixels beyond
+    # that reach and other blobs masked out, a neighbour above half maximum split
+    # off by distance
+    cdef double sigma = max((<double>kth(hist, (3 * n) // 4) - <double>kth(hist, n // 4)) / 1.349, 0.7)
+    cdef float low_thr = <float>(bg + max(1.5 * sigma, 0.1 * peak))
+    cdef int n_mask = 0, n_low = 0, n_low_near = 0
+    for i in range(<int>npx):
+        n_mask += mask[i] != 0
+        low[i] = sm[i] > low_thr
+        n_low += low[i]
+    # the centre's rectangle: ``margin + 3`` beyond the core's box (``near`` and the
+    # support lie inside it), and the same 2 px larger (what a 5x5 dilation reaches)
+    cdef int e = margin + 3
+    cdef int rx0 = max(0, bx - e), ry0 = max(0, by - e)
+    cdef int rx1 = min(ww, bx1 + 1 + e), ry1 = min(wh, by1 + 1 + e)
+    cdef int rw = rx1 - rx0, rh = ry1 - ry0
+    cdef int qx0 = max(0, rx0 - 2), qy0 = max(0, ry0 - 2)
+    cdef int qx1 = min(ww, rx1 + 2), qy1 = min(wh, ry1 + 2)
+    for y in range(qy0, qy1):
+        for x in range(qx0, qx1):
+            core[y * ww + x] = mask[y * ww + x] == 2
+    dilate_square(core, near, tmp, ww, qx0, qy0, qx1, qy1, margin)
+    for y in range(qy0, qy1):
+        for x in range(qx0, qx1):
+            i = y * ww + x
+            low_near[i] = low[i] & near[i]
+            n_low_near += low_near[i]
+    dilate_disc5(low_near, sup, tmp, ww, rx0, ry0, rx1, ry1)
+    cdef int has_neighbour = n_mask > area
+    if has_neighbour or n_low > n_low_near:
+        for y in range(qy0, qy1):  # others: low pixels beyond reach, other cores
+            for x in range(qx0, qx1):
+                i = y * ww + x
+                low[i] = (low[i] and not near[i]) or mask[i] == 1
+        dilate_disc5(low, near, tmp, ww, qx0, qy0, qx1, qy1)  # near is not needed any more
+        for y in range(ry0, ry1):
+            for x in range(rx0, rx1):
+                sup[y * ww + x] &= 1 - near[y * ww + x]
+        if has_neighbour:
+            d_own = <double*>malloc(2 * npx * sizeof(double))
+            if d_own == NULL:
+                with gil:
+                    raise MemoryError()
+            d_other = d_own + npx
+            for i in range(<int>npx):
+                core[i] = mask[i] == 2
+                tmp[i] = mask[i] == 1
+            edt(core, d_own, ww, wh)
+            edt(tmp, d_other, ww, wh)
+            for y in range(ry0, ry1):
+                for x in range(rx0, rx1):
+                    i = y * ww + x
+                    sup[i] &= d_own[i] < d_other[i]
+            free(d_own)
+        for y in range(ry0, ry1):
+            for x in range(rx0, rx1):
+                sup[y * ww + x] |= core[y * ww + x]
+
+    # intensity-weighted centroid of max(I - bg - 0.1 peak, 0) on the support
+    cdef double s0 = 0.0, s10 = 0.0, s01 = 0.0, wgt, rowsum, rowx
+    cdef double off = bg + 0.1 * peak
+    cdef const unsigned char* row
+    for y in range(rh):
+        row = f.img + <size_t>(wy0 + ry0 + y) * W + wx0 + rx0
+        rowsum = 0.0
+        rowx = 0.0
+        for x in range(rw):
+            if sup[(ry0 + y) * ww + rx0 + x]:
+                wgt = <double>row[x] - off
+                if wgt > 0:
+                    rowsum += wgt
+                    rowx += wgt * x
+        s0 += rowsum
+        s10 += rowx
+        s01 += rowsum * y
+    # flatness: share of the core above 75 % of the peak (uint8 > floor, as cv2.threshold)
+    cdef double t75 = bg + 0.75 * peak, flatness = 0.0
+    cdef int ithr, cnt = 0
+    if t75 < 255:
+        ithr = <int>floor(max(t75, -1.0))
+        for y in range(by, by1 + 1):
+            for x in range(bx, bx1 + 1):
+                if core[y * ww + x] and f.img[<size_t>(wy0 + y) * W + wx0 + x] > ithr:
+                    cnt += 1
+        flatness = <double>cnt / area
+    cdef double quality = (roundness * min(fill, 1.0) * min(1.0, flatness / 0.6)
+                           * min(1.0, peak / (3.0 * p.min_contrast)))
+
+    buf_reserve(&f.rows, NCOL * sizeof(double))
+    cdef double* r = <double*>(f.rows.p + f.rows.n)
+    f.rows.n += NCOL * sizeof(double)
+    r[0] = s10 / s0 + rx0 + wx0 if s0 > 0 else NAN
+    r[1] = s01 / s0 + ry0 + wy0 if s0 > 0 else NAN
+    r[2] = diameter
+    r[3] = peak
+    r[4] = roundness
+    r[5] = bg
+    r[6] = area
+    r[7] = fill
+    r[8] = cxx
+    r[9] = cxy
+    r[10] = cyy
+    r[11] = quality
+    r[12] = flatness
+    r[13] = rx0 + wx0
+    r[14] = ry0 + wy0
+    r[15] = rx1 + wx0
+    r[16] = ry1 + wy0
+    r[17] = cxm + bx - rx0
+    r[18] = cym + by - ry0
+    r[19] = f.region
+    if f.want_support:
+        buf_reserve(&f.supports, <size_t>rw * rh)
+        for y in range(rh):
+            memcpy(f.supports.p + f.supports.n + <size_t>y * rw, sup + (ry0 + y) * ww + rx0, rw)
+        f.supports.n += <size_t>rw * rh
+    return 0
+
+
+# ------------------------------------------------------------------ one region
+
+cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) except -1 nogil:
+    """Seeds (local maxima above ``thr``) of one region, each blob measured once.
+
+    Only the box of the pixels above ``thr - 1`` (2 px larger, within the
+    region) is smoothed: a 3x3 mean above ``thr`` needs such a pixel within
+    1 px (inside the region or just beyond it), and its neighbours are within
+    2 px.
+    """
+    cdef int x, y, i, j, k, a, b, dx, dy, nx, ny, n_seeds = 0, n_found = 0, has_core
+    cdef int W = f.W, r = f.prm.ring_r
+    cdef int cx0 = NO_PIXEL, cy0 = NO_PIXEL, cx1 = -1, cy1 = -1
+    cdef double lower = thr - 1.0
+    cdef const unsigned char* row
+    # the 3x3 means of the region reach 1 px beyond it
+    for y in range(max(0, y0 - 1), min(f.H, y1 + 1)):
+        row = f.img + <size_t>y * W
+        for x in range(max(0, x0 - 1), min(W, x1 + 1)):
+            if row[x] > lower:
+                cy0 = min(cy0, y)
+                cy1 = y
+                cx0 = min(cx0, x)
+                cx1 = max(cx1, x)
+    if cy1 < 0:
+        return 0
+    # the smoothed part of the region: [x0, x1) x [y0, y1) from here on
+    x0, y0 = max(x0, cx0 - 2), max(y0, cy0 - 2)
+    x1, y1 = min(x1, cx1 + 3), min(y1, cy1 + 3)
+    cdef int rw = x1 - x0, rh = y1 - y0
+    cdef size_t npx = <size_t>rw * rh
+    cdef float* sm = <float*>malloc(npx * sizeof(float) + <size_t>(rw + 2) * sizeof(int))
+    if sm == NULL:
+        with gil:
+            raise MemoryError()
+    cdef int* colsum = <int*>(sm + npx)
+    cdef Seed* seeds = NULL
+    cdef unsigned char* taken = NULL
+    cdef float v, vmax = -1.0, fthr = <float>thr
+    cdef float fmin8 = <float>(0.8 * f.prm.min_contrast)
+    cdef int ismax
+    cdef unsigned char ring[8]
+    cdef unsigned char t
+    cdef const Core* cores
+    try:
+        smooth(f, x0, y0, x1, y1, sm, colsum)
+        for i in range(<int>npx):
+            if sm[i] > vmax:
+                vmax = sm[i]
+        if <double>vmax <= thr:  # no seed (most full-frame regions: a noise pixel above thr)
+            return 0
+        seeds = <Seed*>malloc(npx * sizeof(Seed))
+        if seeds == NULL:
+            with gil:
+                raise MemoryError()
+        # local maxima above thr (compared with their 8 neighbours inside the region)
+        for y in range(rh):
+            for x in range(rw):
+                v = sm[y * rw + x]
+                if not v > fthr:
+                    continue
+                ismax = 1
+                for dy in range(-1, 2):
+                    ny = y + dy
+                    if ny < 0 or ny >= rh:
+                        continue
+                    for dx in range(-1, 2):
+                        nx = x + dx
+                        if 0 <= nx < rw and sm[ny * rw + nx] > v:
+                            ismax = 0
+                if ismax:
+                    seeds[n_seeds].v = v
+                    seeds[n_seeds].y = y + y0
+                    seeds[n_seeds].x = x + x0
+                    n_seeds += 1
+        if n_seeds > 1:
+            # cheap pre-check of the local contrast against 8 pixels at the distance of
+            # the measurement ring, so that a bright textured area (lit skin) does not
+            # cost one measurement per noise maximum
+            j = 0
+            for i in range(n_seeds):
+                for k in range(8):
+                    ring[k] = f.img[<size_t>clampi(seeds[i].y + r * RING_DY[k], 0, f.H - 1) * W
+                                    + clampi(seeds[i].x + r * RING_DX[k], 0, W - 1)]
+                for a in range(1, 8):  # insertion sort of 8 values
+                    t = ring[a]
+                    b = a - 1
+                    while b >= 0 and ring[b] > t:
+                        ring[b + 1] = ring[b]
+                        b -= 1
+                    ring[b + 1] = t
+                if seeds[i].v - (<float>0.5) * (<float>ring[3] + <float>ring[4]) >= fmin8:
+                    seeds[j] = seeds[i]
+                    j += 1
+            n_seeds = j
+        qsort(seeds, n_seeds, sizeof(Seed), cmp_seed)  # brightest first, then raster order
+        taken = <unsigned char*>malloc(npx)
+        if taken == NULL:
+            with gil:
+                raise MemoryError()
+        memset(taken, 0, npx)
+        cores = <const Core*>f.cores.p
+        for i in range(<int>(f.cores.n // sizeof(Core))):
+            mark_core(f, &cores[i], taken, x0, y0, x1, y1)
+        for i in range(n_seeds):
+            if taken[(seeds[i].y - y0) * rw + seeds[i].x - x0]:
+                continue
+            measure(f, seeds[i].x, seeds[i].y, &has_core)
+            taken[(seeds[i].y - y0) * rw + seeds[i].x - x0] = 1
+            if has_core:
+                cores = <const Core*>f.cores.p  # the buffer may have moved
+                mark_core(f, &cores[f.cores.n // sizeof(Core) - 1], taken, x0, y0, x1, y1)
+                n_found += 1
+                if n_found >= f.prm.max_seeds:
+                    break
+    finally:
+        free(sm)
+        free(seeds)
+        free(taken)
+    return 0
+
+
+# ------------------------------------------------------------------ entry point
+
+def search(const unsigned char[:, ::1] image, const int[:, ::1] regions, double thr,
+           double diameter_px_min, double diameter_px_max, double min_contrast,
+           double max_elongation, double min_fill, bint reject_border, int ring_radius_px,
+           int half_limit_px, int max_seeds_per_region, bint want_support):
+    """Find and measure the blobs of ``regions`` (rows ``x0, y0, x1, y1``, half-open).
+
+    Regions are searched in order; a seed inside the core of a blob measured
+    before (in any region) is skipped.  Returns ``(rows, supports)``: a
+    float64 array ``(N, len(COLUMNS))`` and, when ``want_support``, the
+    support mask of each blob on its rectangle (uint8 arrays), else ``None``.
+    """
+    cdef Frame f
+    cdef int k, nb, i, rw, rh, x0, y0, x1, y1
+    cdef size_t off = 0
+    cdef double[:, ::1] rv
+    cdef unsigned char[:, ::1] sv
+    if regions.shape[0] > 0 and regions.shape[1] != 4:
+        raise ValueError(f"regions must have shape (R, 4), got {tuple(regions.shape)}")
+    memset(&f, 0, sizeof(Frame))
+    f.img = &image[0, 0]
+    f.H = image.shape[0]
+    f.W = image.shape[1]
+    f.prm.d_min = diameter_px_min
+    f.prm.d_max = diameter_px_max
+    f.prm.min_contrast = min_contrast
+    f.prm.max_elong = max_elongation
+    f.prm.min_fill = min_fill
+    f.prm.reject_border = reject_border
+    f.prm.ring_r = ring_radius_px
+    f.prm.half_limit = half_limit_px
+    f.prm.max_seeds = max_seeds_per_region
+    f.want_support = want_support
+    try:
+        for k in range(regions.shape[0]):
+            x0, y0, x1, y1 = regions[k, 0], regions[k, 1], regions[k, 2], regions[k, 3]
+            if not (0 <= x0 < x1 <= f.W and 0 <= y0 < y1 <= f.H):
+                raise ValueError(f"region {k} = {(x0, y0, x1, y1)} is not inside the image")
+            f.region = k
+            with nogil:
+                search_region(&f, x0, y0, x1, y1, thr)
+        nb = <int>(f.rows.n // (NCOL * sizeof(double)))
+        rows = np.empty((nb, NCOL), dtype=np.float64)
+        if nb:
+            rv = rows
+            memcpy(&rv[0, 0], f.rows.p, f.rows.n)
+        supports = None
+        if want_support:
+            supports = []
+            for i in range(nb):
+                rw = <int>(rows[i, 15] - rows[i, 13])
+                rh = <int>(rows[i, 16] - rows[i, 14])
+                s = np.empty((rh, rw), dtype=np.uint8)
+                sv = s
+                memcpy(&sv[0, 0], f.supports.p + off, <size_t>rw * rh)
+                off += <size_t>rw * rh
+                supports.append(s)
+        return rows, supports
+    finally:
+        free(f.cores.p)
+        free(f.core_bits.p)
+        free(f.rows.p)
+        free(f.supports.p)
+        free(f.work.p)
