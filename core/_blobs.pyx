@@ -155,27 +155,41 @@ cdef int kth(const int* hist, int k) noexcept nogil:
 
 
 cdef void dilate_square(const unsigned char* src, unsigned char* dst, unsigned char* tmp, int stride,
-                        int ax0, int ay0, int ax1, int ay1, int r) noexcept nogil:
+                        int ax0, int ay0, int ax1, int ay1, int r, int* last) noexcept nogil:
     """Binary dilation by a (2r+1)^2 square on the rectangle [ax0, ax1) x [ay0, ay1)
-    of images with row length ``stride`` (source pixels outside it ignored)."""
-    cdef int x, y, i, lo, hi
-    cdef unsigned char acc
+    of images with row length ``stride`` (source pixels outside it ignored).
+
+    Separable, each pass in O(1) per pixel: a pixel is set when the nearest set
+    pixel before or after it along the line is at most ``r`` away.  ``last``
+    holds ``ax1 - ax0`` ints.
+    """
+    cdef int x, y, near, w = ax1 - ax0
+    cdef int far = -2 * r - 2
     for y in range(ay0, ay1):
+        near = far
         for x in range(ax0, ax1):
-            lo = max(ax0, x - r)
-            hi = min(ax1 - 1, x + r)
-            acc = 0
-            for i in range(lo, hi + 1):
-                acc |= src[y * stride + i]
-            tmp[y * stride + x] = acc
+            if src[y * stride + x]:
+                near = x
+            tmp[y * stride + x] = x - near <= r
+        near = ax1 + 2 * r + 2
+        for x in range(ax1 - 1, ax0 - 1, -1):
+            if src[y * stride + x]:
+                near = x
+            tmp[y * stride + x] |= near - x <= r
+    for x in range(w):
+        last[x] = ay0 + far
     for y in range(ay0, ay1):
-        lo = max(ay0, y - r)
-        hi = min(ay1 - 1, y + r)
-        for x in range(ax0, ax1):
-            dst[y * stride + x] = 0
-        for i in range(lo, hi + 1):
-            for x in range(ax0, ax1):
-                dst[y * stride + x] |= tmp[i * stride + x]
+        for x in range(w):
+            if tmp[y * stride + ax0 + x]:
+                last[x] = y
+            dst[y * stride + ax0 + x] = y - last[x] <= r
+    for x in range(w):
+        last[x] = ay1 - far
+    for y in range(ay1 - 1, ay0 - 1, -1):
+        for x in range(w):
+            if tmp[y * stride + ax0 + x]:
+                last[x] = y
+            dst[y * stride + ax0 + x] |= last[x] - y <= r
 
 
 cdef void dilate_disc5(const unsigned char* src, unsigned char* dst, unsigned char* tmp, int stride,
@@ -481,7 +495,7 @@ cdef int measure(Frame* f, int sx, int sy, int* has_core) except -1 nogil:
     for y in range(qy0, qy1):
         for x in range(qx0, qx1):
             core[y * ww + x] = mask[y * ww + x] == 2
-    dilate_square(core, near, tmp, ww, qx0, qy0, qx1, qy1, margin)
+    dilate_square(core, near, tmp, ww, qx0, qy0, qx1, qy1, margin, colsum)
     for y in range(qy0, qy1):
         for x in range(qx0, qx1):
             i = y * ww + x
@@ -594,15 +608,28 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
     cdef int cx0 = NO_PIXEL, cy0 = NO_PIXEL, cx1 = -1, cy1 = -1
     cdef double lower = thr - 1.0
     cdef const unsigned char* row
-    # the 3x3 means of the region reach 1 px beyond it
+    # the 3x3 means of the region reach 1 px beyond it; a row is only looked at
+    # pixel by pixel when its maximum (a loop the compiler vectorises) is a hit
+    cdef int sx0 = max(0, x0 - 1), sx1 = min(W, x1 + 1)
+    cdef int ilower = <int>floor(lower) if lower >= -1.0 else -1  # uint8 > lower
+    cdef unsigned char m
     for y in range(max(0, y0 - 1), min(f.H, y1 + 1)):
         row = f.img + <size_t>y * W
-        for x in range(max(0, x0 - 1), min(W, x1 + 1)):
-            if row[x] > lower:
-                cy0 = min(cy0, y)
-                cy1 = y
+        m = 0
+        for x in range(sx0, sx1):
+            m = row[x] if row[x] > m else m
+        if m <= ilower:
+            continue
+        cy0 = min(cy0, y)
+        cy1 = y
+        for x in range(sx0, sx1):
+            if row[x] > ilower:
                 cx0 = min(cx0, x)
+                break
+        for x in range(sx1 - 1, sx0 - 1, -1):
+            if row[x] > ilower:
                 cx1 = max(cx1, x)
+                break
     if cy1 < 0:
         return 0
     # the smoothed part of the region: [x0, x1) x [y0, y1) from here on
@@ -766,3 +793,162 @@ def search(const unsigned char[:, ::1] image, const int[:, ::1] regions, double 
         free(f.rows.p)
         free(f.supports.p)
         free(f.work.p)
+
+
+# ------------------------------------------------------------------ candidates
+
+def background_and_noise(const unsigned char[:, ::1] image, int step):
+    """Median and noise sigma (gray levels) of ``image[::step, ::step]``.
+
+    Sigma comes from the lower half only (median minus first quartile), since
+    the bright blobs are outliers on the upper side; at least 0.7 (the
+    quantisation floor).
+    """
+    cdef int hist[256]
+    cdef int H = image.shape[0], W = image.shape[1], x, y, n = 0, q25, q50
+    if step < 1:
+        raise ValueError(f"step must be >= 1, got {step}")
+    cdef int ny = (H + step - 1) // step, nx = (W + step - 1) // step
+    memset(hist, 0, sizeof(hist))
+    with nogil:
+        for y in range(ny):
+            for x in range(nx):
+                hist[image[y * step, x * step]] += 1
+        n = ny * nx
+        q25 = kth(hist, (n + 3) // 4 - 1)
+        q50 = kth(hist, (n + 1) // 2 - 1)
+    return float(q50), max((q50 - q25) / 0.6745, 0.7)
+
+
+def pool_mask(const unsigned char[:, ::1] image, int t, int pool):
+    """``(ceil(H / pool), ceil(W / pool))`` uint8: 1 where a pixel of the cell is > t."""
+    cdef int H = image.shape[0], W = image.shape[1], x, y, cx, cy, y0, y1, x1
+    if pool < 1:
+        raise ValueError(f"pool must be >= 1, got {pool}")
+    cdef int hp = (H + pool - 1) // pool, wp = (W + pool - 1) // pool
+    cdef unsigned char m
+    cdef const unsigned char* row
+    out = np.zeros((hp, wp), dtype=np.uint8)
+    cdef unsigned char[:, ::1] o = out
+    cdef unsigned char* colmax = <unsigned char*>malloc(W)
+    if colmax == NULL:
+        raise MemoryError()
+    with nogil:
+        for cy in range(hp):
+            # the column maxima of the cell row, then their maximum: loops the
+            # compiler vectorises; cells are only looked at in rows that have a hit
+            y0 = cy * pool
+            y1 = min(H, y0 + pool)
+            memcpy(colmax, &image[y0, 0], W)
+            for y in range(y0 + 1, y1):
+                row = &image[y, 0]
+                for x in range(W):
+                    colmax[x] = row[x] if row[x] > colmax[x] else colmax[x]
+            m = 0
+            for x in range(W):
+                m = colmax[x] if colmax[x] > m else m
+            if m <= t:
+                continue
+            for cx in range(wp):
+                x1 = min(W, cx * pool + pool)
+                for x in range(cx * pool, x1):
+                    if colmax[x] > t:
+                        o[cy, cx] = 1
+                        break
+    free(colmax)
+    return out
+
+
+def merged_windows(const double[:, ::1] pts, double reach, int H, int W):
+    """Square windows of half-size ``reach`` around the points, overlapping ones merged
+    into their bounding box (repeatedly, first pair first), clipped to the image.
+
+    Returns ``(regions (R, 4) int32 [x0, y0, x1, y1] half-open, region of each
+    point (K,) int32)``; a window narrower than 3 px is dropped (its points get -1).
+    """
+    cdef int K = pts.shape[0], i, j, n, merged, k
+    boxes = np.empty((max(K, 1), 4), dtype=np.float64)
+    owner = np.arange(K, dtype=np.int32)
+    cdef double[:, ::1] b = boxes
+    cdef int[::1] own = owner
+    cdef double ax0, ay0, ax1, ay1
+    for i in range(K):
+        b[i, 0] = pts[i, 0] - reach
+        b[i, 1] = pts[i, 1] - reach
+        b[i, 2] = pts[i, 0] + reach
+        b[i, 3] = pts[i, 1] + reach
+    n = K
+    merged = 1
+    while merged and n > 1:
+        merged = 0
+        for i in range(n):
+            for j in range(i + 1, n):
+                if b[i, 0] <= b[j, 2] and b[j, 0] <= b[i, 2] and b[i, 1] <= b[j, 3] and b[j, 1] <= b[i, 3]:
+                    b[i, 0] = min(b[i, 0], b[j, 0])
+                    b[i, 1] = min(b[i, 1], b[j, 1])
+                    b[i, 2] = max(b[i, 2], b[j, 2])
+                    b[i, 3] = max(b[i, 3], b[j, 3])
+                    for k in range(K):  # box j joins box i; later boxes move up
+                        if own[k] == j:
+                            own[k] = i
+                        elif own[k] > j:
+                            own[k] -= 1
+                    for k in range(j, n - 1):
+                        b[k, 0], b[k, 1], b[k, 2], b[k, 3] = b[k + 1, 0], b[k + 1, 1], b[k + 1, 2], b[k + 1, 3]
+                    n -= 1
+                    merged = 1
+                    break
+            if merged:
+                break
+    regions = np.empty((n, 4), dtype=np.int32)
+    cdef int[:, ::1] r = regions
+    renumber = np.full(max(n, 1), -1, dtype=np.int32)
+    cdef int[::1] ren = renumber
+    cdef int x0, y0, x1, y1, m = 0
+    for i in range(n):
+        x0 = max(0, <int>floor(b[i, 0]))
+        x1 = min(W, <int>ceil(b[i, 2]) + 1)
+        y0 = max(0, <int>floor(b[i, 1]))
+        y1 = min(H, <int>ceil(b[i, 3]) + 1)
+        if x1 - x0 >= 3 and y1 - y0 >= 3:
+            r[m, 0], r[m, 1], r[m, 2], r[m, 3] = x0, y0, x1, y1
+            ren[i] = m
+            m += 1
+    for k in range(K):
+        own[k] = ren[own[k]]
+    return regions[:m], owner
+
+
+def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] point_region,
+           double r2):
+    """Indices of the rows to keep, in order: a blob whose centre lies farther than
+    ``sqrt(r2)`` from every point of its region is dropped (when points are given),
+    and of two centres closer than 1 px the first is kept."""
+    cdef int N = rows.shape[0], K = pts.shape[0], i, j, k, n_kept = 0, region
+    cdef double x, y, d2, best
+    keep = np.empty(N, dtype=np.intp)
+    cdef Py_ssize_t[::1] kp = keep
+    cdef int ok
+    for i in range(N):
+        x = rows[i, 0]
+        y = rows[i, 1]
+        if K > 0 and x == x and y == y:  # (a NaN centre is not judged, as np.min would not)
+            region = <int>rows[i, 19]
+            best = EDT_INF
+            for k in range(K):
+                if point_region[k] == region:
+                    d2 = (pts[k, 0] - x) * (pts[k, 0] - x) + (pts[k, 1] - y) * (pts[k, 1] - y)
+                    if d2 < best:
+                        best = d2
+            if best > r2:
+                continue
+        ok = 1
+        for j in range(n_kept):
+            k = kp[j]
+            if (x - rows[k, 0]) * (x - rows[k, 0]) + (y - rows[k, 1]) * (y - rows[k, 1]) < 1.0:
+                ok = 0
+                break
+        if ok:
+            kp[n_kept] = i
+            n_kept += 1
+    return keep[:n_kept]

@@ -308,31 +308,28 @@ def detect_markers(
             )
         background = np.ascontiguousarray(background)
 
-    groups: list[FloatArray] = []
-    thr = 0.0
+    pts = np.zeros((0, 2))
+    point_region = np.zeros(0, dtype=np.int32)
     if search_xy_px is None:
-        bg, sigma = _background_and_noise(image[::8, ::8])
+        bg, sigma = _blobs.background_and_noise(image, 8)
         thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
-        regions = _full_frame_regions(image, thr, params)
+        regions = np.asarray(_full_frame_regions(image, thr, params), dtype=np.int32).reshape(-1, 4)
     else:
         pts = np.asarray(search_xy_px, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise ValueError(f"search_xy_px must have shape (K, 2), got {pts.shape}")
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        pts = np.ascontiguousarray(pts[np.all(np.isfinite(pts), axis=1)])
         # seeds are blob maxima: within the radius plus a streak's half length
         reach = radius_px + 0.5 * params.diameter_px_max
-        windows = _merged_windows(pts, reach, image.shape)
-        if windows:
-            bg, sigma = _background_and_noise(image[::16, ::16])
-            thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
-        regions = [w for w, _ in windows]
-        groups = [g for _, g in windows]
-    if not regions:
+        regions, point_region = _blobs.merged_windows(pts, reach, image.shape[0], image.shape[1])
+        bg, sigma = _blobs.background_and_noise(image, 16) if len(regions) else (0.0, 0.0)
+        thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
+    if len(regions) == 0:
         return MarkerDetections.empty()
     want_support = params.centre_method != "centroid" or background is not None
     rows, supports = _blobs.search(
         image,
-        np.asarray(regions, dtype=np.int32).reshape(-1, 4),
+        regions,
         thr,
         params.diameter_px_min,
         params.diameter_px_max,
@@ -347,7 +344,7 @@ def detect_markers(
     )
     if supports is not None:
         _recentre(rows, supports, image, params, background)
-    return _to_detections(rows, groups, radius_px)
+    return _to_detections(rows[_blobs.select(rows, pts, point_region, radius_px**2)])
 
 
 def estimate_background(
@@ -397,68 +394,16 @@ def estimate_background(
 # ------------------------------------------------------------------- candidates
 
 
-def _background_and_noise(sample: NDArray[np.uint8]) -> tuple[float, float]:
-    """Median and noise sigma (gray levels) of a uint8 sample, from its histogram.
-
-    Sigma comes from the lower half only (median minus first quartile), since
-    the bright blobs are outliers on the upper side.
-    """
-    cum = np.cumsum(np.bincount(sample.ravel(), minlength=256))
-    n = int(cum[-1])
-    q25, q50 = np.searchsorted(cum, [(n + 3) // 4, (n + 1) // 2]).tolist()
-    sigma = max((q50 - q25) / 0.6745, 0.7)  # 0.7: quantisation floor
-    return float(q50), float(sigma)
-
-
-def _merged_windows(
-    pts: FloatArray, reach: float, shape: tuple[int, ...]
-) -> list[tuple[tuple[int, int, int, int], FloatArray]]:
-    """Square windows ``(x0, y0, x1, y1)`` of half-size ``reach`` around the points,
-    overlapping ones merged into their bounding box, with the points of each."""
-    h, w = shape[0], shape[1]
-    boxes: list[list[float]] = []
-    groups: list[list[int]] = []
-    for i, (x, y) in enumerate(pts.tolist()):
-        boxes.append([x - reach, y - reach, x + reach, y + reach])
-        groups.append([i])
-    merged = True
-    while merged and len(boxes) > 1:
-        merged = False
-        for i in range(len(boxes)):
-            for j in range(i + 1, len(boxes)):
-                a, b = boxes[i], boxes[j]
-                if a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]:
-                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
-                    groups[i] += groups.pop(j)
-                    boxes.pop(j)
-                    merged = True
-                    break
-            if merged:
-                break
-    out = []
-    for (bx0, by0, bx1, by1), g in zip(boxes, groups, strict=True):
-        x0, x1 = max(0, math.floor(bx0)), min(w, math.ceil(bx1) + 1)
-        y0, y1 = max(0, math.floor(by0)), min(h, math.ceil(by1) + 1)
-        if x1 - x0 >= 3 and y1 - y0 >= 3:
-            out.append(((x0, y0, x1, y1), pts[g]))
-    return out
-
-
 def _full_frame_regions(
     image: NDArray[np.uint8], thr: float, params: MarkerParams
 ) -> list[tuple[int, int, int, int]]:
-    """Regions ``(x0, y0, x1, y1)`` (half-open, px) around the bright components."""
+    """Regions ``(x0, y0, x1, y1)`` (half-open, px) around the bright components.
+
+    The pixels above ``thr`` max-pooled in 4x4 cells; the bounding boxes of
+    the pooled components' outer contours, ``_MARGIN_PX + 3`` px larger.
+    """
     h, w = image.shape
-    t = min(math.floor(thr), 254)
-    _, binary = cv2.threshold(image, t, 255, cv2.THRESH_BINARY)
-    hp, wp = -(-h // _POOL), -(-w // _POOL)
-    if hp * _POOL != h or wp * _POOL != w:
-        binary = cv2.copyMakeBorder(binary, 0, hp * _POOL - h, 0, wp * _POOL - w,
-                                    cv2.BORDER_CONSTANT, value=0)  # fmt: skip
-    # max-pooling in two 2x2 steps (OpenCV's fast path): a mean is > 0 when any
-    # of its pixels is set (255 / 4 rounds to 64, 64 / 4 to 16)
-    half_size = cv2.resize(binary, (wp * 2, hp * 2), interpolation=cv2.INTER_AREA)
-    pooled = cv2.resize(half_size, (wp, hp), interpolation=cv2.INTER_AREA)
+    pooled = _blobs.pool_mask(image, min(math.floor(thr), 254), _POOL)
     contours, _ = cv2.findContours(pooled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     pad = _MARGIN_PX + 3
     regions = []
@@ -516,34 +461,14 @@ def _recentre(
         row[_X], row[_Y] = cx + rx0, cy + ry0
 
 
-def _to_detections(
-    rows: FloatArray, groups: list[FloatArray], radius_px: float
-) -> MarkerDetections:
-    """Detections from the compiled search's rows, in its order: blobs whose centre lies
-    outside the search discs of their window dropped (windowed search), and of two
-    centres closer than 1 px the first kept."""
-    r2 = radius_px**2
-    kept: list[int] = []
-    kept_xy: list[tuple[float, float]] = []
-    for i, (x, y, region) in enumerate(rows[:, [_X, _Y, _REGION]].tolist()):
-        if groups:
-            centres = groups[int(region)]
-            if float(np.min((centres[:, 0] - x) ** 2 + (centres[:, 1] - y) ** 2)) > r2:
-                continue
-        if any((x - kx) ** 2 + (y - ky) ** 2 < 1.0 for kx, ky in kept_xy):
-            continue
-        kept.append(i)
-        kept_xy.append((x, y))
-    if not kept:
+def _to_detections(rows: FloatArray) -> MarkerDetections:
+    """Detections from rows of the compiled search (columns in ``_blobs.COLUMNS``)."""
+    if len(rows) == 0:
         return MarkerDetections.empty()
-    cols = np.ascontiguousarray(rows[kept, : _FLAT + 1].T)
-    cov = np.empty((len(kept), 2, 2))
-    cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1] = (
-        cols[_CXX],
-        cols[_CXY],
-        cols[_CXY],
-        cols[_CYY],
-    )
+    cols = np.ascontiguousarray(rows[:, : _FLAT + 1].T)
+    cov = np.empty((len(rows), 2, 2))
+    cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1] = cols[_CXX], cols[_CXY], cols[_CYY]
+    cov[:, 1, 0] = cols[_CXY]
     return MarkerDetections(
         xy_px=np.ascontiguousarray(cols[[_X, _Y]].T),
         diameter_px=cols[_DIAM],

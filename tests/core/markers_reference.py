@@ -21,16 +21,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core.markers import (
+    _MARGIN_PX,
+    _POOL,
+    FloatArray,
     MarkerDetections,
     MarkerParams,
-    _background_and_noise,
     _centroid,
-    _full_frame_regions,
-    _merged_windows,
     _ring_radius,
 )
 
-_MARGIN_PX = 3
 _MAX_SEEDS_PER_REGION = 64
 _SIZE_TOL_PX = 0.5
 _DISC5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
@@ -101,6 +100,80 @@ def detect_reference(
                         m.blob = None  # outside the search discs; keep the core as "seen"
             measured.extend(found)
     return _to_detections([m.blob for m in measured if m.blob is not None])
+
+
+def _background_and_noise(sample: NDArray[np.uint8]) -> tuple[float, float]:
+    """Median and noise sigma (gray levels) of a uint8 sample, from its histogram.
+
+    Sigma comes from the lower half only (median minus first quartile), since
+    the bright blobs are outliers on the upper side.
+    """
+    cum = np.cumsum(np.bincount(sample.ravel(), minlength=256))
+    n = int(cum[-1])
+    q25, q50 = np.searchsorted(cum, [(n + 3) // 4, (n + 1) // 2]).tolist()
+    sigma = max((q50 - q25) / 0.6745, 0.7)  # 0.7: quantisation floor
+    return float(q50), float(sigma)
+
+
+def _merged_windows(
+    pts: FloatArray, reach: float, shape: tuple[int, ...]
+) -> list[tuple[tuple[int, int, int, int], FloatArray]]:
+    """Square windows ``(x0, y0, x1, y1)`` of half-size ``reach`` around the points,
+    overlapping ones merged into their bounding box, with the points of each."""
+    h, w = shape[0], shape[1]
+    boxes: list[list[float]] = []
+    groups: list[list[int]] = []
+    for i, (x, y) in enumerate(pts.tolist()):
+        boxes.append([x - reach, y - reach, x + reach, y + reach])
+        groups.append([i])
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    groups[i] += groups.pop(j)
+                    boxes.pop(j)
+                    merged = True
+                    break
+            if merged:
+                break
+    out = []
+    for (bx0, by0, bx1, by1), g in zip(boxes, groups, strict=True):
+        x0, x1 = max(0, math.floor(bx0)), min(w, math.ceil(bx1) + 1)
+        y0, y1 = max(0, math.floor(by0)), min(h, math.ceil(by1) + 1)
+        if x1 - x0 >= 3 and y1 - y0 >= 3:
+            out.append(((x0, y0, x1, y1), pts[g]))
+    return out
+
+
+def _full_frame_regions(
+    image: NDArray[np.uint8], thr: float, params: MarkerParams
+) -> list[tuple[int, int, int, int]]:
+    """Regions ``(x0, y0, x1, y1)`` (half-open, px) around the bright components."""
+    h, w = image.shape
+    t = min(math.floor(thr), 254)
+    _, binary = cv2.threshold(image, t, 255, cv2.THRESH_BINARY)
+    hp, wp = -(-h // _POOL), -(-w // _POOL)
+    if hp * _POOL != h or wp * _POOL != w:
+        binary = cv2.copyMakeBorder(binary, 0, hp * _POOL - h, 0, wp * _POOL - w,
+                                    cv2.BORDER_CONSTANT, value=0)  # fmt: skip
+    # max-pooling in two 2x2 steps (OpenCV's fast path): a mean is > 0 when any
+    # of its pixels is set (255 / 4 rounds to 64, 64 / 4 to 16)
+    half_size = cv2.resize(binary, (wp * 2, hp * 2), interpolation=cv2.INTER_AREA)
+    pooled = cv2.resize(half_size, (wp, hp), interpolation=cv2.INTER_AREA)
+    contours, _ = cv2.findContours(pooled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    pad = _MARGIN_PX + 3
+    regions = []
+    for contour in contours:
+        x, y, bw, bh = cv2.boundingRect(contour)
+        x0, y0 = max(0, x * _POOL - pad), max(0, y * _POOL - pad)
+        x1, y1 = min(w, (x + bw) * _POOL + pad), min(h, (y + bh) * _POOL + pad)
+        regions.append((x0, y0, x1, y1))
+    regions.sort(key=lambda r: (r[1], r[0]))  # raster order, independent of OpenCV's
+    return regions
 
 
 def _smooth(image: NDArray[np.uint8], x0: int, y0: int, x1: int, y1: int) -> NDArray[np.float32]:
