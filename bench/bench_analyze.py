@@ -12,7 +12,8 @@ Prints, measured in the same run on the same files:
 - analyze: ``core.pipeline.analyze_recording`` (detection, sync, triangulation,
   tracking, metrics), and its ratio to decoding (target <= 1.5); both also as
   CPU time (this process and its worker processes), the steadier figure when
-  other jobs share the machine;
+  other jobs share the machine; ``--repeat`` alternating pairs of runs (default
+  3) and their median ratio, since a shared machine's speed drifts;
 - peer: a plain OpenCV pipeline (fixed threshold, ``connectedComponentsWithStats``
   centroids, the two largest blobs sorted by image row, ``cv2.undistortPoints``,
   ``cv2.triangulatePoints``), its ratio to decoding, and both pipelines' 3D RMS
@@ -164,31 +165,43 @@ def _cpu_s() -> float:
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def bench(d: Path) -> None:
+def bench(d: Path, repeat: int) -> None:
     from core.camera import read_rig
     from core.pipeline import analyze_recording
 
     left, right = _videos(d)
-    c0 = _cpu_s()
+    rig = read_rig(d / "rig.json")
+    ratios, cpu_ratios = [], []
+    analysis = None
+    for r in range(repeat):  # alternating, so that a slow spell of the machine hits both
+        c0 = _cpu_s()
+        t_dec = decode_only(left, right)
+        c_dec = _cpu_s() - c0
+        c0, t0 = _cpu_s(), time.perf_counter()
+        analysis = analyze_recording(rig, left, right)
+        t_ana = time.perf_counter() - t0
+        c_ana = _cpu_s() - c0
+        n = len(analysis.frame_numbers)
+        if r == 0:
+            print(f"{d.name}: {n} frames of {left.name} + {right.name}")
+        print(
+            f"  run {r + 1}: decode only (both, concurrent) {t_dec:6.2f} s  CPU {c_dec:5.2f} s |"
+            f" analyze {t_ana:6.2f} s  CPU {c_ana:5.2f} s | ratio {t_ana / t_dec:4.2f}"
+            f"  CPU ratio {c_ana / c_dec:4.2f}"
+        )
+        ratios.append(t_ana / t_dec)
+        cpu_ratios.append(c_ana / c_dec)
+    assert analysis is not None
+    print(
+        f"  analyze / decode: median {float(np.median(ratios)):.2f} (range {min(ratios):.2f}-"
+        f"{max(ratios):.2f}) wall, median {float(np.median(cpu_ratios)):.2f} CPU"
+        f" over {repeat} alternating runs (target <= 1.5 wall)"
+    )
     t_dec = decode_only(left, right)
-    c_dec = _cpu_s() - c0
-    c0, t0 = _cpu_s(), time.perf_counter()
-    analysis = analyze_recording(read_rig(d / "rig.json"), left, right)
-    t_ana = time.perf_counter() - t0
-    c_ana = _cpu_s() - c0
     t_peer, peer_pts = peer_pipeline(d)
-    n = len(analysis.frame_numbers)
-    print(f"{d.name}: {n} frames of {left.name} + {right.name}")
     print(
-        f"  decode only (both, concurrent) {t_dec:7.2f} s  ({n / t_dec:6.1f} frame pairs/s)"
-        f"  CPU {c_dec:5.2f} s"
-    )
-    print(
-        f"  analyze                        {t_ana:7.2f} s  ratio to decode {t_ana / t_dec:5.2f}"
-        f"  CPU {c_ana:5.2f} s (ratio {c_ana / c_dec:4.2f}; steadier on a shared machine)"
-    )
-    print(
-        f"  peer (threshold+CC+triangulatePoints) {t_peer:7.2f} s  ratio to decode {t_peer / t_dec:5.2f}"
+        f"  peer (threshold+CC+triangulatePoints) {t_peer:7.2f} s  ratio to decode"
+        f" {t_peer / t_dec:5.2f} (decode {t_dec:.2f} s, just before)"
     )
     acc_ours = accuracy(d, analysis.positions_mm)
     acc_peer = accuracy(d, peer_pts)
@@ -205,11 +218,14 @@ def main() -> None:
     )
     ap.add_argument("--codec", default="lossless", choices=("lossless", "mp4v"))
     ap.add_argument(
+        "--repeat", type=int, default=3, help="alternating decode/analyze runs (median ratio)"
+    )
+    ap.add_argument(
         "--keep", type=Path, help="simulate into this folder (default: a temporary one)"
     )
     args = ap.parse_args()
     if args.dir is not None:
-        bench(args.dir)
+        bench(args.dir, args.repeat)
         t, rss, rss_w = analyze_in_child(args.dir)
         print(
             f"  peak RSS of a fresh analyze process: {rss:.0f} MB, largest worker {rss_w:.0f} MB"
@@ -225,7 +241,7 @@ def main() -> None:
                 print(f"simulating {seconds:g} s ({args.codec}) into {d} ...", flush=True)
                 simulate(d, seconds, args.codec)
             dirs[seconds] = d
-        bench(dirs[10.0])
+        bench(dirs[10.0], args.repeat)
         for seconds, d in dirs.items():
             t, rss, rss_w = analyze_in_child(d)
             print(
