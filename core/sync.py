@@ -98,50 +98,147 @@ class SyncEstimate:
         return out
 
 
-def _pad(points: Sequence[ArrayLike]) -> FloatArray:
-    """Per-frame ``(Ni, 2)`` points to a homogeneous ``(T, P, 3)`` array, NaN padded."""
-    t = len(points)
-    arrays = [np.asarray(p, dtype=np.float64).reshape(-1, 2)[:MAX_POINTS_PER_FRAME] for p in points]
-    p_max = max([a.shape[0] for a in arrays] + [1])
-    out = np.full((t, p_max, 3), np.nan)
-    for i, a in enumerate(arrays):
-        out[i, : a.shape[0], :2] = a
-        out[i, : a.shape[0], 2] = 1.0
-    return out
+def _flatten(
+    points: Sequence[ArrayLike], limit: int | None = None
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """Per-frame ``(Ni, 2)`` points as one ``(N, 2)`` array and the per-frame counts.
+
+    With ``limit``, only the first ``limit`` points of each frame are kept.
+    """
+    arrays = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points]
+    counts = np.array([a.shape[0] for a in arrays], dtype=np.intp)
+    flat = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+    if limit is not None and counts.size and int(counts.max()) > limit:
+        keep = _ranks(counts) < limit
+        flat, counts = flat[keep], np.minimum(counts, limit)
+    return flat, counts
 
 
-def _offset_cost(
+def _ranks(counts: NDArray[np.intp]) -> NDArray[np.intp]:
+    """Position of each element within its segment, for consecutive segments of ``counts``."""
+    total = int(counts.sum())
+    starts = np.cumsum(counts) - counts
+    return np.arange(total, dtype=np.intp) - np.repeat(starts, counts)
+
+
+def _segment_indices(
+    starts: NDArray[np.intp], counts: NDArray[np.intp]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Indices ``starts[s] .. starts[s] + counts[s] - 1`` of all segments ``s``, concatenated,
+    and the segment of each index."""
+    seg = np.repeat(np.arange(len(counts), dtype=np.intp), counts)
+    return np.repeat(starts, counts) + _ranks(counts), seg
+
+
+def _select_frames(
+    points: tuple[FloatArray, NDArray[np.intp]], frames: NDArray[np.int_]
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """The finite points of frames ``frames`` (ascending) of flat per-frame points, and their
+    frame."""
+    pts, counts = points
+    starts = np.cumsum(counts) - counts
+    idx, seg = _segment_indices(starts[frames], counts[frames])
+    frame = np.asarray(frames, dtype=np.intp)[seg]
+    finite = np.isfinite(pts[idx, 0])
+    return pts[idx[finite]], frame[finite]
+
+
+def _homogeneous(points: FloatArray) -> FloatArray:
+    """``(N, 2)`` points to ``(N, 3)`` homogeneous ones."""
+    return np.column_stack([points, np.ones(len(points))])
+
+
+def _epipolar_costs(
     E: FloatArray,
-    left: FloatArray,
-    right: FloatArray,
-    offset: int,
-    frames: NDArray[np.int_],
+    left_pts: FloatArray,
+    right: tuple[FloatArray, NDArray[np.intp]],
+    right_row: NDArray[np.intp],
     f_left: float,
     f_right: float,
     gate_px: float,
-) -> tuple[float, int]:
-    """Mean truncated epipolar cost of left frames ``frames`` paired at ``offset``."""
-    r_idx = frames - offset
-    ok = (r_idx >= 0) & (r_idx < right.shape[0])
-    if not np.any(ok):
-        return np.nan, 0
-    hl = left[frames[ok]]  # (n, P, 3)
-    hr = right[r_idx[ok]]  # (n, Q, 3)
-    lines_r = hl @ E.T  # (n, P, 3)
-    lines_l = hr @ E  # (n, Q, 3)
-    alg = np.abs(np.einsum("npk,nqk->npq", lines_r, hr))
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """Mean truncated epipolar cost of several candidate pairings, in one pass.
+
+    Parameters
+    ----------
+    E : ndarray, shape (3, 3)
+        Essential matrix of the rig.
+    left_pts : ndarray, shape (L, 2)
+        The left detections that enter the cost (undistorted normalized).
+    right : (ndarray (N, 2), ndarray (R,) of int)
+        Undistorted normalized right detections of ``R`` right frames, flat,
+        with the number of detections per frame (see :func:`_flatten`).
+    right_row : ndarray, shape (C, L) of int
+        For candidate ``c``, the right frame paired with the frame of left
+        detection ``l``, or -1 when that detection has no partner frame (it is
+        then left out of candidate ``c``).
+    f_left, f_right : float
+        Focal lengths (px) that turn normalized distances into pixels.
+    gate_px : float
+        Truncation of the epipolar distance (px).
+
+    Returns
+    -------
+    costs : ndarray, shape (C,)
+        Per candidate, the mean over its left detections of
+        ``min(d, gate)**2 / gate**2``, ``d`` the symmetric epipolar distance
+        (px) to the nearest right detection of the paired frame (``inf``
+        when that frame has none); NaN when the candidate has no detection.
+    n_points : ndarray, shape (C,)
+        Number of left detections in each cost.
+    """
+    r_pts, r_counts = right
+    n_rows = len(r_counts)
+    q = max(int(r_counts.max()) if n_rows else 0, 1)
+    # Right x, y and epipolar-line norm padded to (Q, R + 1), NaN where missing;
+    # column R is the all-NaN partner of detections without a partner frame.
+    rows = np.repeat(np.arange(n_rows), r_counts)
+    cols = _ranks(r_counts)
+    lines_l = _homogeneous(r_pts) @ E  # (N, 3) epipolar lines in the left image
+    table = np.full((3, q, n_rows + 1), np.nan)
+    table[0, cols, rows] = r_pts[:, 0]
+    table[1, cols, rows] = r_pts[:, 1]
+    table[2, cols, rows] = np.linalg.norm(lines_l[:, :2], axis=1)
+    valid = right_row >= 0
+    idx = np.where(valid, right_row, n_rows)
+    lines_r = _homogeneous(left_pts) @ E.T  # (L, 3) epipolar lines in the right image
+    la, lb, lc = lines_r.T.copy()
+    norm_r = np.linalg.norm(lines_r[:, :2], axis=1)
+    # s = d_l**2 + d_r**2 of every left detection and candidate, least over the
+    # right detections of the paired frame; sqrt(0.5 * s) is non-decreasing in
+    # s, so the nearest right detection is the one of least s (NaN, from
+    # missing ones, counts as infinitely far). Chunks of candidates keep the
+    # temporaries in cache.
+    s_min = np.full(idx.shape, np.nan)
+    chunk = max(1, 32768 // max(idx.shape[1], 1))
     with np.errstate(divide="ignore", invalid="ignore"):
-        d_r = alg / np.linalg.norm(lines_r[..., :2], axis=2)[:, :, None] * f_right
-        d_l = alg / np.linalg.norm(lines_l[..., :2], axis=2)[:, None, :] * f_left
-    d = np.sqrt(0.5 * (d_l**2 + d_r**2))
-    d = np.where(np.isfinite(d), d, np.inf)
-    d_min = d.min(axis=2)  # (n, P)
-    present = np.isfinite(hl[..., 0])
-    n_points = int(present.sum())
-    if n_points == 0:
-        return np.nan, 0
-    cost = np.minimum(d_min[present], gate_px) ** 2 / gate_px**2
-    return float(cost.mean()), n_points
+        for c0 in range(0, idx.shape[0], chunk):
+            rows_c = idx[c0 : c0 + chunk]
+            s_c = s_min[c0 : c0 + chunk]
+            for k in range(q):
+                x, y, norm_l = table[0, k][rows_c], table[1, k][rows_c], table[2, k][rows_c]
+                # The algebraic error line . (x, y, 1), summed in the order numpy's
+                # einsum sums a 3-term dot product; its sign does not matter.
+                alg = la * x
+                alg += lc
+                y *= lb
+                alg += y
+                d_r = alg / norm_r
+                d_r *= f_right
+                d_l = np.divide(alg, norm_l, out=norm_l)
+                d_l *= f_left
+                np.square(d_r, out=d_r)
+                np.square(d_l, out=d_l)
+                d_l += d_r
+                np.fmin(s_c, d_l, out=s_c)
+    d_min = np.sqrt(0.5 * s_min)
+    d_min = np.where(np.isfinite(d_min), d_min, np.inf)
+    cost = np.minimum(d_min, gate_px) ** 2 / gate_px**2  # (C, L)
+    n_points = valid.sum(axis=1)
+    costs = np.full(len(right_row), np.nan)
+    for c in np.flatnonzero(n_points):
+        costs[c] = cost[c][valid[c]].mean()
+    return costs, n_points
 
 
 def estimate_offset(
@@ -176,22 +273,23 @@ def estimate_offset(
         raise ValueError(f"max_offset_frames must be >= 0, got {max_offset_frames}")
     if gate_px <= 0:
         raise ValueError(f"gate_px must be positive, got {gate_px}")
-    left = _pad(left_points_norm)
-    right = _pad(right_points_norm)
-    t_left = left.shape[0]
+    left = _flatten(left_points_norm, MAX_POINTS_PER_FRAME)
+    right = _flatten(right_points_norm, MAX_POINTS_PER_FRAME)
+    t_left, t_right = len(left[1]), len(right[1])
     offsets = np.arange(-max_offset_frames, max_offset_frames + 1)
-    if t_left == 0 or right.shape[0] == 0:
+    if t_left == 0 or t_right == 0:
         return SyncEstimate(0, 0.0, 0.0, "auto", offsets, np.full(len(offsets), np.nan))
     frames = np.unique(np.linspace(0, t_left - 1, min(t_left, MAX_FRAMES_USED)).round().astype(int))
     E = rig.essential_matrix
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
     f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
-    costs = np.full(len(offsets), np.nan)
+    # Each left detection of the frames used, and its right frame per offset.
+    l_pts, l_frame = _select_frames(left, frames)
+    r_row = l_frame[None, :] - offsets[:, None]
+    r_row[(r_row < 0) | (r_row >= t_right)] = -1
+    all_costs, n_points = _epipolar_costs(E, l_pts, right, r_row, f_left, f_right, gate_px)
     min_points = max(10, len(frames) // 10)
-    for k, off in enumerate(offsets):
-        c, n = _offset_cost(E, left, right, int(off), frames, f_left, f_right, gate_px)
-        if n >= min_points:
-            costs[k] = c
+    costs = np.where(n_points >= min_points, all_costs, np.nan)
     if not np.any(np.isfinite(costs)):
         return SyncEstimate(0, 0.0, 0.0, "auto", offsets, costs)
     best = int(np.nanargmin(costs))
@@ -304,12 +402,111 @@ def points_at(
     return np.array(out).reshape(-1, 2)
 
 
+def _track_table(
+    points_px: Sequence[ArrayLike], links: Sequence[NDArray[np.intp]]
+) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """The detections of all frames of one camera, flat, with their 2D-track neighbours.
+
+    Returns
+    -------
+    points : ndarray, shape (N, 2)
+        All detections (px), frame by frame.
+    starts : ndarray, shape (T + 1,)
+        Frame ``j`` holds ``points[starts[j]:starts[j + 1]]``.
+    nxt, prv : ndarray, shape (N,)
+        Flat index of each detection's successor in the next frame and of its
+        predecessor in the previous frame (``links``), or -1.
+    """
+    points, counts = _flatten(points_px)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
+    n = len(counts)
+    nxt = np.full(len(points), -1, dtype=np.intp)
+    if n > 1:
+        local = np.concatenate([np.asarray(links[j], dtype=np.intp) for j in range(n - 1)])
+        frame = np.repeat(np.arange(n - 1), counts[:-1])
+        linked = local >= 0
+        nxt[: starts[n - 1]][linked] = starts[frame[linked] + 1] + local[linked]
+    prv = np.full(len(points), -1, dtype=np.intp)
+    has = nxt >= 0
+    prv[nxt[has]] = np.flatnonzero(has)
+    return points, starts, nxt, prv
+
+
+def _points_at_times(
+    table: tuple[FloatArray, NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]],
+    t_frames: ArrayLike,
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """:func:`points_at` for many fractional frame times at once.
+
+    Parameters
+    ----------
+    table : tuple
+        :func:`_track_table` of the detections and their links.
+    t_frames : array_like, shape (S,)
+        Frame times (frames).
+
+    Returns
+    -------
+    points : ndarray, shape (M, 2)
+        ``points_at`` of every time, concatenated in the order of ``t_frames`` (px).
+    counts : ndarray, shape (S,)
+        Number of points of each time.
+    """
+    pts, starts, nxt, prv = table
+    n = len(starts) - 1
+    t = np.asarray(t_frames, dtype=np.float64)
+    j = np.floor(t).astype(np.intp)
+    f = t - j
+    exact = f < 1e-9
+    usable = (j >= 0) & (j < n) & (exact | (j + 1 < n))
+    jc = np.clip(j, 0, max(n - 1, 0))
+    counts = np.where(usable, starts[jc + 1] - starts[jc], 0)
+    idx, time = _segment_indices(starts[jc], counts)
+    keep = exact[time] | (nxt[idx] >= 0)
+    idx, time = idx[keep], time[keep]
+    out = pts[idx].copy()
+    moving = ~exact[time]
+    a, fm = idx[moving], f[time[moving]][:, None]
+    b = nxt[a]
+    pm, c = prv[a], nxt[b]
+    p0, p1 = pts[a], pts[b]
+    cubic = (pm >= 0) & (c >= 0)
+    res = (1 - fm) * p0 + fm * p1
+    if np.any(cubic):
+        fc = fm[cubic]
+        w0 = -fc * (fc - 1) * (fc - 2) / 6
+        w1 = (fc + 1) * (fc - 1) * (fc - 2) / 2
+        w2 = -(fc + 1) * fc * (fc - 2) / 2
+        w3 = (fc + 1) * fc * (fc - 1) / 6
+        res[cubic] = w0 * pts[pm[cubic]] + w1 * p0[cubic] + w2 * p1[cubic] + w3 * pts[c[cubic]]
+    out[moving] = res
+    return out, np.bincount(time, minlength=len(t)).astype(np.intp)
+
+
 def right_points_for_left_frames(
     right_px: Sequence[FloatArray], n_left: int, offset_frames: float, *, max_step_px: float
 ) -> list[FloatArray]:
-    """Right detections at the instant of each left frame ``i`` (right time ``i - K``)."""
-    links = link_points(right_px, max_step_px=max_step_px)
-    return [points_at(right_px, links, i - offset_frames) for i in range(n_left)]
+    """Right detections at the instant of each left frame ``i`` (right time ``i - K``).
+
+    Parameters
+    ----------
+    right_px : sequence of ndarray, each (Ni, 2)
+        Right detections per frame (px).
+    n_left : int
+        Number of left frames.
+    offset_frames : float
+        The (fractional) offset ``K`` (frames).
+    max_step_px : float
+        2D linking gate (px), see :func:`link_points`.
+
+    Returns
+    -------
+    list of ndarray, each (Mi, 2)
+        :func:`points_at` of the right detections at ``i - K`` for each left frame (px).
+    """
+    table = _track_table(right_px, link_points(right_px, max_step_px=max_step_px))
+    pts, counts = _points_at_times(table, np.arange(n_left) - offset_frames)
+    return list(np.split(pts, np.cumsum(counts)[:-1])) if n_left else []
 
 
 def refine_offset(
@@ -330,34 +527,29 @@ def refine_offset(
     """
     if not np.any(np.isfinite(estimate.costs)):
         return estimate
-    left = _pad(left_points_norm)
-    t_left = left.shape[0]
+    left = _flatten(left_points_norm, MAX_POINTS_PER_FRAME)
+    t_left = len(left[1])
     frames = np.unique(np.linspace(0, t_left - 1, min(t_left, 200)).round().astype(int))
-    links = link_points(right_px, max_step_px=max_step_px)
+    table = _track_table(right_px, link_points(right_px, max_step_px=max_step_px))
     E = rig.essential_matrix
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
     f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
     fracs = np.linspace(-0.5, 0.5, steps + 1)
-    # The interpolated right points of every offset and frame, undistorted in
-    # one vectorised call (one call per frame and offset cost ~0.5 s for 10 s).
-    pts_px = [
-        points_at(right_px, links, i - (estimate.offset_frames + frac))
-        for frac in fracs
-        for i in frames
-    ]
-    counts = [len(p) for p in pts_px]
-    if sum(counts) == 0:
+    # The interpolated right points of every offset and frame (offset-major),
+    # undistorted in one vectorised call.
+    times = (frames[None, :] - (estimate.offset_frames + fracs)[:, None]).ravel()
+    pts_px, counts = _points_at_times(table, times)
+    if len(pts_px) == 0:
         return estimate
-    flat = rig.right.undistort_points(np.concatenate([p.reshape(-1, 2) for p in pts_px]))
-    pts_norm = np.split(flat, np.cumsum(counts)[:-1])
-    costs = np.full(len(fracs), np.nan)
-    for k in range(len(fracs)):
-        right = _pad(pts_norm[k * len(frames) : (k + 1) * len(frames)])
-        c, n = _offset_cost(
-            E, left[frames], right, 0, np.arange(len(frames)), f_left, f_right, gate_px
-        )
-        if n >= max(10, len(frames) // 10):
-            costs[k] = c
+    pts_norm = rig.right.undistort_points(pts_px)
+    keep = _ranks(counts) < MAX_POINTS_PER_FRAME
+    right = (pts_norm[keep], np.minimum(counts, MAX_POINTS_PER_FRAME))
+    l_pts, l_frame = _select_frames(left, frames)
+    r_row = (
+        np.searchsorted(frames, l_frame)[None, :] + (len(frames) * np.arange(len(fracs)))[:, None]
+    )
+    costs, n_points = _epipolar_costs(E, l_pts, right, r_row, f_left, f_right, gate_px)
+    costs = np.where(n_points >= max(10, len(frames) // 10), costs, np.nan)
     if not np.any(np.isfinite(costs)):
         return estimate
     best = int(np.nanargmin(costs))

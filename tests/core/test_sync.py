@@ -135,3 +135,54 @@ def test_given_fractional_offset() -> None:
     g = given_offset(-3.3)
     assert g.fractional and g.used_offset == -3.3 and g.offset_frames == -3
     assert given_offset(4.1).used_offset == 4.0  # within 0.2 frame of a whole frame: whole
+
+
+def test_batched_interpolation_matches_points_at() -> None:
+    """_points_at_times (all times at once) gives what points_at gives time by time."""
+    from core.sync import _points_at_times, _track_table, link_points, points_at
+
+    rng = np.random.default_rng(5)
+    n = 30
+    base = rng.uniform(100, 900, (6, 2))
+    vel = rng.normal(0, 3, (6, 2))
+    frames = []
+    for j in range(n):
+        alive = rng.random(6) > 0.25  # markers drop out: short tracks, unlinked detections
+        pts = base[alive] + j * vel[alive] + rng.normal(0, 0.3, (int(alive.sum()), 2))
+        frames.append(pts[rng.permutation(len(pts))])
+    links = link_points(frames, max_step_px=15.0)
+    times = np.concatenate([rng.uniform(-2, n + 1, 200), [0.0, 3.0, n - 1.0, n - 1.5, n - 0.5]])
+    got, counts = _points_at_times(_track_table(frames, links), times)
+    assert counts.sum() == len(got)
+    parts = np.split(got, np.cumsum(counts)[:-1])
+    n_cubic = 0
+    for t, part in zip(times, parts, strict=True):
+        want = points_at(frames, links, float(t))
+        assert part.shape == want.shape
+        np.testing.assert_allclose(part, want, rtol=0, atol=1e-9)  # px
+        n_cubic += len(want)
+    assert n_cubic > 300  # the case exercises interpolation, not only empty results
+
+
+def test_offset_costs_match_a_per_detection_loop() -> None:
+    """The batched costs of estimate_offset equal a plain loop over detections."""
+    ln, rn = views(2, seed=7)
+    ln, rn = ln[:40], rn[:40]
+    est = estimate_offset(RIG, ln, rn, max_offset_frames=3, gate_px=3.0)
+    E = RIG.essential_matrix
+    f = 0.5 * (RIG.left.K[0, 0] + RIG.left.K[1, 1]), 0.5 * (RIG.right.K[0, 0] + RIG.right.K[1, 1])
+    for off, got in zip(est.offsets, est.costs, strict=True):
+        costs = []
+        for i in range(40):
+            if not 0 <= i - off < 40:
+                continue
+            for p in ln[i][:12]:
+                best = np.inf
+                for q in rn[i - off][:12]:
+                    hl, hr = np.append(p, 1.0), np.append(q, 1.0)
+                    lr, ll = E @ hl, E.T @ hr
+                    alg = abs(hr @ lr)
+                    d = np.hypot(alg / np.hypot(*lr[:2]) * f[1], alg / np.hypot(*ll[:2]) * f[0])
+                    best = min(best, d / np.sqrt(2.0))
+                costs.append(min(best, 3.0) ** 2 / 9.0)
+        assert got == pytest.approx(np.mean(costs), abs=1e-12)
