@@ -16,6 +16,7 @@ there are more than two candidates per camera.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,6 +88,105 @@ def epipolar_distances_px(
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
     f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
     return np.sqrt(0.5 * ((d_left * f_left) ** 2 + (d_right * f_right) ** 2))
+
+
+@dataclass(frozen=True)
+class FramePairs:
+    """Every left/right detection pair of every left frame, flat, one row per pair.
+
+    Rows are in frame order, then left index, then right index (the order of
+    ``np.nonzero`` on each frame's ``(N, M)`` distance matrix).
+
+    Attributes
+    ----------
+    frame : ndarray, shape (K,)
+        Left frame of the pair (the right frame is ``frame - offset``).
+    left_index, right_index : ndarray, shape (K,)
+        Row of the detection within its frame.
+    left_row, right_row : ndarray, shape (K,)
+        Row of the detection in all the frames' detections concatenated.
+    epipolar_px : ndarray, shape (K,)
+        Symmetric epipolar distance of the pair (px), as :func:`epipolar_distances_px`.
+    """
+
+    frame: IntArray
+    left_index: IntArray
+    right_index: IntArray
+    left_row: IntArray
+    right_row: IntArray
+    epipolar_px: FloatArray
+
+    def __len__(self) -> int:
+        return int(self.frame.shape[0])
+
+
+def frame_pairs_epipolar_px(
+    rig: StereoRig,
+    left_norm: Sequence[ArrayLike],
+    right_norm: Sequence[ArrayLike],
+    offset: int = 0,
+) -> FramePairs:
+    """Symmetric epipolar distance of every pair of every frame, in one vectorised pass.
+
+    Left frame ``i`` is paired with right frame ``i - offset`` (when it exists);
+    every detection of the one is paired with every detection of the other.
+    The distances are those of :func:`epipolar_distances_px` on each frame
+    (to rounding: the algebraic error is summed per pair instead of by a
+    matrix product).
+
+    Parameters
+    ----------
+    rig : StereoRig
+    left_norm, right_norm : sequence of array_like, each shape (n_i, 2)
+        Undistorted normalized points of each frame of each camera.
+    offset : int
+        Frame offset of the right video.
+
+    Returns
+    -------
+    FramePairs
+    """
+    left = [np.asarray(f, dtype=np.float64).reshape(-1, 2) for f in left_norm]
+    right = [np.asarray(f, dtype=np.float64).reshape(-1, 2) for f in right_norm]
+    n_left, n_right = len(left), len(right)
+    left_counts = np.array([len(f) for f in left], dtype=np.intp)
+    right_counts = np.array([len(f) for f in right], dtype=np.intp)
+    left_start = np.concatenate([[0], np.cumsum(left_counts)]).astype(np.intp)
+    right_start = np.concatenate([[0], np.cumsum(right_counts)]).astype(np.intp)
+    # Right frame paired with each left frame, and its detection count (0 when none).
+    j = np.arange(n_left, dtype=np.intp) - offset
+    has_right = (j >= 0) & (j < n_right)
+    j_safe = np.where(has_right, j, 0)
+    nr = np.where(has_right, right_counts[j_safe] if n_right else 0, 0).astype(np.intp)
+    per_frame = left_counts * nr
+    total = int(per_frame.sum())
+    frame = np.repeat(np.arange(n_left, dtype=np.intp), per_frame)
+    first = np.concatenate([[0], np.cumsum(per_frame)[:-1]]).astype(np.intp)
+    within = np.arange(total, dtype=np.intp) - first[frame]
+    nr_pair = nr[frame]
+    li = within // nr_pair if total else within
+    ri = within - li * nr_pair
+    left_row = left_start[frame] + li
+    right_row = right_start[j_safe[frame]] + ri
+    if total == 0:
+        return FramePairs(frame, li, ri, left_row, right_row, np.zeros(0))
+    E = rig.essential_matrix
+    hl = _homogeneous(np.concatenate(left, axis=0))  # all left detections (NL, 3)
+    hr = _homogeneous(np.concatenate(right, axis=0))  # all right detections (NR, 3)
+    lines_in_right = hl @ E.T  # (NL, 3): E x_left
+    lines_in_left = hr @ E  # (NR, 3): E^T x_right
+    norm_right = np.linalg.norm(lines_in_right[:, :2], axis=1)
+    norm_left = np.linalg.norm(lines_in_left[:, :2], axis=1)
+    lr = lines_in_right[left_row]
+    pr = hr[right_row]
+    algebraic = lr[:, 0] * pr[:, 0] + lr[:, 1] * pr[:, 1] + lr[:, 2] * pr[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_right = np.abs(algebraic) / norm_right[left_row]
+        d_left = np.abs(algebraic) / norm_left[right_row]
+    f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
+    f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
+    d = np.sqrt(0.5 * ((d_left * f_left) ** 2 + (d_right * f_right) ** 2))
+    return FramePairs(frame, li, ri, left_row, right_row, d)
 
 
 def candidate_pairs(

@@ -61,7 +61,7 @@ from core.markers import (  # the per-camera search lives with the detector (lig
 from core.markers import (
     _video_detection_main as _video_detection_main,
 )
-from core.matching import epipolar_distances_px
+from core.matching import frame_pairs_epipolar_px
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
 from core.metrics import compute_metrics
@@ -359,58 +359,51 @@ def _observations(
     right_norm: list[FloatArray],
     offset: int,
 ) -> tuple[list[FrameObservations], int]:
-    """Stereo candidates (every gated pair, triangulated) for each left frame."""
+    """Stereo candidates (every gated pair, triangulated) for each left frame.
+
+    All pairs of all frames are gated at once (:func:`core.matching.frame_pairs_epipolar_px`)
+    and triangulated in one call; each frame then gets its slice, in pair order.
+    """
     n_left = len(left_px)
-    frame_of: list[int] = []
-    li_all: list[int] = []
-    ri_all: list[int] = []
-    for i in range(n_left):
-        j = i - offset
-        if not (0 <= j < len(right_px)) or len(left_px[i]) == 0 or len(right_px[j]) == 0:
-            continue
-        d = epipolar_distances_px(rig, left_norm[i], right_norm[j])
-        with np.errstate(invalid="ignore"):
-            li, ri = np.nonzero(d <= MAX_EPIPOLAR_PX)
-        frame_of.extend([i] * len(li))
-        li_all.extend(li.tolist())
-        ri_all.extend(ri.tolist())
-    frames = np.asarray(frame_of, dtype=int)
-    li_arr = np.asarray(li_all, dtype=np.intp)
-    ri_arr = np.asarray(ri_all, dtype=np.intp)
+    pairs = frame_pairs_epipolar_px(rig, left_norm, right_norm, offset)
+    with np.errstate(invalid="ignore"):
+        gated = np.flatnonzero(pairs.epipolar_px <= MAX_EPIPOLAR_PX)
+    frames = pairs.frame[gated]
+    li_arr = pairs.left_index[gated]
+    ri_arr = pairs.right_index[gated]
     if len(frames):
-        lp = np.array([left_px[f][k] for f, k in zip(frames, li_arr, strict=True)])
-        rp = np.array([right_px[f - offset][k] for f, k in zip(frames, ri_arr, strict=True)])
-        tri = triangulate(rig, lp, rp)
+        left_flat = np.concatenate([np.reshape(f, (-1, 2)) for f in left_px], axis=0)
+        right_flat = np.concatenate([np.reshape(f, (-1, 2)) for f in right_px], axis=0)
+        if int(pairs.left_row.max(initial=-1)) >= len(left_flat) or int(
+            pairs.right_row.max(initial=-1)
+        ) >= len(right_flat):
+            raise ValueError("the normalized points do not match the pixel points frame by frame")
+        tri = triangulate(rig, left_flat[pairs.left_row[gated]], right_flat[pairs.right_row[gated]])
         ok = tri.valid & (tri.reprojection_px <= MAX_CANDIDATE_REPROJECTION_PX)
+        points, reproj = tri.points_mm[ok], tri.reprojection_px[ok]
+        li_arr, ri_arr = li_arr[ok], ri_arr[ok]
+        bounds = np.searchsorted(frames[ok], np.arange(n_left + 1)).tolist()
     else:
-        tri = None
         ok = np.zeros(0, bool)
+        points, reproj = np.zeros((0, 3)), np.zeros(0)
+        bounds = [0] * (n_left + 1)
     n_rejected = int(np.count_nonzero(~ok))
+    no_right = np.zeros((0, 2))
+    n_right = len(right_px)
     obs: list[FrameObservations] = []
-    bounds = np.searchsorted(frames, np.arange(n_left + 1))
     for i in range(n_left):
         j = i - offset
-        rpx = right_px[j] if 0 <= j < len(right_px) else np.zeros((0, 2))
-        sel = np.arange(bounds[i], bounds[i + 1])
-        sel = sel[ok[sel]] if len(sel) else sel
-        if tri is not None and len(sel):
-            obs.append(
-                FrameObservations(
-                    tri.points_mm[sel],
-                    tri.reprojection_px[sel],
-                    li_arr[sel],
-                    ri_arr[sel],
-                    left_px[i],
-                    rpx,
-                )
+        b0, b1 = bounds[i], bounds[i + 1]
+        obs.append(
+            FrameObservations(
+                points[b0:b1],
+                reproj[b0:b1],
+                li_arr[b0:b1],
+                ri_arr[b0:b1],
+                left_px[i],
+                right_px[j] if 0 <= j < n_right else no_right,
             )
-        else:
-            e = FrameObservations.empty()
-            obs.append(
-                FrameObservations(
-                    e.candidates_mm, e.reprojection_px, e.left_index, e.right_index, left_px[i], rpx
-                )
-            )
+        )
     return obs, n_rejected
 
 

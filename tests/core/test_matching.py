@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from core.camera import Camera, ImageSize, StereoRig
-from core.matching import candidate_pairs, epipolar_distances_px, match_stereo
+from core.matching import (
+    candidate_pairs,
+    epipolar_distances_px,
+    frame_pairs_epipolar_px,
+    match_stereo,
+)
 
 
 def make_rig() -> StereoRig:
@@ -81,3 +86,66 @@ def test_convention_essential_matrix_direction() -> None:
     rn = rig.right.undistort_points(rig.right.project(pts))
     assert np.max(np.diag(epipolar_distances_px(rig, ln, rn))) < 1e-6  # px
     assert np.median(np.diag(epipolar_distances_px(rig, rn, ln))) > 1.0  # px: swapped is wrong
+
+
+@pytest.mark.parametrize("offset", [0, 2, -3])
+def test_frame_pairs_match_per_frame_distances(offset: int) -> None:
+    """The all-frames pass gives, pair for pair and in order, the per-frame matrices' entries."""
+    rig = make_rig()
+    rng = np.random.default_rng(3)
+
+    # World points at each left frame; right frame j sees those of left frame j + offset.
+    world = [
+        rng.uniform([-60, -60, 420], [60, 60, 600], (int(rng.integers(1, 5)), 3)) for _ in range(40)
+    ]
+    world = [w if k % 4 else w[:0] for k, w in enumerate(world)]  # some frames without markers
+
+    def frames(cam: Camera, idx: range) -> list[np.ndarray]:
+        out = []
+        for k in idx:
+            pts = world[k] if 0 <= k < len(world) else world[1]
+            xy = cam.undistort_points(cam.project(pts)) + rng.normal(0, 1e-3, (len(pts), 2))
+            if len(xy) and k % 5 == 1:
+                xy[0] = np.nan  # a detection that could not be undistorted
+            out.append(xy)
+        return out
+
+    left, right = frames(rig.left, range(20)), frames(rig.right, range(offset, offset + 18))
+    pairs = frame_pairs_epipolar_px(rig, left, right, offset)
+    assert len(pairs) == sum(
+        len(left[i]) * len(right[i - offset]) for i in range(20) if 0 <= i - offset < 18
+    )
+    flat_left, flat_right = np.concatenate(left), np.concatenate(right)
+    np.testing.assert_array_equal(
+        flat_left[pairs.left_row],
+        np.concatenate([left[f][[k]] for f, k in zip(pairs.frame, pairs.left_index, strict=True)])
+        if len(pairs)
+        else np.zeros((0, 2)),
+    )
+    k = 0
+    for i in range(20):
+        j = i - offset
+        if not 0 <= j < 18:
+            assert not np.any(pairs.frame == i)
+            continue
+        d = epipolar_distances_px(rig, left[i], right[j])
+        li, ri = np.nonzero(np.ones(d.shape, bool))
+        sel = slice(k, k + d.size)
+        np.testing.assert_array_equal(pairs.frame[sel], np.full(d.size, i))
+        np.testing.assert_array_equal(pairs.left_index[sel], li)
+        np.testing.assert_array_equal(pairs.right_index[sel], ri)
+        np.testing.assert_array_equal(flat_right[pairs.right_row[sel]], right[j][ri])
+        np.testing.assert_allclose(pairs.epipolar_px[sel], d[li, ri], rtol=1e-9, atol=1e-9)
+        k += d.size
+    assert k == len(pairs)
+    assert np.any(np.isnan(pairs.epipolar_px)) and np.nanmin(pairs.epipolar_px) < 0.1
+
+
+def test_frame_pairs_without_pairs() -> None:
+    rig = make_rig()
+    empty = [np.zeros((0, 2))] * 3
+    one = [np.zeros((1, 2))] * 3
+    assert len(frame_pairs_epipolar_px(rig, empty, one)) == 0
+    assert len(frame_pairs_epipolar_px(rig, one, one, offset=5)) == 0
+    assert len(frame_pairs_epipolar_px(rig, one, [])) == 0
+    assert len(frame_pairs_epipolar_px(rig, one, one, offset=1)) == 2
