@@ -100,8 +100,78 @@ def triangulate_linear(rig: StereoRig, left_norm: ArrayLike, right_norm: ArrayLi
     return out
 
 
-def _project_both(rig: StereoRig, points_mm: FloatArray) -> tuple[FloatArray, FloatArray]:
-    return rig.left.project(points_mm), rig.right.project(points_mm)
+class _Projector:
+    """``Camera.project`` with the same floating-point operations, as two coordinate arrays.
+
+    The refinement projects about 50 times as many points as it triangulates, so
+    this skips the work that cannot change a bit of the result: the terms of
+    the lens model whose coefficient is zero (``0 * v`` added to a finite sum,
+    a rational denominator of exactly 1) and the column stacking. Every other
+    operation is the one :meth:`core.camera.Camera.project` and
+    :func:`core.camera.distort_normalized` do, in the same order, so the
+    pixels are bit for bit those of ``Camera.project`` (pinned by a test).
+    Sensor tilt, or a point so far off axis that a skipped term would not be
+    finite, goes through ``Camera.project`` itself.
+    """
+
+    # Beyond this squared normalized radius a skipped term ``0 * r2**3`` could overflow.
+    _MAX_R2 = 1e30
+
+    def __init__(self, cam: Camera) -> None:
+        self.cam = cam
+        d = np.zeros(14)
+        d[: cam.dist.shape[0]] = cam.dist
+        self.k1, self.k2, self.p1, self.p2, self.k3 = (float(v) for v in d[:5])
+        self.rational = bool(np.any(d[5:8] != 0.0))
+        self.thin_prism = bool(np.any(d[8:12] != 0.0))
+        self.general = bool(np.any(d[12:14] != 0.0)) or self.rational or self.thin_prism
+        self.identity = bool(
+            np.all(cam.R_cam_from_world == np.eye(3)) and np.all(cam.t_cam_from_world_mm == 0.0)
+        )
+        self.fx, self.fy = float(cam.K[0, 0]), float(cam.K[1, 1])
+        self.cx, self.cy = float(cam.K[0, 2]), float(cam.K[1, 2])
+
+    def _to_camera(self, points_mm: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``Camera.to_camera`` as three columns: the same product, ``t`` added per column.
+
+        For the identity pose (the left camera) of finite points the product is
+        exact, so it is skipped.
+        """
+        if self.identity and np.all(np.isfinite(points_mm)):
+            return points_mm[:, 0], points_mm[:, 1], points_mm[:, 2]
+        rotated = points_mm @ self.cam.R_cam_from_world.T
+        t = self.cam.t_cam_from_world_mm
+        return rotated[:, 0] + t[0], rotated[:, 1] + t[1], rotated[:, 2] + t[2]
+
+    def __call__(self, points_mm: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Distorted pixels ``(u, v)``, each ``(N,)``, of world points ``(N, 3)`` mm."""
+        if self.general:
+            px = self.cam.project(points_mm)
+            return px[:, 0], px[:, 1]
+        x, y, z = self._to_camera(points_mm)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = x / z
+            y = y / z
+        behind = z <= 0
+        if np.any(behind):
+            x[behind] = np.nan
+            y[behind] = np.nan
+        r2 = x * x + y * y
+        if np.any(r2 > self._MAX_R2):
+            px = self.cam.project(points_mm)
+            return px[:, 0], px[:, 1]
+        # distort_normalized: radial = (1 + k1 r2 + k2 r4 + k3 r6) / 1, then the tangential terms.
+        r4 = r2 * r2
+        radial = 1 + self.k1 * r2 + self.k2 * r4
+        if self.k3 != 0.0:
+            radial = radial + self.k3 * (r4 * r2)
+        xd = x * radial
+        yd = y * radial
+        if self.p1 != 0.0 or self.p2 != 0.0:
+            a1 = 2 * x * y
+            xd = xd + self.p1 * a1 + self.p2 * (r2 + 2 * x * x)
+            yd = yd + self.p1 * (r2 + 2 * y * y) + self.p2 * a1
+        return xd * self.fx + self.cx, yd * self.fy + self.cy
 
 
 def _depths_positive(cam: Camera, points_mm: FloatArray) -> NDArray[np.bool_]:
@@ -145,49 +215,75 @@ def triangulate(
     )
     front = _depths_positive(rig.left, points) & _depths_positive(rig.right, points)
     points[~front] = np.nan
-    observed = np.concatenate([left, right], axis=1)  # (N, 4)
     ok = np.all(np.isfinite(points), axis=1)
+    project = (_Projector(rig.left), _Projector(rig.right))
     if refine and np.any(ok):
-        x = points[ok]
-        obs = observed[ok]
-        lam = np.full(len(x), 1e-6)
-        step_mm = 1e-4 * np.maximum(
-            1.0, np.linalg.norm(x, axis=1)
-        )  # relative finite-difference step
-        for _ in range(max_iter):
-            n = len(x)
-            stacked = np.concatenate(
-                [
-                    x,
-                    x + step_mm[:, None] * np.array([1.0, 0, 0]),
-                    x + step_mm[:, None] * np.array([0, 1.0, 0]),
-                    x + step_mm[:, None] * np.array([0, 0, 1.0]),
-                ]
-            )
-            pl, pr = _project_both(rig, stacked)
-            proj = np.concatenate([pl, pr], axis=1).reshape(4, n, 4)
-            r = proj[0] - obs  # (n, 4)
-            J = np.stack([(proj[k + 1] - proj[0]) / step_mm[:, None] for k in range(3)], axis=2)
-            JtJ = np.einsum("nij,nik->njk", J, J)
-            Jtr = np.einsum("nij,ni->nj", J, r)
-            JtJ_damped = (
-                JtJ
-                + lam[:, None, None] * np.eye(3) * np.trace(JtJ, axis1=1, axis2=2)[:, None, None]
-            )
-            delta = -np.linalg.solve(JtJ_damped, Jtr[:, :, None])[:, :, 0]
-            if not np.all(np.isfinite(delta)):
-                delta = np.where(np.isfinite(delta), delta, 0.0)
-            x_new = x + delta
-            pl_new, pr_new = _project_both(rig, x_new)
-            r_new = np.concatenate([pl_new, pr_new], axis=1) - obs
-            better = np.sum(r_new**2, axis=1) <= np.sum(r**2, axis=1)
-            better &= np.all(np.isfinite(r_new), axis=1)
-            x = np.where(better[:, None], x_new, x)
-            lam = np.where(better, lam * 0.1, lam * 10.0)
-            if np.all(np.abs(delta[better]) < tol_mm) if np.any(better) else True:
-                break
-        points[ok] = x
-    pl, pr = _project_both(rig, points)
-    residuals = np.stack([pl - left, pr - right], axis=1)
+        points[ok] = _refine(project, points[ok], left[ok], right[ok], max_iter, tol_mm)
+    residuals = np.empty((len(points), 2, 2))
+    for k, observed in enumerate((left, right)):
+        u, v = project[k](points)
+        residuals[:, k, 0] = u - observed[:, 0]
+        residuals[:, k, 1] = v - observed[:, 1]
     reproj = np.sqrt(np.sum(residuals**2, axis=(1, 2)) / 2.0)
     return Triangulation(points_mm=points, reprojection_px=reproj, residuals_px=residuals)
+
+
+def _refine(
+    project: tuple[_Projector, _Projector],
+    x: FloatArray,
+    left: FloatArray,
+    right: FloatArray,
+    max_iter: int,
+    tol_mm: float,
+) -> FloatArray:
+    """Gauss–Newton with Levenberg damping on the distorted reprojection error, per point.
+
+    The Jacobian is a forward difference with a step relative to the distance
+    from the origin. ``J^T J`` and ``J^T r`` are written out (the sums in the
+    order ``einsum`` takes them), the rest is plain array arithmetic on
+    ``(n,)`` columns; all points iterate until every accepted step is below
+    ``tol_mm``.
+    """
+    n = len(x)
+    obs = (left[:, 0], left[:, 1], right[:, 0], right[:, 1])
+    lam = np.full(n, 1e-6)
+    step_mm = 1e-4 * np.maximum(1.0, np.linalg.norm(x, axis=1))  # relative difference step
+    offsets = step_mm[:, None] * np.eye(3)[:, None, :]  # (3, n, 3): step along each axis
+    stacked = np.empty((4, n, 3))
+    JtJ = np.empty((n, 3, 3))
+    Jtr = np.empty((n, 3))
+    r = np.empty((n, 4))
+    r_new = np.empty((n, 4))
+    eye = np.eye(3)
+    for _ in range(max_iter):
+        stacked[0] = x
+        np.add(x, offsets, out=stacked[1:])
+        flat = stacked.reshape(4 * n, 3)
+        # proj[c]: (4, n) pixel coordinate c (left u, left v, right u, right v) of x and x + steps
+        proj = [p.reshape(4, n) for cam in project for p in cam(flat)]
+        J = [[(pc[k + 1] - pc[0]) / step_mm for k in range(3)] for pc in proj]  # J[c][k]: (n,)
+        for c in range(4):
+            np.subtract(proj[c][0], obs[c], out=r[:, c])
+        for j in range(3):
+            for k in range(j, 3):
+                JtJ[:, j, k] = J[0][j] * J[0][k] + J[1][j] * J[1][k] + J[2][j] * J[2][k]
+                JtJ[:, j, k] += J[3][j] * J[3][k]
+                JtJ[:, k, j] = JtJ[:, j, k]
+            Jtr[:, j] = J[0][j] * r[:, 0] + J[1][j] * r[:, 1] + J[2][j] * r[:, 2]
+            Jtr[:, j] += J[3][j] * r[:, 3]
+        JtJ_damped = JtJ + lam[:, None, None] * eye * np.trace(JtJ, axis1=1, axis2=2)[:, None, None]
+        delta = -np.linalg.solve(JtJ_damped, Jtr[:, :, None])[:, :, 0]
+        if not np.all(np.isfinite(delta)):
+            delta = np.where(np.isfinite(delta), delta, 0.0)
+        x_new = x + delta
+        for k in range(2):
+            u, v = project[k](x_new)
+            np.subtract(u, obs[2 * k], out=r_new[:, 2 * k])
+            np.subtract(v, obs[2 * k + 1], out=r_new[:, 2 * k + 1])
+        better = np.sum(r_new**2, axis=1) <= np.sum(r**2, axis=1)
+        better &= np.all(np.isfinite(r_new), axis=1)
+        x = np.where(better[:, None], x_new, x)
+        lam = np.where(better, lam * 0.1, lam * 10.0)
+        if np.all(np.abs(delta[better]) < tol_mm) if np.any(better) else True:
+            break
+    return x
