@@ -33,14 +33,15 @@ so only the depth is interpolated. Longer gaps stay ``missing`` (NaN).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from math import sqrt
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 from scipy.optimize import linear_sum_assignment
 
-from core.camera import StereoRig
+from core.camera import Camera, StereoRig
 
 FloatArray = NDArray[np.float64]
 
@@ -134,47 +135,158 @@ class Tracklet:
         return float(np.sqrt(np.sum(np.var(pts, axis=0))))
 
 
-@dataclass
 class _Track:
-    frames: list[int] = field(default_factory=list)
-    kind: list[int] = field(default_factory=list)
-    pos: list[FloatArray] = field(default_factory=list)
-    reproj: list[float] = field(default_factory=list)
-    px: list[tuple[float, float]] = field(default_factory=list)
-    velocity: FloatArray = field(default_factory=lambda: np.zeros(3))
-    last_stereo: int = -1
+    """A track being built, in plain Python floats (a frame has only a few tracks).
 
-    def predict(self, frame: int) -> FloatArray:
-        return self.pos[-1] + self.velocity * (frame - self.frames[-1])
+    The last position and the constant-velocity state are kept per coordinate;
+    the arithmetic is that of the element-wise float64 formulation, value for
+    value. Positions are kept flat (x, y, z, x, ...); single-view pixels only
+    for the frames that have one.
+    """
 
-    def add(self, frame: int, kind: int, pos: FloatArray, reproj: float, px: FloatArray) -> None:
-        if self.frames:
-            dt = frame - self.frames[-1]
-            new_v = (pos - self.pos[-1]) / dt
-            # Single-view depth is provisional: let it steer the velocity only gently.
-            w = 1.0 if kind == STEREO else 0.5
-            self.velocity = w * new_v + (1 - w) * self.velocity
+    __slots__ = (
+        "frames",
+        "kind",
+        "last_frame",
+        "last_stereo",
+        "pos",
+        "reproj",
+        "sv_px",
+        "vx",
+        "vy",
+        "vz",
+        "x",
+        "y",
+        "z",
+    )
+
+    def __init__(self, frame: int, xyz: list[float], reproj: float) -> None:
+        # Tracks start on a stereo candidate, at rest.
+        self.frames = [frame]
+        self.kind = [STEREO]
+        self.pos = list(xyz)
+        self.reproj = [reproj]
+        self.sv_px: list[tuple[int, float, float]] = []  # (row, u, v)
+        self.x, self.y, self.z = xyz
+        self.vx = self.vy = self.vz = 0.0
+        self.last_frame = frame
+        self.last_stereo = frame
+
+    def add_stereo(self, frame: int, xyz: list[float], reproj: float) -> None:
+        x, y, z = xyz
+        dt = frame - self.last_frame
+        # w * new_v + (1 - w) * v with w = 1 (1.0 * a == a exactly).
+        self.vx = (x - self.x) / dt + 0.0 * self.vx
+        self.vy = (y - self.y) / dt + 0.0 * self.vy
+        self.vz = (z - self.z) / dt + 0.0 * self.vz
+        self.x, self.y, self.z = x, y, z
+        self.last_frame = self.last_stereo = frame
+        self.frames.append(frame)
+        self.kind.append(STEREO)
+        self.pos += xyz
+        self.reproj.append(reproj)
+
+    def add_single_view(
+        self, frame: int, kind: int, xyz: list[float], px: tuple[float, float]
+    ) -> None:
+        x, y, z = xyz
+        dt = frame - self.last_frame
+        # Single-view depth is provisional: let it steer the velocity only gently.
+        self.vx = 0.5 * ((x - self.x) / dt) + 0.5 * self.vx
+        self.vy = 0.5 * ((y - self.y) / dt) + 0.5 * self.vy
+        self.vz = 0.5 * ((z - self.z) / dt) + 0.5 * self.vz
+        self.x, self.y, self.z = x, y, z
+        self.last_frame = frame
+        self.sv_px.append((len(self.frames), px[0], px[1]))
         self.frames.append(frame)
         self.kind.append(kind)
-        self.pos.append(pos)
-        self.reproj.append(reproj)
-        self.px.append((float(px[0]), float(px[1])))
-        if kind == STEREO:
-            self.last_stereo = frame
+        self.pos += xyz
+        self.reproj.append(np.nan)
 
     def freeze(self) -> Tracklet:
+        pixels = np.full((len(self.frames), 2), np.nan)
+        if self.sv_px:
+            rows, u, v = zip(*self.sv_px, strict=True)
+            pixels[list(rows)] = np.column_stack([u, v])
         return Tracklet(
-            frames=np.asarray(self.frames, dtype=int),
-            kind=np.asarray(self.kind, dtype=int),
-            positions_mm=np.asarray(self.pos, dtype=np.float64).reshape(-1, 3),
-            reprojection_px=np.asarray(self.reproj, dtype=np.float64),
-            pixels_px=np.asarray(self.px, dtype=np.float64).reshape(-1, 2),
+            frames=np.array(self.frames, dtype=int),
+            kind=np.array(self.kind, dtype=int),
+            positions_mm=np.array(self.pos, dtype=np.float64).reshape(-1, 3),
+            reprojection_px=np.array(self.reproj, dtype=np.float64),
+            pixels_px=pixels,
         )
+
+
+_BIG_COST = 1e6  # gated-out pairs in the assignment
 
 
 def _closest_on_ray(origin: FloatArray, direction: FloatArray, point: FloatArray) -> FloatArray:
     s = max(float(np.dot(point - origin, direction)), 1e-6)
     return origin + s * direction
+
+
+def _distance(p: tuple[float, float, float], q: list[float]) -> float:
+    # The float64 operations of np.linalg.norm(p - q) over the last axis, in its order.
+    dx, dy, dz = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+    return sqrt(dx * dx + dy * dy + dz * dz)
+
+
+def _assign(
+    preds: list[tuple[float, float, float]],
+    gates: list[float],
+    cands: list[list[float]],
+) -> list[tuple[int, int]]:
+    """Gated global assignment of tracks to stereo candidates, closest pairs first.
+
+    The same pairs, in the same order, as the Hungarian method on the gated 3D
+    distances (``dist`` where ``dist <= gate``, else a prohibitive cost), with
+    the gated-out pairs dropped and the rest sorted by distance. When every
+    track has at most one candidate within its gate and every candidate lies
+    within at most one gate, the optimum is exactly those pairs (any
+    assignment leaving one out costs a whole prohibitive cost more), so the
+    Hungarian method is only run when gates overlap, or when two pairs are
+    equally close (so that their order is decided as before).
+    """
+    pairs: list[tuple[float, int, int]] = []
+    for r, (px, py, pz) in enumerate(preds):
+        g = gates[r]
+        for c, (cx, cy, cz) in enumerate(cands):
+            # |dx| > g implies dist > g (sqrt(fl(dx * dx)) == |dx|, sums only grow).
+            dx = px - cx
+            if dx > g or -dx > g:
+                continue
+            dy = py - cy
+            if dy > g or -dy > g:
+                continue
+            dz = pz - cz
+            d = sqrt(dx * dx + dy * dy + dz * dz)  # as _distance, inline
+            if d <= g:
+                pairs.append((d, r, c))
+    n = len(pairs)
+    if n == 0:
+        return []
+    dists, rs, cs = zip(*pairs, strict=True)
+    if (
+        len(set(rs)) == n
+        and len(set(cs)) == n
+        and len(set(dists)) == n  # no ties: the order is unambiguous
+        # The argument needs the prohibitive cost to outweigh all gated distances together.
+        and sum(dists) < 0.5 * _BIG_COST
+    ):
+        pairs.sort()
+        return [(r, c) for _, r, c in pairs]
+    rows = [
+        [d if (d := _distance(p, q)) <= gates[r] else _BIG_COST for q in cands]
+        for r, p in enumerate(preds)
+    ]
+    cost = np.array(rows)
+    r_idx, c_idx = linear_sum_assignment(cost)
+    order = np.argsort(cost[r_idx, c_idx])
+    return [
+        (r, c)
+        for r, c in zip(r_idx[order].tolist(), c_idx[order].tolist(), strict=True)
+        if rows[r][c] < _BIG_COST
+    ]
 
 
 def build_tracklets(
@@ -211,93 +323,106 @@ def build_tracklets(
     f_px = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]
     active: list[_Track] = []
     done: list[_Track] = []
+    # Per frame only a handful of tracks and candidates meet: plain Python
+    # floats and lists cost less here than numpy calls on tiny arrays.
     for frame, obs in enumerate(observations):
         n_c = obs.candidates_mm.shape[0]
-        used = [np.zeros(obs.left_px.shape[0], bool), np.zeros(obs.right_px.shape[0], bool)]
-        assigned = np.zeros(len(active), bool)
+        used = ([False] * obs.left_px.shape[0], [False] * obs.right_px.shape[0])
+        used_l, used_r = used
+        cands: list[list[float]] = obs.candidates_mm.tolist()
+        reproj: list[float] = obs.reprojection_px.tolist()
+        left_index: list[int] = obs.left_index.tolist()
+        right_index: list[int] = obs.right_index.tolist()
         if active:
-            preds = np.array([tr.predict(frame) for tr in active])
-            gaps = np.array([frame - tr.frames[-1] for tr in active])
-            gates = gate_mm * (1.0 + 0.5 * (gaps - 1))
-        if active and n_c:
-            dist = np.linalg.norm(preds[:, None, :] - obs.candidates_mm[None, :, :], axis=2)
-            big = 1e6
-            cost = np.where(dist <= gates[:, None], dist, big)
-            rows, cols = linear_sum_assignment(cost)
-            order = np.argsort(cost[rows, cols])
-            for r, c in zip(rows[order], cols[order], strict=True):
-                if cost[r, c] >= big:
-                    continue
-                li, ri = obs.left_index[c], obs.right_index[c]
-                if used[0][li] or used[1][ri]:
-                    continue  # a detection already explains a closer track
-                used[0][li] = used[1][ri] = True
-                assigned[r] = True
-                active[r].add(
-                    frame,
-                    STEREO,
-                    obs.candidates_mm[c],
-                    float(obs.reprojection_px[c]),
-                    np.array([np.nan, np.nan]),
-                )
-        # Single-view continuation for tracks without a stereo candidate.
-        for r, tr in enumerate(active):
-            if assigned[r] or tr.last_stereo < 0:
-                continue
-            best: tuple[float, int, int] | None = None
-            for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
-                if dets.shape[0] == 0:
-                    continue
-                proj = cam.project(preds[r][None])[0]
-                if not np.all(np.isfinite(proj)):
-                    continue
-                depth = cam.to_camera(preds[r][None])[0, 2]
-                gate_px = gates[r] * f_px[ci] / max(depth, 1e-6)
-                d = np.linalg.norm(dets - proj, axis=1)
-                d[used[ci]] = np.inf
-                j = int(np.argmin(d))
-                if d[j] <= gate_px and (best is None or d[j] / gate_px < best[0]):
-                    best = (float(d[j] / gate_px), ci, j)
-            if best is not None:
-                _, ci, j = best
-                dets = obs.left_px if ci == 0 else obs.right_px
-                origin, direction = cams[ci].backproject(dets[j][None])
-                if np.all(np.isfinite(direction)):
-                    pos = _closest_on_ray(origin[0], direction[0], preds[r])
-                    used[ci][j] = True
+            preds: list[tuple[float, float, float]] = []
+            gates: list[float] = []
+            for tr in active:
+                gap = frame - tr.last_frame
+                preds.append((tr.x + tr.vx * gap, tr.y + tr.vy * gap, tr.z + tr.vz * gap))
+                gates.append(gate_mm * (1.0 + 0.5 * (gap - 1)))
+            assigned = [False] * len(active)
+            if n_c:
+                for r, c in _assign(preds, gates, cands):
+                    li, ri = left_index[c], right_index[c]
+                    if used_l[li] or used_r[ri]:
+                        continue  # a detection already explains a closer track
+                    used_l[li] = used_r[ri] = True
                     assigned[r] = True
-                    tr.add(frame, LEFT_ONLY if ci == 0 else RIGHT_ONLY, pos, np.nan, dets[j])
-        # End tracks that lost their markers.
-        still: list[_Track] = []
-        for tr in active:
-            if (
-                frame - tr.frames[-1] > max_coast_frames
-                or frame - tr.last_stereo > max_single_view_frames
-            ):
-                done.append(tr)
-            else:
+                    active[r].add_stereo(frame, cands[c], reproj[c])
+            # Single-view continuation for tracks without a stereo candidate; end
+            # tracks that lost their markers (an assigned track has just been seen).
+            still: list[_Track] = []
+            for r, tr in enumerate(active):
+                if not assigned[r]:
+                    _continue_single_view(tr, frame, obs, cams, f_px, preds[r], gates[r], used)
+                    if (
+                        frame - tr.last_frame > max_coast_frames
+                        or frame - tr.last_stereo > max_single_view_frames
+                    ):
+                        done.append(tr)
+                        continue
                 still.append(tr)
-        active = still
+            active = still
         # New tracks from unused stereo candidates (lowest reprojection error first).
-        if n_c:
-            for c in np.argsort(obs.reprojection_px, kind="stable"):
-                li, ri = obs.left_index[c], obs.right_index[c]
-                if used[0][li] or used[1][ri]:
-                    continue
-                used[0][li] = used[1][ri] = True
-                tr = _Track()
-                tr.add(
-                    frame,
-                    STEREO,
-                    obs.candidates_mm[c],
-                    float(obs.reprojection_px[c]),
-                    np.array([np.nan, np.nan]),
-                )
-                active.append(tr)
+        free = [c for c in range(n_c) if not (used_l[left_index[c]] or used_r[right_index[c]])]
+        if len(free) > 1:
+            if any(reproj[c] != reproj[c] for c in free):  # NaN: numpy's order puts it last
+                keep = set(free)
+                order = np.argsort(obs.reprojection_px, kind="stable").tolist()
+                free = [c for c in order if c in keep]
+            else:
+                free.sort(key=reproj.__getitem__)  # stable, as numpy's stable argsort
+        for c in free:
+            li, ri = left_index[c], right_index[c]
+            if used_l[li] or used_r[ri]:
+                continue
+            used_l[li] = used_r[ri] = True
+            active.append(_Track(frame, cands[c], reproj[c]))
     done.extend(active)
     tracklets = [tr.freeze() for tr in done]
     tracklets.sort(key=lambda t: int(t.frames[0]))
     return tracklets
+
+
+def _continue_single_view(
+    tr: _Track,
+    frame: int,
+    obs: FrameObservations,
+    cams: Sequence[Camera],
+    f_px: Sequence[float],
+    pred_xyz: tuple[float, float, float],
+    gate_mm: float,
+    used: tuple[list[bool], list[bool]],
+) -> None:
+    """Continue a track on the detection nearest to its projected prediction in one camera.
+
+    Marks the detection used when the track takes it.
+    """
+    pred = np.array(pred_xyz)
+    best: tuple[float, int, int] | None = None
+    for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
+        if dets.shape[0] == 0:
+            continue
+        proj = cam.project(pred[None])[0]
+        if not np.all(np.isfinite(proj)):
+            continue
+        depth = cam.to_camera(pred[None])[0, 2]
+        gate_px = gate_mm * f_px[ci] / max(depth, 1e-6)
+        d = np.linalg.norm(dets - proj, axis=1)
+        d[np.array(used[ci], dtype=bool)] = np.inf
+        j = int(np.argmin(d))
+        if d[j] <= gate_px and (best is None or d[j] / gate_px < best[0]):
+            best = (float(d[j] / gate_px), ci, j)
+    if best is None:
+        return
+    _, ci, j = best
+    dets = obs.left_px if ci == 0 else obs.right_px
+    origin, direction = cams[ci].backproject(dets[j][None])
+    if np.all(np.isfinite(direction)):
+        xyz = _closest_on_ray(origin[0], direction[0], pred).tolist()
+        used[ci][j] = True
+        u, v = dets[j].tolist()
+        tr.add_single_view(frame, LEFT_ONLY if ci == 0 else RIGHT_ONLY, xyz, (u, v))
 
 
 def _stereo_ends(t: Tracklet) -> tuple[int, int, FloatArray, FloatArray]:

@@ -2,18 +2,27 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import cv2
 import numpy as np
 import pytest
+from scipy.optimize import linear_sum_assignment
 
+from core import tracks
 from core.camera import Camera, ImageSize, StereoRig
 from core.matching import candidate_pairs
 from core.simulation.kinematics import TappingScenario, simulate_tapping
 from core.tracks import (
     INTERPOLATED,
+    LEFT_ONLY,
     MEASURED,
     MISSING,
+    RIGHT_ONLY,
+    STEREO,
     FrameObservations,
+    Tracklet,
+    build_tracklets,
     fill_gaps,
     track_markers,
 )
@@ -175,3 +184,249 @@ def test_bad_arguments() -> None:
         track_markers(RIG, [], fps=100, max_gap_s=-1)
     tr = track_markers(RIG, [FrameObservations.empty()] * 5, fps=100)
     assert np.all(tr.status == MISSING) and tr.warnings
+
+
+# --- build_tracklets against its former numpy formulation (kept here as the reference) ---
+
+
+@dataclass
+class _RefTrack:
+    frames: list[int] = field(default_factory=list)
+    kind: list[int] = field(default_factory=list)
+    pos: list[np.ndarray] = field(default_factory=list)
+    reproj: list[float] = field(default_factory=list)
+    px: list[tuple[float, float]] = field(default_factory=list)
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    last_stereo: int = -1
+
+    def predict(self, frame: int) -> np.ndarray:
+        return self.pos[-1] + self.velocity * (frame - self.frames[-1])
+
+    def add(self, frame: int, kind: int, pos: np.ndarray, reproj: float, px: np.ndarray) -> None:
+        if self.frames:
+            new_v = (pos - self.pos[-1]) / (frame - self.frames[-1])
+            w = 1.0 if kind == STEREO else 0.5
+            self.velocity = w * new_v + (1 - w) * self.velocity
+        self.frames.append(frame)
+        self.kind.append(kind)
+        self.pos.append(pos)
+        self.reproj.append(reproj)
+        self.px.append((float(px[0]), float(px[1])))
+        if kind == STEREO:
+            self.last_stereo = frame
+
+
+def reference_build_tracklets(
+    rig: StereoRig,
+    observations: list[FrameObservations],
+    *,
+    gate_mm: float,
+    max_coast_frames: int = 2,
+    max_single_view_frames: int = 12,
+) -> list[Tracklet]:
+    """build_tracklets as first written: numpy per element, Hungarian method every frame."""
+    cams = rig.cameras
+    f_px = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]
+    active: list[_RefTrack] = []
+    done: list[_RefTrack] = []
+    for frame, obs in enumerate(observations):
+        n_c = obs.candidates_mm.shape[0]
+        used = [np.zeros(obs.left_px.shape[0], bool), np.zeros(obs.right_px.shape[0], bool)]
+        assigned = np.zeros(len(active), bool)
+        if active:
+            preds = np.array([tr.predict(frame) for tr in active])
+            gaps = np.array([frame - tr.frames[-1] for tr in active])
+            gates = gate_mm * (1.0 + 0.5 * (gaps - 1))
+        if active and n_c:
+            dist = np.linalg.norm(preds[:, None, :] - obs.candidates_mm[None, :, :], axis=2)
+            big = 1e6
+            cost = np.where(dist <= gates[:, None], dist, big)
+            rows, cols = linear_sum_assignment(cost)
+            order = np.argsort(cost[rows, cols])
+            for r, c in zip(rows[order], cols[order], strict=True):
+                if cost[r, c] >= big:
+                    continue
+                li, ri = obs.left_index[c], obs.right_index[c]
+                if used[0][li] or used[1][ri]:
+                    continue
+                used[0][li] = used[1][ri] = True
+                assigned[r] = True
+                active[r].add(
+                    frame,
+                    STEREO,
+                    obs.candidates_mm[c],
+                    float(obs.reprojection_px[c]),
+                    np.array([np.nan, np.nan]),
+                )
+        for r, tr in enumerate(active):
+            if assigned[r] or tr.last_stereo < 0:
+                continue
+            best: tuple[float, int, int] | None = None
+            for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
+                if dets.shape[0] == 0:
+                    continue
+                proj = cam.project(preds[r][None])[0]
+                if not np.all(np.isfinite(proj)):
+                    continue
+                depth = cam.to_camera(preds[r][None])[0, 2]
+                gate_px = gates[r] * f_px[ci] / max(depth, 1e-6)
+                d = np.linalg.norm(dets - proj, axis=1)
+                d[used[ci]] = np.inf
+                j = int(np.argmin(d))
+                if d[j] <= gate_px and (best is None or d[j] / gate_px < best[0]):
+                    best = (float(d[j] / gate_px), ci, j)
+            if best is not None:
+                _, ci, j = best
+                dets = obs.left_px if ci == 0 else obs.right_px
+                origin, direction = cams[ci].backproject(dets[j][None])
+                if np.all(np.isfinite(direction)):
+                    s = max(float(np.dot(preds[r] - origin[0], direction[0])), 1e-6)
+                    pos = origin[0] + s * direction[0]
+                    used[ci][j] = True
+                    assigned[r] = True
+                    tr.add(frame, LEFT_ONLY if ci == 0 else RIGHT_ONLY, pos, np.nan, dets[j])
+        still: list[_RefTrack] = []
+        for tr in active:
+            if (
+                frame - tr.frames[-1] > max_coast_frames
+                or frame - tr.last_stereo > max_single_view_frames
+            ):
+                done.append(tr)
+            else:
+                still.append(tr)
+        active = still
+        if n_c:
+            for c in np.argsort(obs.reprojection_px, kind="stable"):
+                li, ri = obs.left_index[c], obs.right_index[c]
+                if used[0][li] or used[1][ri]:
+                    continue
+                used[0][li] = used[1][ri] = True
+                tr = _RefTrack()
+                tr.add(
+                    frame,
+                    STEREO,
+                    obs.candidates_mm[c],
+                    float(obs.reprojection_px[c]),
+                    np.array([np.nan, np.nan]),
+                )
+                active.append(tr)
+    done.extend(active)
+    tracklets = [
+        Tracklet(
+            frames=np.asarray(tr.frames, dtype=int),
+            kind=np.asarray(tr.kind, dtype=int),
+            positions_mm=np.asarray(tr.pos, dtype=np.float64).reshape(-1, 3),
+            reprojection_px=np.asarray(tr.reproj, dtype=np.float64),
+            pixels_px=np.asarray(tr.px, dtype=np.float64).reshape(-1, 2),
+        )
+        for tr in done
+    ]
+    tracklets.sort(key=lambda t: int(t.frames[0]))
+    return tracklets
+
+
+def assert_same_tracklets(got: list[Tracklet], want: list[Tracklet]) -> None:
+    assert len(got) == len(want)
+    for g, w in zip(got, want, strict=True):
+        for name in ("frames", "kind", "positions_mm", "reprojection_px", "pixels_px"):
+            a, b = getattr(g, name), getattr(w, name)
+            assert a.dtype == b.dtype and a.shape == b.shape, name
+            assert np.array_equal(a, b, equal_nan=True), name  # bit for bit, not approximately
+
+
+def crowded_observations(seed: int) -> list[FrameObservations]:
+    """Glints riding 3-8 mm from each finger: gates overlap, pairs compete for detections."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(150):
+        pts = [POS[i, 0], POS[i, 1], POS[i, 2]]
+        pts += [POS[i, m] + rng.normal(0, 4.0, 3) for m in (0, 1) if rng.random() < 0.7]
+        per_cam = []
+        for cam in RIG.cameras:
+            keep = [p for p in pts if rng.random() > 0.08]  # some single-view frames
+            px = cam.project(np.array(keep).reshape(-1, 3)) + rng.normal(0, 0.3, (len(keep), 2))
+            per_cam.append(px[rng.permutation(len(px))])
+        lp, rp = per_cam
+        pairs = candidate_pairs(
+            RIG, RIG.left.undistort_points(lp), RIG.right.undistort_points(rp), max_epipolar_px=3.0
+        )
+        tri = triangulate(RIG, lp[pairs.left_index], rp[pairs.right_index])
+        ok = tri.valid & (tri.reprojection_px < 2.0)
+        rep = tri.reprojection_px[ok].copy()
+        if i % 7 == 0 and len(rep) > 1:
+            rep[1] = rep[0]  # equal reprojection errors: new tracks in index order
+        out.append(
+            FrameObservations(
+                tri.points_mm[ok], rep, pairs.left_index[ok], pairs.right_index[ok], lp, rp
+            )
+        )
+    return out
+
+
+@pytest.mark.parametrize("case", ["clean", "distractors", "occluded", "crowded"])
+def test_build_tracklets_equals_numpy_formulation(case, clean_obs, monkeypatch) -> None:
+    calls = []
+    lsa = linear_sum_assignment
+
+    def spy(cost):
+        calls.append(cost.shape)
+        return lsa(cost)
+
+    monkeypatch.setattr(tracks, "linear_sum_assignment", spy)
+    if case == "clean":
+        obs = clean_obs
+    elif case == "distractors":
+        obs = observations(distractors=True, seed=5)
+    elif case == "occluded":
+        obs = observations(hide={(1, 1): range(100, 110), (0, 0): range(250, 275)}, seed=2)
+    else:
+        obs = crowded_observations(seed=3)
+    gate = 5.0 + 8e4 / FPS**2
+    got = build_tracklets(RIG, obs, gate_mm=gate)
+    assert_same_tracklets(got, reference_build_tracklets(RIG, obs, gate_mm=gate))
+    if case == "occluded":
+        assert any(np.any(t.kind != STEREO) for t in got)  # the single-view path ran
+    if case == "crowded":
+        assert len(calls) > 10  # the Hungarian method decided the overlapping gates
+        assert any(np.any(t.kind != STEREO) for t in got)
+
+
+def test_assign_equals_hungarian_on_gated_distances() -> None:
+    rng = np.random.default_rng(7)
+    n_fast = n_overlap = 0
+    for trial in range(3000):
+        n_t, n_c = int(rng.integers(1, 7)), int(rng.integers(1, 8))
+        preds = rng.normal(0, 30, (n_t, 3)) + np.array([0.0, 0.0, 500.0])
+        cands = preds[rng.integers(0, n_t, n_c)] + rng.normal(0, rng.uniform(0.5, 20), (n_c, 3))
+        if trial % 5 == 0:
+            cands[-1] = cands[0]  # the same point twice: equal distances
+        gates = rng.uniform(3, 15, n_t) if trial % 11 else np.full(n_t, 2e6)
+        dist = np.linalg.norm(preds[:, None, :] - cands[None, :, :], axis=2)
+        cost = np.where(dist <= gates[:, None], dist, 1e6)
+        rows, cols = linear_sum_assignment(cost)
+        order = np.argsort(cost[rows, cols])
+        want = [
+            (int(r), int(c))
+            for r, c in zip(rows[order], cols[order], strict=True)
+            if cost[r, c] < 1e6
+        ]
+        p_list = [(float(x), float(y), float(z)) for x, y, z in preds]
+        got = tracks._assign(p_list, gates.tolist(), cands.tolist())
+        assert got == want, trial
+        if np.count_nonzero(dist <= gates[:, None]) == len(want) == len({c for _, c in want}):
+            n_fast += 1  # gates do not overlap
+        else:
+            n_overlap += 1
+    assert n_overlap > 300
+    assert n_fast > 300  # both paths were exercised
+
+
+def test_distance_is_numpy_norm_bit_for_bit() -> None:
+    # The gate and the assignment order compare these distances; summing in another
+    # order (dx² + (dy² + dz²)) differs from numpy's in the last bit for ~1 pair in 8.
+    rng = np.random.default_rng(3)
+    p = rng.normal(0, 200, (200, 3)) * rng.uniform(0.01, 1, (200, 1))
+    q = p[rng.integers(0, 200, 100)] + rng.normal(0, 10, (100, 3))
+    want = np.linalg.norm(p[:, None, :] - q[None, :, :], axis=2)  # as the reference does
+    got = [[tracks._distance(tuple(a), b) for b in q.tolist()] for a in p.tolist()]
+    assert np.array_equal(got, want)
