@@ -332,27 +332,90 @@ def link_points(points_px: Sequence[ArrayLike], *, max_step_px: float) -> list[N
         For each detection of frame ``j``, the index of its successor in frame
         ``j + 1``, or -1 (global assignment per frame pair, Hungarian method).
     """
+    pts, counts = _flatten(points_px)
+    n, n_pts = len(counts), len(pts)
+    if n == 0:
+        return []
+    starts = np.cumsum(counts) - counts
+    frame_of = np.repeat(np.arange(n), counts)
+    nxt = np.full(n_pts, -1, dtype=np.intp)
+    if n > 1:
+        _link_flat(pts, counts, starts, frame_of, nxt, float(max_step_px))
+    local = np.where(nxt >= 0, nxt - np.repeat(np.r_[starts[1:], 0], counts), -1)
+    return list(np.split(local.astype(np.intp), np.cumsum(counts)[:-1]))
+
+
+def _link_flat(
+    pts: FloatArray,
+    counts: NDArray[np.intp],
+    starts: NDArray[np.intp],
+    frame_of: NDArray[np.intp],
+    nxt: NDArray[np.intp],
+    max_step_px: float,
+) -> None:
+    """:func:`link_points` on flat detections; fills ``nxt`` (flat successor index or -1).
+
+    The assignment of frame pair ``j`` depends on the links of pair ``j - 1``
+    (through the constant-velocity prediction), so the frame pairs are solved
+    all at once, repeatedly: each round re-solves the pairs whose predecessor
+    links changed in the previous round. The first round is exact for pair 0
+    (frame 0 has no predecessors) and round ``r`` is exact for pair ``r``, so
+    the rounds end, at the latest after ``T`` of them, with the frame-by-frame
+    result; in practice after a few. A frame pair whose gated candidates
+    form a one-to-one matching takes exactly those (every optimal assignment
+    uses all of them); the others are solved by the Hungarian method on the
+    same cost matrix as frame by frame.
+    """
     from scipy.optimize import linear_sum_assignment
 
-    frames = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points_px]
-    nxt = [np.full(len(f), -1, dtype=np.intp) for f in frames]
-    prev_of: NDArray[np.intp] = np.full(len(frames[0]) if frames else 0, -1, dtype=np.intp)
-    for j in range(len(frames) - 1):
-        a, b = frames[j], frames[j + 1]
-        new_prev = np.full(len(b), -1, dtype=np.intp)
-        if len(a) and len(b):
-            pred = a.copy()
-            has = prev_of >= 0
-            if np.any(has):
-                pred[has] = 2 * a[has] - frames[j - 1][prev_of[has]]
-            d = np.linalg.norm(pred[:, None, :] - b[None, :, :], axis=2)
-            cost = np.where(d <= max_step_px, d, 1e9)
+    n = len(counts)
+    # Every (detection of j, detection of j + 1) pair, frame pair by frame pair.
+    n_pairs = counts[:-1] * counts[1:]
+    pair_start = np.cumsum(n_pairs) - n_pairs
+    fp = np.repeat(np.arange(n - 1), n_pairs)
+    r = _ranks(n_pairs)
+    width = counts[1:][fp]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ia = starts[fp] + r // np.maximum(width, 1)
+        ib = starts[fp + 1] + r % np.maximum(width, 1)
+    prv = np.full(len(pts), -1, dtype=np.intp)
+    fast_ok = max_step_px < 1e6  # gated costs far below the 1e9 of excluded pairs
+    todo = np.flatnonzero(n_pairs)
+    while todo.size:
+        sel, sel_fp = _segment_indices(pair_start[todo], n_pairs[todo])
+        a, b = ia[sel], ib[sel]
+        pred = pts[a].copy()
+        pa = prv[a]
+        has = pa >= 0
+        pred[has] = 2 * pts[a[has]] - pts[pa[has]]
+        d = np.linalg.norm(pred - pts[b], axis=1)
+        valid = d <= max_step_px
+        # Frame pairs where a detection has more than one gated candidate.
+        many = (np.bincount(a[valid], minlength=len(pts)) > 1) | (
+            np.bincount(b[valid], minlength=len(pts)) > 1
+        )
+        clash = np.zeros(len(todo), dtype=bool)
+        clash[sel_fp[many[a] | many[b]]] = True
+        if not fast_ok:
+            clash[:] = True
+        nxt[np.flatnonzero(np.isin(frame_of, todo))] = -1
+        simple = ~clash[sel_fp] & valid
+        nxt[a[simple]] = b[simple]
+        seg_start = np.cumsum(n_pairs[todo]) - n_pairs[todo]
+        for k in np.flatnonzero(clash):
+            j = todo[k]
+            s0 = seg_start[k]
+            dj = d[s0 : s0 + n_pairs[j]].reshape(counts[j], counts[j + 1])
+            cost = np.where(dj <= max_step_px, dj, 1e9)
             rows, cols = linear_sum_assignment(cost)
             ok = cost[rows, cols] < 1e9
-            nxt[j][rows[ok]] = cols[ok]
-            new_prev[cols[ok]] = rows[ok]
-        prev_of = new_prev
-    return nxt
+            nxt[starts[j] + rows[ok]] = starts[j + 1] + cols[ok]
+        new_prv = np.full(len(pts), -1, dtype=np.intp)
+        linked = nxt >= 0
+        new_prv[nxt[linked]] = np.flatnonzero(linked)
+        changed = np.unique(frame_of[new_prv != prv])
+        prv = new_prv
+        todo = changed[(changed < n - 1) & (n_pairs[np.minimum(changed, n - 2)] > 0)]
 
 
 def points_at(

@@ -186,3 +186,50 @@ def test_offset_costs_match_a_per_detection_loop() -> None:
                     best = min(best, d / np.sqrt(2.0))
                 costs.append(min(best, 3.0) ** 2 / 9.0)
         assert got == pytest.approx(np.mean(costs), abs=1e-12)
+
+
+def _link_points_frame_by_frame(frames: list[np.ndarray], max_step_px: float) -> list[np.ndarray]:
+    """link_points written as one Hungarian assignment per frame pair, in frame order."""
+    from scipy.optimize import linear_sum_assignment
+
+    nxt = [np.full(len(f), -1, dtype=np.intp) for f in frames]
+    prev_of = np.full(len(frames[0]), -1, dtype=np.intp)
+    for j in range(len(frames) - 1):
+        a, b = frames[j], frames[j + 1]
+        new_prev = np.full(len(b), -1, dtype=np.intp)
+        if len(a) and len(b):
+            pred = a.copy()
+            has = prev_of >= 0
+            pred[has] = 2 * a[has] - frames[j - 1][prev_of[has]]
+            d = np.linalg.norm(pred[:, None, :] - b[None, :, :], axis=2)
+            cost = np.where(d <= max_step_px, d, 1e9)
+            rows, cols = linear_sum_assignment(cost)
+            ok = cost[rows, cols] < 1e9
+            nxt[j][rows[ok]] = cols[ok]
+            new_prev[cols[ok]] = rows[ok]
+        prev_of = new_prev
+    return nxt
+
+
+@pytest.mark.parametrize("max_step_px", [8.0, 25.0])
+def test_link_points_matches_frame_by_frame_assignment(max_step_px: float) -> None:
+    """Crowded, crossing, appearing and vanishing tracks: the same links as frame by frame."""
+    from core.sync import link_points
+
+    rng = np.random.default_rng(11)
+    base = rng.uniform(0, 120, (8, 2))
+    vel = rng.normal(0, 5, (8, 2))
+    frames = []
+    for j in range(80):
+        alive = rng.random(8) > 0.2
+        pts = base[alive] + j * vel[alive] + rng.normal(0, 2, (int(alive.sum()), 2))
+        frames.append(pts[rng.permutation(len(pts))])
+    frames[10] = np.zeros((0, 2))
+    want = _link_points_frame_by_frame(frames, max_step_px)
+    got = link_points(frames, max_step_px=max_step_px)
+    assert len(got) == len(want)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert sum(int((w >= 0).sum()) for w in want) > 200  # most detections are linked
+    assert link_points([], max_step_px=5.0) == []
+    assert link_points([np.ones((2, 2))], max_step_px=5.0)[0].tolist() == [-1, -1]
