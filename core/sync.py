@@ -381,6 +381,7 @@ def _link_flat(
     prv = np.full(len(pts), -1, dtype=np.intp)
     fast_ok = max_step_px < 1e6  # gated costs far below the 1e9 of excluded pairs
     todo = np.flatnonzero(n_pairs)
+    first = True
     while todo.size:
         sel, sel_fp = _segment_indices(pair_start[todo], n_pairs[todo])
         a, b = ia[sel], ib[sel]
@@ -398,11 +399,23 @@ def _link_flat(
         clash[sel_fp[many[a] | many[b]]] = True
         if not fast_ok:
             clash[:] = True
+        # In the first round the predecessors are not known yet: a clashing
+        # pair whose first frame may have predecessors only gets a guess
+        # (mutual nearest candidates) and is solved in the next round.
+        guess = clash & first & (todo > 0) & (counts[np.maximum(todo - 1, 0)] > 0)
         nxt[np.flatnonzero(np.isin(frame_of, todo))] = -1
         simple = ~clash[sel_fp] & valid
         nxt[a[simple]] = b[simple]
+        if np.any(guess):
+            cand = np.flatnonzero(guess[sel_fp] & valid)
+            by_a = cand[np.lexsort((d[cand], a[cand]))]
+            by_b = cand[np.lexsort((d[cand], b[cand]))]
+            best_a = by_a[np.r_[True, a[by_a][1:] != a[by_a][:-1]]]
+            best_b = by_b[np.r_[True, b[by_b][1:] != b[by_b][:-1]]]
+            mutual = np.intersect1d(best_a, best_b)
+            nxt[a[mutual]] = b[mutual]
         seg_start = np.cumsum(n_pairs[todo]) - n_pairs[todo]
-        for k in np.flatnonzero(clash):
+        for k in np.flatnonzero(clash & ~guess):
             j = todo[k]
             s0 = seg_start[k]
             dj = d[s0 : s0 + n_pairs[j]].reshape(counts[j], counts[j + 1])
@@ -413,8 +426,9 @@ def _link_flat(
         new_prv = np.full(len(pts), -1, dtype=np.intp)
         linked = nxt >= 0
         new_prv[nxt[linked]] = np.flatnonzero(linked)
-        changed = np.unique(frame_of[new_prv != prv])
+        changed = np.union1d(frame_of[new_prv != prv], todo[guess])
         prv = new_prv
+        first = False
         todo = changed[(changed < n - 1) & (n_pairs[np.minimum(changed, n - 2)] > 0)]
 
 
@@ -426,11 +440,24 @@ def points_at(
     Each detection of frame ``floor(t)`` linked to one in the next frame is
     interpolated with the cubic through its samples at ``j - 1 .. j + 2``
     (4-point Lagrange), or linearly when its track is shorter. Unlinked
-    detections are left out.
+    detections are left out. This is the per-detection formulation, for one
+    time; :func:`right_points_for_left_frames` and :func:`refine_offset`
+    compute the same for many times at once.
+
+    Parameters
+    ----------
+    points_px : sequence of ndarray, each (Ni, 2)
+        Detections per frame (px).
+    links : sequence of ndarray, each (Ni,)
+        Successor indices per frame (:func:`link_points`).
+    t_frames : float
+        Frame time (frames).
 
     Returns
     -------
     ndarray, shape (M, 2)
+        Interpolated detections (px); all detections of frame ``t`` when it is
+        a whole frame, none outside the video.
     """
     n = len(points_px)
     j = int(np.floor(t_frames))
@@ -584,9 +611,32 @@ def refine_offset(
 ) -> SyncEstimate:
     """Sub-frame refinement: the epipolar cost at fractional offsets around the whole one.
 
-    The right detections are interpolated in time (:func:`points_at`) at
-    ``K + f`` for ``f`` in ``[-0.5, 0.5]`` (``steps`` intervals); the minimum
-    is refined with a parabola through its neighbours.
+    The right detections are interpolated in time (:func:`points_at`, all
+    fractions and frames at once) at ``K + f`` for ``f`` in ``[-0.5, 0.5]``
+    (``steps`` intervals); the minimum is refined with a parabola through its
+    neighbours.
+
+    Parameters
+    ----------
+    rig : StereoRig
+    left_points_norm : sequence of array_like, each (Ni, 2)
+        Undistorted normalized left detections per frame.
+    right_px : sequence of ndarray, each (Mj, 2)
+        Right detections per frame (px, as detected; undistorted after interpolation).
+    estimate : SyncEstimate
+        The whole-frame estimate (:func:`estimate_offset`).
+    max_step_px : float
+        2D linking gate (px), see :func:`link_points`.
+    gate_px : float
+        Epipolar distances are truncated at this value (px).
+    steps : int
+        Number of intervals over the fraction range ``[-0.5, 0.5]`` (frames).
+
+    Returns
+    -------
+    SyncEstimate
+        ``estimate`` with ``offset_subframe`` refined (frames); ``estimate``
+        itself when no fraction could be scored.
     """
     if not np.any(np.isfinite(estimate.costs)):
         return estimate
