@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -120,6 +121,28 @@ class FramePairs:
         return int(self.frame.shape[0])
 
 
+def _points_2d(frame: ArrayLike) -> FloatArray:
+    a = np.asarray(frame, dtype=np.float64)
+    if a.size == 0:
+        return a.reshape(0, 2)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"each frame's points must have shape (n, 2), got {a.shape}")
+    return a
+
+
+def concatenate_frames(frames: Sequence[ArrayLike]) -> tuple[FloatArray, IntArray]:
+    """The points ``(n_i, 2)`` of all frames in one ``(sum n_i, 2)`` array, and each ``n_i``."""
+    parts: list[NDArray[Any]]
+    if all(isinstance(f, np.ndarray) and f.ndim == 2 and f.shape[1] == 2 for f in frames):
+        parts = cast("list[NDArray[Any]]", list(frames))  # the usual case: no conversion
+    else:
+        parts = [_points_2d(f) for f in frames]
+    counts = np.array([len(f) for f in parts], dtype=np.intp)
+    if not parts:
+        return np.zeros((0, 2)), counts
+    return np.concatenate(parts, axis=0).astype(np.float64, copy=False), counts
+
+
 def frame_pairs_epipolar_px(
     rig: StereoRig,
     left_norm: Sequence[ArrayLike],
@@ -146,11 +169,9 @@ def frame_pairs_epipolar_px(
     -------
     FramePairs
     """
-    left = [np.asarray(f, dtype=np.float64).reshape(-1, 2) for f in left_norm]
-    right = [np.asarray(f, dtype=np.float64).reshape(-1, 2) for f in right_norm]
-    n_left, n_right = len(left), len(right)
-    left_counts = np.array([len(f) for f in left], dtype=np.intp)
-    right_counts = np.array([len(f) for f in right], dtype=np.intp)
+    left_flat, left_counts = concatenate_frames(left_norm)
+    right_flat, right_counts = concatenate_frames(right_norm)
+    n_left, n_right = len(left_counts), len(right_counts)
     left_start = np.concatenate([[0], np.cumsum(left_counts)]).astype(np.intp)
     right_start = np.concatenate([[0], np.cumsum(right_counts)]).astype(np.intp)
     # Right frame paired with each left frame, and its detection count (0 when none).
@@ -171,8 +192,8 @@ def frame_pairs_epipolar_px(
     if total == 0:
         return FramePairs(frame, li, ri, left_row, right_row, np.zeros(0))
     E = rig.essential_matrix
-    hl = _homogeneous(np.concatenate(left, axis=0))  # all left detections (NL, 3)
-    hr = _homogeneous(np.concatenate(right, axis=0))  # all right detections (NR, 3)
+    hl = _homogeneous(left_flat)  # all left detections (NL, 3)
+    hr = _homogeneous(right_flat)  # all right detections (NR, 3)
     lines_in_right = hl @ E.T  # (NL, 3): E x_left
     lines_in_left = hr @ E  # (NR, 3): E^T x_right
     norm_right = np.linalg.norm(lines_in_right[:, :2], axis=1)

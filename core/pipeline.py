@@ -61,7 +61,7 @@ from core.markers import (  # the per-camera search lives with the detector (lig
 from core.markers import (
     _video_detection_main as _video_detection_main,
 )
-from core.matching import frame_pairs_epipolar_px
+from core.matching import concatenate_frames, frame_pairs_epipolar_px
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
 from core.metrics import compute_metrics
@@ -372,11 +372,11 @@ def _observations(
     li_arr = pairs.left_index[gated]
     ri_arr = pairs.right_index[gated]
     if len(frames):
-        left_flat = np.concatenate([np.reshape(f, (-1, 2)) for f in left_px], axis=0)
-        right_flat = np.concatenate([np.reshape(f, (-1, 2)) for f in right_px], axis=0)
-        if int(pairs.left_row.max(initial=-1)) >= len(left_flat) or int(
-            pairs.right_row.max(initial=-1)
-        ) >= len(right_flat):
+        left_flat, left_counts = concatenate_frames(left_px)
+        right_flat, right_counts = concatenate_frames(right_px)
+        if left_counts.tolist() != [len(f) for f in left_norm] or right_counts.tolist() != [
+            len(f) for f in right_norm
+        ]:
             raise ValueError("the normalized points do not match the pixel points frame by frame")
         tri = triangulate(rig, left_flat[pairs.left_row[gated]], right_flat[pairs.right_row[gated]])
         ok = tri.valid & (tri.reprojection_px <= MAX_CANDIDATE_REPROJECTION_PX)

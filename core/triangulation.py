@@ -239,10 +239,11 @@ def _refine(
     """Gauss–Newton with Levenberg damping on the distorted reprojection error, per point.
 
     The Jacobian is a forward difference with a step relative to the distance
-    from the origin. ``J^T J`` and ``J^T r`` are written out (the sums in the
-    order ``einsum`` takes them), the rest is plain array arithmetic on
-    ``(n,)`` columns; all points iterate until every accepted step is below
-    ``tol_mm``.
+    from the origin; all points iterate until every accepted step is below
+    ``tol_mm``. The sums (``J^T J``, ``J^T r``, the trace, the cost) are
+    written out on ``(n,)`` columns in the order ``einsum``, ``np.trace`` and
+    ``np.sum`` take them, so the points are bit for bit those of the first
+    formulation with those calls (a test keeps it so).
     """
     n = len(x)
     obs = (left[:, 0], left[:, 1], right[:, 0], right[:, 1])
@@ -250,11 +251,8 @@ def _refine(
     step_mm = 1e-4 * np.maximum(1.0, np.linalg.norm(x, axis=1))  # relative difference step
     offsets = step_mm[:, None] * np.eye(3)[:, None, :]  # (3, n, 3): step along each axis
     stacked = np.empty((4, n, 3))
-    JtJ = np.empty((n, 3, 3))
+    damped = np.empty((n, 3, 3))
     Jtr = np.empty((n, 3))
-    r = np.empty((n, 4))
-    r_new = np.empty((n, 4))
-    eye = np.eye(3)
     for _ in range(max_iter):
         stacked[0] = x
         np.add(x, offsets, out=stacked[1:])
@@ -262,26 +260,34 @@ def _refine(
         # proj[c]: (4, n) pixel coordinate c (left u, left v, right u, right v) of x and x + steps
         proj = [p.reshape(4, n) for cam in project for p in cam(flat)]
         J = [[(pc[k + 1] - pc[0]) / step_mm for k in range(3)] for pc in proj]  # J[c][k]: (n,)
-        for c in range(4):
-            np.subtract(proj[c][0], obs[c], out=r[:, c])
+        r = [pc[0] - o for pc, o in zip(proj, obs, strict=True)]
+        # J^T J, its trace and J^T r, summed in the order einsum and np.trace take.
+        JtJ = {}
         for j in range(3):
             for k in range(j, 3):
-                JtJ[:, j, k] = J[0][j] * J[0][k] + J[1][j] * J[1][k] + J[2][j] * J[2][k]
-                JtJ[:, j, k] += J[3][j] * J[3][k]
-                JtJ[:, k, j] = JtJ[:, j, k]
-            Jtr[:, j] = J[0][j] * r[:, 0] + J[1][j] * r[:, 1] + J[2][j] * r[:, 2]
-            Jtr[:, j] += J[3][j] * r[:, 3]
-        JtJ_damped = JtJ + lam[:, None, None] * eye * np.trace(JtJ, axis1=1, axis2=2)[:, None, None]
-        delta = -np.linalg.solve(JtJ_damped, Jtr[:, :, None])[:, :, 0]
+                JtJ[j, k] = (
+                    J[0][j] * J[0][k] + J[1][j] * J[1][k] + J[2][j] * J[2][k] + J[3][j] * J[3][k]
+                )
+            Jtr[:, j] = J[0][j] * r[0] + J[1][j] * r[1] + J[2][j] * r[2] + J[3][j] * r[3]
+        trace = JtJ[0, 0] + JtJ[1, 1] + JtJ[2, 2]
+        # Levenberg: J^T J + lam * I * trace, element by element (off the diagonal 0 * trace).
+        on_diagonal = lam * trace
+        off_diagonal = lam * 0.0 * trace
+        for (j, k), value in JtJ.items():
+            damped[:, j, k] = value + (on_diagonal if j == k else off_diagonal)
+            damped[:, k, j] = damped[:, j, k]
+        delta = -np.linalg.solve(damped, Jtr[:, :, None])[:, :, 0]
         if not np.all(np.isfinite(delta)):
             delta = np.where(np.isfinite(delta), delta, 0.0)
         x_new = x + delta
-        for k in range(2):
-            u, v = project[k](x_new)
-            np.subtract(u, obs[2 * k], out=r_new[:, 2 * k])
-            np.subtract(v, obs[2 * k + 1], out=r_new[:, 2 * k + 1])
-        better = np.sum(r_new**2, axis=1) <= np.sum(r**2, axis=1)
-        better &= np.all(np.isfinite(r_new), axis=1)
+        r_new = [p - o for p, o in zip((*project[0](x_new), *project[1](x_new)), obs, strict=True)]
+        # The squared residual lengths, summed in np.sum's order.
+        cost = r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]
+        cost_new = r_new[0] * r_new[0] + r_new[1] * r_new[1] + r_new[2] * r_new[2]
+        cost_new += r_new[3] * r_new[3]
+        better = cost_new <= cost
+        for rc in r_new:
+            better &= np.isfinite(rc)
         x = np.where(better[:, None], x_new, x)
         lam = np.where(better, lam * 0.1, lam * 10.0)
         if np.all(np.abs(delta[better]) < tol_mm) if np.any(better) else True:

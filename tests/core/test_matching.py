@@ -9,6 +9,7 @@ import pytest
 from core.camera import Camera, ImageSize, StereoRig
 from core.matching import (
     candidate_pairs,
+    concatenate_frames,
     epipolar_distances_px,
     frame_pairs_epipolar_px,
     match_stereo,
@@ -149,3 +150,18 @@ def test_frame_pairs_without_pairs() -> None:
     assert len(frame_pairs_epipolar_px(rig, one, one, offset=5)) == 0
     assert len(frame_pairs_epipolar_px(rig, one, [])) == 0
     assert len(frame_pairs_epipolar_px(rig, one, one, offset=1)) == 2
+
+
+def test_concatenate_frames() -> None:
+    frames = [np.array([[1.0, 2.0], [3.0, 4.0]]), np.zeros((0, 2)), np.array([[5.0, 6.0]])]
+    flat, counts = concatenate_frames(frames)
+    np.testing.assert_array_equal(flat, [[1, 2], [3, 4], [5, 6]])
+    assert counts.tolist() == [2, 0, 1]
+    # Lists, integers and 1-D empty frames are converted.
+    flat2, counts2 = concatenate_frames([[[1, 2], [3, 4]], np.zeros(0), [(5, 6)]])
+    np.testing.assert_array_equal(flat2, flat)
+    assert flat2.dtype == np.float64 and counts2.tolist() == [2, 0, 1]
+    flat3, counts3 = concatenate_frames([])
+    assert flat3.shape == (0, 2) and counts3.shape == (0,)
+    with pytest.raises(ValueError):
+        concatenate_frames([np.zeros((2, 3))])
