@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -132,15 +131,19 @@ def _points_2d(frame: ArrayLike) -> FloatArray:
 
 def concatenate_frames(frames: Sequence[ArrayLike]) -> tuple[FloatArray, IntArray]:
     """The points ``(n_i, 2)`` of all frames in one ``(sum n_i, 2)`` array, and each ``n_i``."""
-    parts: list[NDArray[Any]]
-    if all(isinstance(f, np.ndarray) and f.ndim == 2 and f.shape[1] == 2 for f in frames):
-        parts = cast("list[NDArray[Any]]", list(frames))  # the usual case: no conversion
-    else:
-        parts = [_points_2d(f) for f in frames]
+    if not len(frames):
+        return np.zeros((0, 2)), np.zeros(0, np.intp)
+    try:  # the usual case, frames already (n_i, 2): one call, no per-frame conversion
+        flat = np.concatenate(frames, axis=0)
+    except ValueError:  # frames of different dimensions (an empty frame as shape (0,)): below
+        flat = np.zeros((0, 0))
+    if flat.ndim == 2 and flat.shape[1] == 2:
+        counts = np.array([len(f) for f in frames], dtype=np.intp)  # type: ignore[arg-type]
+        if int(counts.sum()) == len(flat):
+            return flat.astype(np.float64, copy=False), counts
+    parts = [_points_2d(f) for f in frames]  # raises for a frame that is not (n, 2)
     counts = np.array([len(f) for f in parts], dtype=np.intp)
-    if not parts:
-        return np.zeros((0, 2)), counts
-    return np.concatenate(parts, axis=0).astype(np.float64, copy=False), counts
+    return np.concatenate(parts, axis=0), counts
 
 
 def frame_pairs_epipolar_px(

@@ -174,11 +174,6 @@ class _Projector:
         return xd * self.fx + self.cx, yd * self.fy + self.cy
 
 
-def _depths_positive(cam: Camera, points_mm: FloatArray) -> NDArray[np.bool_]:
-    with np.errstate(invalid="ignore"):
-        return cam.to_camera(points_mm)[:, 2] > 0
-
-
 def triangulate(
     rig: StereoRig,
     left_px: ArrayLike,
@@ -213,10 +208,11 @@ def triangulate(
     points = triangulate_linear(
         rig, rig.left.undistort_points(left), rig.right.undistort_points(right)
     )
-    front = _depths_positive(rig.left, points) & _depths_positive(rig.right, points)
+    project = (_Projector(rig.left), _Projector(rig.right))
+    with np.errstate(invalid="ignore"):
+        front = (project[0]._to_camera(points)[2] > 0) & (project[1]._to_camera(points)[2] > 0)
     points[~front] = np.nan
     ok = np.all(np.isfinite(points), axis=1)
-    project = (_Projector(rig.left), _Projector(rig.right))
     if refine and np.any(ok):
         points[ok] = _refine(project, points[ok], left[ok], right[ok], max_iter, tol_mm)
     residuals = np.empty((len(points), 2, 2))
