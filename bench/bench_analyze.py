@@ -11,23 +11,21 @@ Prints, measured in the same run on the same files:
 - decode only: both videos decoded concurrently (one thread each, as analyze does);
 - analyze: ``core.pipeline.analyze_recording`` (detection, sync, triangulation,
   tracking, metrics), and its ratio to decoding (target <= 1.5); both also as
-  CPU time (this process and its worker processes), the steadier figure when
+  CPU time (of this process), the steadier figure when
   other jobs share the machine; ``--repeat`` alternating pairs of runs (default
   3) and their median ratio, since a shared machine's speed drifts;
 - peer: a plain OpenCV pipeline (fixed threshold, ``connectedComponentsWithStats``
   centroids, the two largest blobs sorted by image row, ``cv2.undistortPoints``,
   ``cv2.triangulatePoints``), its ratio to decoding, and both pipelines' 3D RMS
   error against the simulator's truth when a ``truth.json`` is there;
-- peak memory (max RSS of a fresh process running analyze, and of the larger
-  of its two detection workers) for the 5-s and the 10-s clip: it must not
-  grow with the length of the video.
+- peak memory (max RSS of a fresh process running analyze) for the 5-s and
+  the 10-s clip: it must not grow with the length of the video.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import subprocess
 import sys
@@ -115,12 +113,8 @@ def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
     return time.perf_counter() - t0, pts
 
 
-def analyze_in_child(d: Path) -> tuple[float, float, float]:
-    """Run analyze in a fresh process; (seconds, its peak RSS, largest worker's peak RSS) in MB.
-
-    Long videos are searched by one worker process per camera, so the memory
-    of an analysis is at most the first figure plus twice the second.
-    """
+def analyze_in_child(d: Path) -> tuple[float, float]:
+    """Run analyze in a fresh process; (seconds, its peak RSS in MB)."""
     code = (
         f"import sys, time; sys.path.insert(0, {str(ROOT)!r})\n"
         "from pathlib import Path\n"
@@ -130,22 +124,18 @@ def analyze_in_child(d: Path) -> tuple[float, float, float]:
         "left = sorted(d.glob('left.*'))[0]; right = sorted(d.glob('right.*'))[0]\n"
         "t = time.perf_counter()\n"
         "analyze_recording(read_rig(d / 'rig.json'), left, right)\n"
+        "t = time.perf_counter() - t\n"
         "import resource\n"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,"
-        " resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
-        "print(time.perf_counter() - t)\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+        "print(t)\n"
     )
-    proc = subprocess.Popen(
+    proc = subprocess.run(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
     )
-    out = proc.stdout.read() if proc.stdout else ""
-    _, status, _usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise SystemExit(f"analyze failed on {d}")
-    lines = out.strip().splitlines()
-    rss_self_kb, rss_worker_kb = (float(v) for v in lines[-2].split())
-    return float(lines[-1]), rss_self_kb / 1024.0, rss_worker_kb / 1024.0
+    lines = proc.stdout.strip().splitlines()
+    return float(lines[-1]), float(lines[-2]) / 1024.0
 
 
 def accuracy(d: Path, positions_mm: np.ndarray) -> float | None:
@@ -159,10 +149,9 @@ def accuracy(d: Path, positions_mm: np.ndarray) -> float | None:
 
 
 def _cpu_s() -> float:
-    """CPU time (s) of this process and its finished children (analyze's detection workers)."""
+    """CPU time (s) of this process, all threads."""
     me = resource.getrusage(resource.RUSAGE_SELF)
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+    return me.ru_utime + me.ru_stime
 
 
 def bench(d: Path, repeat: int) -> None:
@@ -226,11 +215,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.dir is not None:
         bench(args.dir, args.repeat)
-        t, rss, rss_w = analyze_in_child(args.dir)
-        print(
-            f"  peak RSS of a fresh analyze process: {rss:.0f} MB, largest worker {rss_w:.0f} MB"
-            f" ({t:.1f} s)"
-        )
+        t, rss = analyze_in_child(args.dir)
+        print(f"  peak RSS of a fresh analyze process: {rss:.0f} MB ({t:.1f} s)")
         return
     with tempfile.TemporaryDirectory() as tmp:
         base = args.keep if args.keep is not None else Path(tmp)
@@ -243,11 +229,8 @@ def main() -> None:
             dirs[seconds] = d
         bench(dirs[10.0], args.repeat)
         for seconds, d in dirs.items():
-            t, rss, rss_w = analyze_in_child(d)
-            print(
-                f"  peak RSS of analyze, {seconds:4.0f}-s clip: {rss:6.0f} MB,"
-                f" largest worker {rss_w:5.0f} MB ({t:.1f} s)"
-            )
+            t, rss = analyze_in_child(d)
+            print(f"  peak RSS of analyze, {seconds:4.0f}-s clip: {rss:6.0f} MB ({t:.1f} s)")
 
 
 if __name__ == "__main__":

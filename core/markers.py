@@ -558,7 +558,7 @@ def _disc_fit(
     Levenberg-Marquardt on ``(cx, cy, R, s, A, B)`` started from the
     centroid; a motion streak is not a disc, but the fit stays symmetric.
     """
-    from scipy.special import ndtr  # here: a detection worker process need not import scipy
+    from scipy.special import ndtr  # here: only this optional estimator needs scipy
 
     ys, xs = np.nonzero(support)
     z = sub[ys, xs]
@@ -609,7 +609,7 @@ def _disc_fit(
 
 
 # ------------------------------------------------------------ search along a video
-# Used by core.pipeline (one instance per camera, in a thread or a worker process).
+# Used by core.pipeline (one instance per camera, each in its own thread).
 
 #: A full-frame marker search at least this often (frames), to pick up new markers.
 FULL_SEARCH_EVERY = 10
@@ -733,75 +733,3 @@ class _CameraDetections:
             self._diam = 0.9 * self._diam + 0.1 * _median(diam)
         self.frames.append(xy)
         self._prev2, self._prev = self._prev, xy
-
-
-def _video_detection_worker(
-    path: str, expected_count: int, params: MarkerParams | None, send: Callable[[Any], None]
-) -> None:
-    """Decode one video and search it frame by frame, as one camera's worker process.
-
-    Sends ``("progress", frames_done)`` every 50 frames and finally ``("done",
-    xy_px (M, 2), counts (T,), n_full)``: only the small per-frame detections
-    leave the worker, never a frame.  Any exception is sent as ``("error",
-    exception)`` (the original one when it pickles, else a ``RuntimeError``
-    with its type and message).  Stops by itself when the parent is gone.
-    """
-    import os
-    import pickle
-
-    from core.video import iter_frames
-
-    parent = os.getppid()
-    try:
-        state = _CameraDetections(_default_detector(params))
-        for i, image in enumerate(iter_frames(path, gray=True, expected_count=expected_count)):
-            state.process(image)
-            if i % 50 == 49:
-                if os.getppid() != parent:  # orphaned: nobody wants the result
-                    return
-                send(("progress", i + 1))
-        counts = np.array([len(f) for f in state.frames], dtype=np.int64)
-        flat = np.concatenate(state.frames) if state.frames else np.zeros((0, 2))
-        send(("done", flat, counts, state.n_full))
-    except BaseException as exc:
-        payload: BaseException
-        try:
-            payload = pickle.loads(pickle.dumps(exc))
-        except Exception:
-            payload = RuntimeError(f"{type(exc).__name__}: {exc}")
-        try:
-            send(("error", payload))
-        except OSError:  # the parent is gone
-            pass
-
-
-def _video_detection_main() -> None:
-    """Body of a worker process started by ``core.pipeline`` (``python -c``).
-
-    Reads ``(path, expected_count, params)`` pickled on stdin and writes the
-    pickled messages of :func:`_video_detection_worker` to stdout; anything
-    else that would be printed goes to stderr, so the message stream stays
-    clean.  A plain interpreter, not ``multiprocessing``: the caller's main
-    module is never re-imported, and only this module and ``core.video`` are
-    (~0.2 s, no scipy).
-    """
-    import os
-    import pickle
-    import sys
-
-    out = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
-    sys.stdout = sys.stderr
-    path, expected_count, params = pickle.load(sys.stdin.buffer)
-
-    def send(msg: Any) -> None:
-        pickle.dump(msg, out, protocol=pickle.HIGHEST_PROTOCOL)
-        out.flush()
-
-    try:
-        _video_detection_worker(path, expected_count, params, send)
-    finally:
-        try:
-            out.close()
-        except OSError:
-            pass

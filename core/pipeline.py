@@ -5,11 +5,10 @@ Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
 1. **Videos** (:mod:`core.video`): both are probed and checked against each
    other and the rig before any work.
 2. **Detection** (:mod:`core.markers`): both videos are decoded and searched
-   for markers at the same time: one worker process per camera for videos of
-   at least ``PROCESS_MIN_FRAMES`` frames (no shared GIL; the worker decodes
-   its video itself and sends back only the detections), else one thread per
-   camera. Only the few detections of each frame are kept: memory does not grow with the length of the video beyond a few
-   numbers per frame. After a full-frame search, each frame is only searched
+   for markers at the same time, one thread per camera (decoding and the
+   compiled marker search release the GIL, so the two cameras run on two
+   cores). Only the few detections of each frame are kept: memory does not
+   grow with the length of the video beyond a few numbers per frame. After a full-frame search, each frame is only searched
    around the positions predicted from the previous frames; a full-frame
    search is repeated every ``FULL_SEARCH_EVERY`` frames and whenever fewer
    markers are found than the last full searches typically saw (so a marker
@@ -36,7 +35,6 @@ import csv
 import io
 import json
 import math
-import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,9 +56,6 @@ from core.markers import (  # the per-camera search lives with the detector (lig
     _CameraDetections,
     _default_detector,
 )
-from core.markers import (
-    _video_detection_main as _video_detection_main,
-)
 from core.matching import concatenate_frames, frame_pairs_epipolar_px
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
@@ -81,9 +76,6 @@ FloatArray = NDArray[np.float64]
 RESULT_FORMAT = "bradyscope.result/1"
 CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "reprojection_px")
 
-#: Videos of at least this many frames are searched by one worker process per camera
-#: (no shared GIL); shorter ones by one thread per camera (starting a worker costs ~0.3 s).
-PROCESS_MIN_FRAMES = 300
 #: Pairs farther from the epipolar constraint are not stereo candidates (px).
 MAX_EPIPOLAR_PX = 3.0
 #: Stereo candidates with a larger reprojection error are dropped (px).
@@ -191,21 +183,15 @@ def _detect_videos(
     progress: ProgressCallback | None,
     *,
     marker_params: Any | None = None,
-    use_processes: bool | None = None,
 ) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
     """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays.
 
     ``detect`` None means ``core.markers.detect_markers`` with ``marker_params``.
-    ``use_processes`` None: one worker process per camera for the default
-    detector and videos of at least ``PROCESS_MIN_FRAMES`` frames, else one
-    thread per camera (a custom detector need not be picklable).
+    One thread per camera: decoding and the compiled search release the GIL,
+    so the two cameras use two cores without a worker process each (which
+    cost ~0.3 s of CPU to start and ~190 MB of memory; a custom ``detect``
+    written in Python shares the GIL).
     """
-    if use_processes is None:
-        use_processes = (
-            detect is None and min(expected_counts) >= PROCESS_MIN_FRAMES and bool(sys.executable)
-        )
-    if use_processes:
-        return _detect_videos_in_processes(paths, expected_counts, marker_params, progress)
     from core.video import iter_frames
 
     detector = detect if detect is not None else _default_detector(marker_params)
@@ -238,108 +224,6 @@ def _detect_videos(
         raise errors[0]
     info = {"full_searches_left": states[0].n_full, "full_searches_right": states[1].n_full}
     return states[0].frames, states[1].frames, info
-
-
-_WORKER_CODE = "from core.markers import _video_detection_main; _video_detection_main()"
-
-
-def _detect_videos_in_processes(
-    paths: tuple[Path, Path],
-    expected_counts: tuple[int, int],
-    marker_params: Any | None,
-    progress: ProgressCallback | None,
-) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
-    """:func:`_detect_videos` with one worker process per camera (no shared GIL).
-
-    Each worker (``core.markers._video_detection_main``, a plain ``python -c``
-    interpreter: the caller's main module is not re-imported) decodes its
-    video itself and sends back only the per-frame detections, pickled over
-    its stdout.  An exception in a worker is re-raised here with its original
-    type and message; on any error or interrupt both workers are killed and
-    waited for, so none outlives the call (a worker whose parent disappears
-    stops by itself).
-    """
-    import os
-    import pickle
-    import queue
-    import subprocess
-    import sys
-
-    import core
-
-    env = dict(os.environ)
-    root = str(Path(next(iter(core.__path__))).resolve().parent)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-    messages: queue.Queue[tuple[int, Any]] = queue.Queue()
-    procs: list[subprocess.Popen[bytes]] = []
-
-    def read(k: int, stream: Any) -> None:
-        try:
-            while True:
-                msg = pickle.load(stream)
-                messages.put((k, msg))
-                if msg[0] != "progress":
-                    return
-        except Exception:  # EOF or a broken stream: the worker is gone
-            messages.put((k, None))
-
-    results: list[tuple[FloatArray, NDArray[np.int64], int] | None] = [None, None]
-    done = [0, 0]
-    total = int(sum(expected_counts))
-    try:
-        for k in (0, 1):
-            proc = subprocess.Popen(
-                [sys.executable, "-c", _WORKER_CODE],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                env=env,
-            )
-            procs.append(proc)
-            assert proc.stdin is not None
-            proc.stdin.write(pickle.dumps((str(paths[k]), int(expected_counts[k]), marker_params)))
-            proc.stdin.close()
-            threading.Thread(
-                target=read, args=(k, proc.stdout), name=f"detect-reader-{k}", daemon=True
-            ).start()
-        report(progress, "detection", 0, total)
-        pending = {0, 1}
-        while pending:
-            try:
-                k, msg = messages.get(timeout=0.25)
-            except queue.Empty:
-                continue
-            if msg is None:
-                code = procs[k].wait(timeout=5.0)
-                raise RuntimeError(
-                    f"marker detection in the {('left', 'right')[k]} video stopped unexpectedly"
-                    f" (worker exit code {code})"
-                )
-            if msg[0] == "progress":
-                done[k] = int(msg[1])
-            elif msg[0] == "done":
-                results[k] = (msg[1], msg[2], int(msg[3]))
-                done[k] = len(msg[2])
-                pending.discard(k)
-            else:
-                raise msg[1]
-            report(progress, "detection", min(total, sum(done)), total)
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-        for proc in procs:
-            proc.wait()
-            if proc.stdout is not None:
-                proc.stdout.close()
-    frames: list[list[FloatArray]] = []
-    n_full: list[int] = []
-    for res in results:
-        assert res is not None
-        flat, counts, n = res
-        frames.append(list(np.split(flat, np.cumsum(counts)[:-1])) if len(counts) else [])
-        n_full.append(n)
-    info = {"full_searches_left": n_full[0], "full_searches_right": n_full[1]}
-    return frames[0], frames[1], info
 
 
 def _undistort_all(cam: Any, frames: list[FloatArray]) -> list[FloatArray]:

@@ -396,59 +396,45 @@ def small_session(tmp_path_factory: pytest.TempPathFactory) -> SimulatedSession:
     )
 
 
-def _worker_processes() -> list[int]:
-    """Pids of live detection workers whose parent is this process (Linux /proc)."""
-    import os
+def _live_detection_threads() -> list[str]:
+    import threading
 
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes()
-        except OSError:
-            continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        if ppid == os.getpid() and b"_video_detection_main" in cmdline:
-            pids.append(int(entry.name))
-    return pids
+    return [t.name for t in threading.enumerate() if t.name.startswith(("detect-", "decode-"))]
 
 
-def test_worker_processes_give_the_threads_detections(small_session: SimulatedSession) -> None:
-    """One process per camera returns exactly what the two threads return."""
+def test_concurrent_cameras_give_the_one_at_a_time_detections(
+    small_session: SimulatedSession,
+) -> None:
+    """The two camera threads (compiled search without the GIL, at the same time)
+    return exactly what searching one camera after the other returns."""
+    from core.markers import _CameraDetections, _default_detector
     from core.pipeline import _detect_videos
-    from core.video import probe_video
+    from core.video import iter_frames, probe_video
 
     info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
     paths = (info[0].path, info[1].path)
     counts = (info[0].frame_count, info[1].frame_count)
     stages: list[tuple[int, int]] = []
-    by_proc = _detect_videos(
-        paths, counts, None, lambda s, d, t: stages.append((d, t)), use_processes=True
-    )
-    by_thread = _detect_videos(paths, counts, None, None, use_processes=False)
-    for frames_p, frames_t in zip(by_proc[:2], by_thread[:2], strict=True):
-        assert len(frames_p) == len(frames_t) == counts[0]
-        assert all(np.array_equal(a, b) for a, b in zip(frames_p, frames_t, strict=True))
-    assert by_proc[2] == by_thread[2]
+    together = _detect_videos(paths, counts, None, lambda s, d, t: stages.append((d, t)))
+    for k in (0, 1):
+        alone = _CameraDetections(_default_detector(None))
+        for image in iter_frames(paths[k], gray=True):
+            alone.process(image)
+        assert len(together[k]) == len(alone.frames) == counts[k]
+        assert all(np.array_equal(a, b) for a, b in zip(together[k], alone.frames, strict=True))
+        assert sum(len(f) for f in alone.frames) >= 2 * counts[k]  # the markers were found
     assert stages[-1] == (sum(counts), sum(counts))  # progress reaches the end
-    if Path("/proc/self").exists():
-        assert _worker_processes() == []
+    assert _live_detection_threads() == []
 
 
-def test_worker_error_is_reraised_with_its_message(small_session: SimulatedSession) -> None:
-    """A truncated video: the same one-sentence InputError as in threads, no worker left."""
+def test_detection_error_stops_both_cameras(small_session: SimulatedSession) -> None:
+    """A truncated video: one-sentence InputError, and no decoder or search thread left."""
     from core.pipeline import _detect_videos
     from core.video import probe_video
 
     info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
     paths = (info[0].path, info[1].path)
     too_many = (info[0].frame_count + 40, info[1].frame_count)  # the left one looks truncated
-    with pytest.raises(InputError) as in_thread:
-        _detect_videos(paths, too_many, None, None, use_processes=False)
-    with pytest.raises(InputError) as in_process:
-        _detect_videos(paths, too_many, None, None, use_processes=True)
-    assert str(in_process.value) == str(in_thread.value)
-    if Path("/proc/self").exists():
-        assert _worker_processes() == []
+    with pytest.raises(InputError, match="truncated"):
+        _detect_videos(paths, too_many, None, None)
+    assert _live_detection_threads() == []
