@@ -308,6 +308,18 @@ def detect_markers(
             )
         background = np.ascontiguousarray(background)
 
+    return _to_detections(_detected_rows(image, params, search_xy_px, radius_px, background))
+
+
+def _detected_rows(
+    image: NDArray[np.uint8],
+    params: MarkerParams,
+    search_xy_px: NDArray[Any] | None,
+    radius_px: float,
+    background: NDArray[np.uint8] | None,
+) -> FloatArray:
+    """:func:`detect_markers` on checked arguments: the rows of the accepted blobs
+    (columns in ``_blobs.COLUMNS``), without building a :class:`MarkerDetections`."""
     pts = np.zeros((0, 2))
     point_region = np.zeros(0, dtype=np.int32)
     if search_xy_px is None:
@@ -325,7 +337,7 @@ def detect_markers(
         bg, sigma = _blobs.background_and_noise(image, 16) if len(regions) else (0.0, 0.0)
         thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
     if len(regions) == 0:
-        return MarkerDetections.empty()
+        return np.zeros((0, len(_blobs.COLUMNS)))
     want_support = params.centre_method != "centroid" or background is not None
     rows, supports = _blobs.search(
         image,
@@ -344,7 +356,7 @@ def detect_markers(
     )
     if supports is not None:
         _recentre(rows, supports, image, params, background)
-    return _to_detections(rows[_blobs.select(rows, pts, point_region, radius_px**2)])
+    return rows[_blobs.select(rows, pts, point_region, radius_px**2)]
 
 
 def estimate_background(
@@ -637,9 +649,11 @@ def _default_detector(params: Any | None) -> Detector:
     def detect(
         image: NDArray[np.uint8], search_xy_px: FloatArray | None, radius_px: float | None
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        d = detect_markers(image, params=p, search_xy_px=search_xy_px, search_radius_px=radius_px)
-        q = d.quality if len(d.quality) == len(d) else d.peak
-        return d.xy_px, d.diameter_px, q
+        # frames from core.video are C-contiguous uint8 (H, W): detect_markers' checks
+        # and its MarkerDetections are skipped (~40 us per frame)
+        r = float(p.search_radius_px if radius_px is None else radius_px)
+        rows = _detected_rows(image, p, search_xy_px, r, None)
+        return rows[:, _X : _Y + 1].copy(), rows[:, _DIAM].copy(), rows[:, _QUAL].copy()
 
     return detect
 
@@ -684,22 +698,33 @@ class _CameraDetections:
         return (counts[(n - 1) // 2] + counts[n // 2]) // 2  # floor of the median
 
     def _predict(self) -> tuple[FloatArray | None, float]:
+        # Plain Python floats: 2-10 detections, where numpy's per-call cost dominates.
+        # The same float64 operations as the vectorised form (distances as
+        # sqrt(dx*dx + dy*dy), the first nearest neighbour on ties).
         prev = self._prev
         if prev is None or len(prev) == 0:
             return None, 0.0
-        pred = prev.copy()
-        step = np.zeros(len(prev))
-        if self._prev2 is not None and len(self._prev2):
-            d = np.linalg.norm(prev[:, None, :] - self._prev2[None, :, :], axis=2)
-            j = np.argmin(d, axis=1)
-            near = d[np.arange(len(prev)), j] < 4 * self._diam + 40.0
-            vel = np.where(near[:, None], prev - self._prev2[j], 0.0)
+        prev_l = prev.tolist()
+        prev2_l = self._prev2.tolist() if self._prev2 is not None else []
+        if not prev2_l:
+            return prev.copy(), 1.5 * self._diam + 12.0
+        gate = 4 * self._diam + 40.0
+        pred = []
+        step_max = 0.0
+        for x, y in prev_l:
+            best, bx, by = math.inf, 0.0, 0.0
+            for x2, y2 in prev2_l:
+                dx, dy = x - x2, y - y2
+                d = math.sqrt(dx * dx + dy * dy)
+                if d < best:
+                    best, bx, by = d, dx, dy
+            if not best < gate:
+                bx = by = 0.0
             # Centre between "stays" and "moves on": right whether or not the
             # nearest-neighbour velocity belongs to this marker.
-            pred = prev + 0.5 * vel
-            step = np.linalg.norm(vel, axis=1)
-        radius = 1.5 * self._diam + 12.0 + 0.5 * float(step.max(initial=0.0))
-        return pred, radius
+            pred.append((x + 0.5 * bx, y + 0.5 * by))
+            step_max = max(step_max, math.sqrt(bx * bx + by * by))
+        return np.array(pred), 1.5 * self._diam + 12.0 + 0.5 * step_max
 
     def process(self, image: NDArray[np.uint8]) -> None:
         frame = len(self.frames)
