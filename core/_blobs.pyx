@@ -118,13 +118,14 @@ cdef inline int clampi(int v, int lo, int hi) noexcept nogil:
     return lo if v < lo else (hi if v > hi else v)
 
 
-cdef void smooth(const Frame* f, int x0, int y0, int x1, int y1, float* out, int* colsum) noexcept nogil:
+cdef int smooth(const Frame* f, int x0, int y0, int x1, int y1, float* out, int* colsum) noexcept nogil:
     """3x3 mean of the image over [x0, x1) x [y0, y1), replicated at the image border.
 
     ``colsum`` holds ``x1 - x0 + 2`` ints.  Simple loops, which the compiler
-    vectorises.
+    vectorises.  Returns the largest 3x3 sum (the largest mean is that times
+    ``NINTH`` in float32, since the rounding is monotonic).
     """
-    cdef int W = f.W, H = f.H, x, y, w = x1 - x0
+    cdef int W = f.W, H = f.H, x, y, w = x1 - x0, s, smax = 0
     cdef int left = x0 - 1 if x0 > 0 else 0
     cdef int right = x1 if x1 < W else W - 1
     cdef const unsigned char* ra
@@ -141,7 +142,10 @@ cdef void smooth(const Frame* f, int x0, int y0, int x1, int y1, float* out, int
             colsum[x + 1] = ra[x0 + x] + rb[x0 + x] + rc[x0 + x]
         o = out + (y - y0) * w
         for x in range(w):
-            o[x] = <float>(colsum[x] + colsum[x + 1] + colsum[x + 2]) * NINTH
+            s = colsum[x] + colsum[x + 1] + colsum[x + 2]
+            smax = s if s > smax else smax
+            o[x] = <float>s * NINTH
+    return smax
 
 
 cdef int kth(const int* hist, int k) noexcept nogil:
@@ -651,10 +655,7 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
     cdef unsigned char t
     cdef const Core* cores
     try:
-        smooth(f, x0, y0, x1, y1, sm, colsum)
-        for i in range(<int>npx):
-            if sm[i] > vmax:
-                vmax = sm[i]
+        vmax = <float>smooth(f, x0, y0, x1, y1, sm, colsum) * NINTH
         if <double>vmax <= thr:  # no seed (most full-frame regions: a noise pixel above thr)
             return 0
         seeds = <Seed*>malloc(npx * sizeof(Seed))
