@@ -415,7 +415,11 @@ def _full_frame_regions(
     the pooled components' outer contours, ``_MARGIN_PX + 3`` px larger.
     """
     h, w = image.shape
-    pooled = _blobs.pool_mask(image, min(math.floor(thr), 254), _POOL)
+    return _pooled_regions(_blobs.pool_mask(image, min(math.floor(thr), 254), _POOL), h, w)
+
+
+def _pooled_regions(pooled: NDArray[np.uint8], h: int, w: int) -> list[tuple[int, int, int, int]]:
+    """Regions of an ``(H, W)`` image around the outer contours of its pooled mask."""
     contours, _ = cv2.findContours(pooled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     pad = _MARGIN_PX + 3
     regions = []

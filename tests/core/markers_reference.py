@@ -27,6 +27,7 @@ from core.markers import (
     MarkerDetections,
     MarkerParams,
     _centroid,
+    _pooled_regions,
     _ring_radius,
 )
 
@@ -164,16 +165,7 @@ def _full_frame_regions(
     # of its pixels is set (255 / 4 rounds to 64, 64 / 4 to 16)
     half_size = cv2.resize(binary, (wp * 2, hp * 2), interpolation=cv2.INTER_AREA)
     pooled = cv2.resize(half_size, (wp, hp), interpolation=cv2.INTER_AREA)
-    contours, _ = cv2.findContours(pooled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    pad = _MARGIN_PX + 3
-    regions = []
-    for contour in contours:
-        x, y, bw, bh = cv2.boundingRect(contour)
-        x0, y0 = max(0, x * _POOL - pad), max(0, y * _POOL - pad)
-        x1, y1 = min(w, (x + bw) * _POOL + pad), min(h, (y + bh) * _POOL + pad)
-        regions.append((x0, y0, x1, y1))
-    regions.sort(key=lambda r: (r[1], r[0]))  # raster order, independent of OpenCV's
-    return regions
+    return _pooled_regions(pooled, h, w)
 
 
 def _smooth(image: NDArray[np.uint8], x0: int, y0: int, x1: int, y1: int) -> NDArray[np.float32]:
