@@ -8,8 +8,9 @@ and numpy calls per blob.  The numbers are OpenCV's: the 3x3 mean in float32
 as ``cv2.boxFilter(CV_32F)`` gives it, comparisons against it in float32 as
 numpy makes them, ``cv2.moments`` formulas, the 5x5 elliptic structuring
 element, and exact Euclidean distances as ``cv2.distanceTransform(DIST_L2,
-DIST_MASK_PRECISE)``.
-``tests/core/test_markers.py`` checks the results against ground truth.
+DIST_MASK_PRECISE)``.  ``tests/core/test_markers.py`` checks the results
+against ground truth and, field by field, against the OpenCV formulation kept
+in ``tests/core/markers_reference.py``.
 """
 
 from libc.math cimport NAN, ceil, floor, sqrt

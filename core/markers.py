@@ -34,6 +34,11 @@ and measures each one:
    ``bench/bench_markers.py`` compares them; ``docs/markers.md`` has the
    figures behind the default.
 
+Steps 1-3 run compiled (``core/_blobs.pyx``, one call per frame, without the
+GIL), except the contours of step 1 (``cv2.findContours``) and the
+``radial``/``disc_fit`` estimators and static-background subtraction, which
+run here on the support the compiled search returns.
+
 Pixel coordinates are OpenCV's: ``(x, y) = (column, row)``, origin at the
 centre of the top-left pixel.
 """
@@ -62,7 +67,7 @@ FloatArray = NDArray[np.float64]
 CENTRE_METHODS = ("centroid", "radial", "disc_fit")
 
 _POOL = 4  # max-pooling factor of the full-frame candidate mask
-_MARGIN_PX = 3  # support of the centre estimators beyond the half-maximum core
+_MARGIN_PX = 3  # support of the centre beyond the half-maximum core (MARGIN_PX in _blobs.pyx)
 _MAX_SEEDS_PER_REGION = 64
 
 
