@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
+from rigs import verging_rig
 
-from core.camera import Camera, ImageSize, StereoRig
+from core.camera import Camera, StereoRig
 from core.matching import (
     candidate_pairs,
     concatenate_frames,
@@ -17,16 +17,7 @@ from core.matching import (
 
 
 def make_rig() -> StereoRig:
-    """A verging 1280x1024 rig, 160 mm baseline, converging at 500 mm, with distortion."""
-    size = ImageSize(1280, 1024)
-    K = np.array([[1800.0, 0, 645.0], [0, 1795.0, 508.0], [0, 0, 1]])
-    angle = np.arctan2(160.0, 500.0)
-    R = np.asarray(cv2.Rodrigues(np.array([0.01, -angle, 0.005]))[0], dtype=np.float64)
-    t = -R @ np.array([160.0, 2.0, 0.0])
-    return StereoRig(
-        Camera("left", size, K, np.array([-0.12, 0.08, 0.0005, -0.0003, -0.02])),
-        Camera("right", size, K, np.array([-0.10, 0.05, -0.0004, 0.0002, 0.0]), R, t),
-    )
+    return verging_rig()
 
 
 def test_true_pairs_have_zero_epipolar_distance() -> None:

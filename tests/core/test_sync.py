@@ -2,25 +2,17 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
+from rigs import verging_rig
 
-from core.camera import Camera, ImageSize, StereoRig
+from core.camera import StereoRig
 from core.simulation.kinematics import TappingScenario, simulate_tapping
 from core.sync import estimate_offset, given_offset
 
 
 def make_rig() -> StereoRig:
-    size = ImageSize(1280, 1024)
-    K = np.array([[1800.0, 0, 645.0], [0, 1795.0, 508.0], [0, 0, 1]])
-    angle = np.arctan2(160.0, 500.0)
-    R = np.asarray(cv2.Rodrigues(np.array([0.01, -angle, 0.005]))[0], dtype=np.float64)
-    t = -R @ np.array([160.0, 2.0, 0.0])
-    return StereoRig(
-        Camera("left", size, K, np.array([-0.12, 0.08, 0.0005, -0.0003, -0.02])),
-        Camera("right", size, K, np.array([-0.10, 0.05, -0.0004, 0.0002, 0.0]), R, t),
-    )
+    return verging_rig()
 
 
 RIG = make_rig()
