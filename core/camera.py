@@ -174,6 +174,9 @@ class Camera:
         Rotation from the world (left-camera) frame to this camera.
     t_cam_from_world_mm : ndarray, shape (3,)
         Translation in mm.
+    readout_ms : float
+        Rolling-shutter readout time from the top row to the bottom row (ms);
+        0 for a global shutter. A frame's time is that of its middle row.
     """
 
     name: str
@@ -182,6 +185,7 @@ class Camera:
     dist: FloatArray = field(default_factory=lambda: np.zeros(5))
     R_cam_from_world: FloatArray = field(default_factory=lambda: np.eye(3))
     t_cam_from_world_mm: FloatArray = field(default_factory=lambda: np.zeros(3))
+    readout_ms: float = 0.0
 
     def __post_init__(self) -> None:
         K = np.array(self.K, dtype=np.float64)
@@ -207,6 +211,9 @@ class Camera:
             raise ValueError(f"image_size must be positive (width, height), got {tuple(size)}")
         if not all(np.all(np.isfinite(a)) for a in (K, dist, R, t)):
             raise ValueError("camera parameters must be finite numbers")
+        if not 0 <= float(self.readout_ms) <= 1000:
+            raise ValueError(f"readout_ms must be in [0, 1000] ms, got {self.readout_ms}")
+        object.__setattr__(self, "readout_ms", float(self.readout_ms))
         for a in (K, dist, R, t):
             a.setflags(write=False)
         object.__setattr__(self, "K", K)
@@ -363,10 +370,14 @@ class StereoRig:
         """The same rig seen with left and right exchanged (world frame moves to the old right)."""
         R = self.right.R_cam_from_world
         t = self.right.t_cam_from_world_mm
-        new_left = Camera("left", self.right.image_size, self.right.K, self.right.dist)
+        new_left = Camera(
+            "left", self.right.image_size, self.right.K, self.right.dist,
+            readout_ms=self.right.readout_ms,
+        )  # fmt: skip
         new_right = Camera(
-            "right", self.left.image_size, self.left.K, self.left.dist, R.T, -R.T @ t
-        )
+            "right", self.left.image_size, self.left.K, self.left.dist, R.T, -R.T @ t,
+            readout_ms=self.left.readout_ms,
+        )  # fmt: skip
         return StereoRig(new_left, new_right, dict(self.quality))
 
 
@@ -389,6 +400,8 @@ def rig_to_dict(rig: StereoRig) -> dict[str, Any]:
                 "t": cam.t_cam_from_world_mm.tolist(),
             }
         )
+        if cam.readout_ms > 0:
+            cams[-1]["readout_ms"] = cam.readout_ms
     doc: dict[str, Any] = {"format": RIG_FORMAT, "units": "mm", "cameras": cams}
     if rig.quality:
         doc["quality"] = rig.quality
@@ -432,6 +445,7 @@ def rig_from_dict(doc: Any, *, source: str = "the rig file") -> StereoRig:
                     dist=np.asarray(cam["dist"], dtype=np.float64),
                     R_cam_from_world=np.asarray(cam["R"], dtype=np.float64),
                     t_cam_from_world_mm=np.asarray(cam["t"], dtype=np.float64),
+                    readout_ms=float(cam.get("readout_ms") or 0.0),
                 )
             )
         except (TypeError, ValueError) as exc:

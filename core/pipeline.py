@@ -15,8 +15,10 @@ Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
    that reappears after a short occlusion is picked up at once; after two such
    searches in a row that found nothing more, only on every other frame, so a
    reappearing marker is picked up at most one frame later).
-3. **Synchronisation** (:mod:`core.sync`): the frame offset from the marker
-   motion, or the one given.
+3. **Synchronisation** (:mod:`core.timing`, :mod:`core.clock`,
+   :mod:`core.sync`): each frame's capture time, the time model (offset,
+   drift, lost frames, rolling shutter) from the marker motion, or the offset
+   given; the right markers are brought to the left frames' instants.
 4. **Matching and triangulation** (:mod:`core.matching`,
    :mod:`core.triangulation`): every epipolar-consistent pair of a frame is
    triangulated (linear start, reprojection refinement); pairs that do not
@@ -44,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core.camera import StereoRig
+from core.clock import synchronise
 from core.errors import DetectionError, InputError
 from core.markers import EXPECTED_COUNT_FULL_SEARCHES as EXPECTED_COUNT_FULL_SEARCHES
 from core.markers import FULL_SEARCH_EVERY as FULL_SEARCH_EVERY
@@ -61,13 +64,7 @@ from core.matching import concatenate_frames, frame_pairs_epipolar_px
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
 from core.metrics import compute_metrics
 from core.progress import ProgressCallback, report
-from core.sync import (
-    SyncEstimate,
-    estimate_offset,
-    given_offset,
-    refine_offset,
-    right_points_for_left_frames,
-)
+from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
 
@@ -110,6 +107,9 @@ class Analysis:
         and more (see ``docs/tracking.md``).
     warnings : list of str
         Things a technician should know about this measurement.
+    frame_time_s : ndarray, shape (T,), optional
+        Capture time of each left frame (s): its timestamp, with lost frames
+        put back (``core.clock``); ``frame / fps`` when absent.
     """
 
     fps: float
@@ -122,10 +122,13 @@ class Analysis:
     metrics: Any = None
     quality: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    frame_time_s: FloatArray | None = None
 
     @property
     def time_s(self) -> FloatArray:
-        """Time of each frame (s): ``frame / fps``."""
+        """Capture time of each frame (s, left clock): ``frame_time_s``, else ``frame / fps``."""
+        if self.frame_time_s is not None:
+            return np.asarray(self.frame_time_s, dtype=np.float64)
         return self.frame_numbers / self.fps
 
     def result_document(self) -> dict[str, Any]:
@@ -183,6 +186,7 @@ def _detect_videos(
     progress: ProgressCallback | None,
     *,
     marker_params: Any | None = None,
+    timestamps: tuple[list[float], list[float]] | None = None,
 ) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
     """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays.
 
@@ -201,7 +205,10 @@ def _detect_videos(
 
     def work(k: int) -> None:
         try:
-            for image in iter_frames(paths[k], gray=True, expected_count=expected_counts[k]):
+            times = None if timestamps is None else timestamps[k]
+            for image in iter_frames(
+                paths[k], gray=True, expected_count=expected_counts[k], times_out=times
+            ):
                 if halt.is_set():
                     return
                 states[k].process(image)
@@ -314,6 +321,8 @@ def analyze_recording(
     marker_params: Any | None = None,
     detector: Detector | None = None,
     progress: ProgressCallback | None = None,
+    left_times: str | Path | None = None,
+    right_times: str | Path | None = None,
 ) -> Analysis:
     """Measure thumb and index trajectories (and tapping metrics) from a stereo recording.
 
@@ -339,6 +348,9 @@ def analyze_recording(
         ``(image, search_xy_px | None, radius_px | None) -> (xy_px, diameter_px, quality)``.
     progress : callable, optional
         ``progress(stage, done, total)``.
+    left_times, right_times : str or Path, optional
+        Timestamps files (``frame,time_s`` CSV) with each frame's capture
+        time; otherwise the container's timestamps or ``i / fps`` (:mod:`core.timing`).
 
     Returns
     -------
@@ -359,12 +371,14 @@ def analyze_recording(
     right_info = probe_video(right_video)
     warnings = list(check_stereo_videos(left_info, right_info, rig=rig))
     fps = float(left_info.fps)
+    stamps: tuple[list[float], list[float]] = ([], [])
     left_px, right_px, det_info = _detect_videos(
         (left_info.path, right_info.path),
         (left_info.frame_count, right_info.frame_count),
         detector,
         progress,
         marker_params=marker_params,
+        timestamps=stamps,
     )
     n_left, n_right = len(left_px), len(right_px)
     if n_left == 0 or n_right == 0:
@@ -378,35 +392,43 @@ def analyze_recording(
             )
 
     report(progress, "synchronisation", 0, 1)
+    times = [
+        _frame_times(info, csv_path, stamp, n)
+        for info, csv_path, stamp, n in (
+            (left_info, left_times, stamps[0], n_left),
+            (right_info, right_times, stamps[1], n_right),
+        )
+    ]
+    fps = times[0].fps
     left_norm = _undistort_all(rig.left, left_px)
     right_norm = _undistort_all(rig.right, right_px)
     max_step_px = 0.05 * rig.right.image_size.width  # 2D linking gate for sub-frame pairing
-    if offset_frames is None:
-        max_off = max(1, min(round(max_offset_s * fps), max(n_left, len(right_px)) // 2))
-        sync: SyncEstimate = estimate_offset(rig, left_norm, right_norm, max_offset_frames=max_off)
-        if sync.confidence < 0.2:
-            warnings.append(
-                f"the frame offset between the cameras could not be estimated reliably (confidence"
-                f" {sync.confidence:.2f}, best guess {sync.offset_frames} frames); give it with"
-                " --offset-frames if the cameras are not synchronised"
-            )
-        else:
-            sync = refine_offset(rig, left_norm, right_px, sync, max_step_px=max_step_px)
-    else:
-        sync = given_offset(float(offset_frames))
-        if abs(sync.offset_frames) >= n_left:
-            raise InputError(
-                f"an offset of {offset_frames:g} frames leaves no common frames in videos of"
-                f" {n_left} frames; check --offset-frames."
-            )
-    if sync.fractional:
-        right_px = right_points_for_left_frames(
-            right_px, n_left, sync.used_offset, max_step_px=max_step_px
+    if offset_frames is not None and abs(offset_frames) >= n_left:
+        raise InputError(
+            f"an offset of {offset_frames:g} frames leaves no common frames in videos of"
+            f" {n_left} frames; check --offset-frames."
         )
+    timed = synchronise(
+        rig,
+        left_px,
+        right_px,
+        left_norm,
+        right_norm,
+        left_times=times[0],
+        right_times=times[1],
+        offset_frames=offset_frames,
+        max_offset_s=max_offset_s,
+        max_step_px=max_step_px,
+    )
+    warnings.extend(timed.warnings)
+    if timed.pairing_offset is None:
+        left_px, right_px = timed.left_px, timed.right_px
+        if rig.left.readout_ms > 0:
+            left_norm = _undistort_all(rig.left, left_px)
         right_norm = _undistort_all(rig.right, right_px)
         pairing_offset = 0
     else:
-        pairing_offset = sync.offset_frames
+        pairing_offset = timed.pairing_offset
     report(progress, "synchronisation", 1, 1)
 
     report(progress, "triangulation", 0, 1)
@@ -454,7 +476,7 @@ def analyze_recording(
         "frames_right": n_right,
         **det_info,
     }
-    sync_doc = sync.to_result()
+    sync_doc = timed.sync
     return Analysis(
         fps=fps,
         frame_numbers=np.arange(n_left),
@@ -466,7 +488,22 @@ def analyze_recording(
         metrics=metrics,
         quality=quality,
         warnings=warnings,
+        frame_time_s=timed.left_time_s,
     )
+
+
+def _frame_times(
+    info: Any, csv_path: str | Path | None, stamps: list[float], n_frames: int
+) -> FrameTimes:
+    """Capture times of a decoded video: its timestamps file, else its container (core.timing)."""
+    if csv_path is not None:
+        return fit_to_frames(read_times_csv(csv_path, n_frames=n_frames), n_frames)
+    if not info.has_timestamps:
+        stamps = []
+    ts = frame_times_from_timestamps(
+        stamps[:n_frames] if len(stamps) >= n_frames else [], fps=info.fps, name=info.path.name
+    )
+    return fit_to_frames(ts, n_frames)
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -489,8 +526,9 @@ def write_markers_csv(analysis: Analysis, path_or_file: str | Path | TextIO) -> 
     writer = csv.writer(path_or_file, lineterminator="\n")
     writer.writerow(CSV_HEADER)
     pos = analysis.positions_mm
+    times = analysis.time_s
     for t, frame in enumerate(analysis.frame_numbers):
-        time_s = repr(round(float(frame) / analysis.fps, 6))
+        time_s = repr(round(float(times[t]), 6))
         for m, name in enumerate(analysis.marker_names):
             st = str(analysis.status[t, m])
             x, y, z = (float(v) for v in pos[t, m])

@@ -9,6 +9,14 @@ Gray frames come straight from the decoder's luma plane when the stream is
 planar YUV or gray (no colour conversion at all). For YUV streams that plane
 is in video range (16–235), a fixed affine change of intensity that marker
 and board detection do not depend on.
+
+Decoding is OpenCV's (it hands out the luma plane without a copy and releases
+the GIL). What OpenCV cannot tell reliably, PyAV reads from the container:
+the number of frames of a Matroska/WebM file (browsers write none), and
+whether the packets carry timestamps at all (a raw H.264 stream has none).
+Writing H.264, HEVC, VP8 and VP9 with per-frame timestamps (variable frame
+rate) is PyAV's too (:class:`VideoWriter`); OpenCV's writer has neither the
+encoders nor per-frame timestamps.
 """
 
 from __future__ import annotations
@@ -39,6 +47,22 @@ _IMAGE_SUFFIXES = frozenset(
 
 # Codec names for VideoWriter; "lossless" keeps every pixel exactly (FFV1).
 _CODECS = {"lossless": ("FFV1", ".mkv"), "mp4v": ("mp4v", ".mp4"), "mjpg": ("MJPG", ".avi")}
+# Written through PyAV (encoder, suffix, encoder options): what cameras and browsers record.
+_AV_CODECS = {
+    "h264": ("libx264", ".mp4", {"crf": "18", "preset": "superfast"}),
+    "hevc": (
+        "libx265",
+        ".mp4",
+        {"crf": "14", "preset": "veryfast", "x265-params": "log-level=error"},
+    ),
+    "vp9": (
+        "libvpx-vp9",
+        ".webm",
+        {"crf": "12", "b": "0", "deadline": "realtime", "cpu-used": "8"},
+    ),
+    "vp8": ("libvpx", ".webm", {"crf": "6", "b": "20M", "deadline": "realtime", "cpu-used": "8"}),
+}
+CODECS = (*_CODECS, *_AV_CODECS)
 
 # A container may report a frame count that differs a little from what decodes.
 _FRAME_COUNT_SLACK = 2
@@ -65,6 +89,9 @@ class VideoInfo:
         ``(width, height)`` in pixels.
     fourcc : str
         Codec four-character code, e.g. ``"FFV1"`` or ``"mp4v"``.
+    has_timestamps : bool
+        Whether the container's packets carry presentation timestamps (a raw
+        H.264/HEVC stream has none).
     """
 
     path: Path
@@ -72,6 +99,7 @@ class VideoInfo:
     frame_count: int
     image_size: ImageSize
     fourcc: str
+    has_timestamps: bool = True
 
     @property
     def duration_s(self) -> float:
@@ -89,6 +117,48 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
     return cap
 
 
+def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
+    """What the container says, read by PyAV without decoding.
+
+    Returns the number of video frames (counted packet by packet when the
+    container states none, as Matroska and WebM do), whether the packets carry
+    presentation timestamps, and the stated frame rate (None if none); all
+    None/True when PyAV cannot open the file (OpenCV's answer then stands).
+    """
+    import av
+
+    try:
+        container = av.open(str(path))
+    except (av.FFmpegError, OSError, ValueError):
+        return None, True, None
+    try:
+        fmt = container.format.name
+        if not container.streams.video or fmt == "image2" or fmt.endswith("_pipe"):
+            return None, True, None  # a still image: OpenCV's answer (no frames) stands
+        stream = container.streams.video[0]
+        rate = stream.average_rate or stream.base_rate
+        fps = float(rate) if rate else None
+        count = int(stream.frames) if stream.frames else None
+        has_pts = False
+        counted = 0
+        try:
+            for packet in container.demux(stream):
+                if packet.size == 0:  # the flush packet at the end
+                    continue
+                counted += 1
+                has_pts = has_pts or packet.pts is not None
+                if count is not None and counted >= 8:
+                    break
+        except (av.FFmpegError, OSError):
+            # A damaged file: what demuxed so far counts; decoding will tell the rest.
+            pass
+        if count is None:
+            count = counted
+        return count, has_pts, fps
+    finally:
+        container.close()
+
+
 def probe_video(path: str | Path) -> VideoInfo:
     """Open a video, decode its first frame and return what it says about itself.
 
@@ -96,7 +166,7 @@ def probe_video(path: str | Path) -> VideoInfo:
     ------
     InputError
         The file is missing, is not a video, has no decodable frame, or states
-        no frame rate.
+        neither a frame rate nor frame timestamps.
     """
     p = Path(path)
     if not p.is_file():
@@ -115,9 +185,16 @@ def probe_video(path: str | Path) -> VideoInfo:
         raise InputError(
             f"no frame of {p.name} could be decoded; the file is corrupt or not a video."
         )
+    count, has_pts, stated_fps = _container_facts(p)
+    if count is not None and count > 0:
+        frame_count = count
+    if not has_pts:
+        # A raw stream: FFmpeg invents 25 fps unless the bitstream states a rate.
+        fps = stated_fps if stated_fps is not None and stated_fps != 25 else 0.0
     if not (fps > 0 and np.isfinite(fps)):
         raise InputError(
-            f"{p.name} states no frame rate; re-export it with a fixed frame rate (constant fps)."
+            f"{p.name} has neither frame timestamps nor a frame rate; give its capture times in"
+            " a timestamps file (frame,time_s) or re-export it with a fixed frame rate."
         )
     if frame_count <= 0:
         raise InputError(f"{p.name} reports no frames; the file is corrupt or still being written.")
@@ -127,6 +204,7 @@ def probe_video(path: str | Path) -> VideoInfo:
         frame_count=frame_count,
         image_size=ImageSize.of_image(frame),
         fourcc=fourcc,
+        has_timestamps=has_pts,
     )
 
 
@@ -199,6 +277,7 @@ def _reader(
     stop: int | None,
     out: queue.Queue[Any],
     halt: threading.Event,
+    times: list[float] | None,
 ) -> None:
     """Decode frames into ``out``; ends with ``None`` (done) or an exception instance."""
     try:
@@ -211,9 +290,9 @@ def _reader(
                     luma = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
             if luma:
                 with _quiet_opencv:
-                    _decode_loop(cap, path, gray, luma, start, stop, out, halt)
+                    _decode_loop(cap, path, gray, luma, start, stop, out, halt, times)
             else:
-                _decode_loop(cap, path, gray, luma, start, stop, out, halt)
+                _decode_loop(cap, path, gray, luma, start, stop, out, halt, times)
         finally:
             cap.release()
         out.put(None)
@@ -233,6 +312,7 @@ def _decode_loop(
     stop: int | None,
     out: queue.Queue[Any],
     halt: threading.Event,
+    times: list[float] | None,
 ) -> None:
     if start > 0:
         # Seeking is not frame-exact in every container: grab instead.
@@ -246,6 +326,10 @@ def _decode_loop(
         ok, frame = cap.read()
         if not ok or frame is None:
             break
+        if times is not None:
+            # The presentation timestamp of the frame just decoded (ms); what
+            # PyAV reads from the container (tests/core/test_timing.py).
+            times.append(cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
         if gray:
             if luma:
                 if frame.ndim != 2 or frame.shape[0] < height or frame.shape[1] != width:
@@ -273,6 +357,7 @@ def iter_frames(
     stop: int | None = None,
     prefetch: int = 8,
     expected_count: int | None = None,
+    times_out: list[float] | None = None,
 ) -> Iterator[NDArray[np.uint8]]:
     """Stream the frames of a video, decoded in a background thread.
 
@@ -289,6 +374,9 @@ def iter_frames(
     expected_count : int, optional
         If given, raise :class:`InputError` when the video ends more than two
         frames before ``min(stop, expected_count)``: it is truncated.
+    times_out : list, optional
+        Receives the presentation timestamp (s) of every yielded frame, in
+        order (appended by the decoder thread before the frame is queued).
 
     Yields
     ------
@@ -303,7 +391,10 @@ def iter_frames(
     out: queue.Queue[Any] = queue.Queue(maxsize=prefetch)
     halt = threading.Event()
     thread = threading.Thread(
-        target=_reader, args=(p, gray, start, stop, out, halt), name=f"decode-{p.name}", daemon=True
+        target=_reader,
+        args=(p, gray, start, stop, out, halt, times_out),
+        name=f"decode-{p.name}",
+        daemon=True,
     )
     with _live_lock:
         _live_readers[thread] = halt
@@ -337,18 +428,25 @@ def iter_frames(
 
 
 class VideoWriter:
-    """Write frames to a video file; a thin, checked wrapper of ``cv2.VideoWriter``.
+    """Write frames to a video file, optionally with a capture time per frame.
+
+    ``"lossless"``, ``"mp4v"`` and ``"mjpg"`` go through ``cv2.VideoWriter``
+    (constant frame rate); ``"h264"``, ``"hevc"``, ``"vp9"`` and ``"vp8"``
+    through PyAV, which also stores per-frame timestamps (variable frame rate:
+    pass ``time_s`` to :meth:`write`).
 
     Parameters
     ----------
     path : str or Path
-        Output file. Its suffix should match the codec (``.mkv`` for
-        ``"lossless"``, ``.mp4`` for ``"mp4v"``); see :func:`video_suffix`.
+        Output file. Its suffix should match the codec (see :func:`video_suffix`).
     fps : float
+        Frame rate (Hz); frame ``i`` is at ``i / fps`` unless a time is given.
     image_size : ImageSize
-    codec : {"lossless", "mp4v", "mjpg"}
-        ``"lossless"`` is FFV1 (every pixel kept exactly, large files);
-        ``"mp4v"`` is MPEG-4 part 2 (small files, compression artefacts).
+    codec : str
+        One of :data:`CODECS`: ``"lossless"`` is FFV1 in MKV (every pixel
+        kept, large files); ``"mp4v"`` MPEG-4 part 2 (small files, artefacts);
+        ``"h264"``/``"hevc"`` in MP4 and ``"vp9"``/``"vp8"`` in WebM are what
+        cameras, phones and browsers record (high quality settings).
     is_color : bool
         Frames are ``(H, W, 3)`` BGR if True, ``(H, W)`` gray otherwise.
     """
@@ -362,14 +460,20 @@ class VideoWriter:
         codec: str = "lossless",
         is_color: bool = False,
     ) -> None:
-        if codec not in _CODECS:
-            raise ValueError(f"codec must be one of {sorted(_CODECS)}, got {codec!r}")
+        if codec not in CODECS:
+            raise ValueError(f"codec must be one of {sorted(CODECS)}, got {codec!r}")
         if not fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
         self.path = Path(path)
         self.image_size = ImageSize(*image_size)
         self.is_color = is_color
         self.frames_written = 0
+        self.fps = float(fps)
+        self._av: Any = None
+        self._writer: Any = None
+        if codec in _AV_CODECS:
+            self._open_av(codec)
+            return
         fourcc = cv2.VideoWriter.fourcc(*_CODECS[codec][0])
         self._writer = cv2.VideoWriter(
             str(self.path), cv2.CAP_FFMPEG, fourcc, float(fps), tuple(self.image_size), is_color
@@ -377,8 +481,37 @@ class VideoWriter:
         if not self._writer.isOpened():
             raise InputError(f"cannot write the video {self.path.name} with codec {codec}.")
 
-    def write(self, frame: NDArray[np.uint8]) -> None:
-        """Append one uint8 frame of the writer's size."""
+    def _open_av(self, codec: str) -> None:
+        import fractions
+
+        import av
+
+        encoder, suffix, options = _AV_CODECS[codec]
+        try:
+            container = av.open(str(self.path), "w")
+            # WebM counts in milliseconds; MP4 in 1/90000 s (as cameras write it).
+            tb = fractions.Fraction(1, 1000 if suffix == ".webm" else 90000)
+            stream: Any = container.add_stream(
+                encoder, rate=fractions.Fraction(self.fps).limit_denominator(1001)
+            )
+            stream.width, stream.height = self.image_size
+            stream.pix_fmt = "yuv420p"
+            stream.time_base = tb
+            stream.codec_context.time_base = tb
+            stream.options = dict(options)
+        except (av.FFmpegError, OSError, ValueError) as exc:
+            raise InputError(
+                f"cannot write the video {self.path.name} with codec {codec}."
+            ) from exc
+        self._av = (container, stream, tb)
+        self._last_pts = -1
+
+    def write(self, frame: NDArray[np.uint8], *, time_s: float | None = None) -> None:
+        """Append one uint8 frame of the writer's size.
+
+        ``time_s`` (PyAV codecs only): the frame's presentation time (s), for
+        variable frame rate; default ``frame number / fps``.
+        """
         expected = (
             (self.image_size.height, self.image_size.width, 3)
             if self.is_color
@@ -388,11 +521,39 @@ class VideoWriter:
             raise ValueError(
                 f"frame must be uint8 of shape {expected}, got {frame.dtype} {frame.shape}"
             )
-        self._writer.write(frame)
+        if self._av is None:
+            if time_s is not None:
+                raise ValueError("per-frame times need a PyAV codec (h264, hevc, vp9, vp8)")
+            self._writer.write(frame)
+        else:
+            import av
+
+            container, stream, tb = self._av
+            t = self.frames_written / self.fps if time_s is None else float(time_s)
+            pts = round(t / tb)
+            if pts <= self._last_pts:
+                raise ValueError(
+                    f"frame times must increase by at least one tick ({float(tb):g} s), got {t}"
+                )
+            self._last_pts = pts
+            image = av.VideoFrame.from_ndarray(frame, format="bgr24" if self.is_color else "gray")
+            image.pts = pts
+            image.time_base = tb
+            for packet in stream.encode(image):
+                container.mux(packet)
         self.frames_written += 1
 
     def close(self) -> None:
-        self._writer.release()
+        if self._av is not None:
+            container, stream, _ = self._av
+            self._av = None
+            try:
+                for packet in stream.encode():
+                    container.mux(packet)
+            finally:
+                container.close()
+        elif self._writer is not None:
+            self._writer.release()
 
     def __enter__(self) -> VideoWriter:
         return self
@@ -403,8 +564,10 @@ class VideoWriter:
 
 def video_suffix(codec: str) -> str:
     """The file suffix that goes with a :class:`VideoWriter` codec (``".mkv"``, ``".mp4"``)."""
+    if codec in _AV_CODECS:
+        return _AV_CODECS[codec][1]
     if codec not in _CODECS:
-        raise ValueError(f"codec must be one of {sorted(_CODECS)}, got {codec!r}")
+        raise ValueError(f"codec must be one of {sorted(CODECS)}, got {codec!r}")
     return _CODECS[codec][1]
 
 
@@ -413,30 +576,23 @@ def check_stereo_videos(
 ) -> list[str]:
     """Check that two videos form a usable stereo pair (and fit the rig).
 
+    The two cameras may run at different frame rates (the time model of
+    :mod:`core.clock` measures at the left camera's instants) and, with a
+    rig, at different resolutions when the rig was calibrated that way.
+
     Returns
     -------
     list of str
         Warnings that do not stop a measurement (for example slightly
-        different frame counts).
+        different lengths).
 
     Raises
     ------
     InputError
-        Different frame rates, different image sizes, or a size other than
-        the rig's calibration.
+        A size other than the rig's calibration; without a rig, different
+        image sizes; lengths too different to be one recording.
     """
     warnings: list[str] = []
-    if abs(left.fps - right.fps) > 1e-3 * max(left.fps, right.fps):
-        raise InputError(
-            f"the left video runs at {left.fps:g} fps but the right at {right.fps:g} fps;"
-            " record both cameras at the same frame rate."
-        )
-    if left.image_size != right.image_size:
-        raise InputError(
-            f"the left video is {left.image_size.width}x{left.image_size.height} but the right is"
-            f" {right.image_size.width}x{right.image_size.height}; both cameras must record at the"
-            " same resolution."
-        )
     if rig is not None:
         for info, cam in ((left, rig.left), (right, rig.right)):
             if info.image_size != cam.image_size:
@@ -445,14 +601,27 @@ def check_stereo_videos(
                     f" the rig was calibrated at {cam.image_size.width}x{cam.image_size.height};"
                     " use the calibration made for this camera setting."
                 )
-    if left.frame_count != right.frame_count:
+    elif left.image_size != right.image_size:
+        raise InputError(
+            f"the left video is {left.image_size.width}x{left.image_size.height} but the right is"
+            f" {right.image_size.width}x{right.image_size.height}; both cameras must record at the"
+            " same resolution."
+        )
+    same_rate = abs(left.fps - right.fps) <= 1e-3 * max(left.fps, right.fps)
+    if same_rate:
         diff = abs(left.frame_count - right.frame_count)
         longer = max(left.frame_count, right.frame_count)
-        if diff > max(0.2 * longer, 50):
-            raise InputError(
-                f"the left video has {left.frame_count} frames and the right {right.frame_count};"
-                " they cannot be recordings of the same test — check that the pair belongs together."
-            )
+        too_different = diff > max(0.2 * longer, 50)
+    else:
+        diff_s = abs(left.duration_s - right.duration_s)
+        too_different = diff_s > max(0.2 * max(left.duration_s, right.duration_s), 1.0)
+    if too_different:
+        raise InputError(
+            f"the left video has {left.frame_count} frames ({left.duration_s:.1f} s) and the right"
+            f" {right.frame_count} ({right.duration_s:.1f} s); they cannot be recordings of the"
+            " same test — check that the pair belongs together."
+        )
+    if left.frame_count != right.frame_count and same_rate:
         warnings.append(
             f"the videos have different lengths ({left.frame_count} and {right.frame_count} frames);"
             " only the common part is measured."

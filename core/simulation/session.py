@@ -9,6 +9,11 @@ Timing conventions (INTERFACES.md):
   fractional (unsynchronised cameras) or negative.
 - Both videos have the same number of frames; the truth is sampled at the
   left frames.
+
+Free-running cameras (``ImagingScenario.left_timing`` / ``right_timing``,
+:mod:`core.simulation.timing`) change this: each camera has its own frame
+rate, start, clock drift, lost frames, jitter, timestamps and rolling
+shutter; the truth is then sampled at the left frames' true capture times.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from __future__ import annotations
 import json
 import queue
 import threading
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +52,7 @@ from core.simulation.render import (
     to_uint8,
 )
 from core.simulation.rig import default_rig
+from core.simulation.timing import CameraClock, CameraTiming, camera_clock, rolling_shutter_times
 from core.video import VideoWriter, video_suffix
 
 TRUTH_FORMAT = "bradyscope.truth/1"
@@ -96,6 +102,11 @@ class ImagingScenario:
     skin_level : float
         Gray level of the hand and forearm (skin lit by the ring light), drawn
         as soft capsules under the markers; 0 (default) leaves them out.
+    left_timing, right_timing : CameraTiming
+        Free-running cameras (frame rate, start, drift, lost frames, jitter,
+        variable-frame-rate timestamps, rolling shutter, image size); the
+        default is a genlocked camera at the scenario's rate and size.
+        ``right_timing.start_s`` and ``offset_frames`` are exclusive.
     """
 
     image_size: ImageSize = ImageSize(1280, 1024)  # noqa: RUF009 (immutable NamedTuple)
@@ -112,6 +123,8 @@ class ImagingScenario:
     background_texture: float = 5.0
     psf_sigma_px: float = 0.5
     skin_level: float = 0.0
+    left_timing: CameraTiming = CameraTiming()  # noqa: RUF009 (frozen)
+    right_timing: CameraTiming = CameraTiming()  # noqa: RUF009 (frozen)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "image_size", ImageSize(*(int(v) for v in self.image_size)))
@@ -146,6 +159,23 @@ class ImagingScenario:
             raise ValueError(f"skin_level must be in [0, 200], got {self.skin_level}")
         if not 0 <= self.psf_sigma_px <= 5:
             raise ValueError(f"psf_sigma_px must be in [0, 5], got {self.psf_sigma_px}")
+        if self.offset_frames != 0 and self.right_timing.start_s != 0:
+            raise ValueError(
+                "give the right camera's start as offset_frames or as start_s, not both"
+            )
+        if self.left_timing.start_s != 0 or self.left_timing.drift_ppm != 0:
+            raise ValueError("the left camera is the reference clock: its start_s and drift are 0")
+        if (self.left_timing.vfr or self.right_timing.vfr) and self.codec not in (
+            "h264", "hevc", "vp9", "vp8",
+        ):  # fmt: skip
+            raise ValueError(
+                "variable-frame-rate timestamps need a codec that stores them (h264, hevc, vp9, vp8)"
+            )
+
+    def camera_size(self, camera: str) -> ImageSize:
+        """The image size of ``"left"`` or ``"right"``."""
+        timing = self.left_timing if camera == "left" else self.right_timing
+        return self.image_size if timing.image_size is None else timing.image_size
 
 
 @dataclass(frozen=True)
@@ -197,7 +227,9 @@ class _ThreadedWriter:
 
     def __init__(self, writer: VideoWriter) -> None:
         self._writer = writer
-        self._queue: queue.Queue[NDArray[np.uint8] | None] = queue.Queue(maxsize=4)
+        self._queue: queue.Queue[tuple[NDArray[np.uint8], float | None] | None] = queue.Queue(
+            maxsize=4
+        )
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name=f"write-{writer.path.name}")
         self._thread.daemon = True
@@ -205,19 +237,19 @@ class _ThreadedWriter:
 
     def _run(self) -> None:
         while True:
-            frame = self._queue.get()
-            if frame is None:
+            item = self._queue.get()
+            if item is None:
                 return
             if self._error is None:
                 try:
-                    self._writer.write(frame)
+                    self._writer.write(item[0], time_s=item[1])
                 except BaseException as exc:  # re-raised in the caller's thread
                     self._error = exc
 
-    def write(self, frame: NDArray[np.uint8]) -> None:
+    def write(self, frame: NDArray[np.uint8], *, time_s: float | None = None) -> None:
         if self._error is not None:
             raise self._error
-        self._queue.put(frame)
+        self._queue.put((frame, time_s))
 
     def close(self) -> None:
         self._queue.put(None)
@@ -310,6 +342,29 @@ def _blur_samples(
     return np.clip(n, 1, _MAX_BLUR_SAMPLES)
 
 
+def _camera_clocks(
+    truth: TappingTruth, imaging: ImagingScenario, seed: int
+) -> dict[str, CameraClock]:
+    """When each camera captures its frames (:mod:`core.simulation.timing`).
+
+    ``offset_frames`` is the right camera's start in frames of the scenario's rate.
+    """
+    duration_s = len(truth.t_s) / truth.fps
+    right = imaging.right_timing
+    if imaging.offset_frames != 0:
+        right = replace(right, start_s=float(imaging.offset_frames) / truth.fps)
+    timings = {"left": imaging.left_timing, "right": right}
+    return {
+        c: camera_clock(
+            timings[c],
+            fps=truth.fps,
+            duration_s=duration_s,
+            rng=np.random.default_rng([int(seed), 0x7133, i]),
+        )
+        for i, c in enumerate(CAMERA_NAMES)
+    }
+
+
 class StereoRenderer:
     """Renders the stereo frames of a simulated trial, one pair at a time (bounded memory).
 
@@ -329,10 +384,10 @@ class StereoRenderer:
         self, truth: TappingTruth, *, rig: StereoRig, imaging: ImagingScenario, seed: int
     ) -> None:
         for cam in rig.cameras:
-            if cam.image_size != imaging.image_size:
+            if cam.image_size != imaging.camera_size(cam.name):
                 raise ValueError(
-                    f"the rig's {cam.name} camera is {tuple(cam.image_size)} but"
-                    f" imaging.image_size is {tuple(imaging.image_size)}"
+                    f"the rig's {cam.name} camera is {tuple(cam.image_size)} but the imaging"
+                    f" scenario's image_size is {tuple(imaging.camera_size(cam.name))}"
                 )
         names = truth.marker_names
         for _, marker, _, _ in imaging.occlusions:
@@ -343,12 +398,10 @@ class StereoRenderer:
         self.imaging = imaging
         self.seed = int(seed)
         self.model = model = truth.model
-        self.n_frames = n_frames = len(truth.t_s)
-        offsets = {"left": 0.0, "right": float(imaging.offset_frames)}
-        self.times: dict[str, FloatArray] = {
-            c: (np.arange(n_frames, dtype=np.float64) + offsets[c]) / truth.fps
-            for c in CAMERA_NAMES
-        }
+        self.clocks: dict[str, CameraClock] = _camera_clocks(truth, imaging, seed)
+        self.times: dict[str, FloatArray] = {c: self.clocks[c].true_s for c in CAMERA_NAMES}
+        self.frame_counts = {c: len(self.times[c]) for c in CAMERA_NAMES}
+        self.n_frames = self.frame_counts["left"]
         rngs = {
             name: np.random.default_rng([self.seed, 0x51A, i])
             for i, name in enumerate(
@@ -372,7 +425,7 @@ class StereoRenderer:
         self._marker_peaks = imaging.marker_peak * np.array([1.0, 0.96, 0.92][: len(names)])
         self._backgrounds = {
             c: make_background(
-                imaging.image_size,
+                imaging.camera_size(c),
                 rng=rngs[f"bg-{c}"],
                 level=imaging.background_level,
                 texture=imaging.background_texture,
@@ -380,10 +433,14 @@ class StereoRenderer:
             for c in CAMERA_NAMES
         }
         self._noises = {
-            c: SensorNoise(imaging.image_size, sigma=imaging.noise_sigma, rng=rngs[f"noise-{c}"])
+            c: SensorNoise(
+                imaging.camera_size(c), sigma=imaging.noise_sigma, rng=rngs[f"noise-{c}"]
+            )
             for c in CAMERA_NAMES
         }
-        self.occluded = {c: np.zeros((n_frames, len(names)), dtype=bool) for c in CAMERA_NAMES}
+        self.occluded = {
+            c: np.zeros((self.frame_counts[c], len(names)), dtype=bool) for c in CAMERA_NAMES
+        }
         for cam_name, marker, t0, dur in imaging.occlusions:
             t = self.times[cam_name]
             self.occluded[cam_name][:, names.index(marker)] |= (t >= t0) & (t < t0 + dur)
@@ -402,24 +459,31 @@ class StereoRenderer:
             for profile in (DISC, GLINT)
             if any(d.profile == profile for d in self.statics)
         ]
-        self._next = 0
+        self._next = {c: 0 for c in CAMERA_NAMES}
 
     def render(self, j: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
         """The left and right frames ``j``, uint8 ``(H, W)`` each."""
-        if j != self._next:
-            raise ValueError(f"frames must be rendered in order: expected {self._next}, got {j}")
-        self._next += 1
-        frames = []
-        for c in CAMERA_NAMES:
-            frames.append(self._render_camera(c, j))
-        return frames[0], frames[1]
+        return self.render_camera("left", j), self.render_camera("right", j)
+
+    def render_camera(self, c: str, j: int) -> NDArray[np.uint8]:
+        """Frame ``j`` of camera ``c`` (``"left"`` or ``"right"``), uint8 ``(H, W)``.
+
+        Each camera's frames must be rendered in order.
+        """
+        if j != self._next[c]:
+            raise ValueError(
+                f"{c} frames must be rendered in order: expected {self._next[c]}, got {j}"
+            )
+        self._next[c] += 1
+        return self._render_camera(c, j)
 
     def _render_camera(self, c: str, j: int) -> NDArray[np.uint8]:
         imaging = self.imaging
         cam = self._cameras[c]
         S = int(self._n_sub[c][j])
         t_mid = self.times[c][j]
-        sub_t = t_mid + imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
+        sub = imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
+        sub_t = t_mid + sub
         frame = self._noises[c].noisy(self._backgrounds[c])
         if imaging.skin_level > 0:
             self._draw_skin(frame, cam, t_mid)
@@ -436,14 +500,27 @@ class StereoRenderer:
                 psf_sigma_px=imaging.psf_sigma_px,
             )
         peaks = np.where(self.occluded[c][j], 0.0, self._marker_peaks)
+        readout_s = self._timing(c).readout_ms * 1e-3
+        if readout_s > 0:
+            # Rolling shutter: each marker at the instant its row is read.
+            n_m = len(self._radius_mm)
+            t_m = rolling_shutter_times(cam, self.model.positions_mm, t_mid, readout_s, n_m)
+            times = (t_m[None, :] + sub[:, None]).ravel()
+            centres = self.model.positions_mm(times).reshape(S, n_m, n_m, 3)
+            centres = centres[:, np.arange(n_m), np.arange(n_m)]
+        else:
+            centres = self.model.positions_mm(sub_t)
         draw_spheres(
             frame,
             cam,
-            SphereLayer(self.model.positions_mm(sub_t), self._radius_mm, peaks, DISC),
+            SphereLayer(centres, self._radius_mm, peaks, DISC),
             psf_sigma_px=imaging.psf_sigma_px,
             shot_noise=(self._shot_rngs[c], _SHOT_NOISE_GAIN) if imaging.noise_sigma > 0 else None,
         )
         return to_uint8(frame)
+
+    def _timing(self, c: str) -> CameraTiming:
+        return self.imaging.left_timing if c == "left" else self.imaging.right_timing
 
     def _draw_skin(self, frame: NDArray[np.float32], cam: Camera, t_mid: float) -> None:
         t = np.array([t_mid])
@@ -469,6 +546,7 @@ class StereoRenderer:
             statics=self.statics,
             movings=self.movings,
             model=self.model,
+            clocks=self.clocks,
         )
 
 
@@ -510,7 +588,15 @@ def simulate_session(
             ImagingScenario() if rig is None else ImagingScenario(image_size=rig.left.image_size)
         )
     if rig is None:
-        rig = default_rig(image_size=imaging.image_size)
+        rig = default_rig(image_size=imaging.camera_size("left"))
+        if imaging.camera_size("right") != rig.left.image_size:
+            rig = StereoRig(rig.left, default_rig(image_size=imaging.camera_size("right")).right)
+    # The rig file says what each camera's rolling shutter is (readout_ms).
+    rig = StereoRig(
+        replace(rig.left, readout_ms=imaging.left_timing.readout_ms),
+        replace(rig.right, readout_ms=imaging.right_timing.readout_ms),
+        dict(rig.quality),
+    )
     truth = simulate_tapping(tapping, seed=seed)
     renderer = StereoRenderer(truth, rig=rig, imaging=imaging, seed=seed)
 
@@ -518,20 +604,26 @@ def simulate_session(
     out.mkdir(parents=True, exist_ok=True)
     suffix = video_suffix(imaging.codec)
     paths = {c: out / f"{c}{suffix}" for c in CAMERA_NAMES}
+    clocks = renderer.clocks
     writers = {
         c: _ThreadedWriter(
             VideoWriter(
-                paths[c], fps=tapping.fps, image_size=imaging.image_size, codec=imaging.codec
+                paths[c],
+                fps=clocks[c].fps,
+                image_size=imaging.camera_size(c),
+                codec=imaging.codec,
             )
         )
         for c in CAMERA_NAMES
     }
-    n_frames = renderer.n_frames
+    timed = {c: t.vfr for c, t in (("left", imaging.left_timing), ("right", imaging.right_timing))}
+    n_frames = max(renderer.frame_counts.values())
     try:
         for j in range(n_frames):
-            left, right = renderer.render(j)
-            writers["left"].write(left)
-            writers["right"].write(right)
+            for c in CAMERA_NAMES:
+                if j < renderer.frame_counts[c]:
+                    stamp = float(clocks[c].stamp_s[j]) if timed[c] else None
+                    writers[c].write(renderer.render_camera(c, j), time_s=stamp)
             if (j + 1) % 10 == 0 or j + 1 == n_frames:
                 report(progress, "simulation", j + 1, n_frames)
     finally:
@@ -595,8 +687,14 @@ def _truth_document(
     statics: list[_StaticDistractor],
     movings: list[_MovingDistractor],
     model: TappingModel,
+    clocks: dict[str, CameraClock],
 ) -> dict[str, Any]:
     kin = truth.to_dict()
+    t_left = clocks["left"].true_s
+    if len(t_left) != len(truth.t_s) or not np.array_equal(t_left, truth.t_s):
+        # Free-running left camera: the truth at its frames' true capture times.
+        kin["positions_mm"] = model.positions_mm(t_left).tolist()
+        kin["frame_count"] = len(t_left)
     names = list(truth.marker_names)
     occlusions = []
     for cam_name, marker, t0, dur in imaging.occlusions:
@@ -612,6 +710,11 @@ def _truth_document(
         )
     imaging_doc = asdict(imaging)
     imaging_doc["image_size"] = list(imaging.image_size)
+    for c in CAMERA_NAMES:
+        imaging_doc[f"{c}_timing"] = getattr(imaging, f"{c}_timing").to_dict()
+    right = clocks["right"]
+    right_timing = imaging.right_timing
+    offset_s = float(right.true_s[0] - right.stamp_s[0] * (1 + right_timing.drift_ppm * 1e-6))
     imaging_doc["occlusions"] = [list(o) for o in imaging.occlusions]
     doc: dict[str, Any] = {
         "format": TRUTH_FORMAT,
@@ -622,9 +725,25 @@ def _truth_document(
         "world_frame": "left camera (x right, y down, z forward, mm)",
         "fps": truth.fps,
         "frame_count": kin.pop("frame_count"),
-        "offset_frames": float(imaging.offset_frames),
+        "offset_frames": float(imaging.offset_frames)
+        if imaging.offset_frames
+        else offset_s * right.fps / (1 + right_timing.drift_ppm * 1e-6),
         "offset_convention": "right frame j shows the same instant as left frame j + offset_frames",
         "frame_time": "frame i of the left video is exposed around t = i / fps s",
+        # The time model: left time = offset_s + (1 + drift_ppm 1e-6) * right camera's clock.
+        "clock": {"offset_s": offset_s, "drift_ppm": float(right_timing.drift_ppm)},
+        "cameras": {
+            c: {
+                "fps": clocks[c].fps,
+                "frame_count": len(clocks[c].true_s),
+                "dropped_after": list(clocks[c].dropped_after),
+                "readout_ms": getattr(imaging, f"{c}_timing").readout_ms,
+                "image_size": list(imaging.camera_size(c)),
+                "timestamps_s": clocks[c].stamp_s.tolist(),
+                "true_time_s": clocks[c].true_s.tolist(),
+            }
+            for c in CAMERA_NAMES
+        },
         "marker_names": names,
         "marker_diameter_mm": imaging.marker_diameter_mm,
     }
@@ -632,7 +751,7 @@ def _truth_document(
     kin.pop("marker_names")
     doc.update(kin)
     doc["occlusions"] = occlusions
-    t = truth.t_s
+    t = t_left
     doc["distractors"] = {
         "static": [
             {

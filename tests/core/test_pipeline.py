@@ -255,9 +255,8 @@ def test_bad_inputs_give_one_sentence(
         analyze_recording(rig, tmp_path / "missing.mkv", session.right_video)
     small = ImageSize(160, 128)
     a = _write_video(tmp_path / "a.avi", fps=100.0, size=small, n=20)
-    b = _write_video(tmp_path / "b.avi", fps=50.0, size=small, n=20)
-    with pytest.raises(InputError, match="fps"):
-        analyze_recording(rig, a, b)
+    # Different frame rates are measured now (core.clock); a size the rig was not
+    # calibrated at is still refused.
     with pytest.raises(InputError, match="calibrated at 1280x1024"):
         analyze_recording(rig, a, a)
     # A rig for the small size and a pair of black videos: no markers.

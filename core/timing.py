@@ -1,0 +1,243 @@
+"""When each frame of one recording was captured: the per-video half of the time model.
+
+A frame's time is its capture time on that camera's own clock (INTERFACES.md):
+
+- from a timestamps file given with the video (``frame,time_s`` CSV, what the
+  capture page writes), when there is one;
+- otherwise from the container's presentation timestamps when they carry
+  per-frame information (variable frame rate: intervals that differ);
+- otherwise ``i / fps`` from the first frame.
+
+The decoder hands out the presentation timestamp of every frame it decodes
+(``core.video.iter_frames(times_out=...)``; OpenCV's ``CAP_PROP_POS_MSEC``
+agrees with the container's own timestamps read by PyAV to the time base's
+resolution, which ``tests/core/test_timing.py`` checks), so timestamps cost
+nothing extra.
+
+Lost frames show in timestamps that carry information as intervals of about
+two or more nominal intervals (:attr:`FrameTimes.dropped_after`). With
+constant timestamps they are invisible here; :mod:`core.clock` finds them
+where the offset between the cameras steps by whole frames.
+
+The other half of the time model, how the right camera's clock maps to the
+left one's, is :mod:`core.clock`.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from core.errors import InputError
+
+FloatArray = NDArray[np.float64]
+
+#: Timestamps that deviate from a constant rate by more than this share of a
+#: frame interval carry per-frame information (variable frame rate).
+VFR_TOLERANCE = 0.05
+#: An interval this many nominal intervals long (or longer) means lost frames.
+DROP_FACTOR = 1.5
+
+FROM_FILE = "file"
+FROM_CONTAINER = "container"
+FROM_FPS = "fps"
+
+
+@dataclass(frozen=True)
+class FrameTimes:
+    """Capture times of the frames of one video, on that camera's own clock.
+
+    Attributes
+    ----------
+    t_s : ndarray, shape (T,)
+        Capture time of each frame (s), the first at 0; strictly increasing.
+    fps : float
+        Nominal frame rate (Hz): the container's for constant timestamps,
+        ``1 / median interval`` otherwise.
+    source : str
+        ``"file"`` (timestamps file), ``"container"`` (variable frame rate
+        presentation timestamps) or ``"fps"`` (``i / fps``).
+    """
+
+    t_s: FloatArray
+    fps: float
+    source: str = FROM_FPS
+    _dropped: tuple[tuple[int, int], ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=np.float64).reshape(-1)
+        if t.size and not np.all(np.isfinite(t)):
+            raise ValueError("frame times must be finite")
+        if t.size > 1 and np.any(np.diff(t) <= 0):
+            raise ValueError("frame times must increase strictly")
+        if not (self.fps > 0 and np.isfinite(self.fps)):
+            raise ValueError(f"fps must be positive, got {self.fps}")
+        t = t - t[0] if t.size else t
+        t.setflags(write=False)
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "_dropped", tuple(_gaps(t, self.fps)))
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def interval_s(self) -> float:
+        """Nominal frame interval (s)."""
+        return 1.0 / self.fps
+
+    @property
+    def variable(self) -> bool:
+        """Whether the times carry per-frame information (not ``i / fps``)."""
+        return self.source != FROM_FPS
+
+    @property
+    def dropped_after(self) -> list[int]:
+        """Frame numbers after which frames were lost (one entry per lost frame)."""
+        return [i for i, n in self._dropped for _ in range(n)]
+
+    @property
+    def gap_after(self) -> NDArray[np.bool_]:
+        """``(T,)``: True where the interval to the next frame is a gap (lost frames)."""
+        out = np.zeros(len(self.t_s), dtype=bool)
+        for i, _ in self._dropped:
+            out[i] = True
+        return out
+
+    def truncated(self, n: int) -> FrameTimes:
+        """The times of the first ``n`` frames."""
+        return FrameTimes(self.t_s[:n], self.fps, self.source)
+
+
+def _gaps(t: FloatArray, fps: float) -> list[tuple[int, int]]:
+    """``(frame, frames lost after it)`` for intervals of at least ``DROP_FACTOR`` nominal ones."""
+    if len(t) < 2:
+        return []
+    steps = np.diff(t) * fps
+    idx = np.flatnonzero(steps >= DROP_FACTOR)
+    return [(int(i), max(1, round(float(steps[i])) - 1)) for i in idx]
+
+
+def uniform_times(n_frames: int, fps: float) -> FrameTimes:
+    """``i / fps`` for ``n_frames`` frames (constant frame rate)."""
+    if n_frames < 0:
+        raise ValueError(f"n_frames must be >= 0, got {n_frames}")
+    return FrameTimes(np.arange(n_frames) / float(fps), float(fps), FROM_FPS)
+
+
+def frame_times_from_timestamps(
+    timestamps_s: ArrayLike, *, fps: float | None, name: str = "the video"
+) -> FrameTimes:
+    """The frame times of a video from the presentation timestamps of its decoded frames.
+
+    Parameters
+    ----------
+    timestamps_s : array_like, shape (T,)
+        Presentation timestamp of each decoded frame (s), in display order;
+        NaN where the container gave none.
+    fps : float or None
+        The frame rate the container states (None or 0 if it states none).
+    name : str
+        The video's name, for messages.
+
+    Returns
+    -------
+    FrameTimes
+        ``source="container"`` when the timestamps deviate from a constant
+        rate by more than ``VFR_TOLERANCE`` of an interval (variable frame
+        rate, lost frames), else ``i / fps`` (``source="fps"``).
+
+    Raises
+    ------
+    InputError
+        Neither usable timestamps nor a frame rate.
+    """
+    ts = np.asarray(timestamps_s, dtype=np.float64).reshape(-1)
+    n = len(ts)
+    rate = float(fps) if fps is not None and np.isfinite(fps) and fps > 0 else None
+    usable = n >= 2 and bool(np.all(np.isfinite(ts))) and bool(np.all(np.diff(ts) > 0))
+    if not usable:
+        if rate is None:
+            raise InputError(
+                f"{name} has neither frame timestamps nor a frame rate; give its capture times"
+                " in a timestamps file (frame,time_s) or re-export it with a fixed frame rate."
+            )
+        return uniform_times(n, rate)
+    t = ts - ts[0]
+    dt = float(np.median(np.diff(t)))
+    nominal = rate if rate is not None and abs(rate * dt - 1.0) < 0.02 else 1.0 / dt
+    deviation = np.abs(t - np.arange(n) / nominal) * nominal
+    if float(deviation.max()) <= VFR_TOLERANCE:
+        return uniform_times(n, nominal)
+    return FrameTimes(t, 1.0 / dt, FROM_CONTAINER)
+
+
+def read_times_csv(path: str | Path, *, n_frames: int | None = None) -> FrameTimes:
+    """Read a timestamps file: header ``frame,time_s``, one row per frame of the video.
+
+    Parameters
+    ----------
+    path : str or Path
+    n_frames : int, optional
+        The number of frames of the video it belongs to; a file that covers a
+        different number of frames (beyond two, the slack of damaged files)
+        is refused.
+
+    Raises
+    ------
+    InputError
+        Missing file, wrong header, unparsable or non-increasing times,
+        frame numbers that are not ``0, 1, 2, ...``, or a frame count that
+        does not fit the video.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise InputError(f"cannot read the timestamps file {p.name}: {exc.strerror}.") from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{p.name} is not a text file; expected a frame,time_s CSV.") from exc
+    rows = list(csv.reader(text.splitlines()))
+    if not rows or [c.strip() for c in rows[0]][:2] != ["frame", "time_s"]:
+        raise InputError(f"{p.name} must start with the header frame,time_s.")
+    frames, times = [], []
+    for k, row in enumerate(rows[1:], start=2):
+        if not row or not "".join(row).strip():
+            continue
+        try:
+            frames.append(int(row[0]))
+            times.append(float(row[1]))
+        except (ValueError, IndexError) as exc:
+            raise InputError(
+                f"line {k} of {p.name} is not 'frame,time_s' with a whole frame number and a time"
+                " in seconds."
+            ) from exc
+    if len(times) < 2:
+        raise InputError(f"{p.name} holds fewer than two frame times.")
+    if frames != list(range(len(frames))):
+        raise InputError(f"the frame numbers of {p.name} must run 0, 1, 2, ... without gaps.")
+    t = np.array(times)
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise InputError(f"the times of {p.name} must be finite and increase from frame to frame.")
+    if n_frames is not None and abs(len(t) - n_frames) > 2:
+        raise InputError(
+            f"{p.name} gives the times of {len(t)} frames but its video has {n_frames};"
+            " give the timestamps file recorded with this video."
+        )
+    dt = float(np.median(np.diff(t)))
+    return FrameTimes(t, 1.0 / dt, FROM_FILE)
+
+
+def fit_to_frames(times: FrameTimes, n_frames: int) -> FrameTimes:
+    """``times`` for exactly ``n_frames`` decoded frames (a damaged file may decode a
+    frame or two fewer or more than its timestamps say): cut, or continued at the
+    nominal rate."""
+    n = len(times)
+    if n >= n_frames:
+        return times.truncated(n_frames)
+    last = times.t_s[-1] if n else -times.interval_s
+    extra = last + (np.arange(n_frames - n) + 1) * times.interval_s
+    return FrameTimes(np.concatenate([times.t_s, extra]), times.fps, times.source)
