@@ -300,7 +300,7 @@ class _Scene:
 
 
 def _frame_costs(
-    scene: _Scene, frames: NDArray[np.intp], query_t: FloatArray
+    scene: _Scene, frames: NDArray[np.intp], query_t: FloatArray, *, missing_cost: float = 1.0
 ) -> tuple[FloatArray, NDArray[np.intp], FloatArray]:
     """Truncated epipolar cost of left frames against the right points interpolated at given instants.
 
@@ -310,6 +310,9 @@ def _frame_costs(
         Left frames (ascending).
     query_t : ndarray, shape (C, F)
         For each candidate ``c``, the right-clock instant of each frame.
+    missing_cost : float
+        Cost of a left detection without right points to compare with (the
+        truncated cost is at most 1).
 
     Returns
     -------
@@ -332,6 +335,7 @@ def _frame_costs(
     pos = np.searchsorted(frames, l_frame)
     r_row = pos[None, :] + (n_f * np.arange(n_c))[:, None]
     cost, d_min = _cost_matrix(scene, l_pts, right, r_row)
+    cost[np.isinf(d_min)] = missing_cost
     out = np.zeros((n_c, n_f))
     for c in range(n_c):
         out[c] = np.bincount(pos, weights=cost[c], minlength=n_f)
@@ -671,7 +675,9 @@ def _place_drop(
         dr = [*dropped_r, cand] if camera == "right" else dropped_r
         scene = est.scene(dl, dr)
         q = model.left_to_right(scene.left_t[frames])
-        costs, _, _ = _frame_costs(scene, frames, q[None, :])
+        # The frames in the gap have no right points whatever the candidate; a wrong
+        # candidate shows as interpolation across the true gap.
+        costs, _, _ = _frame_costs(scene, frames, q[None, :], missing_cost=0.0)
         total = float(costs.sum())
         if total < best_cost:
             best, best_cost = cand, total
