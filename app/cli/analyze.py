@@ -34,6 +34,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="estimate the frame offset from the marker motion (the default)",
     )
     p.add_argument(
+        "--left-times",
+        type=Path,
+        metavar="CSV",
+        help="capture time of each left frame (frame,time_s), e.g. from the capture page",
+    )
+    p.add_argument(
+        "--right-times",
+        type=Path,
+        metavar="CSV",
+        help="capture time of each right frame (frame,time_s)",
+    )
+    p.add_argument(
         "--swap-labels",
         action="store_true",
         help="exchange the automatic thumb/index labels",
@@ -66,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
             max_gap_s=args.max_gap_s,
             swap_labels=args.swap_labels,
             progress=progress,
+            left_times=args.left_times,
+            right_times=args.right_times,
         )
     try:
         write_analysis(analysis, args.output)

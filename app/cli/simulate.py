@@ -59,6 +59,13 @@ def _occlusion(text: str) -> tuple[str, str, float, float]:
         ) from None
 
 
+def _drop(text: str) -> tuple[str, int]:
+    cam, _, frame = text.partition(":")
+    if cam not in ("left", "right") or not frame.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"expected CAM:FRAME with CAM left or right, got {text!r}")
+    return cam, int(frame)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate",
@@ -161,10 +168,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     g.add_argument(
         "--codec",
-        choices=("lossless", "mp4v"),
+        choices=("lossless", "mp4v", "h264", "hevc", "vp9", "vp8"),
         default="lossless",
-        help="lossless FFV1 (.mkv, default) or compressed MPEG-4 (.mp4)",
+        help="lossless FFV1 (.mkv, default), MPEG-4 or H.264/HEVC (.mp4), VP9/VP8 (.webm)",
     )
+    g = p.add_argument_group("free-running cameras (docs/sync.md)")
+    g.add_argument("--right-fps", type=float, default=None, metavar="HZ",
+                   help="the right camera's frame rate (default: --fps)")  # fmt: skip
+    g.add_argument("--offset-s", type=float, default=0.0, metavar="S",
+                   help="the right camera starts this long after the left (s)")  # fmt: skip
+    g.add_argument("--drift-ppm", type=float, default=0.0, metavar="PPM",
+                   help="the right camera's clock runs slow by this (ppm)")  # fmt: skip
+    g.add_argument("--drop", type=_drop, action="append", default=[], metavar="CAM:FRAME",
+                   help="a frame lost after FRAME of camera CAM, e.g. right:150 (repeatable)")  # fmt: skip
+    g.add_argument("--vfr", action="store_true",
+                   help="write the capture times as timestamps (variable frame rate; needs h264/hevc/vp9/vp8)")  # fmt: skip
+    g.add_argument("--time-jitter-ms", type=float, default=0.0, metavar="MS",
+                   help="capture-time jitter of both cameras (ms, standard deviation)")  # fmt: skip
+    g.add_argument("--rolling-shutter-ms", type=float, default=0.0, metavar="MS",
+                   help="readout time top to bottom row of both cameras (ms; written to rig.json)")  # fmt: skip
+    g.add_argument("--right-size", type=_size, default=None, metavar="WxH",
+                   help="the right camera's image size (default: --size)")  # fmt: skip
     p.add_argument(
         "--boards",
         action="store_true",
@@ -175,10 +199,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from app.cli.progress import progress_bar
-    from core.camera import ImageSize
+    from core.camera import ImageSize, StereoRig
     from core.simulation.kinematics import TappingScenario, simulate_tapping
     from core.simulation.rig import default_rig
     from core.simulation.session import ImagingScenario, simulate_session
+    from core.simulation.timing import CameraTiming
 
     try:
         tapping = TappingScenario(
@@ -207,6 +232,22 @@ def run(args: argparse.Namespace) -> int:
             offset_frames=args.offset,
             codec=args.codec,
             skin_level=args.skin,
+            left_timing=CameraTiming(
+                drop_after=tuple(f for c, f in args.drop if c == "left"),
+                jitter_s=args.time_jitter_ms / 1000.0,
+                vfr=args.vfr,
+                readout_ms=args.rolling_shutter_ms,
+            ),
+            right_timing=CameraTiming(
+                fps=args.right_fps,
+                start_s=args.offset_s,
+                drift_ppm=args.drift_ppm,
+                drop_after=tuple(f for c, f in args.drop if c == "right"),
+                jitter_s=args.time_jitter_ms / 1000.0,
+                vfr=args.vfr,
+                readout_ms=args.rolling_shutter_ms,
+                image_size=None if args.right_size is None else ImageSize(*args.right_size),
+            ),
         )
         # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
         simulate_tapping(tapping, seed=args.seed)
@@ -216,6 +257,8 @@ def run(args: argparse.Namespace) -> int:
                     f"an occlusion names marker {marker!r}; markers are {', '.join(tapping.marker_names)}"
                 )
         rig = default_rig(image_size=imaging.image_size)
+        if args.right_size is not None:
+            rig = StereoRig(rig.left, default_rig(image_size=imaging.camera_size("right")).right)
     except ValueError as exc:
         raise InputError(f"invalid scenario: {exc}; see bradyscope simulate --help.") from exc
     try:
