@@ -628,6 +628,22 @@ def estimate_time_model(est: _Estimator, coarse_offset_s: float) -> ClockModel:
     )
 
 
+def _model_cost(est: _Estimator, model: ClockModel) -> float:
+    """Mean truncated epipolar cost of all left detections under ``model``."""
+    scene = est.scene(model.dropped_left, model.dropped_right)
+    frames = np.arange(len(scene.left_t))
+    costs, n_pts, _ = _frame_costs(scene, frames, model.left_to_right(scene.left_t)[None, :])
+    return float(costs.sum() / max(int(n_pts.sum()), 1))
+
+
+def _better_of(est: _Estimator, model: ClockModel, fallback: ClockModel) -> ClockModel:
+    """``model`` unless the whole-frame ``fallback`` explains the recording better (a
+    recording with little motion can mislead the local offsets)."""
+    if model == fallback:
+        return model
+    return model if _model_cost(est, model) <= _model_cost(est, fallback) else fallback
+
+
 def _levels(u: FloatArray, w: FloatArray, h_l: float, h_r: float) -> NDArray[np.int_]:
     """Whole-frame level of each window's local offset (right frames up, left frames down)."""
     ok = np.isfinite(u) & (w > 0)
@@ -795,7 +811,7 @@ def synchronise(
             )
             model = ClockModel(coarse)
         else:
-            model = estimate_time_model(est, coarse)
+            model = _better_of(est, estimate_time_model(est, coarse), ClockModel(coarse))
     scene = est.scene(model.dropped_left, model.dropped_right)
     left_t = scene.left_t
     duration = float(left_t[-1] - left_t[0]) if n_left else 0.0

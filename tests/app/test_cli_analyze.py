@@ -65,7 +65,9 @@ def test_given_offset_and_swap(session: SimulatedSession, tmp_path: Path) -> Non
     )  # fmt: skip
     assert code == 0
     doc = json.loads((out / "result.json").read_text(encoding="utf-8"))
-    assert doc["sync"] == {"offset_frames": float(OFFSET), "method": "given", "confidence": 1.0}
+    given = {"offset_frames": float(OFFSET), "method": "given", "confidence": 1.0}
+    assert {k: doc["sync"][k] for k in given} == given  # plus the time model's keys (docs/sync.md)
+    assert doc["sync"]["drift_ppm"] == 0.0 and doc["sync"]["dropped_frames_right"] == []
     with open(out / "markers.csv", newline="", encoding="utf-8") as fh:
         row = next(
             r for r in csv.DictReader(fh) if r["status"] == "measured" and r["marker"] == "thumb"
