@@ -15,14 +15,12 @@ code path updates or deletes its rows.
 from __future__ import annotations
 
 from contextvars import ContextVar
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.models import ACTOR_ANONYMOUS, AuditEvent
-
-if TYPE_CHECKING:
-    from app.auth import Actor
 
 # Set per request by ``app.main.SecurityHeadersMiddleware``.
 request_id_var: ContextVar[str | None] = ContextVar("request_id", default=None)

@@ -30,14 +30,15 @@ import hashlib
 import hmac
 import secrets
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import timedelta
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from fastapi import Depends, Request, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from app.actors import ADMIN_SCOPE, ROLE_SCOPES, Actor
 from app.apikeys import SCOPES, parse_api_key, verify_api_key
 from app.audit import ANONYMOUS, audit, audit_failure
 from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
@@ -47,49 +48,9 @@ from app.passwords import DUMMY_HASH, hash_password, needs_rehash, verify_passwo
 SESSION_COOKIE = "bradyscope_session"
 CSRF_HEADER = "X-CSRF-Token"
 CSRF_FORM_FIELD = "csrf_token"
-ADMIN_SCOPE = "admin"
-# Scopes of browser users by role (API clients have their own list).
-ROLE_SCOPES: dict[str, frozenset[str]] = {
-    "clinician": frozenset(SCOPES),
-    "admin": frozenset((*SCOPES, ADMIN_SCOPE)),
-}
 IP_FAILURE_FACTOR = 4  # one IP may fail this many times more than one e-mail address
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "TRACE"})
 _TOUCH_INTERVAL = timedelta(minutes=1)  # last_used/last_seen are updated at most this often
-
-
-@dataclass(frozen=True)
-class Actor:
-    """Who makes a request: an API client or a logged-in browser user.
-
-    Attributes
-    ----------
-    type : {"api_client", "user"}
-    id : int
-        ``ApiClient.id`` or ``User.id``.
-    name : str
-        Client name or user e-mail (for logs; never shown to other users).
-    scopes : frozenset of str
-    role : str or None
-        The user's role (``clinician``/``admin``); ``None`` for API clients.
-    csrf_token : str or None
-        The browser session's CSRF token (``None`` for API clients).
-    """
-
-    type: Literal["api_client", "user"]
-    id: int
-    name: str
-    scopes: frozenset[str] = field(default_factory=frozenset)
-    role: str | None = None
-    csrf_token: str | None = None
-
-    def has_scope(self, scope: str) -> bool:
-        return scope in self.scopes or ADMIN_SCOPE in self.scopes
-
-    @property
-    def user_id(self) -> int | None:
-        """The user's id for ``created_by_user_id`` columns (``None`` for API clients)."""
-        return self.id if self.type == "user" else None
 
 
 # --------------------------------------------------------------------------- database session

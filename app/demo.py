@@ -304,7 +304,7 @@ def _upload_trial(
     settings: Any, user_id: int, session_id: int, hand: str, left: Path, right: Path
 ) -> int:
     """Store the two videos through the service's trial use case; returns the job id."""
-    from app.auth import ROLE_SCOPES, Actor
+    from app.actors import ROLE_SCOPES, Actor
     from app.db import get_sessionmaker
     from app.services.recordings import create_trial
     from app.storage import Storage

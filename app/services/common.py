@@ -8,8 +8,8 @@ from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session
 
 from app import jobs
+from app.actors import Actor
 from app.audit import audit_failure
-from app.auth import Actor
 from app.errors import NotFoundError
 from app.models import Job, Patient, RecordingSession, Rig, Trial
 

@@ -12,8 +12,8 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.audit import audit, audit_failure
-from app.auth import Actor
 from app.errors import ConflictError
 from app.models import Patient, RecordingSession, Trial, utcnow
 from app.schemas import PatientCreate, PatientUpdate

@@ -20,8 +20,8 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app import jobs
+from app.actors import Actor
 from app.audit import audit
-from app.auth import Actor
 from app.errors import CalibrationMissingError, ConflictError, InvalidRequestError
 from app.models import Calibration, Job, Trial, Video, next_calibration_version, utcnow
 from app.services.common import cancel_trial_jobs, load_rig, load_session, load_trial

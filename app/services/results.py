@@ -14,8 +14,8 @@ from typing import Any, TypeVar
 
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.audit import audit
-from app.auth import Actor
 from app.errors import ConflictError, NotFoundError, ServiceUnavailableError
 from app.models import Job, Result, Trial
 from app.services.common import load_trial

@@ -6,8 +6,8 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.audit import audit
-from app.auth import Actor
 from app.errors import ConflictError
 from app.models import Rig
 from app.schemas import RigCreate

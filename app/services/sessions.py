@@ -9,8 +9,8 @@ from __future__ import annotations
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.audit import audit
-from app.auth import Actor
 from app.errors import InvalidRequestError
 from app.models import Calibration, RecordingSession, Rig, Trial, utcnow
 from app.schemas import SessionCreate, SessionUpdate

@@ -20,7 +20,8 @@ from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Resp
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from app.auth import CSRF_HEADER, Actor, SessionDep, get_optional_user
+from app.actors import Actor
+from app.auth import CSRF_HEADER, SessionDep, get_optional_user
 from app.errors import AppError
 from app.uploads import ParsedUpload
 from app.web.templating import templates
