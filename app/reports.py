@@ -830,7 +830,7 @@ def report_context(data: ReportData) -> dict[str, Any]:
 
 def render_report_html(data: ReportData) -> str:
     """The standalone HTML report of one trial (inline CSS and SVG; no external resource)."""
-    from app.web.templating import jinja_env
+    from app.templating import jinja_env
 
     template = jinja_env.get_template("report.html")
     return template.render(**report_context(data))

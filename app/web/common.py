@@ -24,7 +24,7 @@ from app.actors import Actor
 from app.auth import CSRF_HEADER, SessionDep, get_optional_user
 from app.errors import AppError
 from app.uploads import ParsedUpload
-from app.web.templating import templates
+from app.templating import templates
 
 NAV = (("patients", "/patients", "Patients"), ("rigs", "/rigs", "Calibration"))
 

@@ -1,4 +1,4 @@
-"""The Jinja2 environment shared by the pages and the report.
+"""The Jinja2 environment shared by the pages (app.web) and the reports (app.reports).
 
 Templates live in ``templates/`` at the repository root. Autoescaping is on
 for every ``.html`` template; plots are inserted with ``|safe`` because they
@@ -14,7 +14,7 @@ from typing import Any
 from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoescape
 from starlette.templating import Jinja2Templates
 
-TEMPLATES_DIR = Path(__file__).resolve().parents[2] / "templates"
+TEMPLATES_DIR = Path(__file__).resolve().parents[1] / "templates"
 
 
 def _datetime(value: datetime | None, fmt: str = "%Y-%m-%d %H:%M") -> str:
