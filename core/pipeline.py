@@ -33,7 +33,6 @@ INTERFACES.md defines them.
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import math
@@ -59,6 +58,8 @@ from core.markers import (  # the per-camera search lives with the detector (lig
     _CameraDetections,
     _default_detector,
 )
+from core.markers_csv import MARKERS_CSV_HEADER, MarkerTable
+from core.markers_csv import write_markers_csv as write_marker_table
 from core.matching import concatenate_frames, frame_pairs_epipolar_px
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
@@ -71,7 +72,7 @@ from core.triangulation import triangulate
 FloatArray = NDArray[np.float64]
 
 RESULT_FORMAT = "bradyscope.result/1"
-CSV_HEADER = ("frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "status", "reprojection_px")
+CSV_HEADER = MARKERS_CSV_HEADER  # the columns of markers.csv (core.markers_csv)
 
 #: Pairs farther from the epipolar constraint are not stereo candidates (px).
 MAX_EPIPOLAR_PX = 3.0
@@ -130,6 +131,18 @@ class Analysis:
         if self.frame_time_s is not None:
             return np.asarray(self.frame_time_s, dtype=np.float64)
         return self.frame_numbers / self.fps
+
+    def marker_table(self) -> MarkerTable:
+        """The trajectories as :class:`core.markers_csv.MarkerTable` (what markers.csv holds)."""
+        return MarkerTable(
+            fps=float(self.fps),
+            frames=np.asarray(self.frame_numbers, dtype=np.int64),
+            labels=tuple(self.marker_names),
+            positions_mm=self.positions_mm,
+            status=self.status,
+            reprojection_px=self.reprojection_px,
+            frame_time_s=self.time_s,
+        )
 
     def result_document(self) -> dict[str, Any]:
         """``result.json`` as INTERFACES.md defines it (format ``bradyscope.result/1``)."""
@@ -509,35 +522,12 @@ def _frame_times(
 # ----------------------------------------------------------------------------- outputs
 
 
-def _fmt(value: float, decimals: int) -> str:
-    return "" if not math.isfinite(value) else f"{value:.{decimals}f}"
-
-
 def write_markers_csv(analysis: Analysis, path_or_file: str | Path | TextIO) -> None:
-    """Write ``markers.csv`` (INTERFACES.md): one row per frame and marker, header first.
+    """Write ``markers.csv`` (docs/interfaces.md): one row per frame and marker, header first.
 
-    Coordinates with 4 decimals (0.1 µm), reprojection error with 3 (px);
-    missing coordinates and the reprojection error of unmeasured points are empty.
+    The columns and their formatting are :mod:`core.markers_csv`'s.
     """
-    if isinstance(path_or_file, (str, Path)):
-        with open(path_or_file, "w", newline="", encoding="utf-8") as fh:
-            write_markers_csv(analysis, fh)
-        return
-    writer = csv.writer(path_or_file, lineterminator="\n")
-    writer.writerow(CSV_HEADER)
-    pos = analysis.positions_mm
-    times = analysis.time_s
-    for t, frame in enumerate(analysis.frame_numbers):
-        time_s = repr(round(float(times[t]), 6))
-        for m, name in enumerate(analysis.marker_names):
-            st = str(analysis.status[t, m])
-            x, y, z = (float(v) for v in pos[t, m])
-            if st == MISSING:
-                coords = ["", "", ""]
-            else:
-                coords = [_fmt(x, 4), _fmt(y, 4), _fmt(z, 4)]
-            rep = _fmt(float(analysis.reprojection_px[t, m]), 3) if st == MEASURED else ""
-            writer.writerow([int(frame), time_s, name, *coords, st, rep])
+    write_marker_table(analysis.marker_table(), path_or_file)
 
 
 def write_analysis(analysis: Analysis, out_dir: str | Path) -> None:
