@@ -34,6 +34,19 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.actors import ROLE_SCOPES, Actor
+from app.db import get_sessionmaker
+from app.models import Calibration, Patient, RecordingSession, Rig, Trial, User
+from app.passwords import hash_password, verify_password
+from app.services.trials import create_trial
+from app.settings import Settings
+from app.storage import Storage
+from app.uploads import ParsedUpload, StagedFile
+from core.camera import ImageSize, rig_to_dict
+from core.simulation.kinematics import TappingScenario
+from core.simulation.rig import default_rig
+from core.simulation.session import ImagingScenario, simulate_session
+
 log = logging.getLogger(__name__)
 
 DEMO_EMAIL = "demo@example.org"
@@ -113,7 +126,7 @@ def demo_trials() -> list[DemoTrial]:
     return trials
 
 
-def _password(settings: Any) -> tuple[str, bool]:
+def _password(settings: Settings) -> tuple[str, bool]:
     """The demo password from the credentials file, or a new one (and whether it is new)."""
     path = Path(settings.data_dir) / CREDENTIALS_FILE
     if path.is_file():
@@ -129,9 +142,6 @@ def _password(settings: Any) -> tuple[str, bool]:
 
 
 def _demo_rig_doc() -> dict[str, Any]:
-    from core.camera import ImageSize, rig_to_dict
-    from core.simulation.rig import default_rig
-
     doc = rig_to_dict(default_rig(image_size=ImageSize(*IMAGE_SIZE)))
     # The demo videos are rendered with exactly this rig: its error is zero by construction.
     doc["quality"] = {"rms_px": 0.0, "source": "the simulator's true rig (exact; demo only)"}
@@ -150,10 +160,7 @@ def _visit_time(now: datetime, visit: DemoVisit, medication_state: str) -> datet
     return day if medication_state == "off" else day + timedelta(hours=2)
 
 
-def _seed_rows(db: Session, settings: Any, now: datetime) -> dict[str, Any]:
-    from app.models import Calibration, Patient, RecordingSession, Rig, User
-    from app.passwords import hash_password, verify_password
-
+def _seed_rows(db: Session, settings: Settings, now: datetime) -> dict[str, Any]:
     password, _new = _password(settings)
     user = db.scalars(select(User).where(User.email == DEMO_EMAIL)).first()
     if user is None:
@@ -235,8 +242,6 @@ def _seed_rows(db: Session, settings: Any, now: datetime) -> dict[str, Any]:
 def _missing_trials(
     db: Session, sessions: dict[tuple[int, str], int]
 ) -> list[tuple[DemoTrial, int]]:
-    from app.models import Trial
-
     out = []
     for trial in demo_trials():
         session_id = sessions[(trial.visit, trial.medication_state)]
@@ -268,10 +273,6 @@ def _should_stop(stop_event: threading.Event | None) -> bool:
 def _simulate(
     trial: DemoTrial, out_dir: Path, *, clip_s: float, stop_event: threading.Event | None = None
 ) -> tuple[Path, Path]:
-    from core.camera import ImageSize
-    from core.simulation.kinematics import TappingScenario
-    from core.simulation.session import ImagingScenario, simulate_session
-
     n_taps = clip_s * trial.frequency_hz
     hesitations = tuple(k for k in trial.hesitations if k < n_taps - 2)
     halts = tuple((k, d) for k, d in trial.halts if k < n_taps - 2)
@@ -301,15 +302,9 @@ def _simulate(
 
 
 def _upload_trial(
-    settings: Any, user_id: int, session_id: int, hand: str, left: Path, right: Path
+    settings: Settings, user_id: int, session_id: int, hand: str, left: Path, right: Path
 ) -> int:
     """Store the two videos through the service's trial use case; returns the job id."""
-    from app.actors import ROLE_SCOPES, Actor
-    from app.db import get_sessionmaker
-    from app.services.recordings import create_trial
-    from app.storage import Storage
-    from app.uploads import ParsedUpload, StagedFile
-
     storage = Storage.from_settings(settings)
     upload = ParsedUpload(storage, fields={"hand": hand})
     try:
@@ -319,7 +314,7 @@ def _upload_trial(
             with open(path, "rb") as fh:
                 while chunk := fh.read(1 << 20):
                     incoming.write(chunk)
-            incoming._fh.flush()
+            incoming.flush()
         actor = Actor(
             type="user",
             id=user_id,
@@ -329,15 +324,13 @@ def _upload_trial(
         )
         with get_sessionmaker(settings)() as db:
             out = create_trial(db, actor, session_id, upload)
-        if out.job_id is None:
-            raise RuntimeError("the trial was stored without an analysis job")
-        return int(out.job_id)
+        return out.job_id
     finally:
         upload.close()
 
 
 def generate_recordings(
-    settings: Any,
+    settings: Settings,
     user_id: int,
     todo: list[tuple[DemoTrial, int]],
     *,
@@ -374,7 +367,7 @@ def generate_recordings(
 
 
 def seed_demo(
-    settings: Any,
+    settings: Settings,
     *,
     background: bool = True,
     clip_s: float = 8.0,
@@ -403,8 +396,6 @@ def seed_demo(
     str
         Lines to print: where to log in and with which credentials.
     """
-    from app.db import get_sessionmaker
-
     now = now or datetime.now(UTC)
     with get_sessionmaker(settings)() as db:
         seeded = _seed_rows(db, settings, now)

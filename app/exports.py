@@ -1,7 +1,6 @@
-"""Exports of one trial for other systems: markers CSV, C3D, TRC and a FHIR R4 Bundle.
+"""Exports of one trial for other systems: C3D, TRC and a FHIR R4 Bundle.
 
-- ``markers.csv`` is the long-format table of INTERFACES.md (one row per frame
-  and marker); :func:`read_markers_csv` and :func:`markers_csv` read and write it.
+- ``markers.csv`` itself is :mod:`core.markers_csv`'s (header, writer, reader).
 - C3D (through ezc3d) and TRC carry the same marker trajectories for motion
   capture tools (Vicon Nexus, Mokka, OpenSim...). Coordinates are in mm in the
   rig's world frame (the left camera's frame: x right, y down, z away from the
@@ -16,33 +15,21 @@
 from __future__ import annotations
 
 import base64
-import csv
-import io
 import math
 import uuid
 from collections.abc import Mapping
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import Any
 
+import ezc3d
 import numpy as np
+from fhir.resources.R4B.bundle import Bundle
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:
-    from app.reports import ReportData
-
-MARKERS_CSV_HEADER = (
-    "frame",
-    "time_s",
-    "marker",
-    "x_mm",
-    "y_mm",
-    "z_mm",
-    "status",
-    "reprojection_px",
-)
-STATUSES = ("measured", "interpolated", "missing")
+from app.reports.catalogue import metric_spec
+from app.reports.data import ReportData
+from core.markers_csv import MarkerTable
 
 # Identifier systems of bradyscope's own codes (URNs: valid URIs that need no web server).
 PATIENT_CODE_SYSTEM = "urn:bradyscope:patient-code"
@@ -52,138 +39,8 @@ UCUM_SYSTEM = "http://unitsofmeasure.org"
 LOINC_SYSTEM = "http://loinc.org"
 
 
-@dataclass(frozen=True)
-class MarkerTable:
-    """Marker trajectories of one trial, as read from ``markers.csv``.
-
-    Attributes
-    ----------
-    fps : float
-        Frame rate of the left video (Hz).
-    frames : (T,) int64
-        Left-video frame numbers, consecutive.
-    labels : tuple of M str
-        Marker names in column order (``thumb``, ``index``, ...).
-    positions_mm : (T, M, 3) float64
-        Positions in mm in the rig's world frame; NaN where missing.
-    status : (T, M) str
-        ``measured``, ``interpolated`` or ``missing``.
-    reprojection_px : (T, M) float64
-        Reprojection error of each measured sample (px); NaN when unknown.
-    """
-
-    fps: float
-    frames: NDArray[np.int64]
-    labels: tuple[str, ...]
-    positions_mm: NDArray[np.float64]
-    status: NDArray[np.str_]
-    reprojection_px: NDArray[np.float64]
-
-    def __post_init__(self) -> None:
-        t = self.frames.shape[0]
-        m = len(self.labels)
-        if self.positions_mm.shape != (t, m, 3):
-            raise ValueError(f"positions_mm must be ({t}, {m}, 3), got {self.positions_mm.shape}")
-        if self.status.shape != (t, m) or self.reprojection_px.shape != (t, m):
-            raise ValueError(
-                f"status and reprojection_px must be ({t}, {m}), got "
-                f"{self.status.shape}, {self.reprojection_px.shape}"
-            )
-        if not self.fps > 0:
-            raise ValueError(f"fps must be positive, got {self.fps}")
-
-    @property
-    def time_s(self) -> NDArray[np.float64]:
-        """(T,) time of each frame in s (frame / fps)."""
-        return self.frames.astype(np.float64) / self.fps
-
-
-def read_markers_csv(source: str | Path | TextIO, *, fps: float | None = None) -> MarkerTable:
-    """Read a ``markers.csv`` (INTERFACES.md) into a :class:`MarkerTable`.
-
-    Parameters
-    ----------
-    source : path or open text file
-    fps : float, optional
-        Frame rate; estimated from ``frame`` and ``time_s`` when not given.
-    """
-    if isinstance(source, str | Path):
-        with open(source, newline="", encoding="utf-8") as fh:
-            return read_markers_csv(fh, fps=fps)
-    reader = csv.DictReader(source)
-    missing = [c for c in MARKERS_CSV_HEADER[:7] if c not in (reader.fieldnames or ())]
-    if missing:
-        raise ValueError(f"markers.csv lacks the columns {missing}")
-    rows = list(reader)
-    labels: list[str] = []
-    frames_seen: list[int] = []
-    for row in rows:
-        if row["marker"] not in labels:
-            labels.append(row["marker"])
-        frames_seen.append(int(row["frame"]))
-    frame_min = min(frames_seen) if frames_seen else 0
-    frame_max = max(frames_seen) if frames_seen else -1
-    frames = np.arange(frame_min, frame_max + 1, dtype=np.int64)
-    t, m = frames.size, len(labels)
-    pos = np.full((t, m, 3), np.nan)
-    status = np.full((t, m), "missing", dtype="<U12")
-    reproj = np.full((t, m), np.nan)
-    times = np.full(t, np.nan)
-    for row in rows:
-        i = int(row["frame"]) - frame_min
-        j = labels.index(row["marker"])
-        times[i] = float(row["time_s"])
-        st = row["status"]
-        status[i, j] = st
-        if st != "missing" and row["x_mm"] != "":
-            pos[i, j] = (float(row["x_mm"]), float(row["y_mm"]), float(row["z_mm"]))
-        rp = row.get("reprojection_px") or ""
-        if rp != "":
-            reproj[i, j] = float(rp)
-    if fps is None:
-        ok = np.isfinite(times) & (frames != 0)
-        if not ok.any():
-            raise ValueError("cannot infer fps from markers.csv; pass fps=")
-        fps = float(np.median(frames[ok] / times[ok]))
-    return MarkerTable(
-        fps=float(fps),
-        frames=frames,
-        labels=tuple(labels),
-        positions_mm=pos,
-        status=status,
-        reprojection_px=reproj,
-    )
-
-
 def _num(value: float, digits: int) -> str:
     return "" if not math.isfinite(value) else f"{value:.{digits}f}"
-
-
-def markers_csv(table: MarkerTable) -> str:
-    """The ``markers.csv`` text of ``table`` (INTERFACES.md long format, header included)."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(MARKERS_CSV_HEADER)
-    time_s = table.time_s
-    for i, frame in enumerate(table.frames):
-        for j, name in enumerate(table.labels):
-            x, y, z = table.positions_mm[i, j]
-            st = str(table.status[i, j])
-            if st == "missing" or not np.isfinite(table.positions_mm[i, j]).all():
-                st, x, y, z = "missing", math.nan, math.nan, math.nan
-            writer.writerow(
-                (
-                    int(frame),
-                    f"{time_s[i]:.6g}",
-                    name,
-                    _num(x, 3),
-                    _num(y, 3),
-                    _num(z, 3),
-                    st,
-                    _num(float(table.reprojection_px[i, j]), 3),
-                )
-            )
-    return out.getvalue()
 
 
 def write_c3d(path: str | Path, table: MarkerTable) -> Path:
@@ -194,8 +51,6 @@ def write_c3d(path: str | Path, table: MarkerTable) -> Path:
     readers can tell them apart.
     The first frame number in the header is the first left-video frame + 1.
     """
-    import ezc3d
-
     path = Path(path)
     c3d = ezc3d.c3d()
     t, m = table.frames.size, len(table.labels)
@@ -275,8 +130,6 @@ def _observation(
     effective: str,
     hand: str,
 ) -> dict[str, Any]:
-    from app.reports import metric_spec
-
     spec = metric_spec(key)
     label, ucum, unit = spec.label, spec.ucum, spec.unit
     obs: dict[str, Any] = {
@@ -344,12 +197,7 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     dict
         JSON-ready Bundle.
     """
-    from fhir.resources.R4B.bundle import Bundle
-
-    def urn() -> str:
-        return f"urn:uuid:{uuid.uuid4()}"
-
-    patient_url = urn()
+    patient_url = _urn()
     effective = _iso(data.recorded_at)
     issued = _iso(data.generated_at)
     entries: list[dict[str, Any]] = [
@@ -361,23 +209,61 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
             },
         }
     ]
-    obs_urls: list[str] = []
+    entries += _observation_entries(data, patient_url, effective)
+    report = _diagnostic_report(
+        data,
+        patient_url,
+        effective=effective,
+        issued=issued,
+        observation_urls=[str(e["fullUrl"]) for e in entries[1:]],
+        pdf_bytes=pdf_bytes,
+    )
+    entries.append({"fullUrl": _urn(), "resource": report})
+    doc: dict[str, Any] = {
+        "resourceType": "Bundle",
+        "type": "collection",  # no server-side processing asked for; a set of resources
+        "timestamp": issued,
+        "identifier": {"system": "urn:bradyscope:trial", "value": str(data.trial_id)},
+        "entry": entries,
+    }
+    Bundle.model_validate(doc)  # raises pydantic.ValidationError if the bundle is malformed
+    return doc
+
+
+def _urn() -> str:
+    return f"urn:uuid:{uuid.uuid4()}"
+
+
+def _observation_entries(
+    data: ReportData, patient_url: str, effective: str
+) -> list[dict[str, Any]]:
+    """One Observation entry per numeric metric of the result (an undefined one: data absent)."""
+    entries = []
     metrics: Mapping[str, Any] = data.result.get("metrics", {}) if data.result else {}
     for key, value in metrics.items():
         if isinstance(value, bool) or not isinstance(value, int | float | None):
             continue
-        if value is None:
-            value = math.nan  # an undefined metric: Observation with dataAbsentReason
-        url = urn()
-        obs_urls.append(url)
+        number = math.nan if value is None else float(value)
         entries.append(
             {
-                "fullUrl": url,
+                "fullUrl": _urn(),
                 "resource": _observation(
-                    key, float(value), patient_ref=patient_url, effective=effective, hand=data.hand
+                    key, number, patient_ref=patient_url, effective=effective, hand=data.hand
                 ),
             }
         )
+    return entries
+
+
+def _diagnostic_report(
+    data: ReportData,
+    patient_url: str,
+    *,
+    effective: str,
+    issued: str,
+    observation_urls: list[str],
+    pdf_bytes: bytes | None,
+) -> dict[str, Any]:
     report: dict[str, Any] = {
         "resourceType": "DiagnosticReport",
         "status": "final",
@@ -406,7 +292,7 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
         "subject": {"reference": patient_url},
         "effectiveDateTime": effective,
         "issued": issued,
-        "result": [{"reference": u} for u in obs_urls],
+        "result": [{"reference": u} for u in observation_urls],
         "conclusion": _conclusion(data),
     }
     if pdf_bytes is not None:
@@ -419,16 +305,7 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
                 "creation": issued,
             }
         ]
-    entries.append({"fullUrl": urn(), "resource": report})
-    doc: dict[str, Any] = {
-        "resourceType": "Bundle",
-        "type": "collection",  # no server-side processing asked for; a set of resources
-        "timestamp": issued,
-        "identifier": {"system": "urn:bradyscope:trial", "value": str(data.trial_id)},
-        "entry": entries,
-    }
-    Bundle.model_validate(doc)  # raises pydantic.ValidationError if the bundle is malformed
-    return doc
+    return report
 
 
 def _conclusion(data: ReportData) -> str:

@@ -38,11 +38,12 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Calibration, Job, Trial, utcnow
@@ -421,3 +422,39 @@ def job_status(db: Session, job_id: int) -> dict[str, Any] | None:
         "started_at": job.started_at,
         "finished_at": job.finished_at,
     }
+
+
+def latest_jobs(
+    db: Session, *, trial_ids: Iterable[int] = (), calibration_ids: Iterable[int] = ()
+) -> dict[int, Job]:
+    """The newest job of each given trial, or of each given calibration (one query).
+
+    Pass either ``trial_ids`` or ``calibration_ids``; the answer maps each id
+    that has a job to its newest job (the highest job id: a re-analysis or a
+    retry queued later wins).
+    """
+    trials, calibrations = list(trial_ids), list(calibration_ids)
+    if trials and calibrations:
+        raise ValueError("give trial_ids or calibration_ids, not both")
+    owner = Job.trial_id if trials else Job.calibration_id
+    ids = trials or calibrations
+    if not ids:
+        return {}
+    newest = select(func.max(Job.id)).where(owner.in_(ids)).group_by(owner)
+    out: dict[int, Job] = {}
+    for job in db.scalars(select(Job).where(Job.id.in_(newest))):
+        key = job.trial_id if trials else job.calibration_id
+        if key is not None:
+            out[key] = job
+    return out
+
+
+def latest_job(
+    db: Session, *, trial_id: int | None = None, calibration_id: int | None = None
+) -> Job | None:
+    """The newest job of one trial or one calibration (see :func:`latest_jobs`)."""
+    if trial_id is not None:
+        return latest_jobs(db, trial_ids=[trial_id]).get(trial_id)
+    if calibration_id is not None:
+        return latest_jobs(db, calibration_ids=[calibration_id]).get(calibration_id)
+    raise ValueError("give trial_id or calibration_id")

@@ -27,9 +27,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app import db as app_db
+from app.api import api_router
 from app.audit import client_ip_var, request_id_var
 from app.errors import AppError, PayloadTooLargeError
+from app.settings import Settings, get_settings
 from app.storage import Storage
+from app.web import router as web_router
+from app.web.common import LoginRequired, login_redirect
 from core.errors import BradyscopeError
 
 log = logging.getLogger(__name__)
@@ -234,7 +239,7 @@ def _install_error_handlers(app: FastAPI) -> None:
         return _error(500, f"Internal error; quote request id {request_id} to the administrator.")
 
 
-def create_app(settings: Any = None) -> FastAPI:
+def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the bradyscope web application.
 
     Parameters
@@ -248,9 +253,6 @@ def create_app(settings: Any = None) -> FastAPI:
         With the REST API under ``/api/v1``, the browser pages, ``/static`` and
         ``/health``. The database must already be migrated.
     """
-    from app import db as app_db
-    from app.settings import get_settings
-
     if settings is None:
         settings = get_settings()
     engine = app_db.make_engine(settings)
@@ -285,16 +287,11 @@ def create_app(settings: Any = None) -> FastAPI:
         SecurityHeadersMiddleware, hsts=bool(getattr(settings, "secure_cookies", False))
     )
 
-    from app.api import api_router
-
     app.include_router(api_router, prefix=API_PREFIX)
 
     @app.get("/health", tags=["service"], summary="Liveness check (no authentication)")
     def health() -> dict[str, str]:
         return {"status": "ok"}
-
-    from app.web import router as web_router
-    from app.web.common import LoginRequired, login_redirect
 
     app.include_router(web_router)
 

@@ -24,13 +24,15 @@ Conventions that every caller must keep
 - Every schema change goes through an Alembic migration in ``migrations/``;
   ``tests/app/test_migrations.py`` fails on any drift.
 
-Service function
-----------------
-:func:`calibration_for` — the calibration an analysis of a session uses.
+One module on purpose (about 530 lines): the schema is read as a whole, and
+its relationships refer to each other. Queries live in the services
+(``app.services``); the one here,
+:func:`next_calibration_version`, guards a UNIQUE constraint of these tables.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from typing import Any, ClassVar, Final
 
@@ -48,12 +50,15 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    event,
     select,
 )
-from sqlalchemy.engine import Dialect
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.engine import Connection, Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, Mapper, mapped_column, relationship
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.types import TypeDecorator
+
+from core.calibration import quality_verdict
 
 # Allowed values of the enumerated string columns.
 ROLES = ("clinician", "admin")
@@ -64,6 +69,7 @@ HANDS = ("left", "right")
 SIDES = ("left", "right")
 CALIBRATION_SOURCES = ("rig_file", "board_videos")
 CALIBRATION_STATUSES = ("pending", "ready", "failed")
+CALIBRATION_VERDICTS = ("good", "acceptable", "poor")
 TRIAL_STATUSES = ("queued", "running", "succeeded", "failed")
 JOB_KINDS = ("analyze_trial", "calibrate")
 JOB_STATUSES = ("queued", "running", "succeeded", "failed")
@@ -261,6 +267,10 @@ class Calibration(Base):
         CheckConstraint(_in("source", CALIBRATION_SOURCES), name="source"),
         CheckConstraint(_in("status", CALIBRATION_STATUSES), name="status"),
         CheckConstraint("status != 'ready' OR rig_json IS NOT NULL", name="ready_has_rig"),
+        CheckConstraint(
+            f"verdict IS NULL OR {_in('verdict', CALIBRATION_VERDICTS)}", name="verdict"
+        ),
+        CheckConstraint("status != 'ready' OR verdict IS NOT NULL", name="ready_has_verdict"),
         Index("ix_calibrations_rig_id_valid_from", "rig_id", "valid_from"),
     )
 
@@ -272,6 +282,11 @@ class Calibration(Base):
     rig_json: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     rms_px: Mapped[float | None] = mapped_column(Float)
     quality: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    verdict: Mapped[str | None] = mapped_column(String(16))
+    """``good``, ``acceptable`` or ``poor``, judged once when the calibration became ready
+    (``core.calibration.quality_verdict``); NULL while pending or failed."""
+    verdict_reasons: Mapped[list[str] | None] = mapped_column(JSON)
+    """One sentence per quality figure that is not good (empty when all are)."""
     source: Mapped[str] = mapped_column(String(16))
     status: Mapped[str] = mapped_column(String(16), default="pending")
     board: Mapped[dict[str, Any] | None] = mapped_column(JSON)
@@ -281,6 +296,40 @@ class Calibration(Base):
 
     rig: Mapped[Rig] = relationship(back_populates="calibrations")
     videos: Mapped[list[Video]] = relationship(back_populates="calibration")
+
+    def judge(self) -> None:
+        """Judge the quality figures (:func:`calibration_verdict`) into ``verdict`` and its reasons.
+
+        Runs by itself when a ``ready`` calibration without a verdict is
+        inserted or updated through the session (see :func:`_judge_when_ready`).
+        """
+        self.verdict, self.verdict_reasons = calibration_verdict(self.quality, self.rms_px)
+
+
+def calibration_verdict(
+    quality: Mapping[str, Any] | None, rms_px: float | None = None
+) -> tuple[str, list[str]]:
+    """``(verdict, reasons)`` of a calibration's quality figures (``core.calibration``'s rule).
+
+    ``rms_px`` (the calibration's column) counts when the figures lack it. The
+    one place the service judges a calibration; the result is stored in
+    ``Calibration.verdict`` and ``Calibration.verdict_reasons``.
+    """
+    figures = dict(quality or {})
+    if rms_px is not None:
+        figures.setdefault("rms_px", rms_px)
+    verdict, reasons = quality_verdict(figures)
+    return str(verdict), [str(r) for r in reasons]
+
+
+@event.listens_for(Calibration, "before_insert")
+@event.listens_for(Calibration, "before_update")
+def _judge_when_ready(
+    mapper: Mapper[Calibration], connection: Connection, target: Calibration
+) -> None:
+    """A calibration is judged once, when it is stored ready without a verdict."""
+    if target.status == "ready" and target.verdict is None:
+        target.judge()
 
 
 # --------------------------------------------------------------------------- recordings
@@ -490,53 +539,12 @@ def next_calibration_version(db: DbSession, rig_id: int) -> int:
     return int(current or 0) + 1
 
 
-def calibration_for(db: DbSession, session: RecordingSession) -> Calibration:
-    """The calibration an analysis of ``session`` uses.
-
-    The session's own override (``session.calibration_id``) if set, otherwise
-    the newest ``ready`` calibration of the session's rig whose ``valid_from``
-    is not after ``session.recorded_at`` (ties: the highest version).
-
-    Raises
-    ------
-    app.errors.CalibrationMissingError
-        When the override is not ready, or the rig has no ready calibration
-        valid at the session's time.
-    """
-    from app.errors import CalibrationMissingError
-
-    if session.calibration_id is not None:
-        cal = db.get(Calibration, session.calibration_id)
-        if cal is None or cal.status != "ready":
-            raise CalibrationMissingError(
-                f"calibration {session.calibration_id} chosen for session {session.id} is not "
-                "ready; choose a ready calibration or clear the choice."
-            )
-        return cal
-    cal = db.scalars(
-        select(Calibration)
-        .where(
-            Calibration.rig_id == session.rig_id,
-            Calibration.status == "ready",
-            Calibration.valid_from <= session.recorded_at,
-        )
-        .order_by(Calibration.valid_from.desc(), Calibration.version.desc())
-        .limit(1)
-    ).first()
-    if cal is None:
-        raise CalibrationMissingError(
-            f"rig {session.rig_id} has no ready calibration valid on "
-            f"{session.recorded_at:%Y-%m-%d %H:%M} UTC; upload a calibration for this rig "
-            "first (valid from a date before the session)."
-        )
-    return cal
-
-
 __all__ = [
     "ACTOR_ANONYMOUS",
     "ACTOR_TYPES",
     "CALIBRATION_SOURCES",
     "CALIBRATION_STATUSES",
+    "CALIBRATION_VERDICTS",
     "DBS_STATES",
     "HANDS",
     "JOB_KINDS",
@@ -561,7 +569,7 @@ __all__ = [
     "UTCDateTime",
     "User",
     "Video",
-    "calibration_for",
+    "calibration_verdict",
     "next_calibration_version",
     "utcnow",
 ]

@@ -22,6 +22,7 @@ from typing import Any
 import matplotlib
 import matplotlib.dates as mdates
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
@@ -152,6 +153,50 @@ def _empty(fig: Figure, message: str) -> None:
     ax.text(0.5, 0.5, message, ha="center", va="center", color="#52606d", transform=ax.transAxes)
 
 
+def _aperture_line(
+    ax: Axes, t: NDArray[np.float64], a: NDArray[np.float64], interpolated: ArrayLike | None
+) -> None:
+    """The aperture over time, gap-filled stretches in grey."""
+    measured = a.copy()
+    if interpolated is not None:
+        interp = np.asarray(interpolated, dtype=bool)
+        if interp.shape != t.shape:
+            raise ValueError(f"interpolated must be (T,)={t.shape}, got {interp.shape}")
+        gap = a.copy()
+        # Keep one neighbour on each side so interpolated stretches join the line.
+        grown = interp | np.roll(interp, 1) | np.roll(interp, -1)
+        gap[~grown] = np.nan
+        measured[interp] = np.nan
+        if interp.any():
+            ax.plot(t, gap, color=COLOURS["interpolated"], lw=1.2, label="interpolated")
+    ax.plot(t, measured, color=COLOURS["aperture"], lw=1.2, label="aperture")
+
+
+def _tap_marks(
+    ax: Axes, t: NDArray[np.float64], a: NDArray[np.float64], taps: Sequence[Mapping[str, Any]]
+) -> None:
+    """Each tap's peak as a numbered dot, its start as a faint tick."""
+    t_peak = np.array([_value(tp, "t_max_aperture_s") for tp in taps])
+    a_peak = np.interp(t_peak, t[np.isfinite(a)], a[np.isfinite(a)])
+    a_peak[~np.isfinite(t_peak)] = np.nan
+    ax.plot(t_peak, a_peak, "o", ms=3.5, color=COLOURS["tap"], label="tap peak")
+    for tp, x, y in zip(taps, t_peak, a_peak, strict=True):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        ax.annotate(
+            str(int(tp.get("index", 0)) + 1),
+            (x, y),
+            xytext=(0, 3),
+            textcoords="offset points",
+            ha="center",
+            fontsize=6.5,
+            color="#3e4c59",
+        )
+    for tp in taps:
+        if math.isfinite(_value(tp, "t_start_s")):
+            ax.axvline(_value(tp, "t_start_s"), color="#cbd2d9", lw=0.5, zorder=0)
+
+
 def aperture_plot(
     time_s: ArrayLike,
     aperture_mm: ArrayLike,
@@ -197,39 +242,9 @@ def aperture_plot(
         for ev in events:
             colour = COLOURS.get(ev.kind, COLOURS["hesitation"])
             ax.axvspan(ev.t_start_s, ev.t_end_s, color=colour, alpha=0.22, lw=0)
-        measured = a.copy()
-        if interpolated is not None:
-            interp = np.asarray(interpolated, dtype=bool)
-            if interp.shape != t.shape:
-                raise ValueError(f"interpolated must be (T,)={t.shape}, got {interp.shape}")
-            gap = a.copy()
-            # Keep one neighbour on each side so interpolated stretches join the line.
-            grown = interp | np.roll(interp, 1) | np.roll(interp, -1)
-            gap[~grown] = np.nan
-            measured[interp] = np.nan
-            if interp.any():
-                ax.plot(t, gap, color=COLOURS["interpolated"], lw=1.2, label="interpolated")
-        ax.plot(t, measured, color=COLOURS["aperture"], lw=1.2, label="aperture")
+        _aperture_line(ax, t, a, interpolated)
         if taps:
-            t_peak = np.array([_value(tp, "t_max_aperture_s") for tp in taps])
-            a_peak = np.interp(t_peak, t[np.isfinite(a)], a[np.isfinite(a)])
-            a_peak[~np.isfinite(t_peak)] = np.nan
-            ax.plot(t_peak, a_peak, "o", ms=3.5, color=COLOURS["tap"], label="tap peak")
-            for tp, x, y in zip(taps, t_peak, a_peak, strict=True):
-                if not (np.isfinite(x) and np.isfinite(y)):
-                    continue
-                ax.annotate(
-                    str(int(tp.get("index", 0)) + 1),
-                    (x, y),
-                    xytext=(0, 3),
-                    textcoords="offset points",
-                    ha="center",
-                    fontsize=6.5,
-                    color="#3e4c59",
-                )
-            for tp in taps:
-                if math.isfinite(_value(tp, "t_start_s")):
-                    ax.axvline(_value(tp, "t_start_s"), color="#cbd2d9", lw=0.5, zorder=0)
+            _tap_marks(ax, t, a, taps)
         kinds = {ev.kind for ev in events}
         if "hesitation" in kinds:
             ax.fill_between([], [], color=COLOURS["hesitation"], alpha=0.3, label="hesitation")

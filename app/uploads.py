@@ -2,7 +2,8 @@
 
 An upload goes through three steps, and a rejected one leaves nothing behind:
 
-1. :func:`receive_multipart` streams the request body, chunk by chunk, into
+1. :func:`receive_multipart` (run by :func:`run_upload`, the one upload
+   runner of the API and the pages) streams the request body, chunk by chunk, into
    temporary files of the storage (``data_dir/tmp``, the same file system as
    the stored files, so publishing is an atomic rename), computing each file's
    SHA-256 on the fly and stopping at the size limit (HTTP 413).
@@ -18,12 +19,14 @@ An upload goes through three steps, and a rejected one leaves nothing behind:
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
 
 from app.errors import (
@@ -33,7 +36,11 @@ from app.errors import (
     UnsupportedMediaError,
 )
 from app.storage import IncomingFile, Storage, StoredFile
+from core.camera import StereoRig, rig_from_dict
 from core.errors import BradyscopeError
+from core.video import VideoInfo, check_stereo_videos, decodes_frame, probe_video
+
+T = TypeVar("T")
 
 MAX_FIELD_BYTES = 64 * 1024  # a plain form field (hand, board, ...), not a file
 MAX_PARTS = 16
@@ -259,11 +266,32 @@ def _label(field_name: str) -> str:
     }.get(field_name, f"the file {field_name!r}")
 
 
+def _check_request(request: Request, *, n_files: int, n_fields: int, max_file_bytes: int) -> bytes:
+    """The multipart boundary of ``request``, after its declared type and size were checked."""
+    content_type = request.headers.get("content-type", "")
+    ctype, params = parse_options_header(content_type)
+    if ctype != b"multipart/form-data":
+        raise UnsupportedUpload(
+            "Send the recording as multipart/form-data (an HTML form with file fields)."
+        )
+    boundary = params.get(b"boundary")
+    if not boundary:
+        raise UploadError("The multipart upload has no boundary; send a regular HTML form.")
+    declared = request.headers.get("content-length", "")
+    limit_total = max_file_bytes * n_files + MAX_FIELD_BYTES * (n_fields + 4)
+    if declared.isdigit() and int(declared) > limit_total:
+        raise PayloadTooLargeError(
+            f"The upload is larger than the limit of {max_file_bytes / 1e6:.1f} MB per file;"
+            " record a shorter clip or ask the administrator to raise BRADYSCOPE_MAX_UPLOAD_BYTES."
+        )
+    return bytes(boundary)
+
+
 async def receive_multipart(
     request: Request,
     *,
     storage: Storage,
-    file_fields: dict[str, str],
+    file_fields: Mapping[str, str],
     text_fields: set[str] | frozenset[str] = frozenset(),
     max_file_bytes: int,
 ) -> ParsedUpload:
@@ -276,7 +304,7 @@ async def receive_multipart(
     storage : Storage
         Files are received into ``storage.tmp_dir`` (same file system as the
         stored files, so publishing is an atomic rename).
-    file_fields : dict of str to str
+    file_fields : mapping of str to str
         Accepted file parts, each with the default suffix of its stored file
         (``{"left_video": ".video"}``). Other parts are read and dropped.
     text_fields : set of str
@@ -295,23 +323,9 @@ async def receive_multipart(
     UnsupportedUpload, UploadError, PayloadTooLargeError
         Nothing of the upload is left on disk when these are raised.
     """
-    content_type = request.headers.get("content-type", "")
-    ctype, params = parse_options_header(content_type)
-    if ctype != b"multipart/form-data":
-        raise UnsupportedUpload(
-            "Send the recording as multipart/form-data (an HTML form with file fields)."
-        )
-    boundary = params.get(b"boundary")
-    if not boundary:
-        raise UploadError("The multipart upload has no boundary; send a regular HTML form.")
-    declared = request.headers.get("content-length", "")
-    limit_total = max_file_bytes * len(file_fields) + MAX_FIELD_BYTES * (len(text_fields) + 4)
-    if declared.isdigit() and int(declared) > limit_total:
-        raise PayloadTooLargeError(
-            f"The upload is larger than the limit of {max_file_bytes / 1e6:.1f} MB per file;"
-            " record a shorter clip or ask the administrator to raise BRADYSCOPE_MAX_UPLOAD_BYTES."
-        )
-
+    boundary = _check_request(
+        request, n_files=len(file_fields), n_fields=len(text_fields), max_file_bytes=max_file_bytes
+    )
     receiver = _Receiver(
         storage,
         file_fields=dict(file_fields),
@@ -343,6 +357,47 @@ async def receive_multipart(
     return receiver.result
 
 
+async def run_upload(
+    request: Request,
+    *,
+    storage: Storage,
+    max_file_bytes: int,
+    file_fields: Mapping[str, str],
+    text_fields: frozenset[str],
+    use_case: Callable[[ParsedUpload], T],
+    accept: Callable[[ParsedUpload], None] | None = None,
+) -> T:
+    """The one way an upload is run, for the API and the pages alike.
+
+    Streams the body into storage (:func:`receive_multipart`), lets
+    ``accept(upload)`` check or adjust the received form (e.g. its CSRF
+    token), then runs ``use_case(upload)`` in the thread pool (it publishes the
+    files and commits their rows). Whatever fails, every file of the upload is
+    removed again; the temporary files are always cleaned up.
+
+    Raises
+    ------
+    AppError, core.errors.BradyscopeError
+        From receiving, ``accept`` or the use case; the caller answers them.
+    """
+    upload = await receive_multipart(
+        request,
+        storage=storage,
+        file_fields=file_fields,
+        text_fields=text_fields,
+        max_file_bytes=max_file_bytes,
+    )
+    try:
+        if accept is not None:
+            accept(upload)
+        return await run_in_threadpool(use_case, upload)
+    except BaseException:
+        upload.discard()
+        raise
+    finally:
+        upload.close()
+
+
 async def _drain(stream: Any) -> None:
     """Read and drop the rest of a refused body (bounded) so the client sees the answer."""
     dropped = 0
@@ -358,7 +413,7 @@ async def _drain(stream: Any) -> None:
 # -- content checks ---------------------------------------------------------
 
 
-def validate_video(path: Path, *, label: str, filename: str = "") -> Any:
+def validate_video(path: Path, *, label: str, filename: str = "") -> VideoInfo:
     """Decide whether ``path`` is a usable video by decoding it.
 
     Parameters
@@ -383,7 +438,6 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> Any:
         announce up to two frames more than it holds (``core.video``'s slack);
         such a file is accepted.
     """
-    from core.video import decodes_frame, probe_video
 
     def why(exc: BaseException) -> str:
         return _sentence(exc).replace(path.name, filename or "the file")
@@ -405,24 +459,22 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> Any:
     return info
 
 
-def validate_stereo_pair(left: Any, right: Any, *, rig: Any = None) -> list[str]:
+def validate_stereo_pair(
+    left: VideoInfo, right: VideoInfo, *, rig: StereoRig | None = None
+) -> list[str]:
     """Check that two decoded videos form one stereo recording (same fps and size, rig fit).
 
     Returns the warnings of ``core.video.check_stereo_videos``; raises
     :class:`InvalidUpload` when the pair cannot be measured.
     """
-    from core.video import check_stereo_videos
-
     try:
         return list(check_stereo_videos(left, right, rig=rig))
     except BradyscopeError as exc:
         raise InvalidUpload(_sentence(exc)) from exc
 
 
-def validate_rig_file(path: Path) -> Any:
+def validate_rig_file(path: Path) -> StereoRig:
     """Parse an uploaded rig file; return the ``StereoRig`` or raise :class:`InvalidUpload`."""
-    from core.camera import rig_from_dict
-
     if path.stat().st_size == 0:
         raise InvalidUpload("The rig file is empty; upload the rig.json written by calibrate.")
     try:

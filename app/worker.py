@@ -18,9 +18,12 @@ Handlers
 --------
 A handler is ``handler(ctx: JobContext) -> None`` registered per job kind
 (:data:`HANDLERS`; tests pass their own ``handlers=``). The real ones are
-``analyze_trial`` (``core.pipeline.analyze_recording`` → a :class:`Result`)
-and ``calibrate`` (``core.calibration.calibrate_stereo_from_paths`` → a ready
-:class:`Calibration`). ``core`` modules are imported inside the handlers.
+``analyze_trial`` (``core.pipeline.analyze_recording`` → a ``Result``) and
+``calibrate`` (``core.calibration.calibrate_stereo_from_paths`` → a ready
+``Calibration``). What crosses to ``core`` and back is typed:
+:class:`app.services.trials.TrialInputs` and ``core.pipeline.Analysis``,
+:class:`app.services.calibrations.CalibrationInputs` and
+``core.calibration.CalibrationResult``; the services read and store the rows.
 """
 
 from __future__ import annotations
@@ -30,20 +33,22 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app import jobs
 from app.db import get_sessionmaker
-from app.errors import AppError, InvalidRequestError, NotFoundError
+from app.errors import AppError
 from app.jobs import ClaimedJob, LeaseLostError
-from app.models import Calibration, Result, Trial, Video, calibration_for
+from app.services import calibrations, trials
 from app.settings import Settings
 from app.storage import Storage
+from core.calibration import calibrate_stereo_from_paths
 from core.errors import BradyscopeError
+from core.pipeline import analyze_recording, write_markers_csv
 
 log = logging.getLogger(__name__)
 
@@ -199,43 +204,7 @@ class _Heartbeat(threading.Thread):
 # --------------------------------------------------------------------------- handlers
 
 
-def _trial_inputs(ctx: JobContext) -> dict[str, Any]:
-    """Everything the analysis of ``ctx.job.trial_id`` needs, read in one short transaction."""
-    with ctx.sessions() as db:
-        trial = db.get(Trial, ctx.job.trial_id) if ctx.job.trial_id is not None else None
-        if trial is None or trial.deleted_at is not None:
-            raise NotFoundError(f"trial {ctx.job.trial_id} was deleted; nothing to analyse.")
-        videos = {v.side: v for v in trial.videos}
-        missing = [side for side in ("left", "right") if side not in videos]
-        if missing:
-            raise InvalidRequestError(
-                f"trial {trial.id} has no {' and no '.join(missing)} video; upload the trial again."
-            )
-        cal = calibration_for(db, trial.session)
-        paths = {side: ctx.storage.absolute(videos[side].path) for side in ("left", "right")}
-        _require_files(ctx, paths.values(), what=f"trial {trial.id}")
-        return {
-            "trial_id": trial.id,
-            "left": paths["left"],
-            "right": paths["right"],
-            "offset_frames": (
-                trial.offset_frames
-                if trial.offset_frames is not None
-                else ctx.job.payload.get("offset_frames")
-            ),
-            "calibration": {
-                "id": cal.id,
-                "rig_id": cal.rig_id,
-                "rig_name": cal.rig.name,
-                "version": cal.version,
-                "valid_from": cal.valid_from.isoformat(),
-                "rms_px": cal.rms_px,
-            },
-            "rig_json": cal.rig_json,
-        }
-
-
-def _require_files(ctx: JobContext, paths: Any, *, what: str) -> None:
+def _require_files(ctx: JobContext, paths: Iterable[Path], *, what: str) -> None:
     missing = [p for p in paths if not p.is_file()]
     if missing:
         raise RetryableJobError(
@@ -245,6 +214,17 @@ def _require_files(ctx: JobContext, paths: Any, *, what: str) -> None:
         )
 
 
+def _upload_warnings(ctx: JobContext, document: dict[str, Any]) -> dict[str, Any]:
+    """``document`` with the upload's warnings (kept in the job) added to its quality warnings."""
+    upload_warnings = [str(w) for w in ctx.job.payload.get("warnings", ()) if w]
+    if not upload_warnings:
+        return document
+    quality = dict(document.get("quality") or {})
+    known = list(quality.get("warnings") or [])
+    quality["warnings"] = known + [w for w in upload_warnings if w not in known]
+    return {**document, "quality": quality}
+
+
 def analyze_trial(ctx: JobContext) -> None:
     """Measure a trial's two videos with the pipeline and store its :class:`Result`.
 
@@ -252,50 +232,36 @@ def analyze_trial(ctx: JobContext) -> None:
     if the transaction is rejected (lease lost) the file is removed again. An
     earlier result of the same trial (a re-analysis) is replaced.
     """
-    from core.camera import rig_from_dict
-    from core.pipeline import analyze_recording, write_markers_csv
-
-    inputs = _trial_inputs(ctx)
-    cal_info = inputs["calibration"]
-    rig = rig_from_dict(
-        inputs["rig_json"],
-        source=f"calibration v{cal_info['version']} of rig {cal_info['rig_name']}",
-    )
+    offset = ctx.job.payload.get("offset_frames")
+    with ctx.sessions() as db:
+        inputs = trials.analysis_inputs(
+            db,
+            ctx.storage,
+            ctx.job.trial_id,
+            offset_frames=float(offset) if offset is not None else None,
+        )
+    _require_files(ctx, (inputs.left, inputs.right), what=f"trial {inputs.trial_id}")
     analysis = analyze_recording(
-        rig,
-        inputs["left"],
-        inputs["right"],
-        offset_frames=inputs["offset_frames"],
+        inputs.rig,
+        inputs.left,
+        inputs.right,
+        offset_frames=inputs.offset_frames,
         progress=ctx.progress,
     )
     document = dict(analysis.result_document())
-    document.setdefault("calibration", cal_info)
-    upload_warnings = [str(w) for w in ctx.job.payload.get("warnings", ()) if w]
-    if upload_warnings:
-        quality = dict(document.get("quality") or {})
-        known = list(quality.get("warnings") or [])
-        quality["warnings"] = known + [w for w in upload_warnings if w not in known]
-        document["quality"] = quality
+    document.setdefault("calibration", inputs.calibration.document())
+    document = _upload_warnings(ctx, document)
     with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
         write_markers_csv(analysis, tmp_path)
 
-    replaced: list[str | None] = []
+    replaced: list[str] = []
 
     def write(db: Session) -> None:
-        old = db.scalars(select(Result).where(Result.trial_id == inputs["trial_id"])).first()
-        if old is not None:
-            replaced.append(old.markers_path)
-            db.execute(delete(Result).where(Result.id == old.id))
-            db.flush()
-        db.add(
-            Result(
-                trial_id=inputs["trial_id"],
-                job_id=ctx.job.id,
-                calibration_id=cal_info["id"],
-                document=document,
-                markers_path=markers_path,
-            )
+        old = trials.store_result(
+            db, inputs, job_id=ctx.job.id, document=document, markers_path=markers_path
         )
+        if old is not None:
+            replaced.append(old)
 
     try:
         ctx.finish(write)
@@ -308,78 +274,15 @@ def analyze_trial(ctx: JobContext) -> None:
 
 def calibrate(ctx: JobContext) -> None:
     """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
-    from core.boards import BoardSpec
-    from core.calibration import calibrate_stereo_from_paths
-    from core.camera import rig_to_dict
-
     with ctx.sessions() as db:
-        cal = db.get(Calibration, ctx.job.calibration_id) if ctx.job.calibration_id else None
-        if cal is None:
-            raise NotFoundError(f"calibration {ctx.job.calibration_id} no longer exists.")
-        videos = {
-            v.side: v for v in db.scalars(select(Video).where(Video.calibration_id == cal.id))
-        }
-        if set(videos) != {"left", "right"}:
-            raise InvalidRequestError(
-                f"calibration {cal.id} needs a left and a right board video; upload both."
-            )
-        board_doc = cal.board or ctx.job.payload.get("board")
-        if not board_doc:
-            raise InvalidRequestError(
-                f"calibration {cal.id} has no board description; give the board's kind, "
-                "cols, rows and square_mm."
-            )
-        left = ctx.storage.absolute(videos["left"].path)
-        right = ctx.storage.absolute(videos["right"].path)
-        _require_files(ctx, (left, right), what=f"calibration {cal.id}")
-    # Reads both stored forms (BoardSpec.to_dict()'s "kind" and the upload form's
-    # "board"); an incomplete one is an InputError, kept as the job's message.
-    board = BoardSpec.from_dict(dict(board_doc))
-    outcome = calibrate_stereo_from_paths(left, right, board, progress=ctx.progress)
-    rig_doc = rig_to_dict(outcome.rig)
-    quality = _calibration_quality(outcome)
-    try:
-        from core.calibration import quality_verdict
-
-        verdict, reasons = quality_verdict(quality)
-        quality = {**quality, "verdict": verdict, "verdict_reasons": list(reasons)}
-    except ImportError:  # an older core without verdicts
-        pass
-    if quality:
-        rig_doc["quality"] = {**rig_doc.get("quality", {}), **quality}
-    rms_px = quality.get("rms_px")
-
-    def write(db: Session) -> None:
-        db.execute(
-            update(Calibration)
-            .where(Calibration.id == ctx.job.calibration_id)
-            .values(
-                status="ready",
-                rig_json=rig_doc,
-                quality=quality,
-                rms_px=float(rms_px) if rms_px is not None else None,
-            )
-            .execution_options(synchronize_session=False)
+        inputs = calibrations.calibration_inputs(
+            db, ctx.storage, ctx.job.calibration_id, board=ctx.job.payload.get("board")
         )
-
-    ctx.finish(write)
-
-
-def _calibration_quality(outcome: Any) -> dict[str, Any]:
-    """A JSON-ready quality dict from a calibration outcome (whatever form it reports)."""
-    for name in ("quality_document", "quality_dict", "to_quality"):
-        method = getattr(outcome, name, None)
-        if callable(method):
-            return dict(method())
-    quality = getattr(outcome, "quality", None)
-    if isinstance(quality, Mapping):
-        return dict(quality)
-    doc: dict[str, Any] = {}
-    for key in ("rms_px", "rms_left_px", "rms_right_px", "n_pairs", "n_frames_used"):
-        value = getattr(outcome, key, None)
-        if isinstance(value, int | float):
-            doc[key] = value
-    return doc
+    _require_files(ctx, (inputs.left, inputs.right), what=f"calibration {inputs.calibration_id}")
+    outcome = calibrate_stereo_from_paths(
+        inputs.left, inputs.right, inputs.board, progress=ctx.progress
+    )
+    ctx.finish(lambda db: calibrations.store_calibration(db, inputs.calibration_id, outcome))
 
 
 HANDLERS: dict[str, Handler] = {"analyze_trial": analyze_trial, "calibrate": calibrate}

@@ -23,7 +23,7 @@ _TEXT = {
     415: "The upload is not multipart/form-data, or a file is not a readable video.",
     422: "The request is well-formed but its content is invalid.",
     429: "Too many attempts; wait and retry.",
-    503: "This feature is not available in this installation yet.",
+    503: "The database is not reachable right now; retry later.",
 }
 
 

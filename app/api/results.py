@@ -50,14 +50,13 @@ def get_markers_csv(
     responses={
         200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "HTML"},
         **EXPORT_ERRORS,
-        **json_errors(503),
     },
     summary="The trial's report as a standalone HTML page",
 )
 def get_report_html(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> HTMLResponse:
-    return HTMLResponse(service.report_html(db, actor, trial_id, request.app.state.settings))
+    return HTMLResponse(service.report_html(db, actor, trial_id, request.app.state.storage))
 
 
 @router.get(
@@ -69,14 +68,13 @@ def get_report_html(
             "description": "PDF",
         },
         **EXPORT_ERRORS,
-        **json_errors(503),
     },
     summary="The trial's report as PDF",
 )
 def get_report_pdf(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> Response:
-    pdf = service.report_pdf(db, actor, trial_id, request.app.state.settings)
+    pdf = service.report_pdf(db, actor, trial_id, request.app.state.storage)
     return Response(
         pdf,
         media_type="application/pdf",
@@ -93,10 +91,9 @@ def get_report_pdf(
             "description": "A FHIR R4 Bundle (DiagnosticReport + Observations, PDF attached).",
         },
         **EXPORT_ERRORS,
-        **json_errors(503),
     },
     summary="The trial's result as a FHIR R4 Bundle",
 )
 def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request) -> Response:
-    bundle = service.fhir_bundle(db, actor, trial_id, request.app.state.settings)
+    bundle = service.fhir_bundle(db, actor, trial_id, request.app.state.storage)
     return JSONResponse(bundle, media_type="application/fhir+json")

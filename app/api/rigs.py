@@ -7,11 +7,12 @@ from typing import Any
 from fastapi import APIRouter, Request, status
 
 from app.api.responses import AUTH, IdPath, Limit, Offset, errors, page
-from app.api.uploads import BINARY, multipart_body, run_upload
+from app.api.uploads import BINARY, multipart_body, run_api_upload
 from app.auth import CurrentActor, RigWriter, SessionDep
 from app.schemas import CalibrationCreated, CalibrationRead, Page, RigCreate, RigRead
-from app.services import recordings
+from app.services import calibrations
 from app.services import rigs as service
+from app.uploads import ParsedUpload
 
 router = APIRouter(tags=["rigs"])
 
@@ -76,14 +77,16 @@ def get_rig(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> RigRead:
 async def create_calibration(
     rig_id: IdPath, request: Request, actor: RigWriter, db: SessionDep
 ) -> CalibrationCreated:
-    def use_case(upload: Any) -> CalibrationCreated:
-        cal, job_id = recordings.create_calibration(db, actor, rig_id, upload)
-        return CalibrationCreated(id=cal.id, job_id=job_id, status=cal.status)  # type: ignore[arg-type]
+    def use_case(upload: ParsedUpload) -> CalibrationCreated:
+        cal, job_id = calibrations.create_calibration(db, actor, rig_id, upload)
+        return CalibrationCreated.model_validate(
+            {"id": cal.id, "job_id": job_id, "status": cal.status}
+        )
 
-    return await run_upload(
+    return await run_api_upload(
         request,
-        file_fields=recordings.CALIBRATION_FILE_FIELDS,
-        text_fields=recordings.CALIBRATION_TEXT_FIELDS,
+        file_fields=calibrations.CALIBRATION_FILE_FIELDS,
+        text_fields=calibrations.CALIBRATION_TEXT_FIELDS,
         check=lambda: service.get_rig(db, actor, rig_id),  # 404 before the body
         use_case=use_case,
     )
@@ -96,7 +99,7 @@ async def create_calibration(
     summary="List a rig's calibrations, oldest version first",
 )
 def list_calibrations(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> list[CalibrationRead]:
-    return [CalibrationRead(**v) for v in recordings.list_calibrations(db, actor, rig_id)]
+    return [CalibrationRead(**v) for v in calibrations.list_calibrations(db, actor, rig_id)]
 
 
 @router.get(
@@ -106,7 +109,7 @@ def list_calibrations(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> li
     summary="Read a calibration (status, quality, its job)",
 )
 def get_calibration(calibration_id: IdPath, actor: CurrentActor, db: SessionDep) -> CalibrationRead:
-    return CalibrationRead(**recordings.get_calibration(db, actor, calibration_id))
+    return CalibrationRead(**calibrations.get_calibration(db, actor, calibration_id))
 
 
 @router.get(
@@ -118,4 +121,4 @@ def get_calibration(calibration_id: IdPath, actor: CurrentActor, db: SessionDep)
 def get_calibration_rig_file(
     calibration_id: IdPath, actor: CurrentActor, db: SessionDep
 ) -> dict[str, Any]:
-    return recordings.rig_file_of(db, actor, calibration_id)
+    return calibrations.rig_file_of(db, actor, calibration_id)

@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter, Request, Response, status
 
 from app.api.responses import AUTH, IdPath, errors
-from app.api.uploads import BINARY, multipart_body, run_upload
+from app.api.uploads import BINARY, multipart_body, run_api_upload
 from app.auth import CurrentActor, SessionDep
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Deleter
 from app.auth import RecordingWriter as Uploader
 from app.schemas import JobRead, TrialCreated, TrialRead
-from app.services import recordings
+from app.services import trials as service
+from app.uploads import ParsedUpload
 
 router = APIRouter(tags=["trials"])
 
@@ -44,15 +43,15 @@ TRIAL_BODY = multipart_body(
 async def create_trial(
     session_id: IdPath, request: Request, actor: Uploader, db: SessionDep
 ) -> TrialCreated:
-    def use_case(upload: Any) -> TrialCreated:
-        out = recordings.create_trial(db, actor, session_id, upload)
-        return TrialCreated(id=out.trial.id, job_id=out.job_id or 0, warnings=out.warnings)
+    def use_case(upload: ParsedUpload) -> TrialCreated:
+        out = service.create_trial(db, actor, session_id, upload)
+        return TrialCreated(id=out.trial.id, job_id=out.job_id, warnings=out.warnings)
 
-    return await run_upload(
+    return await run_api_upload(
         request,
-        file_fields=recordings.TRIAL_FILE_FIELDS,
-        text_fields=recordings.TRIAL_TEXT_FIELDS,
-        check=lambda: recordings.check_trial_target(db, actor, session_id),
+        file_fields=service.TRIAL_FILE_FIELDS,
+        text_fields=service.TRIAL_TEXT_FIELDS,
+        check=lambda: service.check_trial_target(db, actor, session_id),
         use_case=use_case,
     )
 
@@ -64,7 +63,7 @@ async def create_trial(
     summary="List a session's trials",
 )
 def list_trials(session_id: IdPath, actor: Reader, db: SessionDep) -> list[TrialRead]:
-    return [TrialRead(**v) for v in recordings.list_trials(db, actor, session_id)]
+    return [TrialRead(**v) for v in service.list_trials(db, actor, session_id)]
 
 
 @router.get(
@@ -74,7 +73,7 @@ def list_trials(session_id: IdPath, actor: Reader, db: SessionDep) -> list[Trial
     summary="Read a trial (videos, status, job)",
 )
 def get_trial(trial_id: IdPath, actor: Reader, db: SessionDep) -> TrialRead:
-    return TrialRead(**recordings.get_trial(db, actor, trial_id))
+    return TrialRead(**service.get_trial(db, actor, trial_id))
 
 
 @router.delete(
@@ -85,7 +84,7 @@ def get_trial(trial_id: IdPath, actor: Reader, db: SessionDep) -> TrialRead:
     summary="Delete a trial (soft: kept for the audit trail)",
 )
 def delete_trial(trial_id: IdPath, actor: Deleter, db: SessionDep) -> Response:
-    recordings.delete_trial(db, actor, trial_id)
+    service.delete_trial(db, actor, trial_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -96,4 +95,4 @@ def delete_trial(trial_id: IdPath, actor: Deleter, db: SessionDep) -> Response:
     summary="A job's status, progress (0-1), stage and error",
 )
 def get_job(job_id: IdPath, actor: CurrentActor, db: SessionDep) -> JobRead:
-    return JobRead.model_validate(recordings.get_job(db, actor, job_id))
+    return JobRead.model_validate(service.get_job(db, actor, job_id))

@@ -1,14 +1,14 @@
-"""Running a streamed-upload use case from an async route."""
+"""The API's uploads: their OpenAPI description, and the route side of :func:`app.uploads.run_upload`."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from fastapi import Request
 from starlette.concurrency import run_in_threadpool
 
-from app.uploads import receive_multipart
+from app.uploads import ParsedUpload, run_upload
 
 T = TypeVar("T")
 
@@ -33,29 +33,22 @@ def multipart_body(
 BINARY = {"type": "string", "format": "binary"}
 
 
-async def run_upload(
+async def run_api_upload(
     request: Request,
     *,
-    file_fields: dict[str, str],
+    file_fields: Mapping[str, str],
     text_fields: frozenset[str],
-    check: Callable[[], Any],
-    use_case: Callable[..., T],
+    check: Callable[[], object],
+    use_case: Callable[[ParsedUpload], T],
 ) -> T:
-    """Run ``check()`` (e.g. the target exists: a 404 before the body is read), stream the
-    body into storage, run ``use_case(upload)`` in the thread pool, clean up."""
+    """Run ``check()`` (e.g. the target exists: a 404 before the body is read), then the
+    upload (:func:`app.uploads.run_upload`); errors go to the app's exception handler."""
     await run_in_threadpool(check)
-    settings = request.app.state.settings
-    upload = await receive_multipart(
+    return await run_upload(
         request,
         storage=request.app.state.storage,
+        max_file_bytes=int(request.app.state.settings.max_upload_bytes),
         file_fields=file_fields,
         text_fields=text_fields,
-        max_file_bytes=int(settings.max_upload_bytes),
+        use_case=use_case,
     )
-    try:
-        return await run_in_threadpool(use_case, upload)
-    except BaseException:
-        upload.discard()
-        raise
-    finally:
-        upload.close()

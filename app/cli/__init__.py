@@ -12,38 +12,26 @@ import logging
 import sys
 from collections.abc import Sequence
 
+from app.cli import admin, analyze, calibrate, serve, simulate, worker
+from app.errors import AppError
 from core.errors import BradyscopeError
 
 # Sub-command modules, in the order they appear in --help.
-_COMMANDS = ("simulate", "calibrate", "analyze", "serve", "worker", "admin")
+_COMMANDS = (simulate, calibrate, analyze, serve, worker, admin)
 
 EXIT_BAD_INPUT = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
-    import importlib
-
     parser = argparse.ArgumentParser(
         prog="bradyscope",
         description="Measure finger tapping in 3D with two cameras.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debugging detail")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in _COMMANDS:
-        module = importlib.import_module(f"app.cli.{name}")
-        module.register(sub)
+    for command in _COMMANDS:
+        command.register(sub)
     return parser
-
-
-def _user_error_types() -> tuple[type[BaseException], ...]:
-    types: list[type[BaseException]] = [BradyscopeError]
-    try:
-        from app.errors import AppError
-    except ImportError:  # the service layer is optional for pure-pipeline commands
-        pass
-    else:
-        types.append(AppError)
-    return tuple(types)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -56,7 +44,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return int(args.func(args) or 0)
-    except _user_error_types() as exc:
+    except (BradyscopeError, AppError) as exc:
         print(f"bradyscope {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:

@@ -8,16 +8,22 @@ code stays reserved so that it cannot be given to somebody else by mistake.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from datetime import datetime
+
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from app import jobs
 from app.actors import Actor
 from app.audit import audit, audit_failure
-from app.errors import ConflictError
+from app.errors import ConflictError, NotFoundError
 from app.models import Patient, RecordingSession, Trial, utcnow
+from app.plots import TrendPoint
+from app.reports.catalogue import TREND_METRICS
 from app.schemas import PatientCreate, PatientUpdate
-from app.services.common import cancel_trial_jobs, load_patient, paginate
+from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
@@ -70,7 +76,7 @@ def search_patients(
 ) -> tuple[list[Patient], int]:
     """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total.
 
-    A query only: the caller audits the listing (API and patient list page).
+    A query only: the callers audit the listing (:func:`list_patients`, :func:`patient_list`).
     """
     query = select(Patient).where(Patient.deleted_at.is_(None))
     if q:
@@ -130,3 +136,115 @@ def delete_patient(db: Session, actor: Actor, patient_id: int) -> None:
     )
     audit(db, actor, "delete", "patient", patient.id, patient.id)
     db.commit()
+
+
+# --------------------------------------------------------------------------- pages
+
+
+@dataclass(frozen=True)
+class PatientList:
+    """One page of the patient list: the patients, and per patient id its last session and count."""
+
+    patients: list[Patient]
+    total: int
+    last_seen: dict[int, datetime]
+    session_counts: dict[int, int]
+
+
+def patient_list(db: Session, actor: Actor, *, q: str, limit: int, offset: int) -> PatientList:
+    """The patient list page: :func:`search_patients` with each patient's sessions summed up."""
+    patients, total = search_patients(db, q=q, limit=limit, offset=offset)
+    last_seen: dict[int, datetime] = {}
+    counts: dict[int, int] = {}
+    ids = [p.id for p in patients]
+    if ids:
+        rows = db.execute(
+            select(
+                RecordingSession.patient_id,
+                func.max(RecordingSession.recorded_at),
+                func.count(RecordingSession.id),
+            )
+            .where(RecordingSession.patient_id.in_(ids), RecordingSession.deleted_at.is_(None))
+            .group_by(RecordingSession.patient_id)
+        ).all()
+        for patient_id, last, count in rows:
+            last_seen[patient_id] = last
+            counts[patient_id] = count
+    audit(db, actor, "list", "patient")
+    db.commit()
+    return PatientList(patients, total, last_seen, counts)
+
+
+@dataclass(frozen=True)
+class SessionRow:
+    """A session on its patient's page, with its visible trials."""
+
+    session: RecordingSession
+    trials: list[Trial]
+
+
+@dataclass(frozen=True)
+class PatientOverview:
+    """The patient page: sessions newest first, trends, and the newest job of each trial."""
+
+    patient: Patient
+    sessions: list[SessionRow]
+    trends: dict[str, list[TrendPoint]]
+    job_ids: dict[int, int]
+
+
+def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
+    """Per trend metric, one point per analysed trial of the patient."""
+    points: dict[str, list[TrendPoint]] = {key: [] for key, _, _ in TREND_METRICS}
+    for s in patient.sessions:
+        if s.deleted_at is not None:
+            continue
+        for t in s.trials:
+            if t.deleted_at is not None or t.result is None:
+                continue
+            metrics = (t.result.document or {}).get("metrics") or {}
+            for key, _, _ in TREND_METRICS:
+                value = metrics.get(key)
+                if key == "hesitation_count" and isinstance(value, int | float):
+                    halts = metrics.get("halt_count")
+                    value = value + (halts if isinstance(halts, int | float) else 0)
+                points[key].append(
+                    TrendPoint(
+                        recorded_at=s.recorded_at,
+                        hand=t.hand,
+                        medication_state=s.medication_state,
+                        value=float(value) if isinstance(value, int | float) else None,
+                    )
+                )
+    return points
+
+
+def patient_overview(db: Session, actor: Actor, patient_id: int) -> PatientOverview:
+    """The patient page (audited as a read of the patient)."""
+    patient = load_patient(db, actor, patient_id, "read")
+    sessions = sorted(
+        (s for s in patient.sessions if s.deleted_at is None),
+        key=lambda s: (s.recorded_at, s.id),
+        reverse=True,
+    )
+    rows = [SessionRow(s, [t for t in s.trials if t.deleted_at is None]) for s in sessions]
+    newest = jobs.latest_jobs(db, trial_ids=[t.id for r in rows for t in r.trials])
+    overview = PatientOverview(
+        patient=patient,
+        sessions=rows,
+        trends=trend_points(patient),
+        job_ids={trial_id: job.id for trial_id, job in newest.items()},
+    )
+    audit(db, actor, "read", "patient", patient.id, patient.id)
+    db.commit()
+    return overview
+
+
+def patient_for_new_session(db: Session, actor: Actor, patient_id: int) -> Patient:
+    """The patient of the new-session form (audited as a read of the patient)."""
+    patient = visible_patient(db, patient_id)
+    if patient is None:
+        raise NotFoundError(f"Patient {patient_id} does not exist.")
+    audit(db, actor, "read", "patient", patient.id, patient.id)
+    db.commit()
+    return patient

@@ -1,25 +1,32 @@
-"""Results of a trial and their exports: result.json, markers.csv, report (HTML/PDF), FHIR.
+"""Results of a trial: the trial page, result.json, markers.csv, reports and exports.
 
 Each export is generated first and audited (``export``) only when it could be
-produced, in the same commit. The report and FHIR renderers live in
-``app.reports`` / ``app.exports`` and are imported lazily: while they are
-missing the routes answer 503 instead of inventing content.
+produced, in the same commit. :func:`load_report_data` gathers what a report
+shows about one trial from the database and storage into a
+:class:`~app.reports.data.ReportData`, for the page, the reports and FHIR.
 """
 
 from __future__ import annotations
 
-import importlib
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 from sqlalchemy.orm import Session
 
+from app import jobs
 from app.actors import Actor
 from app.audit import audit
-from app.errors import ConflictError, NotFoundError, ServiceUnavailableError
-from app.models import Job, Result, Trial
-from app.services.common import load_trial
+from app.errors import ConflictError, NotFoundError
+from app.exports import fhir_bundle as make_fhir_bundle
+from app.exports import write_c3d, write_trc
+from app.models import Calibration, Job, Patient, Result, Trial, User
+from app.reports.data import CalibrationInfo, ReportData
+from app.reports.rendering import render_report_html, render_report_pdf
+from app.services.common import load_trial, visible_trial
 from app.storage import Storage
+from core.markers_csv import MarkerTable, read_markers_csv
 
 T = TypeVar("T")
 
@@ -29,7 +36,7 @@ def _result_of(db: Session, actor: Actor, trial_id: int, action: str) -> tuple[T
     result = trial.result
     if result is None:
         if trial.status == "failed":
-            job = db.query(Job).filter(Job.trial_id == trial.id).order_by(Job.id.desc()).first()
+            job = jobs.latest_job(db, trial_id=trial.id)
             reason = f": {job.error}" if job is not None and job.error else "."
             raise ConflictError(f"The analysis of trial {trial.id} failed{reason}")
         raise ConflictError(
@@ -46,13 +53,73 @@ def _exported(db: Session, actor: Actor, trial: Trial, resource_type: str, value
     return value
 
 
-def _renderer(module: str, name: str) -> Any:
-    try:
-        return getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError) as exc:
-        raise ServiceUnavailableError(
-            f"{module}.{name} is not available yet in this installation; the export cannot be made."
-        ) from exc
+# --------------------------------------------------------------------------- report data
+
+
+def _markers(result: Result, storage: Storage) -> MarkerTable | None:
+    if not result.markers_path:
+        return None
+    path = storage.absolute(result.markers_path)
+    if not path.is_file():
+        return None
+    fps = float(result.document.get("fps") or 0) or None
+    return read_markers_csv(path, fps=fps)
+
+
+def _calibration_info(db: Session, trial: Trial, result: Result) -> CalibrationInfo:
+    session = trial.session
+    cal = db.get(Calibration, result.calibration_id) if result.calibration_id else None
+    cal = cal or session.calibration
+    if cal is None:
+        return CalibrationInfo(
+            rig_name=session.rig.name, version=None, valid_from=None, rms_px=None
+        )
+    return CalibrationInfo(
+        rig_name=cal.rig.name,
+        version=cal.version,
+        valid_from=cal.valid_from,
+        rms_px=cal.rms_px,
+        verdict=cal.verdict,
+        reasons=tuple(cal.verdict_reasons or ()),
+    )
+
+
+def load_report_data(db: Session, trial: Trial, storage: Storage) -> ReportData:
+    """What the report of ``trial`` shows (the trial must have a result).
+
+    Raises
+    ------
+    ConflictError
+        The trial has no result yet.
+    """
+    result = trial.result
+    if result is None:
+        raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
+    session = trial.session
+    clinician = None
+    if session.clinician_user_id is not None:
+        user = db.get(User, session.clinician_user_id)
+        if user is not None:
+            clinician = user.display_name or user.email
+    return ReportData(
+        trial_id=trial.id,
+        patient_code=session.patient.code,
+        patient_id=session.patient_id,
+        session_id=session.id,
+        hand=trial.hand,
+        recorded_at=session.recorded_at,
+        medication_state=session.medication_state,
+        dbs_state=session.dbs_state,
+        updrs_34_rating=session.updrs_34_rating,
+        clinician=clinician,
+        notes=session.notes,
+        result=dict(result.document),
+        markers=_markers(result, storage),
+        calibration=_calibration_info(db, trial, result),
+    )
+
+
+# --------------------------------------------------------------------------- exports
 
 
 def get_result(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
@@ -73,28 +140,114 @@ def markers_csv_path(db: Session, actor: Actor, trial_id: int, storage: Storage)
     return _exported(db, actor, trial, "markers_csv", path)
 
 
-def _report_data(db: Session, actor: Actor, trial_id: int, settings: Any) -> tuple[Trial, Any]:
+def _report_data(
+    db: Session, actor: Actor, trial_id: int, storage: Storage
+) -> tuple[Trial, ReportData]:
     trial, _ = _result_of(db, actor, trial_id, "export")
-    build = _renderer("app.reports", "build_report_data")
-    return trial, build(db, trial.id, settings=settings)
+    return trial, load_report_data(db, trial, storage)
 
 
-def report_html(db: Session, actor: Actor, trial_id: int, settings: Any) -> str:
-    render = _renderer("app.reports", "render_report_html")
-    trial, data = _report_data(db, actor, trial_id, settings)
-    return _exported(db, actor, trial, "report_html", str(render(data)))
+def report_html(db: Session, actor: Actor, trial_id: int, storage: Storage) -> str:
+    trial, data = _report_data(db, actor, trial_id, storage)
+    return _exported(db, actor, trial, "report_html", render_report_html(data))
 
 
-def report_pdf(db: Session, actor: Actor, trial_id: int, settings: Any) -> bytes:
-    render = _renderer("app.reports", "render_report_pdf")
-    trial, data = _report_data(db, actor, trial_id, settings)
-    return _exported(db, actor, trial, "report_pdf", bytes(render(data)))
+def report_pdf(db: Session, actor: Actor, trial_id: int, storage: Storage) -> bytes:
+    trial, data = _report_data(db, actor, trial_id, storage)
+    return _exported(db, actor, trial, "report_pdf", render_report_pdf(data))
 
 
-def fhir_bundle(db: Session, actor: Actor, trial_id: int, settings: Any) -> dict[str, Any]:
+def fhir_bundle(db: Session, actor: Actor, trial_id: int, storage: Storage) -> dict[str, Any]:
     """A FHIR R4 Bundle (DiagnosticReport + Observations, the PDF attached)."""
-    make_bundle = _renderer("app.exports", "fhir_bundle")
-    render_pdf = _renderer("app.reports", "render_report_pdf")
-    trial, data = _report_data(db, actor, trial_id, settings)
-    bundle = dict(make_bundle(data, bytes(render_pdf(data))))
+    trial, data = _report_data(db, actor, trial_id, storage)
+    bundle = make_fhir_bundle(data, render_report_pdf(data))
     return _exported(db, actor, trial, "fhir_bundle", bundle)
+
+
+def trajectory_file(
+    db: Session, actor: Actor, trial_id: int, kind: Literal["c3d", "trc"], storage: Storage
+) -> bytes:
+    """The trial's marker trajectories as a C3D or TRC file (audited as ``c3d_file``/``trc_file``)."""
+    trial = load_trial(db, actor, trial_id, "export")
+    data = load_report_data(db, trial, storage)
+    if data.markers is None:
+        raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"trial.{kind}"
+        (write_c3d if kind == "c3d" else write_trc)(path, data.markers)
+        body = path.read_bytes()
+    return _exported(db, actor, trial, f"{kind}_file", body)
+
+
+# --------------------------------------------------------------------------- the trial page
+
+
+def trials_with_results(patient: Patient) -> list[Trial]:
+    """Every visible trial of the patient that has a result, newest session first."""
+    out: list[Trial] = []
+    for s in sorted(patient.sessions, key=lambda s: s.recorded_at, reverse=True):
+        if s.deleted_at is not None:
+            continue
+        out.extend(t for t in s.trials if t.deleted_at is None and t.result is not None)
+    return out
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A second trial of the same patient shown beside the first."""
+
+    trial: Trial
+    data: ReportData
+
+
+@dataclass(frozen=True)
+class TrialPage:
+    """What the trial page shows.
+
+    ``data`` is None while the trial has no result (then ``job`` tells its
+    progress); ``comparison`` is the trial asked for with ``?compare=``, or
+    ``compare_error`` says why it cannot be shown.
+    """
+
+    trial: Trial
+    patient: Patient
+    job: Job | None = None
+    data: ReportData | None = None
+    candidates: tuple[Trial, ...] = ()
+    comparison: Comparison | None = None
+    compare_error: str | None = None
+
+
+def trial_page(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, *, compare: int | None = None
+) -> TrialPage:
+    """The trial page: its result (audited as a read of the result) or its pending job."""
+    trial = load_trial(db, actor, trial_id, "read")
+    patient = trial.session.patient
+    if trial.result is None:
+        page = TrialPage(trial=trial, patient=patient, job=jobs.latest_job(db, trial_id=trial.id))
+        audit(db, actor, "read", "trial", trial.id, patient.id)
+        db.commit()
+        return page
+    data = load_report_data(db, trial, storage)
+    comparison, compare_error = None, None
+    if compare is not None:
+        other = visible_trial(db, compare)
+        if other is None or other.result is None or other.session.patient_id != patient.id:
+            compare_error = (
+                "That trial cannot be compared: it does not exist, has no result,"
+                " or belongs to another patient."
+            )
+        else:
+            comparison = Comparison(trial=other, data=load_report_data(db, other, storage))
+    page = TrialPage(
+        trial=trial,
+        patient=patient,
+        data=data,
+        candidates=tuple(trials_with_results(patient)),
+        comparison=comparison,
+        compare_error=compare_error,
+    )
+    audit(db, actor, "read", "result", trial.id, patient.id)
+    db.commit()
+    return page

@@ -6,14 +6,18 @@ from lists; rows, files and the audit trail are kept.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app import jobs
 from app.actors import Actor
 from app.audit import audit
-from app.errors import InvalidRequestError
-from app.models import Calibration, RecordingSession, Rig, Trial, utcnow
+from app.errors import AppError, InvalidRequestError
+from app.models import Calibration, Job, RecordingSession, Rig, Trial, utcnow
 from app.schemas import SessionCreate, SessionUpdate
+from app.services.calibrations import calibration_for
 from app.services.common import (
     cancel_trial_jobs,
     load_patient,
@@ -102,3 +106,48 @@ def delete_session(db: Session, actor: Actor, session_id: int) -> None:
     cancel_trial_jobs(db, select(Trial.id).where(Trial.session_id == row.id))
     audit(db, actor, "delete", "session", row.id, row.patient_id)
     db.commit()
+
+
+# --------------------------------------------------------------------------- pages
+
+
+@dataclass(frozen=True)
+class TrialRow:
+    """A trial on its session's page, with its newest job."""
+
+    trial: Trial
+    job: Job | None
+
+
+@dataclass(frozen=True)
+class SessionOverview:
+    """The session page: its visible trials and the calibration that will measure them.
+
+    ``calibration_problem`` says why no calibration can be used (then ``calibration`` is None).
+    """
+
+    session: RecordingSession
+    trials: list[TrialRow]
+    calibration: Calibration | None
+    calibration_problem: str | None
+
+
+def session_overview(db: Session, actor: Actor, session_id: int) -> SessionOverview:
+    """The session page (audited as a read of the session)."""
+    row = load_session(db, actor, session_id, "read")
+    trials = [t for t in row.trials if t.deleted_at is None]
+    newest = jobs.latest_jobs(db, trial_ids=[t.id for t in trials])
+    calibration, problem = None, None
+    try:
+        calibration = calibration_for(db, row)
+    except AppError as exc:
+        problem = str(exc)
+    overview = SessionOverview(
+        session=row,
+        trials=[TrialRow(t, newest.get(t.id)) for t in trials],
+        calibration=calibration,
+        calibration_problem=problem,
+    )
+    audit(db, actor, "read", "session", row.id, row.patient_id)
+    db.commit()
+    return overview

@@ -10,7 +10,7 @@ shown as a page in plain words, with the status the API would have used.
 from __future__ import annotations
 
 import hmac
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Annotated, Any, TypeVar
 from urllib.parse import quote, urlsplit
 
@@ -22,9 +22,10 @@ from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.auth import CSRF_HEADER, SessionDep, get_optional_user
-from app.errors import AppError
-from app.uploads import ParsedUpload
+from app.errors import AppError, PermissionDeniedError
 from app.templating import templates
+from app.uploads import ParsedUpload, run_upload
+from core.errors import BradyscopeError
 
 NAV = (("patients", "/patients", "Patients"), ("rigs", "/rigs", "Calibration"))
 
@@ -164,20 +165,9 @@ def error_page(
     )
 
 
-def missing_page(
-    request: Request, db: Session, user: Actor, action: str, resource_type: str, resource_id: int
-) -> HTMLResponse:
-    """Audit a lookup of patient data that missed (``not_found``) and answer a 404 page."""
-    from app.audit import audit
-
-    audit(db, user, action, resource_type, resource_id, outcome="not_found")
-    db.commit()
-    return error_page(
-        request,
-        user,
-        status_code=404,
-        message=f"{resource_type.capitalize()} {resource_id} does not exist.",
-    )
+def not_found_page(request: Request, user: Actor | None, exc: AppError) -> HTMLResponse:
+    """The 404 page for a missing resource (the service has audited the miss)."""
+    return error_page(request, user, status_code=status_of(exc), message=str(exc))
 
 
 def status_of(exc: BaseException) -> int:
@@ -198,13 +188,13 @@ async def run_page_upload(
     user: Actor | None,
     *,
     refusal: AppError | None,
-    file_fields: dict[str, str],
+    file_fields: Mapping[str, str],
     text_fields: Iterable[str],
-    fail: Callable[[Session, int, str], Response],
-    use_case: Callable[[Session, ParsedUpload], Response],
+    fail: Callable[[Session, Actor, int, str], Response],
+    use_case: Callable[[Session, Actor, ParsedUpload], Response],
     prepare: Callable[[ParsedUpload], None] | None = None,
 ) -> Response:
-    """A page's upload: log-in, CSRF and target checks, streaming, the use case, clean-up.
+    """A page's upload: log-in, CSRF and target checks, then :func:`app.uploads.run_upload`.
 
     Parameters
     ----------
@@ -215,58 +205,50 @@ async def run_page_upload(
     file_fields, text_fields
         Accepted parts (``csrf_token`` is always accepted).
     fail : callable
-        ``fail(db, status, message)`` renders an error page (run in the thread pool
+        ``fail(db, user, status, message)`` renders an error page (run in the thread pool
         with a database session of its own); the upload script gets JSON instead.
     use_case : callable
-        ``use_case(db, upload)`` stores the upload and returns the success answer (run
-        likewise); an ``AppError`` or a core error becomes ``fail`` and removes every
-        file of the upload.
+        ``use_case(db, user, upload)`` stores the upload and returns the success answer (run
+        likewise); an ``AppError`` or a core error becomes ``fail``.
     prepare : callable, optional
         Adjusts the parsed form before the use case (e.g. drops unused empty parts).
     """
-    from app.storage import Storage
-    from app.uploads import receive_multipart
-    from core.errors import BradyscopeError
-
-    async def failed(status: int, message: str) -> Response:
-        if wants_json(request):
-            return JSONResponse({"detail": message}, status_code=status)
-        return await run_in_threadpool(with_own_db, request, fail, status, message)
 
     if user is None:
         if wants_json(request):
             return JSONResponse({"detail": "Please log in again."}, status_code=401)
         return login_redirect(request)
+    actor = user
+
+    async def failed(status: int, message: str) -> Response:
+        if wants_json(request):
+            return JSONResponse({"detail": message}, status_code=status)
+        return await run_in_threadpool(with_own_db, request, fail, actor, status, message)
+
     header_token = csrf_from_header(request)
     if header_token is not None and not csrf_ok(user, header_token):
         return await failed(403, CSRF_MESSAGE)
     if refusal is not None:
         return await failed(status_of(refusal), str(refusal))
+
+    def accept(upload: ParsedUpload) -> None:
+        if header_token is None and not csrf_ok(actor, upload.fields.get("csrf_token")):
+            raise PermissionDeniedError(CSRF_MESSAGE)
+        if prepare is not None:
+            prepare(upload)
+
     settings = settings_of(request)
     try:
-        upload = await receive_multipart(
+        return await run_upload(
             request,
-            storage=Storage.from_settings(settings),
+            storage=request.app.state.storage,
+            max_file_bytes=int(settings.max_upload_bytes),
             file_fields=file_fields,
             text_fields=frozenset(text_fields) | {"csrf_token"},
-            max_file_bytes=int(settings.max_upload_bytes),
+            use_case=lambda upload: with_own_db(request, use_case, actor, upload),
+            accept=accept,
         )
     except AppError as exc:
         return await failed(status_of(exc), str(exc))
-    try:
-        if header_token is None and not csrf_ok(user, upload.fields.get("csrf_token")):
-            upload.discard()
-            return await failed(403, CSRF_MESSAGE)
-        if prepare is not None:
-            prepare(upload)
-        try:
-            return await run_in_threadpool(with_own_db, request, use_case, upload)
-        except (AppError, BradyscopeError) as exc:  # a core error while checking the videos
-            upload.discard()
-            status = status_of(exc) if isinstance(exc, AppError) else 422
-            return await failed(status, str(exc))
-        except BaseException:
-            upload.discard()
-            raise
-    finally:
-        upload.close()
+    except BradyscopeError as exc:  # a core error while checking the videos
+        return await failed(422, str(exc))

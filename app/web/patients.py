@@ -13,29 +13,24 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from pydantic import ValidationError
-from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
-from app.audit import audit
+from app.actors import Actor
 from app.auth import SessionDep
-from app.errors import AppError
-from app.models import (
-    DBS_STATES,
-    MEDICATION_STATES,
-    Job,
-    Patient,
-    RecordingSession,
-    Rig,
-    Trial,
-)
-from app.plots import TrendPoint, trend_plot
-from app.reports import TREND_METRICS, format_metric
+from app.errors import AppError, NotFoundError
+from app.models import DBS_STATES, MEDICATION_STATES, Patient, Rig
+from app.plots import trend_plot
+from app.reports.catalogue import TREND_METRICS, format_metric
+from app.schemas import PatientCreate, SessionCreate
+from app.services import patients, sessions
 from app.services.common import visible_patient
+from app.services.rigs import all_rigs
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
     csrf_ok,
     error_page,
-    missing_page,
+    not_found_page,
     render,
     status_of,
     validation_message,
@@ -50,42 +45,23 @@ PAGE_SIZE = 50
 def patient_list(
     request: Request, db: SessionDep, user: PageUser, q: str = "", page: int = 1
 ) -> Response:
-    context = _list_context(db, q, page)
-    audit(db, user, "list", "patient")
-    db.commit()
+    context = _list_context(db, user, q, page)
     return render(request, "patients.html", user, active="patients", title="Patients", **context)
 
 
-def _list_context(db: Any, q: str, page: int) -> dict[str, Any]:
-    from app.services.patients import search_patients
-
+def _list_context(db: Session, user: Actor, q: str, page: int) -> dict[str, Any]:
+    """The patient list (audited as a list of patients)."""
     q = q.strip()[:64]
     page = max(1, page)
-    patients, total = search_patients(db, q=q, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
-    ids = [p.id for p in patients]
-    last_seen: dict[int, Any] = {}
-    counts: dict[int, int] = {}
-    if ids:
-        rows = db.execute(
-            select(
-                RecordingSession.patient_id,
-                func.max(RecordingSession.recorded_at),
-                func.count(RecordingSession.id),
-            )
-            .where(RecordingSession.patient_id.in_(ids), RecordingSession.deleted_at.is_(None))
-            .group_by(RecordingSession.patient_id)
-        ).all()
-        for pid, last, count in rows:
-            last_seen[pid] = last
-            counts[pid] = count
+    found = patients.patient_list(db, user, q=q, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
     return dict(
-        patients=patients,
-        last_seen=last_seen,
-        counts=counts,
+        patients=found.patients,
+        last_seen=found.last_seen,
+        counts=found.session_counts,
         q=q,
-        total=total,
+        total=found.total,
         page=page,
-        pages=max(1, -(-int(total) // PAGE_SIZE)),
+        pages=max(1, -(-int(found.total) // PAGE_SIZE)),
         form={},
     )
 
@@ -101,9 +77,6 @@ def patient_create(
     notes: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    from app.schemas import PatientCreate
-    from app.services.patients import create_patient
-
     form = {"code": code, "birth_year": birth_year, "sex": sex, "notes": notes}
     if not csrf_ok(user, csrf_token):
         return _list_with_error(request, db, user, CSRF_MESSAGE, 403, form)
@@ -114,7 +87,7 @@ def patient_create(
             sex=sex or None,  # type: ignore[arg-type]  # validated by PatientCreate
             notes=notes.strip() or None,
         )
-        patient = create_patient(db, user, data)
+        patient = patients.create_patient(db, user, data)
     except (ValidationError, ValueError) as exc:
         message = (
             validation_message(exc)
@@ -128,13 +101,11 @@ def patient_create(
 
 
 def _list_with_error(
-    request: Request, db: Any, user: Any, message: str, status: int, form: dict[str, str]
+    request: Request, db: Session, user: Actor, message: str, status: int, form: dict[str, str]
 ) -> Response:
     db.rollback()
-    context = _list_context(db, "", 1)
+    context = _list_context(db, user, "", 1)
     context["form"] = form
-    audit(db, user, "list", "patient")
-    db.commit()
     return render(
         request,
         "patients.html",
@@ -147,106 +118,45 @@ def _list_with_error(
     )
 
 
-def _no_patient(request: Request, user: Any, patient_id: int) -> Response:
-    return error_page(
-        request, user, status_code=404, message=f"Patient {patient_id} does not exist."
-    )
-
-
-def _session_rows(db: Any, patient: Patient) -> list[dict[str, Any]]:
-    sessions = [s for s in patient.sessions if s.deleted_at is None]
-    sessions.sort(key=lambda s: (s.recorded_at, s.id), reverse=True)
-    rows = []
-    for s in sessions:
-        trials = [t for t in s.trials if t.deleted_at is None]
-        rows.append({"session": s, "trials": trials})
-    return rows
-
-
-def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
-    """Per trend metric, one point per analysed trial of the patient."""
-    points: dict[str, list[TrendPoint]] = {key: [] for key, _, _ in TREND_METRICS}
-    for s in patient.sessions:
-        if s.deleted_at is not None:
-            continue
-        for t in s.trials:
-            if t.deleted_at is not None or t.result is None:
-                continue
-            metrics = (t.result.document or {}).get("metrics") or {}
-            for key, _, _ in TREND_METRICS:
-                value = metrics.get(key)
-                if key == "hesitation_count" and isinstance(value, int | float):
-                    halts = metrics.get("halt_count")
-                    value = value + (halts if isinstance(halts, int | float) else 0)
-                points[key].append(
-                    TrendPoint(
-                        recorded_at=s.recorded_at,
-                        hand=t.hand,
-                        medication_state=s.medication_state,
-                        value=float(value) if isinstance(value, int | float) else None,
-                    )
-                )
-    return points
-
-
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
 def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
-    patient = visible_patient(db, patient_id)
-    if patient is None:
-        return missing_page(request, db, user, "read", "patient", patient_id)
-    rows = _session_rows(db, patient)
-    points = trend_points(patient)
+    try:
+        overview = patients.patient_overview(db, user, patient_id)
+    except NotFoundError as exc:
+        return not_found_page(request, user, exc)
+    points = overview.trends
     trends = [
         {"key": key, "label": label, "svg": trend_plot(points[key], label=label, unit=unit)}
         for key, label, unit in TREND_METRICS
     ]
     n_results = sum(1 for p in points[TREND_METRICS[0][0]] if p.value is not None)
-    job_ids = _latest_jobs(db, [t.id for r in rows for t in r["trials"]])
-    audit(db, user, "read", "patient", patient.id, patient.id)
-    db.commit()
     return render(
         request,
         "patient.html",
         user,
         active="patients",
-        title=f"Patient {patient.code}",
-        patient=patient,
-        rows=rows,
+        title=f"Patient {overview.patient.code}",
+        patient=overview.patient,
+        rows=[{"session": r.session, "trials": r.trials} for r in overview.sessions],
         trends=trends,
         n_results=n_results,
-        job_ids=job_ids,
+        job_ids=overview.job_ids,
         format_metric=format_metric,
     )
 
 
-def _latest_jobs(db: Any, trial_ids: list[int]) -> dict[int, int]:
-    if not trial_ids:
-        return {}
-    rows = db.execute(
-        select(Job.trial_id, func.max(Job.id))
-        .where(Job.trial_id.in_(trial_ids))
-        .group_by(Job.trial_id)
-    ).all()
-    return {tid: jid for tid, jid in rows}
-
-
-def _rigs(db: Any) -> list[Rig]:
-    return list(db.scalars(select(Rig).order_by(Rig.name)))
-
-
 @router.get("/patients/{patient_id}/sessions/new", response_class=HTMLResponse)
 def session_new(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
-    patient = visible_patient(db, patient_id)
-    if patient is None:
-        return _no_patient(request, user, patient_id)
-    audit(db, user, "read", "patient", patient.id, patient.id)
-    db.commit()
-    return _session_form(request, user, patient, _rigs(db), {})
+    try:
+        patient = patients.patient_for_new_session(db, user, patient_id)
+    except NotFoundError as exc:
+        return not_found_page(request, user, exc)
+    return _session_form(request, user, patient, all_rigs(db), {})
 
 
 def _session_form(
     request: Request,
-    user: Any,
+    user: Actor,
     patient: Patient,
     rigs: list[Rig],
     values: dict[str, Any],
@@ -294,12 +204,11 @@ def session_create(
     notes: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    from app.schemas import SessionCreate
-    from app.services.sessions import create_session
-
     patient = visible_patient(db, patient_id)
     if patient is None:
-        return _no_patient(request, user, patient_id)
+        return error_page(
+            request, user, status_code=404, message=f"Patient {patient_id} does not exist."
+        )
     values = {
         "rig_id": rig_id,
         "recorded_at": recorded_at,
@@ -310,7 +219,7 @@ def session_create(
     }
     if not csrf_ok(user, csrf_token):
         return _session_form(
-            request, user, patient, _rigs(db), values, error=CSRF_MESSAGE, status_code=403
+            request, user, patient, all_rigs(db), values, error=CSRF_MESSAGE, status_code=403
         )
     try:
         when = datetime.fromisoformat(recorded_at.strip()) if recorded_at.strip() else None
@@ -327,7 +236,7 @@ def session_create(
             updrs_34_rating=int(updrs_34_rating) if updrs_34_rating.strip() else None,
             notes=notes.strip() or None,
         )
-        session = create_session(db, user, data)
+        session = sessions.create_session(db, user, data)
     except (ValueError, AppError) as exc:  # ValidationError is a ValueError
         if isinstance(exc, ValidationError):
             error, status = validation_message(exc), 422
@@ -340,16 +249,6 @@ def session_create(
             status = 422
         db.rollback()
         return _session_form(
-            request, user, patient, _rigs(db), values, error=error, status_code=status
+            request, user, patient, all_rigs(db), values, error=error, status_code=status
         )
     return RedirectResponse(f"/sessions/{session.id}?msg=Session+created.", status_code=303)
-
-
-def trials_of_patient(db: Any, patient: Patient) -> list[Trial]:
-    """Every visible trial of the patient that has a result, newest session first."""
-    out: list[Trial] = []
-    for s in sorted(patient.sessions, key=lambda s: s.recorded_at, reverse=True):
-        if s.deleted_at is not None:
-            continue
-        out.extend(t for t in s.trials if t.deleted_at is None and t.result is not None)
-    return out

@@ -17,17 +17,19 @@ from typing import Any
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
-from sqlalchemy import select
+from sqlalchemy.orm import Session
 
-from app.audit import audit
+from app import jobs
+from app.actors import Actor
 from app.auth import SessionDep
-from app.errors import AppError
-from app.models import Job, RecordingSession, Trial, calibration_for
-from app.services.common import trial_is_visible, visible_session
+from app.errors import AppError, NotFoundError
+from app.models import Job, Trial
+from app.services import sessions, trials
+from app.uploads import ParsedUpload
 from app.web.common import (
     PageUser,
     error_page,
-    missing_page,
+    not_found_page,
     page_user,
     render,
     run_page_upload,
@@ -36,32 +38,6 @@ from app.web.common import (
 )
 
 router = APIRouter()
-
-
-def _latest_job(db: Any, trial_id: int) -> Job | None:
-    return db.scalars(
-        select(Job).where(Job.trial_id == trial_id).order_by(Job.id.desc()).limit(1)
-    ).first()
-
-
-def _session_context(db: Any, session: RecordingSession) -> dict[str, Any]:
-    trials = [t for t in session.trials if t.deleted_at is None]
-    calibration = None
-    calibration_problem = None
-    try:
-        calibration = calibration_for(db, session)
-    except AppError as exc:
-        calibration_problem = str(exc)
-    return {
-        "session": session,
-        "patient": session.patient,
-        "trials": [{"trial": t, "job": _latest_job(db, t.id)} for t in trials],
-        "calibration": calibration,
-        "calibration_problem": calibration_problem,
-        "hands": ("left", "right"),
-        "done_hands": {t.hand for t in trials if t.status != "failed"},
-        "hand_pair": _hand_pair(trials),
-    }
 
 
 def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
@@ -77,17 +53,22 @@ def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
 
 def _session_response(
     request: Request,
-    db: Any,
-    user: Any,
-    session: RecordingSession,
+    db: Session,
+    user: Actor,
+    session_id: int,
     *,
     status: int = 200,
     error: str | None = None,
 ) -> Response:
     """The session page (audited as a read of the session)."""
-    context = _session_context(db, session)
-    audit(db, user, "read", "session", session.id, session.patient_id)
-    db.commit()
+    try:
+        overview = sessions.session_overview(db, user, session_id)
+    except NotFoundError as exc:
+        if error is not None:  # an upload refused while its session was deleted
+            return error_page(request, user, status_code=status, message=error)
+        return not_found_page(request, user, exc)
+    session = overview.session
+    trials = [row.trial for row in overview.trials]
     return render(
         request,
         "session.html",
@@ -96,46 +77,40 @@ def _session_response(
         active="patients",
         title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
         error=error,
-        **context,
+        session=session,
+        patient=session.patient,
+        trials=[{"trial": row.trial, "job": row.job} for row in overview.trials],
+        calibration=overview.calibration,
+        calibration_problem=overview.calibration_problem,
+        hands=("left", "right"),
+        done_hands={t.hand for t in trials if t.status != "failed"},
+        hand_pair=_hand_pair(trials),
     )
 
 
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)
 def session_page(request: Request, db: SessionDep, user: PageUser, session_id: int) -> Response:
-    session = visible_session(db, session_id)
-    if session is None:
-        return missing_page(request, db, user, "read", "session", session_id)
-    return _session_response(request, db, user, session)
+    return _session_response(request, db, user, session_id)
 
 
-def _upload_error(
-    db: Any, request: Request, user: Any, session_id: int, status: int, message: str
-) -> Response:
-    """The session page (or an error page) showing why the upload was refused."""
-    session = visible_session(db, session_id)
-    if session is None:
-        return error_page(request, user, status_code=status, message=message)
-    return _session_response(request, db, user, session, status=status, error=message)
-
-
-def _user_and_target(db: Any, request: Request, session_id: int) -> tuple[Any, AppError | None]:
+def _user_and_target(
+    db: Session, request: Request, session_id: int
+) -> tuple[Actor | None, AppError | None]:
     """The logged-in user, and why the session cannot take a trial (before the body is read)."""
-    from app.services.recordings import check_trial_target
-
     user = page_user(request, db)
     if user is None:
         return None, None
     try:
-        check_trial_target(db, user, session_id)  # 404 unknown session, 409 no calibration
+        trials.check_trial_target(db, user, session_id)  # 404 unknown session, 409 no calibration
     except AppError as exc:
         return user, exc
     return user, None
 
 
-def _create_trial(db: Any, request: Request, user: Any, session_id: int, upload: Any) -> Response:
-    from app.services.recordings import create_trial
-
-    out = create_trial(db, user, session_id, upload)
+def _create_trial(
+    db: Session, request: Request, user: Actor, session_id: int, upload: ParsedUpload
+) -> Response:
+    out = trials.create_trial(db, user, session_id, upload)
     job_url = f"/jobs/{out.job_id}"
     if wants_json(request):
         return JSONResponse(
@@ -152,8 +127,6 @@ def _create_trial(db: Any, request: Request, user: Any, session_id: int, upload:
 
 @router.post("/sessions/{session_id}/trials")
 async def trial_upload(request: Request, session_id: int) -> Response:
-    from app.services.recordings import TRIAL_FILE_FIELDS, TRIAL_TEXT_FIELDS
-
     user, refusal = await run_in_threadpool(
         with_own_db, request, _user_and_target, request, session_id
     )
@@ -161,22 +134,21 @@ async def trial_upload(request: Request, session_id: int) -> Response:
         request,
         user,
         refusal=refusal,
-        file_fields=TRIAL_FILE_FIELDS,
-        text_fields=TRIAL_TEXT_FIELDS,
-        fail=lambda db, status, message: _upload_error(
-            db, request, user, session_id, status, message
+        file_fields=trials.TRIAL_FILE_FIELDS,
+        text_fields=trials.TRIAL_TEXT_FIELDS,
+        fail=lambda db, actor, status, message: _session_response(
+            request, db, actor, session_id, status=status, error=message
         ),
-        use_case=lambda db, upload: _create_trial(db, request, user, session_id, upload),
+        use_case=lambda db, actor, upload: _create_trial(db, request, actor, session_id, upload),
     )
 
 
 # --------------------------------------------------------------------------- jobs
 
 
-def _job_view(db: Any, job: Job) -> dict[str, Any]:
-    from app.jobs import job_status
-
-    view = job_status(db, job.id) or {}
+def _job_view(db: Session, job: Job) -> dict[str, Any]:
+    """What the job page and its polling script show of a job."""
+    view = jobs.job_status(db, job.id) or {}
     out = {
         key: view.get(key)
         for key in (
@@ -229,35 +201,22 @@ def _stage_label(stage: str | None, status: str) -> str:
     return _STAGES.get(stage, stage.replace("_", " ").capitalize())
 
 
-def _visible_job(db: Any, job_id: int) -> Job | None:
-    job = db.get(Job, job_id)
-    if job is None:
-        return None
-    if job.trial is not None and not trial_is_visible(job.trial):
-        return None
-    return job
-
-
 @router.get("/jobs/{job_id}", response_class=HTMLResponse)
 def job_page(request: Request, db: SessionDep, user: PageUser, job_id: int) -> Response:
-    job = _visible_job(db, job_id)
-    if job is None:
-        return error_page(request, user, status_code=404, message=f"Job {job_id} does not exist.")
-    view = _job_view(db, job)
+    try:
+        job = trials.job_page(db, user, job_id)
+    except NotFoundError as exc:
+        return error_page(request, user, status_code=404, message=str(exc))
     trial = job.trial
-    patient = trial.session.patient if trial is not None else None
-    if patient is not None:
-        audit(db, user, "read", "trial", trial.id, patient.id)  # type: ignore[union-attr]
-    db.commit()
     return render(
         request,
         "job.html",
         user,
         active="patients" if trial is not None else "rigs",
         title=f"Analysis {job.id}" if trial is not None else f"Calibration job {job.id}",
-        job=view,
+        job=_job_view(db, job),
         trial=trial,
-        patient=patient,
+        patient=trial.session.patient if trial is not None else None,
     )
 
 
@@ -267,9 +226,8 @@ def job_status_json(request: Request, db: SessionDep, job_id: int) -> Response:
     user = page_user(request, db)
     if user is None:
         return JSONResponse({"detail": "Please log in again."}, status_code=401)
-    job = _visible_job(db, job_id)
-    if job is None:
-        return JSONResponse({"detail": f"Job {job_id} does not exist."}, status_code=404)
-    view = _job_view(db, job)
-    db.rollback()
-    return JSONResponse(view)
+    try:
+        job = trials.job_progress(db, user, job_id)
+    except NotFoundError as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+    return JSONResponse(_job_view(db, job))

@@ -9,35 +9,24 @@ event; the page itself one ``read`` event.
 from __future__ import annotations
 
 import json
-import tempfile
-from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse, Response
+from sqlalchemy.orm import Session
 
-from app.audit import audit
+from app.actors import Actor
 from app.auth import SessionDep
-from app.errors import AppError
+from app.errors import AppError, NotFoundError
 from app.models import Trial
-from app.reports import (
-    ReportData,
-    build_report_data,
-    comparison_plots,
-    format_metric,
-    metric_rows,
-    report_context,
-)
-from app.services.common import visible_trial
-from app.web.common import (
-    PageUser,
-    error_page,
-    missing_page,
-    render,
-    settings_of,
-    status_of,
-)
-from app.web.patients import trials_of_patient
+from app.reports.catalogue import format_metric, metric_rows
+from app.reports.data import ReportData
+from app.reports.figures import comparison_plots
+from app.reports.rendering import report_context
+from app.services import results
+from app.services.common import load_trial
+from app.storage import Storage
+from app.web.common import PageUser, error_page, not_found_page, render, status_of
 
 router = APIRouter()
 
@@ -58,7 +47,7 @@ def trial_label(trial: Trial) -> str:
     return f"{s.recorded_at:%Y-%m-%d}, {trial.hand} hand, medication {s.medication_state}"
 
 
-def _comparison(db: Any, data: ReportData, other: ReportData) -> dict[str, Any]:
+def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
     rows_a = {r.key: r for r in metric_rows(data.result)}
     rows_b = {r.key: r for r in metric_rows(other.result)}
     metrics_a = data.result.get("metrics") or {}
@@ -118,16 +107,12 @@ def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]
 def trial_page(
     request: Request, db: SessionDep, user: PageUser, trial_id: int, compare: int | None = None
 ) -> Response:
-    trial = visible_trial(db, trial_id)
-    if trial is None:
-        return missing_page(request, db, user, "read", "trial", trial_id)
-    patient = trial.session.patient
-    if trial.result is None:
-        from app.web.recordings import _latest_job
-
-        job = _latest_job(db, trial.id)
-        audit(db, user, "read", "trial", trial.id, patient.id)
-        db.commit()
+    try:
+        page = results.trial_page(db, user, trial_id, request.app.state.storage, compare=compare)
+    except NotFoundError as exc:
+        return not_found_page(request, user, exc)
+    trial, patient = page.trial, page.patient
+    if page.data is None:
         return render(
             request,
             "trial_pending.html",
@@ -136,25 +121,13 @@ def trial_page(
             title=f"Trial {trial.id} — {patient.code}",
             trial=trial,
             patient=patient,
-            job=job,
+            job=page.job,
         )
-    settings = settings_of(request)
-    data = build_report_data(db, trial.id, settings=settings)
-    context = report_context(data)
-    candidates = _suggested(trial, trials_of_patient(db, patient))
     comparison = None
-    compare_error = None
-    if compare is not None:
-        other = visible_trial(db, compare)
-        if other is None or other.result is None or other.session.patient_id != patient.id:
-            compare_error = "That trial cannot be compared: it does not exist, has no result, or belongs to another patient."
-        else:
-            other_data = build_report_data(db, other.id, settings=settings)
-            comparison = _comparison(db, data, other_data)
-            comparison["label"] = trial_label(other)
-            comparison["trial"] = other
-    audit(db, user, "read", "result", trial.id, patient.id)
-    db.commit()
+    if page.comparison is not None:
+        comparison = _comparison(page.data, page.comparison.data)
+        comparison["label"] = trial_label(page.comparison.trial)
+        comparison["trial"] = page.comparison.trial
     return render(
         request,
         "trial.html",
@@ -164,12 +137,12 @@ def trial_page(
         trial=trial,
         patient=patient,
         label=trial_label(trial),
-        candidates=candidates,
+        candidates=_suggested(trial, list(page.candidates)),
         comparison=comparison,
         compare_id=compare,
-        compare_error=compare_error,
+        compare_error=page.compare_error,
         downloads=DOWNLOADS,
-        **context,
+        **report_context(page.data),
     )
 
 
@@ -177,55 +150,35 @@ def _attachment(name: str) -> dict[str, str]:
     return {"Content-Disposition": f'attachment; filename="{name}"'}
 
 
+def _download(db: Session, user: Actor, trial_id: int, kind: str, storage: Storage) -> bytes | str:
+    if kind == "pdf":
+        return results.report_pdf(db, user, trial_id, storage)
+    if kind == "html":
+        return results.report_html(db, user, trial_id, storage)
+    if kind == "fhir":
+        return json.dumps(results.fhir_bundle(db, user, trial_id, storage), indent=1)
+    if kind == "json":
+        return json.dumps(results.get_result(db, user, trial_id), indent=1)
+    if kind == "csv":
+        return results.markers_csv_path(db, user, trial_id, storage).read_bytes()
+    return results.trajectory_file(db, user, trial_id, "c3d" if kind == "c3d" else "trc", storage)
+
+
 @router.get("/trials/{trial_id}/download/{kind}")
 def trial_download(
     request: Request, db: SessionDep, user: PageUser, trial_id: int, kind: str
 ) -> Response:
-    from app.services import results as svc
-
     if kind not in DOWNLOADS:
         return error_page(request, user, status_code=404, message=f"There is no {kind!r} download.")
-    trial = visible_trial(db, trial_id)
-    if trial is None:
-        return missing_page(request, db, user, "export", "trial", trial_id)
+    try:
+        trial = load_trial(db, user, trial_id, "export")
+    except NotFoundError as exc:
+        return not_found_page(request, user, exc)
     _, media_type, suffix = DOWNLOADS[kind]
     filename = f"{trial.session.patient.code}-trial{trial.id}-{trial.hand}{suffix}"
-    settings = settings_of(request)
     try:
-        if kind == "pdf":
-            body: bytes | str = svc.report_pdf(db, user, trial.id, settings)
-        elif kind == "html":
-            body = svc.report_html(db, user, trial.id, settings)
-        elif kind == "fhir":
-            body = json.dumps(svc.fhir_bundle(db, user, trial.id, settings), indent=1)
-        elif kind == "json":
-            body = json.dumps(svc.get_result(db, user, trial.id), indent=1)
-        elif kind == "csv":
-            from app.storage import Storage
-
-            path = svc.markers_csv_path(db, user, trial.id, Storage.from_settings(settings))
-            body = path.read_bytes()
-        else:
-            body = _trajectory_file(db, user, trial, kind, settings)
+        body = _download(db, user, trial.id, kind, request.app.state.storage)
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
     return Response(content=body, media_type=media_type, headers=_attachment(filename))
-
-
-def _trajectory_file(db: Any, user: Any, trial: Trial, kind: str, settings: Any) -> bytes:
-    from app.errors import ConflictError, NotFoundError
-    from app.exports import write_c3d, write_trc
-
-    if trial.result is None:
-        raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
-    data = build_report_data(db, trial.id, settings=settings)
-    if data.markers is None:
-        raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / f"trial.{kind}"
-        (write_c3d if kind == "c3d" else write_trc)(path, data.markers)
-        body = path.read_bytes()
-    audit(db, user, "export", f"{kind}_file", trial.id, trial.session.patient_id)
-    db.commit()
-    return body

@@ -14,12 +14,14 @@ from fastapi import APIRouter, Form, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from pydantic import ValidationError
-from sqlalchemy import select
+from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
-from app.models import Job, Rig
-from app.reports import quality_verdict
+from app.schemas import RigCreate
+from app.services import calibrations, rigs
+from app.uploads import ParsedUpload
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
@@ -69,28 +71,6 @@ def _quality_items(quality: dict[str, Any] | None) -> list[tuple[str, str]]:
     return items
 
 
-def _calibration_rows(db: Any, rig: Rig) -> list[dict[str, Any]]:
-    rows = []
-    for cal in sorted(rig.calibrations, key=lambda c: c.version, reverse=True):
-        job = db.scalars(
-            select(Job).where(Job.calibration_id == cal.id).order_by(Job.id.desc()).limit(1)
-        ).first()
-        verdict: str | None = None
-        reasons: list[str] = []
-        if cal.status == "ready":
-            verdict, reasons = quality_verdict(cal.quality, cal.rms_px)
-        rows.append(
-            {
-                "cal": cal,
-                "job": job,
-                "verdict": verdict,
-                "reasons": reasons,
-                "quality_items": _quality_items(cal.quality),
-            }
-        )
-    return rows
-
-
 @router.get("/rigs", response_class=HTMLResponse)
 def rig_list(request: Request, db: SessionDep, user: PageUser) -> Response:
     return _rig_list(request, db, user)
@@ -98,22 +78,14 @@ def rig_list(request: Request, db: SessionDep, user: PageUser) -> Response:
 
 def _rig_list(
     request: Request,
-    db: Any,
-    user: Any,
+    db: Session,
+    user: Actor,
     *,
     error: str | None = None,
     status_code: int = 200,
     form: dict[str, str] | None = None,
 ) -> Response:
-    rigs = list(db.scalars(select(Rig).order_by(Rig.name)))
-    latest = {}
-    for rig in rigs:
-        ready = [c for c in rig.calibrations if c.status == "ready"]
-        if ready:
-            cal = max(ready, key=lambda c: (c.valid_from, c.version))
-            verdict, _ = quality_verdict(cal.quality, cal.rms_px)
-            latest[rig.id] = {"cal": cal, "verdict": verdict}
-    db.rollback()
+    overviews = rigs.rig_overviews(db, user)
     return render(
         request,
         "rigs.html",
@@ -121,8 +93,12 @@ def _rig_list(
         status_code=status_code,
         active="rigs",
         title="Rigs and calibration",
-        rigs=rigs,
-        latest=latest,
+        rigs=[o.rig for o in overviews],
+        latest={
+            o.rig.id: {"cal": o.current, "verdict": o.current.verdict}
+            for o in overviews
+            if o.current is not None
+        },
         error=error,
         form=form or {},
     )
@@ -137,14 +113,11 @@ def rig_create(
     description: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    from app.schemas import RigCreate
-    from app.services.rigs import create_rig
-
     form = {"name": name, "description": description}
     if not csrf_ok(user, csrf_token):
         return _rig_list(request, db, user, error=CSRF_MESSAGE, status_code=403, form=form)
     try:
-        rig = create_rig(
+        rig = rigs.create_rig(
             db, user, RigCreate(name=name.strip(), description=description.strip() or None)
         )
     except ValidationError as exc:
@@ -165,18 +138,17 @@ def rig_page(request: Request, db: SessionDep, user: PageUser, rig_id: int) -> R
 
 def _rig_page(
     request: Request,
-    db: Any,
-    user: Any,
+    db: Session,
+    user: Actor,
     rig_id: int,
     *,
     error: str | None = None,
     status_code: int = 200,
 ) -> Response:
-    rig = db.get(Rig, rig_id)
-    if rig is None:
-        return error_page(request, user, status_code=404, message=f"Rig {rig_id} does not exist.")
-    rows = _calibration_rows(db, rig)
-    db.rollback()
+    try:
+        rig, rows = rigs.rig_with_calibrations(db, user, rig_id)
+    except NotFoundError as exc:
+        return error_page(request, user, status_code=404, message=str(exc))
     return render(
         request,
         "rig.html",
@@ -185,23 +157,38 @@ def _rig_page(
         active="rigs",
         title=f"Rig {rig.name}",
         rig=rig,
-        rows=rows,
+        rows=[
+            {
+                "cal": row.cal,
+                "job": row.job,
+                "verdict": row.verdict,
+                "reasons": row.reasons,
+                "quality_items": _quality_items(row.cal.quality),
+            }
+            for row in rows
+        ],
         error=error,
     )
 
 
-def _user_and_rig(db: Any, request: Request, rig_id: int) -> tuple[Any, AppError | None]:
+def _user_and_rig(
+    db: Session, request: Request, rig_id: int
+) -> tuple[Actor | None, AppError | None]:
     """The logged-in user, and a 404 if the rig does not exist (before the body is read)."""
     user = page_user(request, db)
-    exists = db.get(Rig, rig_id) is not None
-    db.rollback()
-    return user, None if exists else NotFoundError(f"Rig {rig_id} does not exist.")
+    if user is None:
+        return None, None
+    try:
+        rigs.check_calibration_target(db, user, rig_id)
+    except NotFoundError as exc:
+        return user, exc
+    return user, None
 
 
-def _create(db: Any, request: Request, user: Any, rig_id: int, upload: Any) -> Response:
-    from app.services.recordings import create_calibration
-
-    cal, job_id = create_calibration(db, user, rig_id, upload)
+def _create(
+    db: Session, request: Request, user: Actor, rig_id: int, upload: ParsedUpload
+) -> Response:
+    cal, job_id = calibrations.create_calibration(db, user, rig_id, upload)
     target = (
         f"/jobs/{job_id}"
         if job_id is not None
@@ -214,7 +201,7 @@ def _create(db: Any, request: Request, user: Any, rig_id: int, upload: Any) -> R
     return RedirectResponse(target, status_code=303)
 
 
-def _drop_unused_parts(upload: Any) -> None:
+def _drop_unused_parts(upload: ParsedUpload) -> None:
     """The form has a rig-file and a board-video part: the one not used arrives empty."""
     for name in list(upload.files):
         staged = upload.files[name]
@@ -228,18 +215,16 @@ def _drop_unused_parts(upload: Any) -> None:
 
 @router.post("/rigs/{rig_id}/calibrations")
 async def calibration_upload(request: Request, rig_id: int) -> Response:
-    from app.services.recordings import CALIBRATION_FILE_FIELDS, CALIBRATION_TEXT_FIELDS
-
     user, refusal = await run_in_threadpool(with_own_db, request, _user_and_rig, request, rig_id)
     return await run_page_upload(
         request,
         user,
         refusal=refusal,
-        file_fields=CALIBRATION_FILE_FIELDS,
-        text_fields=CALIBRATION_TEXT_FIELDS | {"kind"},
-        fail=lambda db, status, message: _rig_page(
-            request, db, user, rig_id, error=message, status_code=status
+        file_fields=calibrations.CALIBRATION_FILE_FIELDS,
+        text_fields=calibrations.CALIBRATION_TEXT_FIELDS | {"kind"},
+        fail=lambda db, actor, status, message: _rig_page(
+            request, db, actor, rig_id, error=message, status_code=status
         ),
-        use_case=lambda db, upload: _create(db, request, user, rig_id, upload),
+        use_case=lambda db, actor, upload: _create(db, request, actor, rig_id, upload),
         prepare=_drop_unused_parts,
     )

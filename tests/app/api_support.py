@@ -182,11 +182,11 @@ def add_result(api: Api, trial_id: int) -> None:
     """Store a known result for a trial, as the worker would (synthetic, not measured)."""
     from sample_trial import synthetic_trial
 
-    from app.exports import markers_csv
+    from core.markers_csv import markers_csv_text
 
     markers, document = synthetic_trial()
     stored = Storage.from_settings(api.settings).write_bytes(
-        "results", ".csv", markers_csv(markers).encode()
+        "results", ".csv", markers_csv_text(markers).encode()
     )
     with api.sessions() as db:
         trial = db.get(Trial, trial_id)

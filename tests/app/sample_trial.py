@@ -13,8 +13,8 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from app.exports import MarkerTable
-from app.reports import CalibrationInfo, ReportData
+from app.reports.data import CalibrationInfo, ReportData
+from core.markers_csv import MarkerTable
 
 FPS = 100.0  # Hz
 CLOSED_MM = 18.0  # thumb–index distance with the fingers together (marker offset)

@@ -21,9 +21,9 @@ from app.models import (
     Rig,
     Trial,
     Video,
-    calibration_for,
     next_calibration_version,
 )
+from app.services.calibrations import calibration_for
 
 T0 = datetime(2026, 3, 1, 9, 0, tzinfo=UTC)
 RIG_DOC = {"format": "bradyscope.rig/1", "units": "mm", "cameras": []}
@@ -268,3 +268,21 @@ def test_unreachable_database_is_one_sentence(tmp_path, capsys, monkeypatch):
     assert "cannot be reached" in err and "BRADYSCOPE_DATABASE_URL" in err
     assert "secret" not in err  # the password is not echoed
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_ready_calibration_is_judged_once_when_stored(db_session):
+    db = db_session
+    rig = Rig(name="clinic-V")
+    db.add(rig)
+    db.flush()
+    cal = _calibration(db, rig, valid_from=T0, status="pending")
+    assert cal.verdict is None  # nothing to judge yet
+    cal.quality, cal.rms_px = {"rms_px": 0.8, "views_used": 30}, 0.8
+    cal.rig_json, cal.status = RIG_DOC, "ready"
+    db.flush()
+    assert cal.verdict == "acceptable" and "reprojection" in cal.verdict_reasons[0]
+    cal.quality = {"rms_px": 3.0}  # stored figures change: the verdict stays as judged
+    db.flush()
+    assert cal.verdict == "acceptable"
+    with pytest.raises(IntegrityError):  # a ready calibration without a verdict is refused
+        db.execute(sa.update(Calibration).where(Calibration.id == cal.id).values(verdict=None))

@@ -10,6 +10,7 @@ import pytest
 from sample_trial import sample_report_data, synthetic_trial
 
 from app import exports
+from core import markers_csv
 
 
 @pytest.fixture(scope="module")
@@ -18,12 +19,12 @@ def markers():
 
 
 def test_markers_csv_has_the_interfaces_header_and_round_trips(markers):
-    text = exports.markers_csv(markers)
+    text = markers_csv.markers_csv_text(markers)
     lines = text.splitlines()
     assert lines[0] == "frame,time_s,marker,x_mm,y_mm,z_mm,status,reprojection_px"
-    assert lines[1].startswith("0,0,thumb,")
+    assert lines[1].startswith("0,0.0,thumb,")  # as docs/interfaces.md shows it
     assert len(lines) == 1 + markers.frames.size * 2  # one row per frame and marker
-    back = exports.read_markers_csv(io.StringIO(text))
+    back = markers_csv.read_markers_csv(io.StringIO(text))
     assert back.labels == markers.labels
     assert back.fps == pytest.approx(markers.fps)
     np.testing.assert_allclose(back.positions_mm, markers.positions_mm, atol=5e-4)  # mm, 3 decimals
@@ -34,12 +35,12 @@ def test_markers_csv_has_the_interfaces_header_and_round_trips(markers):
 
 def test_markers_csv_rejects_a_table_without_the_columns():
     with pytest.raises(ValueError, match="lacks the columns"):
-        exports.read_markers_csv(io.StringIO("frame,x\n0,1\n"))
+        markers_csv.read_markers_csv(io.StringIO("frame,x\n0,1\n"))
 
 
 def test_marker_table_checks_shapes(markers):
     with pytest.raises(ValueError, match="positions_mm"):
-        exports.MarkerTable(
+        markers_csv.MarkerTable(
             fps=100.0,
             frames=markers.frames,
             labels=("thumb",),

@@ -95,3 +95,37 @@ def test_postgres_upgrade_check_downgrade(tmp_path: Path, pg_empty_url: str, mak
     assert _tables(pg_empty_url) == set()
     migrate(settings)
     assert _tables(pg_empty_url) == MODEL_TABLES
+
+
+def test_ready_calibrations_get_their_verdict_on_upgrade(tmp_path, make_settings):
+    """Revision 0004 judges the ready calibrations an existing database already holds."""
+    settings = make_settings(tmp_path / "data")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.effective_database_url
+    command.upgrade(alembic_config(url), "0003")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO rigs (id, name, created_at) VALUES (1, 'r', '2026-01-01')"
+        )
+        for cal_id, status, quality in (
+            (1, "ready", '{"rms_px": 0.2}'),
+            (2, "ready", '{"rms_px": 3.0}'),
+            (3, "pending", "null"),
+        ):
+            conn.exec_driver_sql(
+                "INSERT INTO calibrations (id, rig_id, version, valid_from, rig_json, quality, source,"
+                " status, created_at) VALUES (?, 1, ?, '2026-01-01', ?, ?, 'rig_file', ?, '2026-01-01')",
+                (cal_id, cal_id, "{}" if status == "ready" else None, quality, status),
+            )
+    engine.dispose()
+    command.upgrade(alembic_config(url), "head")
+    engine = sa.create_engine(url)
+    with engine.connect() as conn:
+        rows = conn.exec_driver_sql(
+            "SELECT id, verdict, verdict_reasons FROM calibrations ORDER BY id"
+        ).all()
+    engine.dispose()
+    assert [(r[0], r[1]) for r in rows] == [(1, "good"), (2, "poor"), (3, None)]
+    assert "reprojection error" in rows[1][2]  # the reason is stored with the verdict
+    dispose_engines()

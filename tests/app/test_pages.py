@@ -15,7 +15,6 @@ from fastapi.testclient import TestClient
 from sample_trial import synthetic_trial
 from sqlalchemy import func, select
 
-from app.exports import markers_csv
 from app.models import (
     AuditEvent,
     Calibration,
@@ -28,6 +27,7 @@ from app.models import (
     User,
 )
 from app.passwords import hash_password
+from core.markers_csv import markers_csv_text
 
 EMAIL = "clinician@example.org"
 PASSWORD = "correct horse battery staple"
@@ -86,7 +86,7 @@ def seeded(app_settings, db_sessionmaker, storage):
             db.flush()
             for hand in ("left", "right") if i == 1 else ("right",):
                 markers, result = synthetic_trial(amplitude0_mm=52.0 - 5 * i, seed=i)
-                stored = storage.write_bytes("results", ".csv", markers_csv(markers).encode())
+                stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
                 trial = Trial(session_id=s.id, hand=hand, status="succeeded")
                 db.add(trial)
                 db.flush()

@@ -13,7 +13,8 @@ import pytest
 from PIL import Image
 from sample_trial import sample_report_data
 
-from app.reports import format_metric, metric_rows, render_report_html, render_report_pdf
+from app.reports.catalogue import format_metric, metric_rows
+from app.reports.rendering import render_report_html, render_report_pdf
 
 needs_poppler = pytest.mark.skipif(
     shutil.which("pdftotext") is None or shutil.which("pdftoppm") is None,
@@ -49,7 +50,7 @@ def test_format_metric_uses_the_catalogue_decimals():
 
 def test_hesitation_definition_matches_docs_metrics():
     # Both criteria of docs/metrics.md, with its thresholds, are what users read.
-    from app.reports import METRICS
+    from app.reports.catalogue import METRICS
 
     docs = (Path(__file__).resolve().parents[2] / "docs" / "metrics.md").read_text()
     assert "longer than **1.5 ×** the" in docs and "of at least **0.2 s**" in docs
@@ -90,7 +91,7 @@ def test_user_text_is_escaped(data):
 
 
 def test_pdf_renderer_fetches_no_url(data, monkeypatch):
-    import app.reports as reports
+    import app.reports.rendering as reports
 
     fetched: list[str] = []
     original = reports._refusing_fetcher
@@ -238,7 +239,7 @@ def test_null_values_render_as_a_dash(data):
 def test_comparison_plots_share_their_scales(data):
     from sample_trial import synthetic_trial
 
-    from app.reports import comparison_plots
+    from app.reports.figures import comparison_plots
 
     markers, result = synthetic_trial(amplitude0_mm=30.0, seed=3)
     smaller = dataclasses.replace(data, markers=markers, result=result, trial_id=8)
@@ -250,7 +251,7 @@ def test_comparison_plots_share_their_scales(data):
     assert ticks(first["amplitude"]) == ticks(second["amplitude"])
     assert ticks(first["aperture"]) == ticks(second["aperture"])
     # Drawn alone, the smaller trial gets its own, shorter axis: the check above can fail.
-    from app.reports import report_plots
+    from app.reports.figures import report_plots
 
     assert ticks(report_plots(smaller)["amplitude"]) != ticks(first["amplitude"])
     ids = re.findall(r'id="([^"]+)"', first["aperture"] + second["aperture"])

@@ -1,0 +1,409 @@
+"""The catalogue of metrics: label, display unit, UCUM code, decimals and a definition.
+
+Shared by the pages, the reports and the FHIR export; :func:`metric_rows`
+turns a result into the lines of a metrics table.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    """How a metric is labelled, formatted and coded.
+
+    Attributes
+    ----------
+    label : str
+        Short name for tables.
+    unit : str
+        Unit as displayed (``mm``, ``Hz``, ``mm/s``, ``mm/tap``; empty for ratios and counts).
+    ucum : str
+        UCUM code for FHIR (``mm``, ``Hz``, ``mm/s``, ``mm/{tap}``, ``1``).
+    decimals : int
+        Digits after the decimal point when displayed.
+    definition : str
+        One sentence a clinician can read.
+    primary : bool
+        Shown in the main metrics table (else under "More measurements").
+    """
+
+    label: str
+    unit: str
+    ucum: str
+    decimals: int
+    definition: str
+    primary: bool = True
+
+
+METRICS: dict[str, MetricSpec] = {
+    "tap_count": MetricSpec(
+        "Taps", "", "1", 0, "Number of complete taps (open–close cycles) in the recording."
+    ),
+    "frequency_hz": MetricSpec(
+        "Tapping frequency",
+        "Hz",
+        "Hz",
+        2,
+        "Taps per second while moving: 1 / mean tap duration, pauses excluded.",
+    ),
+    "amplitude_mm_mean": MetricSpec(
+        "Mean amplitude",
+        "mm",
+        "mm",
+        1,
+        "Mean peak-to-trough opening: largest thumb–index distance of a tap minus the "
+        "distance at its start (the closed position).",
+    ),
+    "amplitude_mm_cv": MetricSpec(
+        "Amplitude variability",
+        "",
+        "1",
+        3,
+        "Coefficient of variation of the tap amplitudes (standard deviation / mean).",
+    ),
+    "amplitude_decrement_mm_per_tap": MetricSpec(
+        "Amplitude decrement",
+        "mm/tap",
+        "mm/{tap}",
+        2,
+        "Least-squares slope of amplitude against tap number; negative means the taps "
+        "shrink (sequence effect).",
+    ),
+    "amplitude_ratio_last_first_third": MetricSpec(
+        "Amplitude ratio, last/first third",
+        "",
+        "1",
+        2,
+        "Mean amplitude of the last third of the taps divided by that of the first third; "
+        "below 1 means a decrement.",
+    ),
+    "opening_velocity_mm_s_max": MetricSpec(
+        "Peak opening velocity",
+        "mm/s",
+        "mm/s",
+        0,
+        "Mean over the taps of each tap's peak opening speed.",
+    ),
+    "closing_velocity_mm_s_max": MetricSpec(
+        "Peak closing velocity",
+        "mm/s",
+        "mm/s",
+        0,
+        "Mean over the taps of each tap's peak closing speed.",
+    ),
+    "inter_tap_interval_cv": MetricSpec(
+        "Rhythm variability",
+        "",
+        "1",
+        3,
+        "Coefficient of variation of the intervals between tap starts, pauses included.",
+    ),
+    "hesitation_count": MetricSpec(
+        "Hesitations",
+        "",
+        "1",
+        0,
+        "Interruptions of the rhythm: taps (without a halt) whose cycle is over 1.5 times "
+        "the median of the neighbouring taps, or that follow a closed pause of at least 0.2 s.",
+    ),
+    "halt_count": MetricSpec(
+        "Halts",
+        "",
+        "1",
+        0,
+        "Freezes: the fingers stay still for at least 0.3 s. A pause counts once, as "
+        "hesitation or halt.",
+    ),
+    "pause_time_s": MetricSpec(
+        "Pause time", "s", "s", 2, "Total duration of the hesitations and halts."
+    ),
+    "tap_rate_hz": MetricSpec(
+        "Tap rate",
+        "Hz",
+        "Hz",
+        2,
+        "Taps per second including pauses: 1 / mean interval between tap starts.",
+    ),
+    # Secondary metrics (shown under "More measurements").
+    "reliable_tap_count": MetricSpec(
+        "Reliable taps",
+        "",
+        "1",
+        0,
+        "Taps whose peak and closures were measured, not filled in; amplitude and velocity "
+        "statistics use these.",
+        primary=False,
+    ),
+    "amplitude_mm_sd": MetricSpec(
+        "Amplitude SD", "mm", "mm", 1, "Standard deviation of the tap amplitudes.", primary=False
+    ),
+    "amplitude_mm_max": MetricSpec(
+        "Largest amplitude", "mm", "mm", 1, "Amplitude of the largest tap.", primary=False
+    ),
+    "amplitude_decrement_pct_per_tap": MetricSpec(
+        "Amplitude decrement, relative",
+        "%/tap",
+        "%/{tap}",
+        2,
+        "Decrement slope as a percentage of the mean amplitude of the first three taps.",
+        primary=False,
+    ),
+    "amplitude_ratio_second_first_half": MetricSpec(
+        "Amplitude ratio, second/first half",
+        "",
+        "1",
+        2,
+        "Mean amplitude of the second half of the taps divided by that of the first half.",
+        primary=False,
+    ),
+    "amplitude_decrement_onset_tap": MetricSpec(
+        "Decrement onset (tap index)",
+        "",
+        "1",
+        0,
+        "The last tap (counted from 0) before the amplitude starts to fall; empty when "
+        "there is no clear decrement.",
+        primary=False,
+    ),
+    "opening_velocity_mm_s_peak": MetricSpec(
+        "Fastest opening",
+        "mm/s",
+        "mm/s",
+        0,
+        "The largest single-tap peak opening speed.",
+        primary=False,
+    ),
+    "closing_velocity_mm_s_peak": MetricSpec(
+        "Fastest closing",
+        "mm/s",
+        "mm/s",
+        0,
+        "The largest single-tap peak closing speed.",
+        primary=False,
+    ),
+    "opening_velocity_mm_s_mean": MetricSpec(
+        "Mean opening velocity",
+        "mm/s",
+        "mm/s",
+        0,
+        "Mean over taps of amplitude / opening duration.",
+        primary=False,
+    ),
+    "closing_velocity_mm_s_mean": MetricSpec(
+        "Mean closing velocity",
+        "mm/s",
+        "mm/s",
+        0,
+        "Mean over taps of the closing distance / closing duration.",
+        primary=False,
+    ),
+    "opening_velocity_decrement_mm_s_per_tap": MetricSpec(
+        "Opening velocity decrement",
+        "mm/s per tap",
+        "mm/s/{tap}",
+        1,
+        "Least-squares slope of each tap's peak opening speed against tap number.",
+        primary=False,
+    ),
+    "tap_duration_s_mean": MetricSpec(
+        "Mean tap duration",
+        "s",
+        "s",
+        3,
+        "Mean duration of one open–close cycle, pauses excluded.",
+        primary=False,
+    ),
+    "inter_tap_interval_s_mean": MetricSpec(
+        "Mean interval",
+        "s",
+        "s",
+        3,
+        "Mean time between the starts of successive taps.",
+        primary=False,
+    ),
+    "tap_duration_cv": MetricSpec(
+        "Tap duration variability",
+        "",
+        "1",
+        3,
+        "Coefficient of variation of the tap durations.",
+        primary=False,
+    ),
+    "inter_tap_interval_s_sd": MetricSpec(
+        "Interval SD",
+        "s",
+        "s",
+        3,
+        "Standard deviation of the intervals between tap starts.",
+        primary=False,
+    ),
+    "tapping_time_s": MetricSpec(
+        "Tapping time",
+        "s",
+        "s",
+        2,
+        "From the start of the first tap to the end of the last.",
+        primary=False,
+    ),
+    "opening_velocity_decrement_pct_per_tap": MetricSpec(
+        "Opening velocity decrement, relative",
+        "%/tap",
+        "%/{tap}",
+        2,
+        "Opening velocity slope as a percentage of the first three taps' mean.",
+        primary=False,
+    ),
+    "opening_velocity_ratio_last_first_third": MetricSpec(
+        "Opening velocity ratio, last/first third",
+        "",
+        "1",
+        2,
+        "Mean peak opening speed of the last third of the taps divided by the first third.",
+        primary=False,
+    ),
+    "opening_velocity_decrement_onset_tap": MetricSpec(
+        "Opening velocity decrement onset (tap index)",
+        "",
+        "1",
+        0,
+        "The last tap (from 0) before the opening speed starts to fall; empty without a clear decrement.",
+        primary=False,
+    ),
+    "closing_velocity_decrement_mm_s_per_tap": MetricSpec(
+        "Closing velocity decrement",
+        "mm/s per tap",
+        "mm/s/{tap}",
+        1,
+        "Least-squares slope of each tap's peak closing speed against tap number.",
+        primary=False,
+    ),
+    "closing_velocity_ratio_last_first_third": MetricSpec(
+        "Closing velocity ratio, last/first third",
+        "",
+        "1",
+        2,
+        "Mean peak closing speed of the last third of the taps divided by the first third.",
+        primary=False,
+    ),
+    "gap_count": MetricSpec(
+        "Gaps in the recording",
+        "",
+        "1",
+        0,
+        "Stretches where a marker could not be measured; taps may be lost there.",
+        primary=False,
+    ),
+}
+
+
+def _guess_units(key: str) -> tuple[str, str]:
+    """Display unit and UCUM code of a metric the catalogue does not know, from its name."""
+    for suffix, unit, ucum in (
+        ("_mm_s_per_tap", "mm/s per tap", "mm/s/{tap}"),
+        ("_pct_per_tap", "%/tap", "%/{tap}"),
+        ("_mm_per_tap", "mm/tap", "mm/{tap}"),
+        ("_mm_s", "mm/s", "mm/s"),
+        ("_hz", "Hz", "Hz"),
+        ("_mm", "mm", "mm"),
+        ("_s", "s", "s"),
+        ("_px", "px", "{pixel}"),
+    ):
+        if key.endswith(suffix) or f"{suffix}_" in key:
+            return unit, ucum
+    return "", "1"
+
+
+def metric_spec(key: str) -> MetricSpec:
+    """The catalogue entry of ``key``, or one guessed from its name (secondary, no definition)."""
+    spec = METRICS.get(key)
+    if spec is not None:
+        return spec
+    unit, ucum = _guess_units(key)
+    return MetricSpec(key.replace("_", " ").capitalize(), unit, ucum, 3, "", primary=False)
+
+
+# Metrics shown in trend plots (key, label, unit).
+TREND_METRICS: tuple[tuple[str, str, str], ...] = (
+    ("amplitude_mm_mean", "Mean amplitude", "mm"),
+    ("frequency_hz", "Tapping frequency", "Hz"),
+    ("opening_velocity_mm_s_max", "Peak opening velocity", "mm/s"),
+    ("amplitude_decrement_mm_per_tap", "Amplitude decrement", "mm/tap"),
+    ("hesitation_count", "Hesitations and halts", "count"),
+)
+
+
+def format_metric(key: str, value: Any) -> str:
+    """``value`` formatted with the metric's decimals (no unit); "–" when absent."""
+    if value is None or isinstance(value, bool):
+        return "–"
+    if not isinstance(value, int | float):
+        return str(value)
+    if not math.isfinite(float(value)):
+        return "–"
+    spec = METRICS.get(key)
+    decimals = spec.decimals if spec else (0 if isinstance(value, int) else 3)
+    if key.endswith(("_count", "_onset_tap")) and float(value).is_integer():
+        decimals = 0
+    text = f"{float(value):.{decimals}f}"
+    if key.endswith("_per_tap") and float(value) > 0:
+        text = "+" + text
+    return text
+
+
+@dataclass(frozen=True)
+class MetricRow:
+    """One line of the metrics table."""
+
+    key: str
+    label: str
+    value: str
+    value_first_10: str | None
+    unit: str
+    definition: str
+
+
+def metric_rows(
+    result: Mapping[str, Any] | None, *, primary: bool | None = True
+) -> list[MetricRow]:
+    """Rows of the metrics table, catalogue order first, then any other number.
+
+    Parameters
+    ----------
+    result : result.json document
+    primary : bool or None
+        True: the main metrics only; False: the others only; None: all.
+    """
+    result = result or {}
+    metrics: Mapping[str, Any] = result.get("metrics", {}) or {}
+    first10 = result.get("metrics_first_10")
+    if not isinstance(first10, Mapping):
+        first10 = metrics.get("metrics_first_10")
+    first10 = first10 if isinstance(first10, Mapping) else {}
+    keys = [k for k in METRICS if k in metrics]
+    keys += [
+        k
+        for k, v in metrics.items()
+        if k not in METRICS
+        and (v is None or (isinstance(v, int | float) and not isinstance(v, bool)))
+    ]
+    rows = []
+    for key in keys:
+        spec = metric_spec(key)
+        if primary is not None and spec.primary != primary:
+            continue
+        rows.append(
+            MetricRow(
+                key=key,
+                label=spec.label,
+                value=format_metric(key, metrics.get(key)),
+                value_first_10=format_metric(key, first10[key]) if key in first10 else None,
+                unit=spec.unit,
+                definition=spec.definition,
+            )
+        )
+    return rows

@@ -1,0 +1,452 @@
+"""Calibrations of a rig: which one a session uses, uploads, their verdict, reads.
+
+A calibration arrives as a rig file (ready at once) or as two board
+recordings (``pending`` until the worker's ``calibrate`` job makes it
+``ready``). Its quality verdict is judged once, when it becomes ready
+(``app.models.calibration_verdict``), and stored with it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import cv2
+from sqlalchemy import select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from app import jobs
+from app.actors import Actor
+from app.audit import audit
+from app.errors import CalibrationMissingError, ConflictError, InvalidRequestError, NotFoundError
+from app.models import (
+    Calibration,
+    Job,
+    RecordingSession,
+    Rig,
+    Video,
+    calibration_verdict,
+    next_calibration_version,
+    utcnow,
+)
+from app.services.common import load_rig
+from app.services.videos import add_videos, check_video_pair
+from app.storage import Storage
+from app.uploads import InvalidUpload, ParsedUpload, validate_rig_file
+from core.boards import BoardSpec
+from core.calibration import CalibrationResult
+from core.camera import StereoRig, rig_from_dict, rig_to_dict
+
+CALIBRATION_FILE_FIELDS = {"rig_json": ".json", "left_video": ".video", "right_video": ".video"}
+CALIBRATION_TEXT_FIELDS = frozenset(
+    {"board", "cols", "rows", "square_mm", "marker_mm", "dictionary", "valid_from"}
+)
+BOARDS = ("chessboard", "charuco")
+DEFAULT_DICTIONARY = "DICT_4X4_1000"
+
+
+# --------------------------------------------------------------------------- which one
+
+
+def calibration_for(db: Session, session: RecordingSession) -> Calibration:
+    """The calibration an analysis of ``session`` uses.
+
+    The session's own override (``session.calibration_id``) if set, otherwise
+    the newest ``ready`` calibration of the session's rig whose ``valid_from``
+    is not after ``session.recorded_at`` (ties: the highest version).
+
+    Raises
+    ------
+    app.errors.CalibrationMissingError
+        When the override is not ready, or the rig has no ready calibration
+        valid at the session's time.
+    """
+    if session.calibration_id is not None:
+        cal = db.get(Calibration, session.calibration_id)
+        if cal is None or cal.status != "ready":
+            raise CalibrationMissingError(
+                f"calibration {session.calibration_id} chosen for session {session.id} is not "
+                "ready; choose a ready calibration or clear the choice."
+            )
+        return cal
+    cal = db.scalars(
+        select(Calibration)
+        .where(
+            Calibration.rig_id == session.rig_id,
+            Calibration.status == "ready",
+            Calibration.valid_from <= session.recorded_at,
+        )
+        .order_by(Calibration.valid_from.desc(), Calibration.version.desc())
+        .limit(1)
+    ).first()
+    if cal is None:
+        raise CalibrationMissingError(
+            f"rig {session.rig_id} has no ready calibration valid on "
+            f"{session.recorded_at:%Y-%m-%d %H:%M} UTC; upload a calibration for this rig "
+            "first (valid from a date before the session)."
+        )
+    return cal
+
+
+def rig_to_check_against(db: Session, session: RecordingSession) -> StereoRig | None:
+    """The rig that will measure ``session`` (to check uploaded videos against it), or None.
+
+    None while the rig's only calibration is still being computed (the videos
+    are then checked against it by the analysis).
+
+    Raises
+    ------
+    CalibrationMissingError
+        The session's rig has no usable calibration at all, not even a pending one (409).
+    """
+    try:
+        cal = calibration_for(db, session)
+    except CalibrationMissingError:
+        pending = db.scalars(
+            select(Calibration.id)
+            .where(Calibration.rig_id == session.rig_id, Calibration.status == "pending")
+            .limit(1)
+        ).first()
+        if pending is None:
+            raise
+        return None
+    return rig_from_dict(cal.rig_json, source=f"calibration {cal.id}") if cal.rig_json else None
+
+
+# --------------------------------------------------------------------------- upload
+
+
+def _valid_from(upload: ParsedUpload, *, first: bool) -> datetime:
+    raw = (upload.fields.get("valid_from") or "").strip()
+    if raw:
+        try:
+            value = datetime.fromisoformat(raw.replace("Z", "+00:00"))
+        except ValueError as exc:
+            raise InvalidUpload(
+                "valid_from must be an ISO 8601 date-time such as 2026-01-31T08:00:00Z."
+            ) from exc
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+    # A rig's first calibration also covers sessions recorded before it was uploaded.
+    return datetime(1970, 1, 1, tzinfo=UTC) if first else utcnow()
+
+
+def _number(
+    upload: ParsedUpload, name: str, kind: type[int] | type[float], low: float, high: float
+) -> Any:
+    raw = upload.require_field(name)
+    try:
+        value = kind(raw)
+    except ValueError:
+        value = None
+    if value is None or not math.isfinite(value) or not low <= value <= high:
+        raise InvalidUpload(f"{name} must be a {kind.__name__} between {low:g} and {high:g}.")
+    return value
+
+
+def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
+    board = upload.require_field("board").lower()
+    if board not in BOARDS:
+        raise InvalidUpload(f"board must be 'chessboard' or 'charuco', not {board[:20]!r}.")
+    fields: dict[str, Any] = {
+        "board": board,
+        "cols": _number(upload, "cols", int, 2, 200),
+        "rows": _number(upload, "rows", int, 2, 200),
+        "square_mm": _number(upload, "square_mm", float, 0.1, 1000.0),
+    }
+    if board == "charuco":
+        fields["marker_mm"] = _number(upload, "marker_mm", float, 0.05, 1000.0)
+        if fields["marker_mm"] >= fields["square_mm"]:
+            raise InvalidUpload("marker_mm must be smaller than square_mm for a ChArUco board.")
+        dictionary = (upload.fields.get("dictionary") or DEFAULT_DICTIONARY).strip()
+        if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
+            raise InvalidUpload(f"dictionary {dictionary[:40]!r} is not an ArUco dictionary name.")
+        fields["dictionary"] = dictionary
+    try:  # the measurement library's own rules for a board, too
+        BoardSpec(
+            kind="charuco" if board == "charuco" else "chessboard",
+            cols=fields["cols"],
+            rows=fields["rows"],
+            square_mm=fields["square_mm"],
+            marker_mm=fields.get("marker_mm"),
+            dictionary=fields.get("dictionary"),
+        )
+    except ValueError as exc:
+        raise InvalidUpload(f"The board description is invalid: {exc}.") from exc
+    return fields
+
+
+def _concurrent_calibration(rig_id: int) -> ConflictError:
+    """Two uploads took the same version number (UNIQUE (rig_id, version)); one must retry."""
+    return ConflictError(
+        f"Another calibration of rig {rig_id} was stored at the same moment; send this one again."
+    )
+
+
+def _store(
+    db: Session,
+    upload: ParsedUpload,
+    cal: Calibration,
+    actor: Actor,
+    *,
+    with_it: Callable[[], None] | None = None,
+) -> None:
+    """Add ``cal`` (and ``with_it()``'s rows) and commit with its audit event.
+
+    On any failure the transaction is rolled back and the upload's files removed.
+    """
+    try:
+        db.add(cal)
+        db.flush()
+        if with_it is not None:
+            with_it()
+        audit(db, actor, "create", "calibration", cal.id)
+        db.commit()
+    except IntegrityError as exc:
+        db.rollback()
+        upload.discard()
+        raise _concurrent_calibration(cal.rig_id) from exc
+    except BaseException:
+        db.rollback()
+        upload.discard()
+        raise
+
+
+def _from_rig_file(
+    db: Session, actor: Actor, rig: Rig, upload: ParsedUpload, valid_from: datetime
+) -> Calibration:
+    stereo = validate_rig_file(upload.files["rig_json"].path)
+    quality = dict(stereo.quality or {})
+    rms = quality.get("rms_px")
+    rms_px = float(rms) if isinstance(rms, int | float) and math.isfinite(rms) else None
+    cal = Calibration(
+        rig_id=rig.id,
+        version=next_calibration_version(db, rig.id),
+        valid_from=valid_from,
+        rig_json=rig_to_dict(stereo),
+        rms_px=rms_px,
+        quality=quality or None,
+        source="rig_file",
+        status="ready",
+        created_by_user_id=actor.user_id,
+    )
+    _store(db, upload, cal, actor)
+    return cal
+
+
+def _from_board_videos(
+    db: Session, actor: Actor, rig: Rig, upload: ParsedUpload, valid_from: datetime
+) -> tuple[Calibration, int]:
+    board = _board_fields(upload)
+    left, right, _warnings = check_video_pair(upload)
+    cal = Calibration(
+        rig_id=rig.id,
+        version=next_calibration_version(db, rig.id),
+        valid_from=valid_from,
+        source="board_videos",
+        status="pending",
+        board=board,
+        created_by_user_id=actor.user_id,
+    )
+    queued: list[Job] = []
+
+    def videos_and_job() -> None:
+        add_videos(db, upload, left, right, calibration_id=cal.id)
+        queued.append(
+            jobs.enqueue(db, "calibrate", calibration_id=cal.id, payload={"board": board})
+        )
+
+    _store(db, upload, cal, actor, with_it=videos_and_job)
+    return cal, queued[0].id
+
+
+def create_calibration(
+    db: Session, actor: Actor, rig_id: int, upload: ParsedUpload
+) -> tuple[Calibration, int | None]:
+    """A new calibration version of a rig, from a rig file (ready at once) or board videos (a job).
+
+    Returns
+    -------
+    (Calibration, job id or None)
+    """
+    rig = load_rig(db, actor, rig_id, "create")
+    has_rig_file = "rig_json" in upload.files
+    has_videos = "left_video" in upload.files or "right_video" in upload.files
+    if has_rig_file == has_videos:
+        raise InvalidUpload(
+            "Send either a rig file (rig_json) or two board videos (left_video and right_video"
+            " with board, cols, rows, square_mm), not both and not neither."
+        )
+    first = (
+        db.scalars(select(Calibration.id).where(Calibration.rig_id == rig.id).limit(1)).first()
+        is None
+    )
+    valid_from = _valid_from(upload, first=first)
+    if has_rig_file:
+        return _from_rig_file(db, actor, rig, upload, valid_from), None
+    return _from_board_videos(db, actor, rig, upload, valid_from)
+
+
+# --------------------------------------------------------------------------- reads
+
+
+def calibration_view(db: Session, cal: Calibration) -> dict[str, Any]:
+    """The ``CalibrationRead`` fields of a calibration."""
+    job = jobs.latest_job(db, calibration_id=cal.id)
+    return {
+        "id": cal.id,
+        "rig_id": cal.rig_id,
+        "version": cal.version,
+        "valid_from": cal.valid_from,
+        "status": cal.status,
+        "source": cal.source,
+        "rms_px": cal.rms_px,
+        "quality": cal.quality,
+        "board": cal.board,
+        "created_at": cal.created_at,
+        "job_id": job.id if job is not None else None,
+        "error": job.error if job is not None and cal.status == "failed" else None,
+    }
+
+
+def list_calibrations(db: Session, actor: Actor, rig_id: int) -> list[dict[str, Any]]:
+    rig = load_rig(db, actor, rig_id, "list")
+    views = [calibration_view(db, c) for c in rig.calibrations]
+    db.rollback()
+    return views
+
+
+def get_calibration(db: Session, actor: Actor, calibration_id: int) -> dict[str, Any]:
+    cal = db.get(Calibration, calibration_id)
+    if cal is None:
+        raise NotFoundError(f"The calibration {calibration_id} does not exist; check the id.")
+    view = calibration_view(db, cal)
+    db.rollback()
+    return view
+
+
+def rig_file_of(db: Session, actor: Actor, calibration_id: int) -> dict[str, Any]:
+    """The rig file document of a ready calibration (422 while it is being computed)."""
+    view = get_calibration(db, actor, calibration_id)
+    cal = db.get(Calibration, calibration_id)
+    if cal is None or cal.rig_json is None:
+        raise InvalidRequestError(
+            f"The calibration {calibration_id} has no rig file (status {view['status']})."
+        )
+    return dict(cal.rig_json)
+
+
+# --------------------------------------------------------------------------- pages
+
+
+@dataclass(frozen=True)
+class CalibrationRow:
+    """One calibration version on its rig's page: the row, its newest job, its verdict."""
+
+    cal: Calibration
+    job: Job | None
+
+    @property
+    def verdict(self) -> str | None:
+        return self.cal.verdict
+
+    @property
+    def reasons(self) -> list[str]:
+        return list(self.cal.verdict_reasons or [])
+
+
+def calibration_rows(db: Session, rig: Rig) -> list[CalibrationRow]:
+    """The rig's calibrations, newest version first, each with its newest job."""
+    newest_jobs = jobs.latest_jobs(db, calibration_ids=[c.id for c in rig.calibrations])
+    return [
+        CalibrationRow(cal=cal, job=newest_jobs.get(cal.id))
+        for cal in sorted(rig.calibrations, key=lambda c: c.version, reverse=True)
+    ]
+
+
+def current_calibration(rig: Rig) -> Calibration | None:
+    """The rig's ready calibration with the latest ``valid_from`` (then version), if any."""
+    ready = [c for c in rig.calibrations if c.status == "ready"]
+    return max(ready, key=lambda c: (c.valid_from, c.version)) if ready else None
+
+
+# --------------------------------------------------------------------------- the worker's side
+
+
+@dataclass(frozen=True)
+class CalibrationInputs:
+    """What the worker's ``calibrate`` job needs: the two board recordings and the board."""
+
+    calibration_id: int
+    left: Path
+    right: Path
+    board: BoardSpec
+
+
+def calibration_inputs(
+    db: Session,
+    storage: Storage,
+    calibration_id: int | None,
+    *,
+    board: Mapping[str, Any] | None = None,
+) -> CalibrationInputs:
+    """The board videos and board of a pending calibration (``board``: the job's, if the row has none).
+
+    Raises
+    ------
+    NotFoundError, InvalidRequestError
+        The calibration is gone, or lacks a video or its board description.
+    core.errors.InputError
+        The stored board description is incomplete (the message says which field).
+    """
+    cal = db.get(Calibration, calibration_id) if calibration_id else None
+    if cal is None:
+        raise NotFoundError(f"calibration {calibration_id} no longer exists.")
+    videos = {v.side: v for v in db.scalars(select(Video).where(Video.calibration_id == cal.id))}
+    if set(videos) != {"left", "right"}:
+        raise InvalidRequestError(
+            f"calibration {cal.id} needs a left and a right board video; upload both."
+        )
+    board_doc = cal.board or board
+    if not board_doc:
+        raise InvalidRequestError(
+            f"calibration {cal.id} has no board description; give the board's kind, "
+            "cols, rows and square_mm."
+        )
+    return CalibrationInputs(
+        calibration_id=cal.id,
+        left=storage.absolute(videos["left"].path),
+        right=storage.absolute(videos["right"].path),
+        # Reads both stored forms (BoardSpec.to_dict()'s "kind" and the upload form's "board").
+        board=BoardSpec.from_dict(dict(board_doc)),
+    )
+
+
+def store_calibration(db: Session, calibration_id: int, outcome: CalibrationResult) -> None:
+    """Make a pending calibration ``ready`` with the computed rig, its quality and verdict.
+
+    In the caller's transaction. The verdict and its reasons are stored in
+    their columns and also kept in the quality figures (as the API shows them).
+    """
+    verdict, reasons = calibration_verdict(outcome.quality)
+    quality = {**outcome.quality, "verdict": verdict, "verdict_reasons": reasons}
+    rig_doc = rig_to_dict(outcome.rig)
+    rig_doc["quality"] = {**rig_doc.get("quality", {}), **quality}
+    rms_px = quality.get("rms_px")
+    db.execute(
+        update(Calibration)
+        .where(Calibration.id == calibration_id)
+        .values(
+            status="ready",
+            rig_json=rig_doc,
+            quality=quality,
+            rms_px=float(rms_px) if rms_px is not None else None,
+            verdict=verdict,
+            verdict_reasons=reasons,
+        )
+        .execution_options(synchronize_session=False)
+    )

@@ -1,0 +1,304 @@
+"""Trials (two videos of one hand) and the jobs measuring them.
+
+A trial arrives as a streamed multipart upload (:mod:`app.uploads`): both
+videos are checked by decoding, published into storage, and committed together
+with the trial row and its analysis job. If anything fails before the commit,
+the transaction is rolled back and every file of the upload removed: a
+rejected upload leaves nothing behind; an accepted one is referenced by
+committed rows only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import delete, select
+from sqlalchemy.orm import Session
+
+from app import jobs
+from app.actors import Actor
+from app.audit import audit
+from app.errors import InvalidRequestError, NotFoundError
+from app.models import Job, Result, Trial, utcnow
+from app.services.calibrations import calibration_for, rig_to_check_against
+from app.services.common import cancel_trial_jobs, load_session, load_trial, trial_is_visible
+from app.services.videos import add_videos, check_video_pair
+from app.storage import Storage
+from app.uploads import InvalidUpload, ParsedUpload
+from core.camera import StereoRig, rig_from_dict
+
+TRIAL_FILE_FIELDS = {"left_video": ".video", "right_video": ".video"}
+TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames"})
+
+
+@dataclass(frozen=True)
+class TrialOut:
+    """A new trial, the id of the job measuring it and the upload's warnings."""
+
+    trial: Trial
+    job_id: int
+    warnings: list[str] = field(default_factory=list)
+
+
+def check_trial_target(db: Session, actor: Actor, session_id: int) -> None:
+    """Fail fast before receiving a large body: unknown session (404), no calibration (409)."""
+    session = load_session(db, actor, session_id, "create")
+    try:
+        rig_to_check_against(db, session)
+    finally:
+        db.rollback()  # end the read transaction; the upload may take a while
+
+
+def _parse_hand(upload: ParsedUpload) -> str:
+    hand = upload.require_field("hand").lower()
+    if hand not in ("left", "right"):
+        raise InvalidUpload(f"hand must be 'left' or 'right', not {hand[:20]!r}.")
+    return hand
+
+
+def _parse_offset(upload: ParsedUpload) -> float | None:
+    raw = (upload.fields.get("offset_frames") or "").strip()
+    if not raw:
+        return None
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or abs(value) > 10_000:
+        raise InvalidUpload(
+            "offset_frames must be a number of frames (right frame j = left frame j + K)."
+        )
+    return value
+
+
+def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUpload) -> TrialOut:
+    """Accept a trial upload: check both videos by decoding, store them, queue the analysis."""
+    hand = _parse_hand(upload)
+    offset = _parse_offset(upload)
+    session = load_session(db, actor, session_id, "create")
+    rig = rig_to_check_against(db, session)
+    left, right, warnings = check_video_pair(upload, rig=rig)
+    try:
+        trial = Trial(session_id=session.id, hand=hand, status="queued", offset_frames=offset)
+        db.add(trial)
+        db.flush()
+        add_videos(db, upload, left, right, trial_id=trial.id)
+        payload: dict[str, Any] = {"warnings": warnings}
+        if offset is not None:
+            payload["offset_frames"] = offset
+        job = jobs.enqueue(db, "analyze_trial", trial_id=trial.id, payload=payload)
+        audit(db, actor, "create", "trial", trial.id, session.patient_id)
+        db.commit()
+    except BaseException:
+        db.rollback()
+        upload.discard()
+        raise
+    return TrialOut(trial=trial, job_id=job.id, warnings=warnings)
+
+
+def trial_view(db: Session, trial: Trial) -> dict[str, Any]:
+    """The ``TrialRead`` fields of a trial."""
+    job = jobs.latest_job(db, trial_id=trial.id)
+    return {
+        "id": trial.id,
+        "session_id": trial.session_id,
+        "hand": trial.hand,
+        "status": trial.status,
+        "offset_frames": trial.offset_frames,
+        "created_at": trial.created_at,
+        "job_id": job.id if job is not None else None,
+        "has_result": trial.result is not None,
+        "videos": list(trial.videos),
+    }
+
+
+def list_trials(db: Session, actor: Actor, session_id: int) -> list[dict[str, Any]]:
+    session = load_session(db, actor, session_id, "list")
+    trials = [t for t in session.trials if t.deleted_at is None]
+    views = [trial_view(db, t) for t in trials]
+    audit(db, actor, "list", "trial", None, session.patient_id)
+    db.commit()
+    return views
+
+
+def get_trial(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
+    trial = load_trial(db, actor, trial_id, "read")
+    view = trial_view(db, trial)
+    audit(db, actor, "read", "trial", trial.id, trial.session.patient_id)
+    db.commit()
+    return view
+
+
+def delete_trial(db: Session, actor: Actor, trial_id: int) -> None:
+    """Soft-delete a trial: it answers 404 and leaves the lists; rows, files, audit stay.
+
+    Its queued or running job is cancelled (nobody could see the result).
+    """
+    trial = load_trial(db, actor, trial_id, "delete")
+    trial.deleted_at = utcnow()
+    cancel_trial_jobs(db, select(Trial.id).where(Trial.id == trial.id))
+    audit(db, actor, "delete", "trial", trial.id, trial.session.patient_id)
+    db.commit()
+
+
+def get_job(db: Session, actor: Actor, job_id: int) -> Job:
+    """A job's status. Holds no clinical values, so it is not audited (clients poll it)."""
+    job = db.get(Job, job_id)
+    if job is None:
+        raise NotFoundError(f"The job {job_id} does not exist; check the id.")
+    db.rollback()
+    return job
+
+
+# --------------------------------------------------------------------------- pages
+
+
+def _visible_job(db: Session, job_id: int) -> Job:
+    job = db.get(Job, job_id)
+    if job is None or (job.trial is not None and not trial_is_visible(job.trial)):
+        raise NotFoundError(f"Job {job_id} does not exist.")
+    return job
+
+
+def job_page(db: Session, actor: Actor, job_id: int) -> Job:
+    """The job page (a trial's job is audited as a read of the trial)."""
+    job = _visible_job(db, job_id)
+    if job.trial is not None:
+        audit(db, actor, "read", "trial", job.trial.id, job.trial.session.patient_id)
+    db.commit()
+    return job
+
+
+def job_progress(db: Session, actor: Actor, job_id: int) -> Job:
+    """A job polled by its page's script (holds no clinical values: not audited)."""
+    job = _visible_job(db, job_id)
+    db.rollback()
+    return job
+
+
+# --------------------------------------------------------------------------- the worker's side
+
+
+@dataclass(frozen=True)
+class CalibrationUsed:
+    """The calibration a trial was measured with (recorded in its ``result.json``)."""
+
+    id: int
+    rig_id: int
+    rig_name: str
+    version: int
+    valid_from: datetime
+    rms_px: float | None
+
+    def document(self) -> dict[str, object]:
+        """The ``calibration`` object of ``result.json``."""
+        return {
+            "id": self.id,
+            "rig_id": self.rig_id,
+            "rig_name": self.rig_name,
+            "version": self.version,
+            "valid_from": self.valid_from.isoformat(),
+            "rms_px": self.rms_px,
+        }
+
+
+@dataclass(frozen=True)
+class TrialInputs:
+    """Everything the analysis of one trial needs: what crosses from the database to ``core``.
+
+    Attributes
+    ----------
+    trial_id : int
+    left, right : Path
+        The stored videos (absolute paths; they may be missing on this worker).
+    offset_frames : float or None
+        Known camera offset (right frame j ~ left frame j + K); None: estimate it.
+    calibration : CalibrationUsed
+    rig : core.camera.StereoRig
+        The rig of that calibration.
+    """
+
+    trial_id: int
+    left: Path
+    right: Path
+    offset_frames: float | None
+    calibration: CalibrationUsed
+    rig: StereoRig
+
+
+def analysis_inputs(
+    db: Session, storage: Storage, trial_id: int | None, *, offset_frames: float | None = None
+) -> TrialInputs:
+    """What the worker's analysis of ``trial_id`` needs (``offset_frames``: the job's, if any).
+
+    Raises
+    ------
+    NotFoundError
+        The trial was deleted.
+    InvalidRequestError
+        A video is missing from the trial.
+    CalibrationMissingError
+        No calibration can measure the trial.
+    """
+    trial = db.get(Trial, trial_id) if trial_id is not None else None
+    if trial is None or trial.deleted_at is not None:
+        raise NotFoundError(f"trial {trial_id} was deleted; nothing to analyse.")
+    videos = {v.side: v for v in trial.videos}
+    missing = [side for side in ("left", "right") if side not in videos]
+    if missing:
+        raise InvalidRequestError(
+            f"trial {trial.id} has no {' and no '.join(missing)} video; upload the trial again."
+        )
+    cal = calibration_for(db, trial.session)
+    used = CalibrationUsed(
+        id=cal.id,
+        rig_id=cal.rig_id,
+        rig_name=cal.rig.name,
+        version=cal.version,
+        valid_from=cal.valid_from,
+        rms_px=cal.rms_px,
+    )
+    rig = rig_from_dict(cal.rig_json, source=f"calibration v{cal.version} of rig {cal.rig.name}")
+    return TrialInputs(
+        trial_id=trial.id,
+        left=storage.absolute(videos["left"].path),
+        right=storage.absolute(videos["right"].path),
+        offset_frames=trial.offset_frames if trial.offset_frames is not None else offset_frames,
+        calibration=used,
+        rig=rig,
+    )
+
+
+def store_result(
+    db: Session,
+    inputs: TrialInputs,
+    *,
+    job_id: int,
+    document: dict[str, Any],
+    markers_path: str,
+) -> str | None:
+    """Store the trial's :class:`Result`, replacing an earlier one (a re-analysis).
+
+    In the caller's transaction. Returns the markers file of the replaced
+    result (to delete once committed), if any.
+    """
+    old = db.scalars(select(Result).where(Result.trial_id == inputs.trial_id)).first()
+    replaced = None
+    if old is not None:
+        replaced = old.markers_path
+        db.execute(delete(Result).where(Result.id == old.id))
+        db.flush()
+    db.add(
+        Result(
+            trial_id=inputs.trial_id,
+            job_id=job_id,
+            calibration_id=inputs.calibration.id,
+            document=document,
+            markers_path=markers_path,
+        )
+    )
+    return replaced
