@@ -1,8 +1,8 @@
 """Acceptance of issue 11: free-running cameras measured to lab-rig accuracy, end to end.
 
 10-s 1920x1080 60-fps H.264 recordings from the simulator (the truth is exact),
-each generated once per test session (session-scoped fixtures under pytest's
-temporary directory) and measured by ``analyze_recording`` as a user would.
+each simulated and measured by ``analyze_recording`` (as a user would) once
+per test run, shared by the tests and the xdist workers (``run_once``).
 Bounds are the issue's acceptance table.
 """
 
@@ -60,33 +60,34 @@ SCENARIOS: dict[str, dict[str, Any]] = {
 }
 
 
+def _simulate_and_analyze(name: str, out: Path) -> tuple[SimulatedSession, Analysis]:
+    spec = SCENARIOS[name]
+    tapping = replace(TAPPING, fps=spec.get("fps", 60.0))
+    session = simulate_session(
+        out,
+        seed=11,
+        tapping=tapping,
+        imaging=ImagingScenario(
+            image_size=SIZE,
+            codec="h264",
+            left_timing=spec.get("left", CameraTiming()),
+            right_timing=spec.get("right", CameraTiming()),
+        ),
+        rig=spec.get("rig"),
+    )
+    analysis = analyze_recording(
+        read_rig(session.rig_path), session.left_video, session.right_video
+    )
+    return session, analysis
+
+
 @pytest.fixture(scope="session")
-def free_running(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """Simulated sessions, generated lazily, once per test session."""
-    cache: dict[str, Any] = {}
+def free_running(run_once) -> dict[str, Any]:
+    """Each scenario simulated and analysed once per test run, whichever xdist worker asks
+    first (``run_once`` in tests/conftest.py)."""
 
     def get(name: str) -> tuple[SimulatedSession, Analysis]:
-        if name not in cache:
-            spec = SCENARIOS[name]
-            out = tmp_path_factory.mktemp(f"free_running_{name}")
-            tapping = replace(TAPPING, fps=spec.get("fps", 60.0))
-            session = simulate_session(
-                out,
-                seed=11,
-                tapping=tapping,
-                imaging=ImagingScenario(
-                    image_size=SIZE,
-                    codec="h264",
-                    left_timing=spec.get("left", CameraTiming()),
-                    right_timing=spec.get("right", CameraTiming()),
-                ),
-                rig=spec.get("rig"),
-            )
-            analysis = analyze_recording(
-                read_rig(session.rig_path), session.left_video, session.right_video
-            )
-            cache[name] = (session, analysis)
-        return cache[name]
+        return run_once(f"free-running/{name}", lambda out: _simulate_and_analyze(name, out))
 
     return {"get": get}
 
