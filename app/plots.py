@@ -453,15 +453,16 @@ def trend_plot(
                 )
         ax.set_ylabel(f"{label} ({unit})" if unit else label)
         ax.legend(loc="best", fontsize=7)
-        locator = mdates.AutoDateLocator(minticks=2, maxticks=5)
+        # matplotlib.dates has no type hints: its three calls are the untyped ones here.
+        locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
         ax.xaxis.set_major_locator(locator)
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
+        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
         days = [_as_datetime(p.recorded_at) for p in usable]
         if max(days) - min(days) < timedelta(days=60):
             centre = min(days) + (max(days) - min(days)) / 2
             ax.set_xlim(
-                mdates.date2num(centre - timedelta(days=45)),
-                mdates.date2num(centre + timedelta(days=45)),
+                mdates.date2num(centre - timedelta(days=45)),  # type: ignore[no-untyped-call]
+                mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
             )
     return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend")
 

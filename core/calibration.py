@@ -606,7 +606,7 @@ def _reconcile_numbering(
     def dist(a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> float:
         """Disagreement of two transforms, in units of (3 degrees, 5 % of the baseline)."""
         return max(
-            _rotation_angle(a[0], b[0]) / np.deg2rad(3.0),
+            float(_rotation_angle(a[0], b[0]) / np.deg2rad(3.0)),
             float(np.linalg.norm(a[1] - b[1])) / (0.05 * scale),
         )
 
@@ -715,7 +715,8 @@ def _orthonormal(R: FloatArray) -> FloatArray:
     out = U @ Vt
     if np.linalg.det(out) < 0:
         out = -out
-    return out
+    result: NDArray[np.float64] = out
+    return result
 
 
 def _short(exc: BaseException) -> str:

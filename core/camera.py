@@ -77,7 +77,8 @@ def tilt_matrix(tau_x: float, tau_y: float) -> FloatArray:
             [0.0, 0.0, 1.0],
         ]
     )
-    return proj_z @ rot_xy
+    result: NDArray[np.float64] = proj_z @ rot_xy
+    return result
 
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
@@ -364,7 +365,8 @@ class StereoRig:
         K1_inv = np.linalg.inv(self.left.K)
         K2_inv = np.linalg.inv(self.right.K)
         F = K2_inv.T @ self.essential_matrix @ K1_inv
-        return F / np.linalg.norm(F)
+        result: NDArray[np.float64] = F / np.linalg.norm(F)
+        return result
 
     def swapped(self) -> StereoRig:
         """The same rig seen with left and right exchanged (world frame moves to the old right)."""

@@ -87,7 +87,8 @@ def epipolar_distances_px(
         d_left = np.abs(algebraic) / np.linalg.norm(lines_in_left[:, :2], axis=1)[None, :]
     f_left = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
     f_right = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
-    return np.sqrt(0.5 * ((d_left * f_left) ** 2 + (d_right * f_right) ** 2))
+    result: NDArray[np.float64] = np.sqrt(0.5 * ((d_left * f_left) ** 2 + (d_right * f_right) ** 2))
+    return result
 
 
 @dataclass(frozen=True)

@@ -73,7 +73,7 @@ class TappingMetrics:
     def to_result(self) -> dict[str, Any]:
         """The tapping part of result.json, JSON-serialisable (None for undefined)."""
         seg = self.segmentation
-        return _clean(
+        doc: dict[str, Any] = _clean(
             {
                 "metrics": self.metrics,
                 "taps": [tap.to_dict() for tap in self.taps],
@@ -90,6 +90,7 @@ class TappingMetrics:
                 },
             }
         )
+        return doc
 
 
 def compute_metrics(
@@ -279,19 +280,19 @@ def _finite_or_none(v: Number) -> Number:
     return f if math.isfinite(f) else None
 
 
-def _mean(a: NDArray) -> float | None:
+def _mean(a: NDArray[np.float64]) -> float | None:
     return float(np.mean(a)) if a.size else None
 
 
-def _max(a: NDArray) -> float | None:
+def _max(a: NDArray[np.float64]) -> float | None:
     return float(np.max(a)) if a.size else None
 
 
-def _sd(a: NDArray) -> float | None:
+def _sd(a: NDArray[np.float64]) -> float | None:
     return float(np.std(a, ddof=1)) if a.size >= 2 else None
 
 
-def _cv(a: NDArray) -> float | None:
+def _cv(a: NDArray[np.float64]) -> float | None:
     sd, mean = _sd(a), _mean(a)
     return sd / mean if sd is not None and mean else None
 
@@ -300,7 +301,7 @@ def _inv(v: float | None) -> float | None:
     return 1.0 / v if v else None
 
 
-def _slope(x: NDArray, y: NDArray) -> float | None:
+def _slope(x: NDArray[np.float64], y: NDArray[np.float64]) -> float | None:
     """Least-squares slope of ``y`` over ``x``; None for fewer than 3 points."""
     if y.size < 3 or np.ptp(x) == 0:
         return None
@@ -308,13 +309,13 @@ def _slope(x: NDArray, y: NDArray) -> float | None:
     return float(np.sum(xc * (y - y.mean())) / np.sum(xc * xc))
 
 
-def _pct_slope(x: NDArray, y: NDArray) -> float | None:
+def _pct_slope(x: NDArray[np.float64], y: NDArray[np.float64]) -> float | None:
     s = _slope(x, y)
     ref = float(np.mean(y[:FIRST_TAPS_FOR_PERCENT])) if y.size else 0.0
     return 100.0 * s / ref if s is not None and ref > 0 else None
 
 
-def _ratio_thirds(y: NDArray) -> float | None:
+def _ratio_thirds(y: NDArray[np.float64]) -> float | None:
     k = y.size // 3
     if k == 0:
         return None
@@ -322,7 +323,7 @@ def _ratio_thirds(y: NDArray) -> float | None:
     return float(np.mean(y[-k:])) / first if first > 0 else None
 
 
-def _ratio_halves(y: NDArray) -> float | None:
+def _ratio_halves(y: NDArray[np.float64]) -> float | None:
     k = y.size // 2
     if k == 0:
         return None
@@ -330,7 +331,7 @@ def _ratio_halves(y: NDArray) -> float | None:
     return float(np.mean(y[-k:])) / first if first > 0 else None
 
 
-def decrement_onset(x: NDArray, y: NDArray) -> int | None:
+def decrement_onset(x: NDArray[np.float64], y: NDArray[np.float64]) -> int | None:
     """Breakpoint of a plateau-then-linear-decline fit, as a position in ``y``.
 
     Fits ``y = c`` for ``x <= x_k`` and ``y = c + s (x - x_k)`` after it, for
@@ -360,7 +361,7 @@ def decrement_onset(x: NDArray, y: NDArray) -> int | None:
     return k
 
 
-def _onset_tap(x: NDArray, y: NDArray, taps: Sequence[Tap]) -> int | None:
+def _onset_tap(x: NDArray[np.float64], y: NDArray[np.float64], taps: Sequence[Tap]) -> int | None:
     k = decrement_onset(x, y)
     return None if k is None else taps[k].index
 

@@ -44,7 +44,7 @@ from typing import Any, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
-from core.camera import StereoRig
+from core.camera import Camera, StereoRig
 from core.clock import synchronise
 from core.errors import DetectionError, InputError
 from core.markers import EXPECTED_COUNT_FULL_SEARCHES as EXPECTED_COUNT_FULL_SEARCHES
@@ -55,6 +55,7 @@ from core.markers import (
 )
 from core.markers import (  # the per-camera search lives with the detector (light to import)
     Detector,
+    MarkerParams,
     _CameraDetections,
     _default_detector,
 )
@@ -63,11 +64,12 @@ from core.markers_csv import write_markers_csv as write_marker_table
 from core.matching import concatenate_frames, frame_pairs_epipolar_px
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
-from core.metrics import compute_metrics
+from core.metrics import TappingMetrics, compute_metrics
 from core.progress import ProgressCallback, report
 from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
+from core.video import VideoInfo
 
 FloatArray = NDArray[np.float64]
 
@@ -120,7 +122,7 @@ class Analysis:
     reprojection_px: FloatArray
     marker_names: tuple[str, ...]
     sync: dict[str, Any]
-    metrics: Any = None
+    metrics: TappingMetrics | None = None
     quality: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     frame_time_s: FloatArray | None = None
@@ -198,7 +200,7 @@ def _detect_videos(
     detect: Detector | None,
     progress: ProgressCallback | None,
     *,
-    marker_params: Any | None = None,
+    marker_params: MarkerParams | None = None,
     timestamps: tuple[list[float], list[float]] | None = None,
 ) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
     """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays.
@@ -246,7 +248,7 @@ def _detect_videos(
     return states[0].frames, states[1].frames, info
 
 
-def _undistort_all(cam: Any, frames: list[FloatArray]) -> list[FloatArray]:
+def _undistort_all(cam: Camera, frames: list[FloatArray]) -> list[FloatArray]:
     """Undistorted normalized points per frame, with one vectorised call."""
     counts = [len(f) for f in frames]
     if sum(counts) == 0:
@@ -313,7 +315,7 @@ def _observations(
 
 def _compute_metrics(
     positions_mm: FloatArray, fps: float, status: NDArray[np.str_]
-) -> tuple[Any, list[str]]:
+) -> tuple[TappingMetrics | None, list[str]]:
     """Tapping metrics (core.metrics); None with a warning when they cannot be computed."""
     measured = status == MEASURED  # core.metrics: False where filled in or missing
     try:
@@ -331,7 +333,7 @@ def analyze_recording(
     max_gap_s: float = 0.1,
     swap_labels: bool = False,
     max_offset_s: float = 0.5,
-    marker_params: Any | None = None,
+    marker_params: MarkerParams | None = None,
     detector: Detector | None = None,
     progress: ProgressCallback | None = None,
     left_times: str | Path | None = None,
@@ -506,7 +508,7 @@ def analyze_recording(
 
 
 def _frame_times(
-    info: Any, csv_path: str | Path | None, stamps: list[float], n_frames: int
+    info: VideoInfo, csv_path: str | Path | None, stamps: list[float], n_frames: int
 ) -> FrameTimes:
     """Capture times of a decoded video: its timestamps file, else its container (core.timing)."""
     if csv_path is not None:

@@ -120,7 +120,8 @@ class Tracklet:
 
     @property
     def stereo(self) -> NDArray[np.bool_]:
-        return self.kind == STEREO
+        result: NDArray[np.bool_] = self.kind == STEREO
+        return result
 
     @property
     def n_stereo(self) -> int:
@@ -697,7 +698,10 @@ def _fit_gap_with_views(
         return spline_est
 
     def basis(t: NDArray[np.int_]) -> FloatArray:
-        return ((np.asarray(t, dtype=np.float64) - t_mid) / half)[:, None] ** np.arange(deg + 1)
+        result: NDArray[np.float64] = ((np.asarray(t, dtype=np.float64) - t_mid) / half)[
+            :, None
+        ] ** np.arange(deg + 1)
+        return result
 
     n_c = deg + 1
     rows: list[FloatArray] = []
@@ -740,7 +744,8 @@ def _fit_gap_with_views(
             if on_path is not None:
                 pt = 0.5 * (pt + on_path)
         out[k] = pt
-    return out
+    result: NDArray[np.float64] = out
+    return result
 
 
 def _ray_meets_path(

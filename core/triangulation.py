@@ -48,7 +48,8 @@ class Triangulation:
     @property
     def valid(self) -> NDArray[np.bool_]:
         """Points that are finite (triangulated in front of both cameras)."""
-        return np.all(np.isfinite(self.points_mm), axis=1)
+        result: NDArray[np.bool_] = np.all(np.isfinite(self.points_mm), axis=1)
+        return result
 
 
 def _check_pairs(left_px: ArrayLike, right_px: ArrayLike) -> tuple[FloatArray, FloatArray]:

@@ -10,7 +10,7 @@ if TYPE_CHECKING:
     from core.boards import BoardSpec
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "calibrate",
         help="calibrate a stereo rig from two board recordings",

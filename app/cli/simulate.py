@@ -66,7 +66,7 @@ def _drop(text: str) -> tuple[str, int]:
     return cam, int(frame)
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "simulate",
         help="write a simulated stereo recording of finger tapping with its ground truth",

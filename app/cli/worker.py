@@ -20,7 +20,7 @@ from types import FrameType
 from app.settings import Settings, settings_with
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "worker",
         help="run analysis and calibration jobs (more workers, or on other machines)",

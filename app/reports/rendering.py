@@ -42,7 +42,7 @@ def _refusing_fetcher() -> Any:
     """A WeasyPrint URL fetcher that refuses every URL except inline ``data:`` URLs."""
     from weasyprint.urls import URLFetcher
 
-    class RefusingURLFetcher(URLFetcher):
+    class RefusingURLFetcher(URLFetcher):  # type: ignore[misc]  # weasyprint has no type hints
         def fetch(self, url: str, headers: Any = None) -> Any:
             if url.startswith("data:"):
                 return super().fetch(url, headers)

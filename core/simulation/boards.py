@@ -282,7 +282,8 @@ def _finish(
         out = cv2.GaussianBlur(out, (0, 0), blur_sigma_px)
     if noise_std > 0:
         out += np.float32(noise_std) * rng.standard_normal(size=out.shape, dtype=np.float32)
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    result: NDArray[np.uint8] = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    return result
 
 
 # -- poses --------------------------------------------------------------------

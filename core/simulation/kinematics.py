@@ -316,7 +316,8 @@ class TappingModel:
         if self.scenario.hand == "left":
             cx = self.scenario.hand_center_mm[0]
             world[..., 0] = 2 * cx - world[..., 0]
-        return world
+        result: NDArray[np.float64] = world
+        return result
 
 
 @dataclass(frozen=True)
@@ -409,11 +410,13 @@ def _rotations(angles: FloatArray) -> FloatArray:
     K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
     K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
     s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
+    result: NDArray[np.float64] = np.eye(3)[None] + s * K + (1 - c) * (K @ K)
+    return result
 
 
 def _aperture_from_positions(positions_mm: FloatArray) -> FloatArray:
-    return np.linalg.norm(positions_mm[:, 1] - positions_mm[:, 0], axis=-1)
+    result: NDArray[np.float64] = np.linalg.norm(positions_mm[:, 1] - positions_mm[:, 0], axis=-1)
+    return result
 
 
 def _thumb_closed_local(closed_distance_mm: float) -> FloatArray:
@@ -421,7 +424,8 @@ def _thumb_closed_local(closed_distance_mm: float) -> FloatArray:
         [np.cos(_INDEX_CLOSED_ANGLE_RAD), np.sin(_INDEX_CLOSED_ANGLE_RAD), 0.0]
     )
     direction = _THUMB_FROM_INDEX_DIR / np.linalg.norm(_THUMB_FROM_INDEX_DIR)
-    return index_closed + closed_distance_mm * direction
+    result: NDArray[np.float64] = index_closed + closed_distance_mm * direction
+    return result
 
 
 def _local_positions(

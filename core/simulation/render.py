@@ -278,7 +278,8 @@ def make_background(
     r2 = ((xx - w / 2) / (w / 2)) ** 2 + ((yy - h / 2) / (h / 2)) ** 2
     vignette = 1.0 - 0.35 * r2
     bg = level * vignette + texture * (0.7 * blotches + 1.5 * fine)
-    return np.clip(bg, 0.0, 255.0).astype(np.float32)
+    result: NDArray[np.float32] = np.clip(bg, 0.0, 255.0).astype(np.float32)
+    return result
 
 
 class SensorNoise:

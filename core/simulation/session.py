@@ -339,7 +339,8 @@ def _blur_samples(
     z = np.maximum(np.minimum(a[..., 2], b[..., 2]), 50.0)
     disp_px = np.max(np.linalg.norm(b - a, axis=2) * focal_px / z, axis=1)
     n = np.ceil(disp_px / _BLUR_SAMPLE_SPACING_PX).astype(np.int64) + 1
-    return np.clip(n, 1, _MAX_BLUR_SAMPLES)
+    result: NDArray[np.int64] = np.clip(n, 1, _MAX_BLUR_SAMPLES)
+    return result
 
 
 def _camera_clocks(
