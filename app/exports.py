@@ -17,7 +17,6 @@ from __future__ import annotations
 import base64
 import math
 import uuid
-from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -239,10 +238,7 @@ def _observation_entries(
 ) -> list[dict[str, Any]]:
     """One Observation entry per numeric metric of the result (an undefined one: data absent)."""
     entries = []
-    metrics: Mapping[str, Any] = data.result.get("metrics", {}) if data.result else {}
-    for key, value in metrics.items():
-        if isinstance(value, bool) or not isinstance(value, int | float | None):
-            continue
+    for key, value in data.analysis.metrics.items():
         number = math.nan if value is None else float(value)
         entries.append(
             {
@@ -309,14 +305,14 @@ def _diagnostic_report(
 
 
 def _conclusion(data: ReportData) -> str:
-    m = data.result.get("metrics", {}) if data.result else {}
+    m = data.analysis
     parts = [f"{data.hand.capitalize()} hand, medication {data.medication_state}."]
-    if isinstance(m.get("tap_count"), int | float):
-        parts.append(f"{int(m['tap_count'])} taps")
-    if isinstance(m.get("frequency_hz"), int | float):
-        parts.append(f"at {m['frequency_hz']:.2f} Hz")
-    if isinstance(m.get("amplitude_mm_mean"), int | float):
-        parts.append(f"mean amplitude {m['amplitude_mm_mean']:.1f} mm")
-    if isinstance(m.get("amplitude_decrement_mm_per_tap"), int | float):
-        parts.append(f"decrement {m['amplitude_decrement_mm_per_tap']:+.2f} mm/tap")
+    if (taps := m.metric("tap_count")) is not None:
+        parts.append(f"{int(taps)} taps")
+    if (frequency := m.metric("frequency_hz")) is not None:
+        parts.append(f"at {frequency:.2f} Hz")
+    if (amplitude := m.metric("amplitude_mm_mean")) is not None:
+        parts.append(f"mean amplitude {amplitude:.1f} mm")
+    if (decrement := m.metric("amplitude_decrement_mm_per_tap")) is not None:
+        parts.append(f"decrement {decrement:+.2f} mm/tap")
     return " ".join(parts[:1]) + " " + ", ".join(parts[1:]) + "." if len(parts) > 1 else parts[0]

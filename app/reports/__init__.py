@@ -1,5 +1,6 @@
-"""The trial report, in four parts that depend on each other in this order only.
+"""The trial report, in parts that depend on each other in this order only.
 
+- :mod:`app.reports.result`: ``result.json`` read once, typed (:class:`~app.reports.result.TrialResult`).
 - :mod:`app.reports.catalogue`: the metrics (label, unit, UCUM code, decimals, definition).
 - :mod:`app.reports.data`: :class:`~app.reports.data.ReportData`, what one report shows,
   and the lines derived from it (quality panel, events).

@@ -11,6 +11,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from app.reports.result import TrialResult, read_result
+
 
 @dataclass(frozen=True)
 class MetricSpec:
@@ -337,7 +339,7 @@ TREND_METRICS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def format_metric(key: str, value: Any) -> str:
+def format_metric(key: str, value: object) -> str:
     """``value`` formatted with the metric's decimals (no unit); "–" when absent."""
     if value is None or isinstance(value, bool):
         return "–"
@@ -368,29 +370,19 @@ class MetricRow:
 
 
 def metric_rows(
-    result: Mapping[str, Any] | None, *, primary: bool | None = True
+    result: TrialResult | Mapping[str, Any] | None, *, primary: bool | None = True
 ) -> list[MetricRow]:
     """Rows of the metrics table, catalogue order first, then any other number.
 
     Parameters
     ----------
-    result : result.json document
+    result : TrialResult, or a result.json document
     primary : bool or None
         True: the main metrics only; False: the others only; None: all.
     """
-    result = result or {}
-    metrics: Mapping[str, Any] = result.get("metrics", {}) or {}
-    first10 = result.get("metrics_first_10")
-    if not isinstance(first10, Mapping):
-        first10 = metrics.get("metrics_first_10")
-    first10 = first10 if isinstance(first10, Mapping) else {}
-    keys = [k for k in METRICS if k in metrics]
-    keys += [
-        k
-        for k, v in metrics.items()
-        if k not in METRICS
-        and (v is None or (isinstance(v, int | float) and not isinstance(v, bool)))
-    ]
+    read = result if isinstance(result, TrialResult) else read_result(result)
+    metrics, first10 = read.metrics, read.metrics_first_10
+    keys = [k for k in METRICS if k in metrics] + [k for k in metrics if k not in METRICS]
     rows = []
     for key in keys:
         spec = metric_spec(key)
@@ -400,7 +392,7 @@ def metric_rows(
             MetricRow(
                 key=key,
                 label=spec.label,
-                value=format_metric(key, metrics.get(key)),
+                value=format_metric(key, metrics[key]),
                 value_first_10=format_metric(key, first10[key]) if key in first10 else None,
                 unit=spec.unit,
                 definition=spec.definition,

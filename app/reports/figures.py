@@ -7,13 +7,11 @@ import json
 import math
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
-from typing import Any
 
 import numpy as np
 
 from app import plots
-from app.reports.data import ReportData, result_events
+from app.reports.data import ReportData
 
 _PLOT_CACHE: OrderedDict[str, dict[str, str]] = OrderedDict()
 _PLOT_CACHE_SIZE = 16
@@ -68,24 +66,22 @@ def _aperture_svg(data: ReportData, *, top_mm: float | None = None) -> str:
     return plots.aperture_plot(
         time_s,
         aperture,
-        taps=data.result.get("taps") or [],
-        events=result_events(data.result),
+        taps=data.analysis.taps,
+        events=data.analysis.events,
         interpolated=interp,
         top_mm=top_mm,
     )
 
 
 def _amplitude_svg(data: ReportData, *, top_mm: float | None = None) -> str:
-    decrement = (data.result.get("metrics") or {}).get("amplitude_decrement_mm_per_tap")
     return plots.tap_amplitude_plot(
-        data.result.get("taps") or [],
-        decrement_mm_per_tap=float(decrement) if isinstance(decrement, int | float) else None,
+        data.analysis.taps,
+        decrement_mm_per_tap=data.analysis.metric("amplitude_decrement_mm_per_tap"),
         top_mm=top_mm,
     )
 
 
 def _draw_plots(data: ReportData) -> dict[str, str]:
-    taps: Sequence[Mapping[str, Any]] = data.result.get("taps") or []
     out: dict[str, str] = {"aperture": _aperture_svg(data), "amplitude": _amplitude_svg(data)}
     m = data.markers
     if m is not None and {"thumb", "index"} <= set(m.labels):
@@ -97,7 +93,7 @@ def _draw_plots(data: ReportData) -> dict[str, str]:
         out["paths"] = plots.fingertip_paths_plot(
             np.full((0, 2, 3), np.nan), labels=["thumb", "index"]
         )
-    out["velocity"] = plots.velocity_plot(taps)
+    out["velocity"] = plots.velocity_plot(data.analysis.taps)
     return out
 
 
@@ -119,13 +115,7 @@ def comparison_plots(
     top_aperture = peak(
         [float(np.nanmax(a[1])) for a in apertures if a is not None and np.isfinite(a[1]).any()]
     )
-    amplitudes = [
-        float(tp["amplitude_mm"])
-        for d in (first, second)
-        for tp in d.result.get("taps") or []
-        if isinstance(tp.get("amplitude_mm"), int | float)
-    ]
-    top_amplitude = peak(amplitudes)
+    top_amplitude = peak(first.analysis.tap_amplitudes_mm + second.analysis.tap_amplitudes_mm)
     out = []
     for d in (first, second):
         out.append(

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from app.reports.catalogue import METRICS, metric_rows
-from app.reports.data import ReportData, quality_rows, result_events
+from app.reports.data import ReportData, quality_rows
 from app.reports.figures import report_plots
 from app.templating import jinja_env
 
@@ -20,12 +20,12 @@ def report_context(data: ReportData) -> dict[str, Any]:
     """The template context shared by the report and the trial page."""
     return {
         "data": data,
-        "metric_rows": metric_rows(data.result),
-        "more_metric_rows": metric_rows(data.result, primary=False),
+        "metric_rows": metric_rows(data.analysis),
+        "more_metric_rows": metric_rows(data.analysis, primary=False),
         "quality_rows": quality_rows(data),
-        "warnings": list((data.result.get("quality") or {}).get("warnings") or []),
-        "taps": data.result.get("taps") or [],
-        "events": result_events(data.result),
+        "warnings": list(data.analysis.quality.warnings),
+        "taps": list(data.analysis.taps),
+        "events": list(data.analysis.events),
         "plots": report_plots(data),
         "metric_specs": {k: v for k, v in METRICS.items() if v.primary},
     }

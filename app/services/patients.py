@@ -22,6 +22,7 @@ from app.errors import ConflictError, NotFoundError
 from app.models import Patient, RecordingSession, Trial, utcnow
 from app.plots import TrendPoint
 from app.reports.catalogue import TREND_METRICS
+from app.reports.result import read_result
 from app.schemas import PatientCreate, PatientUpdate
 from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
 
@@ -202,18 +203,17 @@ def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
         for t in s.trials:
             if t.deleted_at is not None or t.result is None:
                 continue
-            metrics = (t.result.document or {}).get("metrics") or {}
+            result = read_result(t.result.document)
             for key, _, _ in TREND_METRICS:
-                value = metrics.get(key)
-                if key == "hesitation_count" and isinstance(value, int | float):
-                    halts = metrics.get("halt_count")
-                    value = value + (halts if isinstance(halts, int | float) else 0)
+                value = result.metric(key)
+                if key == "hesitation_count" and value is not None:
+                    value += result.metric("halt_count") or 0.0  # pauses: hesitations and halts
                 points[key].append(
                     TrendPoint(
                         recorded_at=s.recorded_at,
                         hand=t.hand,
                         medication_state=s.medication_state,
-                        value=float(value) if isinstance(value, int | float) else None,
+                        value=value,
                     )
                 )
     return points

@@ -48,16 +48,14 @@ def trial_label(trial: Trial) -> str:
 
 
 def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
-    rows_a = {r.key: r for r in metric_rows(data.result)}
-    rows_b = {r.key: r for r in metric_rows(other.result)}
-    metrics_a = data.result.get("metrics") or {}
-    metrics_b = other.result.get("metrics") or {}
+    rows_a = {r.key: r for r in metric_rows(data.analysis)}
+    rows_b = {r.key: r for r in metric_rows(other.analysis)}
     rows = []
     for key in [k for k in rows_a if k in rows_b]:
-        a, b = metrics_a.get(key), metrics_b.get(key)
+        a, b = data.analysis.metric(key), other.analysis.metric(key)
         diff = "–"
-        if isinstance(a, int | float) and isinstance(b, int | float):
-            diff = format_metric(key, float(b) - float(a))
+        if a is not None and b is not None:
+            diff = format_metric(key, b - a)
             if not diff.startswith(("-", "+", "–")):
                 diff = "+" + diff
         rows.append(

@@ -10,7 +10,7 @@ import pytest
 from sample_trial import CLOSED_MM, synthetic_trial
 
 from app import plots
-from app.reports.data import result_events
+from app.reports.result import result_events
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,158 @@
+"""``result.json`` as the service reads it: :class:`TrialResult`, typed and frozen.
+
+The worker stores the document that ``core.pipeline.Analysis.result_document``
+writes (docs/interfaces.md); the pages, reports and exports read it through
+:func:`read_result`, once, instead of probing the dictionary. Each field is
+read from the one place core writes it; a field core did not write (an older
+result, an analysis without metrics) reads as empty or None, never as an error.
+
+``taps`` stay the document's own objects: the taps table and the plots show
+any field a tap carries (``reliable``, velocities...), as the document gives it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.plots import PlotEvent
+
+Number = int | float
+
+
+def _number(value: object) -> Number | None:
+    """A JSON number (not a bool), else None."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return value
+
+
+def _mapping(value: object) -> Mapping[str, Any]:
+    return value if isinstance(value, Mapping) else {}
+
+
+def _list(value: object) -> list[object] | tuple[object, ...]:
+    """A JSON array, else empty (a string is not a list of its characters)."""
+    return value if isinstance(value, list | tuple) else ()
+
+
+def _numbers(value: object) -> dict[str, Number | None]:
+    """The numeric (or null) entries of a JSON object; other kinds are not metrics."""
+    return {
+        str(k): _number(v)
+        for k, v in _mapping(value).items()
+        if v is None or _number(v) is not None
+    }
+
+
+@dataclass(frozen=True)
+class SyncSummary:
+    """The ``sync`` object: offset of the right camera in frames, and how it was found."""
+
+    offset_frames: float | None = None
+    method: str | None = None  # "auto" (estimated) or "given"
+
+
+@dataclass(frozen=True)
+class ResultQuality:
+    """The ``quality`` object: fractions 0–1, reprojection errors in px, warnings."""
+
+    tracked_fraction: float | None = None
+    interpolated_fraction: float | None = None
+    reprojection_px_median: float | None = None
+    reprojection_px_p95: float | None = None
+    warnings: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class TrialResult:
+    """A trial's ``result.json``, typed.
+
+    Attributes
+    ----------
+    fps : float or None
+        Frame rate of the left video (Hz).
+    sync : SyncSummary
+    metrics : dict of str to number or None
+        The numeric metrics (``null`` in the document: None, an undefined metric).
+    metrics_first_10 : dict of str to number or None
+        The same metrics over the first ten taps, where core gives them.
+    taps : tuple of mappings
+        The taps as the document gives them (``index``, ``t_start_s``, ``amplitude_mm``...).
+    events : tuple of PlotEvent
+        Hesitations, halts and gaps, in s.
+    quality : ResultQuality
+    """
+
+    fps: float | None = None
+    sync: SyncSummary = field(default_factory=SyncSummary)
+    metrics: dict[str, Number | None] = field(default_factory=dict)
+    metrics_first_10: dict[str, Number | None] = field(default_factory=dict)
+    taps: tuple[Mapping[str, object], ...] = ()
+    events: tuple[PlotEvent, ...] = ()
+    quality: ResultQuality = field(default_factory=ResultQuality)
+
+    def metric(self, key: str) -> float | None:
+        """The metric ``key`` as a float, None when absent or undefined."""
+        value = self.metrics.get(key)
+        return None if value is None else float(value)
+
+    @property
+    def tap_amplitudes_mm(self) -> list[float]:
+        """The amplitude of every tap that has one (mm)."""
+        return [float(a) for tp in self.taps if (a := _number(tp.get("amplitude_mm"))) is not None]
+
+
+def result_events(result: Mapping[str, Any] | None) -> list[PlotEvent]:
+    """Hesitations, halts and gaps of a ``result.json`` document (its top-level ``events``).
+
+    An event has ``kind`` (``hesitation``, ``halt`` or ``gap``), ``t_start_s``
+    and ``duration_s`` (or ``t_end_s``).
+    """
+    events = []
+    for ev in _list((result or {}).get("events")):
+        if not isinstance(ev, Mapping) or _number(ev.get("t_start_s")) is None:
+            continue
+        kind = str(ev.get("kind", "hesitation"))
+        if kind not in ("hesitation", "halt", "gap"):
+            continue
+        start = float(ev["t_start_s"])
+        end_s = _number(ev.get("t_end_s"))
+        end = float(end_s) if end_s is not None else start + float(ev.get("duration_s") or 0.0)
+        events.append(PlotEvent(kind=kind, t_start_s=start, t_end_s=max(end, start + 0.02)))
+    return events
+
+
+def read_result(document: Mapping[str, Any] | None) -> TrialResult:
+    """Read a ``result.json`` document (see the module docstring)."""
+    doc = document or {}
+    sync = _mapping(doc.get("sync"))
+    quality = _mapping(doc.get("quality"))
+    taps = doc.get("taps")
+    offset = _number(sync.get("offset_frames"))
+    fps = _number(doc.get("fps"))
+
+    def fraction(key: str) -> float | None:
+        value = _number(quality.get(key))
+        return None if value is None else float(value)
+
+    warnings = quality.get("warnings")
+    return TrialResult(
+        fps=float(fps) if fps else None,
+        sync=SyncSummary(
+            offset_frames=None if offset is None else float(offset),
+            method=str(sync["method"]) if sync.get("method") else None,
+        ),
+        metrics=_numbers(doc.get("metrics")),
+        metrics_first_10=_numbers(doc.get("metrics_first_10")),
+        taps=tuple(tp for tp in _list(taps) if isinstance(tp, Mapping)),
+        events=tuple(result_events(doc)),
+        quality=ResultQuality(
+            tracked_fraction=fraction("tracked_fraction"),
+            interpolated_fraction=fraction("interpolated_fraction"),
+            reprojection_px_median=fraction("reprojection_px_median"),
+            reprojection_px_p95=fraction("reprojection_px_p95"),
+            warnings=tuple(str(w) for w in _list(warnings)),
+        ),
+    )

@@ -1,0 +1,46 @@
+"""app.reports.result: result.json read once, typed, from the places core writes."""
+
+from __future__ import annotations
+
+from sample_trial import synthetic_trial
+
+from app.reports.result import TrialResult, read_result
+
+
+def test_a_full_document_reads_typed() -> None:
+    _, doc = synthetic_trial()
+    result = read_result(doc)
+    assert result.fps == 100.0
+    assert result.sync.offset_frames == 1.25 and result.sync.method == "auto"
+    assert result.metric("amplitude_decrement_mm_per_tap") == -0.8  # mm/tap, as written
+    assert result.metrics["tap_count"] == 20 and isinstance(result.metrics["tap_count"], int)
+    assert result.metrics_first_10["frequency_hz"] == 2.5
+    assert len(result.taps) == 20 and result.tap_amplitudes_mm[0] == 52.0
+    assert [e.kind for e in result.events] == ["hesitation"]
+    assert result.quality.reprojection_px_median == 0.1
+    assert result.quality.warnings == ("The thumb marker was lost in the last frame.",)
+
+
+def test_only_numbers_are_metrics_and_nothing_is_read_twice() -> None:
+    doc = {
+        "metrics": {
+            "tap_count": 3,
+            "frequency_hz": None,  # undefined: kept, as None
+            "flag": True,  # a bool is no metric
+            "note": "text",
+            # core writes these at the top level; under metrics they are not read
+            "events": [{"kind": "halt", "t_start_s": 1.0, "duration_s": 0.5}],
+            "metrics_first_10": {"tap_count": 2},
+        },
+        "quality": {"warnings": "one string, not a list"},
+    }
+    result = read_result(doc)
+    assert result.metrics == {"tap_count": 3, "frequency_hz": None}
+    assert result.events == () and result.metrics_first_10 == {}
+    assert result.quality.warnings == ()
+    assert result.metric("frequency_hz") is None
+
+
+def test_an_empty_document_reads_as_an_empty_result() -> None:
+    assert read_result(None) == TrialResult()
+    assert read_result({"fps": 0, "sync": {"offset_frames": None}}).fps is None
