@@ -69,6 +69,7 @@ from core.progress import ProgressCallback, report
 from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
+from core.version import software_document
 from core.video import VideoInfo
 
 FloatArray = NDArray[np.float64]
@@ -167,6 +168,7 @@ class Analysis:
             "quality": _json_clean(quality),
             "markers": list(self.marker_names),
             "frame_count": len(self.frame_numbers),
+            "software": software_document(),
         }
         for k, v in extra.items():
             doc.setdefault(k, _json_clean(v))
