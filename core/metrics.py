@@ -120,8 +120,22 @@ def compute_metrics(
     """
     aperture = aperture_signal(positions_mm, fps, measured=measured, cutoff_hz=cutoff_hz)
     seg = segment_recording(aperture)
-    taps = seg.taps
-    events = locate_events(aperture, seg)
+    return summarise_taps(aperture, seg, seg.taps, locate_events(aperture, seg))
+
+
+def summarise_taps(
+    aperture: Aperture,
+    seg: Segmentation,
+    taps: Sequence[Tap],
+    events: Sequence[dict[str, Any]],
+) -> TappingMetrics:
+    """The per-trial metrics of ``taps`` and ``events`` (over all of them and the first 10).
+
+    :func:`compute_metrics` passes every tap it found; a clinician's
+    corrections (:mod:`core.corrections`) pass the taps and events that still count.
+    """
+    taps = list(taps)
+    events = list(events)
     metrics = tapping_metrics(taps, events)
     first = taps[:CLINICAL_TAP_COUNT]
     first_idx = {t.index for t in first}
@@ -387,5 +401,6 @@ __all__ = [
     "compute_metrics",
     "decrement_onset",
     "locate_events",
+    "summarise_taps",
     "tapping_metrics",
 ]

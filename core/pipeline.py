@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core.camera import Camera, StereoRig
-from core.clock import synchronise
+from core.clock import TimeModelResult, corrected_times, synchronise
 from core.errors import DetectionError, InputError
 from core.markers import EXPECTED_COUNT_FULL_SEARCHES as EXPECTED_COUNT_FULL_SEARCHES
 from core.markers import FULL_SEARCH_EVERY as FULL_SEARCH_EVERY
@@ -65,6 +65,7 @@ from core.matching import concatenate_frames, frame_pairs_epipolar_px
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
 from core.metrics import TappingMetrics, compute_metrics
+from core.overlay import CameraOverlay, camera_overlay
 from core.progress import ProgressCallback, report
 from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
@@ -114,6 +115,14 @@ class Analysis:
     frame_time_s : ndarray, shape (T,), optional
         Capture time of each left frame (s): its timestamp, with lost frames
         put back (``core.clock``); ``frame / fps`` when absent.
+    detections_px : (list, list) of ndarray (N_f, 2), optional
+        The detector's marker centres in each frame of the left and of the
+        right video (px, each video's own frame numbers), before synchronisation.
+    right_left_frame : ndarray, shape (F_right,), optional
+        Where each right frame lies on the left frame axis (the time model:
+        right frame ``j`` is left frame ``j + K`` for a whole-frame offset).
+    right_fps : float, optional
+        Frame rate of the right video (Hz).
     """
 
     fps: float
@@ -127,6 +136,9 @@ class Analysis:
     quality: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     frame_time_s: FloatArray | None = None
+    detections_px: tuple[list[FloatArray], list[FloatArray]] | None = None
+    right_left_frame: FloatArray | None = None
+    right_fps: float | None = None
 
     @property
     def time_s(self) -> FloatArray:
@@ -146,6 +158,29 @@ class Analysis:
             reprojection_px=self.reprojection_px,
             frame_time_s=self.time_s,
         )
+
+    def overlays(self, rig: StereoRig) -> list[CameraOverlay]:
+        """What the review view draws on each video (:mod:`core.overlay`): left, then right.
+
+        Raises
+        ------
+        ValueError
+            The analysis kept no detections (made without them).
+        """
+        if self.detections_px is None or self.right_left_frame is None:
+            raise ValueError("this analysis kept no detections to draw")
+        left_det, right_det = self.detections_px
+        return [
+            camera_overlay(rig.left, self.positions_mm, self.marker_names, left_det, fps=self.fps),
+            camera_overlay(
+                rig.right,
+                self.positions_mm,
+                self.marker_names,
+                right_det,
+                fps=float(self.right_fps or self.fps),
+                left_frame=self.right_left_frame,
+            ),
+        ]
 
     def result_document(self) -> dict[str, Any]:
         """``result.json`` as INTERFACES.md defines it (format ``bradyscope.result/1``)."""
@@ -398,6 +433,7 @@ def analyze_recording(
         timestamps=stamps,
     )
     n_left, n_right = len(left_px), len(right_px)
+    detections = (left_px, right_px)  # as found, each video's own frames (for the review view)
     if n_left == 0 or n_right == 0:
         raise InputError("a video decoded to no frames; check that the files are complete.")
     for name, frames in (("left", left_px), ("right", right_px)):
@@ -446,6 +482,7 @@ def analyze_recording(
         pairing_offset = 0
     else:
         pairing_offset = timed.pairing_offset
+    right_left_frame = _right_on_left_frames(timed, times[1], n_left, n_right)
     report(progress, "synchronisation", 1, 1)
 
     report(progress, "triangulation", 0, 1)
@@ -506,7 +543,26 @@ def analyze_recording(
         quality=quality,
         warnings=warnings,
         frame_time_s=timed.left_time_s,
+        detections_px=detections,
+        right_left_frame=right_left_frame,
+        right_fps=times[1].fps,
     )
+
+
+def _right_on_left_frames(
+    timed: TimeModelResult, right_times: FrameTimes, n_left: int, n_right: int
+) -> FloatArray:
+    """Position of each right frame on the left frame axis, from the time model."""
+    if timed.pairing_offset is not None:
+        return np.arange(n_right, dtype=np.float64) + timed.pairing_offset
+    if timed.model is not None:
+        t_left = timed.model.right_to_left(corrected_times(right_times, timed.model.dropped_right))
+        left_t = np.asarray(timed.left_time_s, dtype=np.float64)
+        return np.interp(
+            t_left, left_t, np.arange(n_left, dtype=np.float64), left=np.nan, right=np.nan
+        )
+    offset = float(timed.sync.get("offset_frames") or 0.0)
+    return np.arange(n_right, dtype=np.float64) + offset
 
 
 def _frame_times(

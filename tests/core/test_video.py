@@ -17,6 +17,7 @@ from core.video import (
     probe_video,
     read_image,
     video_suffix,
+    write_proxy,
 )
 
 SIZE = ImageSize(320, 240)
@@ -199,3 +200,44 @@ def test_decodes_frame_finds_truncation(tmp_path, lossless):
     assert not decodes_frame(tmp_path / "missing.mkv", 0)
     with pytest.raises(ValueError, match="index"):
         decodes_frame(lossless, -1)
+
+
+def test_proxy_is_browser_h264_frame_for_frame_and_leaves_the_original(tmp_path):
+    import hashlib
+
+    size = ImageSize(65, 41)  # odd: H.264 4:2:0 needs even sizes
+    src = tmp_path / "cam.mkv"
+    rng = np.random.default_rng(1)
+    frames = [rng.integers(0, 256, (size.height, size.width), dtype=np.uint8) for _ in range(25)]
+    for k, f in enumerate(frames):  # a bright square moving one pixel a frame
+        f[:] = f // 8
+        f[10:20, 10 + k : 20 + k] = 230
+    with VideoWriter(src, fps=60.0, image_size=size) as w:
+        for f in frames:
+            w.write(f)
+    before = hashlib.sha256(src.read_bytes()).hexdigest()
+    out = tmp_path / "cam.mp4"
+    seen: list[int] = []
+    assert write_proxy(src, out, progress=seen.append) == 25
+    assert seen[-1] == 25
+    assert hashlib.sha256(src.read_bytes()).hexdigest() == before  # original untouched
+    info = probe_video(out)
+    assert info.fourcc == "h264" and info.frame_count == 25 and info.fps == pytest.approx(60.0)
+    assert info.image_size == ImageSize(64, 40)  # last column and row dropped, nothing shifted
+    data = out.read_bytes()
+    assert 0 <= data.find(b"moov") < data.find(b"mdat")  # faststart: the index comes first
+    decoded = list(iter_frames(out))
+    for k, (a, b) in enumerate(zip(frames, decoded, strict=True)):
+        # Luma is stored in video range (16-235), as browsers expect.
+        expected = 16 + a[:40, :64].astype(float) * 219 / 255
+        square = (slice(12, 18), slice(12 + k, 18 + k))
+        assert abs(float(b[square].mean()) - float(expected[square].mean())) < 4  # grey levels
+        assert b[:, : 10 + k].mean() < 60  # the square is in its frame's place (frame order)
+
+
+def test_proxy_of_a_broken_file_is_an_input_error(tmp_path):
+    bad = tmp_path / "bad.mp4"
+    bad.write_bytes(b"not a video")
+    with pytest.raises(InputError):
+        write_proxy(bad, tmp_path / "out.mp4")
+    assert not (tmp_path / "out.mp4").exists()

@@ -1,0 +1,273 @@
+"""A clinician's corrections of a finger-tapping measurement, and the metrics they give.
+
+The clinician reviews a trial against its video and may say: this tap is not
+a tap (exclude it), this pause was the patient talking (not a hesitation or a
+halt), only this stretch of the recording counts (the analysis window), or the
+thumb and index labels are the wrong way round. :func:`correct_metrics` takes
+the stored trajectories (:class:`core.markers_csv.MarkerTable`, what
+``markers.csv`` holds) and :class:`Corrections`, and measures again:
+
+1. The aperture signal, the taps and the pauses are found exactly as
+   :func:`core.metrics.compute_metrics` finds them on the same trajectories, so
+   tap numbers (``Tap.index``) are those the clinician saw.
+2. Taps excluded by the clinician, and taps not wholly inside the window, are
+   removed from the list of taps; hesitations and halts of a removed tap, and
+   those the clinician dismissed, are removed from the events; gaps outside
+   the window are removed.
+3. The per-trial metrics are :func:`core.metrics.summarise_taps` of what
+   remains: every statistic (counts, amplitudes, velocities, rhythm, decrement)
+   is computed as if the removed taps and pauses had not been detected. The
+   remaining taps keep their measured values (amplitude, velocities, interval
+   to the next detected tap, cycle number), so the decrement's tap axis keeps
+   the recording's order.
+
+Swapping the thumb and index labels does not change the aperture (a distance)
+and so no tapping metric; it changes which trajectory is called which in the
+marker file, the exports and the plots (:func:`swap_thumb_index`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from core.aperture import aperture_signal
+from core.markers_csv import MEASURED, MarkerTable
+from core.metrics import TappingMetrics, _clean, locate_events, summarise_taps
+from core.taps import Tap, segment_recording
+
+THUMB, INDEX = "thumb", "index"
+PAUSE_KINDS = ("hesitation", "halt")
+
+
+@dataclass(frozen=True)
+class Corrections:
+    """What the clinician changed about a measurement.
+
+    Attributes
+    ----------
+    exclude_taps : tuple of int
+        ``Tap.index`` (0-based) of the taps that do not count.
+    dismiss_pauses : tuple of int
+        ``Tap.index`` of the taps whose hesitation or halt is not one (e.g. the
+        patient was talking): those events no longer count.
+    window_s : (float, float) or None
+        Only taps wholly inside ``[t0, t1]`` (s, left-video time) count; None:
+        the whole recording.
+    swap_labels : bool
+        The thumb and index labels are exchanged.
+    """
+
+    exclude_taps: tuple[int, ...] = ()
+    dismiss_pauses: tuple[int, ...] = ()
+    window_s: tuple[float, float] | None = None
+    swap_labels: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("exclude_taps", "dismiss_pauses"):
+            values = getattr(self, name)
+            if any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in values):
+                raise ValueError(f"{name} must hold tap numbers (integers >= 0), got {values}")
+            object.__setattr__(self, name, tuple(sorted(set(values))))
+        if self.window_s is not None:
+            t0, t1 = (float(v) for v in self.window_s)
+            if not (math.isfinite(t0) and math.isfinite(t1) and 0 <= t0 < t1):
+                raise ValueError(
+                    f"window_s must be [start, end] in s with 0 <= start < end, got {self.window_s}"
+                )
+            object.__setattr__(self, "window_s", (t0, t1))
+
+    @property
+    def is_empty(self) -> bool:
+        """No correction at all."""
+        return self == Corrections()
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (the ``corrections`` object of a revised result.json)."""
+        return {
+            "exclude_taps": list(self.exclude_taps),
+            "dismiss_pauses": list(self.dismiss_pauses),
+            "window_s": None if self.window_s is None else list(self.window_s),
+            "swap_labels": self.swap_labels,
+        }
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any] | None) -> Corrections:
+        """Read :meth:`to_dict`'s form (missing keys: no correction)."""
+        doc = doc or {}
+        window = doc.get("window_s")
+        return cls(
+            exclude_taps=tuple(doc.get("exclude_taps") or ()),
+            dismiss_pauses=tuple(doc.get("dismiss_pauses") or ()),
+            window_s=None if window is None else (float(window[0]), float(window[1])),
+            swap_labels=bool(doc.get("swap_labels", False)),
+        )
+
+
+@dataclass(frozen=True)
+class CorrectedMetrics:
+    """The metrics after a clinician's corrections.
+
+    Attributes
+    ----------
+    metrics : TappingMetrics
+        Taps, events and per-trial metrics that count.
+    corrections : Corrections
+    excluded_taps : tuple of Tap
+        Taps the clinician excluded.
+    outside_window_taps : tuple of Tap
+        Taps not wholly inside the analysis window.
+    dismissed_events : tuple of dict
+        Hesitations and halts the clinician dismissed, or that belonged to a removed tap.
+    """
+
+    metrics: TappingMetrics
+    corrections: Corrections
+    excluded_taps: tuple[Tap, ...]
+    outside_window_taps: tuple[Tap, ...]
+    dismissed_events: tuple[dict[str, Any], ...]
+
+    def to_result(self) -> dict[str, Any]:
+        """The tapping part of result.json (as :meth:`TappingMetrics.to_result`) plus
+        ``corrections``, ``excluded_taps``, ``outside_window_taps`` and ``dismissed_events``."""
+        doc = self.metrics.to_result()
+        doc["corrections"] = self.corrections.to_dict()
+        doc["excluded_taps"] = _clean([t.to_dict() for t in self.excluded_taps])
+        doc["outside_window_taps"] = _clean([t.to_dict() for t in self.outside_window_taps])
+        doc["dismissed_events"] = _clean(list(self.dismissed_events))
+        return doc
+
+
+def swap_thumb_index(table: MarkerTable) -> MarkerTable:
+    """``table`` with the labels ``thumb`` and ``index`` exchanged (the data stay in place).
+
+    Raises
+    ------
+    ValueError
+        The table lacks a ``thumb`` or an ``index`` marker.
+    """
+    labels = list(table.labels)
+    if THUMB not in labels or INDEX not in labels:
+        raise ValueError(f"the markers {table.labels} have no thumb and index to swap")
+    i, j = labels.index(THUMB), labels.index(INDEX)
+    labels[i], labels[j] = INDEX, THUMB
+    return replace(table, labels=tuple(labels))
+
+
+def _thumb_index(table: MarkerTable) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Positions ``(T, 2, 3)`` and measured flags ``(T, 2)`` in the order thumb, index."""
+    if THUMB not in table.labels or INDEX not in table.labels:
+        raise ValueError(f"finger tapping needs thumb and index markers, got {table.labels}")
+    cols = [table.labels.index(THUMB), table.labels.index(INDEX)]
+    return table.positions_mm[:, cols, :], table.status[:, cols] == MEASURED
+
+
+def correct_metrics(
+    table: MarkerTable, corrections: Corrections, *, cutoff_hz: float | None = None
+) -> CorrectedMetrics:
+    """Measure the trajectories of ``table`` again with the clinician's corrections.
+
+    Parameters
+    ----------
+    table : MarkerTable
+        The tracked trajectories (``markers.csv``); labels must include
+        ``thumb`` and ``index``.
+    corrections : Corrections
+        Tap numbers refer to the taps :func:`core.metrics.compute_metrics`
+        finds on these trajectories.
+    cutoff_hz : float, optional
+        Low-pass cut-off of the aperture (Hz), as for ``compute_metrics``.
+
+    Returns
+    -------
+    CorrectedMetrics
+
+    Raises
+    ------
+    ValueError
+        A tap number does not exist, a dismissed tap has no hesitation or halt,
+        or no tap is left (a clinician-readable sentence).
+    """
+    if corrections.swap_labels:
+        table = swap_thumb_index(table)
+    positions, measured = _thumb_index(table)
+    aperture = aperture_signal(positions, table.fps, measured=measured, cutoff_hz=cutoff_hz)
+    seg = segment_recording(aperture)
+    events = locate_events(aperture, seg)
+    known = {t.index for t in seg.taps}
+    unknown = sorted(set(corrections.exclude_taps) - known)
+    if unknown:
+        raise ValueError(
+            f"there is no tap {', '.join(str(i + 1) for i in unknown)} in this recording"
+            f" (it has {len(seg.taps)} taps)."
+        )
+    paused = {e["tap_index"] for e in events if e["kind"] in PAUSE_KINDS}
+    not_paused = sorted(set(corrections.dismiss_pauses) - paused)
+    if not_paused:
+        raise ValueError(
+            f"tap {', '.join(str(i + 1) for i in not_paused)} has no hesitation or halt to dismiss."
+        )
+
+    excluded = set(corrections.exclude_taps)
+    window = corrections.window_s
+    inside = _inside(seg.taps, window)
+    kept = [t for t in seg.taps if t.index not in excluded and t.index in inside]
+    kept_idx = {t.index for t in kept}
+    dismissed = set(corrections.dismiss_pauses)
+    kept_events: list[dict[str, Any]] = []
+    dropped_events: list[dict[str, Any]] = []
+    for e in events:
+        if e["kind"] in PAUSE_KINDS:
+            keep = e["tap_index"] in kept_idx and e["tap_index"] not in dismissed
+        else:  # a gap counts when it starts inside the window
+            keep = window is None or window[0] <= e["t_start_s"] <= window[1]
+        (kept_events if keep else dropped_events).append(e)
+    if not kept:
+        raise ValueError("no tap would be left to measure; exclude fewer taps or widen the window.")
+    metrics = summarise_taps(aperture, seg, kept, kept_events)
+    return CorrectedMetrics(
+        metrics=metrics,
+        corrections=corrections,
+        excluded_taps=tuple(t for t in seg.taps if t.index in excluded),
+        outside_window_taps=tuple(
+            t for t in seg.taps if t.index not in inside and t.index not in excluded
+        ),
+        dismissed_events=tuple(e for e in dropped_events if e["kind"] in PAUSE_KINDS),
+    )
+
+
+def _inside(taps: Sequence[Tap], window: tuple[float, float] | None) -> set[int]:
+    if window is None:
+        return {t.index for t in taps}
+    t0, t1 = window
+    return {t.index for t in taps if t.t_start_s >= t0 and t.t_end_s <= t1}
+
+
+def revised_document(base: Mapping[str, Any], corrected: CorrectedMetrics) -> dict[str, Any]:
+    """``result.json`` of a correction: ``base`` (the analysis) with the tapping part measured again.
+
+    Everything core measured about the recording itself (``fps``, ``sync``,
+    ``quality``, ``markers``...) is kept; the keys of
+    :meth:`CorrectedMetrics.to_result` replace the analysis's.
+    """
+    doc = {k: v for k, v in base.items()}
+    tapping = corrected.to_result()
+    doc.update(tapping)
+    if corrected.corrections.swap_labels and isinstance(doc.get("markers"), list):
+        doc["markers"] = [
+            INDEX if m == THUMB else THUMB if m == INDEX else m for m in doc["markers"]
+        ]
+    return doc
+
+
+__all__ = [
+    "CorrectedMetrics",
+    "Corrections",
+    "correct_metrics",
+    "revised_document",
+    "swap_thumb_index",
+]
