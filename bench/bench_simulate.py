@@ -1,6 +1,7 @@
 """Speed and accuracy of the stereo-session simulator (prints figures; not a test).
 
-Run: ``python bench/bench_simulate.py [--seconds 2] [--size 1280x1024]``
+Run: ``python bench/bench_simulate.py [--seconds 2] [--size 1280x1024] [--skin 57]``
+(``--skin``: with the IR-lit hand of ``core/simulation/hand.py``).
 
 Measures, in one run on the same machine:
 
@@ -61,14 +62,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=2.0, help="simulated duration (s)")
     ap.add_argument("--size", type=_size, default=ImageSize(1280, 1024))
+    ap.add_argument("--skin", type=float, default=0.0, help="draw the IR-lit hand at this level")
     args = ap.parse_args()
     size = args.size
     fps = 100.0
     tapping = TappingScenario(duration_s=args.seconds, fps=fps)
-    imaging = ImagingScenario(image_size=size, distractors_static=2, distractors_moving=1)
+    imaging = ImagingScenario(
+        image_size=size, distractors_static=2, distractors_moving=1, skin_level=args.skin
+    )
     rig = default_rig(image_size=size)
     n = round(args.seconds * fps)
-    print(f"simulator bench: {size.width}x{size.height} at {fps:g} fps, {n} stereo pairs")
+    print(
+        f"simulator bench: {size.width}x{size.height} at {fps:g} fps, {n} stereo pairs"
+        + (f", IR-lit hand (skin {args.skin:g})" if args.skin else "")
+    )
 
     truth = simulate_tapping(tapping, seed=1)
     renderer = StereoRenderer(truth, rig=rig, imaging=imaging, seed=1)
@@ -97,7 +104,11 @@ def main() -> None:
                 seed=1,
                 tapping=tapping,
                 imaging=ImagingScenario(
-                    image_size=size, distractors_static=2, distractors_moving=1, codec=codec
+                    image_size=size,
+                    distractors_static=2,
+                    distractors_moving=1,
+                    codec=codec,
+                    skin_level=args.skin,
                 ),
                 rig=rig,
             )

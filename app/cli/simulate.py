@@ -8,6 +8,7 @@ ChArUco recordings of the same rig). See ``docs/simulator.md``.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from core.errors import InputError
@@ -64,6 +65,29 @@ def _drop(text: str) -> tuple[str, int]:
     if cam not in ("left", "right") or not frame.strip().isdigit():
         raise argparse.ArgumentTypeError(f"expected CAM:FRAME with CAM left or right, got {text!r}")
     return cam, int(frame)
+
+
+def _turn(text: str) -> tuple[float, float, float]:
+    try:
+        t0, dur, angle = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected START_S:DURATION_S:DEGREES such as 2.0:3.0:70, got {text!r}"
+        ) from None
+    return t0, dur, angle
+
+
+def _overlap(text: str) -> tuple[str, float]:
+    cam, _, sep = text.partition(":")
+    try:
+        separation = float(sep) if sep else 3.0
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected CAMERA[:MM] such as right:3, got {text!r}"
+        ) from None
+    if cam not in ("left", "right"):
+        raise argparse.ArgumentTypeError(f"the camera must be left or right, got {cam!r}")
+    return cam, separation
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -123,6 +147,22 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     g.add_argument(
         "--hand-marker", action="store_true", help="add a third marker on the back of the hand"
     )
+    g.add_argument(
+        "--turn",
+        type=_turn,
+        action="append",
+        default=[],
+        metavar="T0:DUR:DEG",
+        help="the hand rolls about its long axis by DEG and back, e.g. 2:3:70 (repeatable)",
+    )
+    g.add_argument(
+        "--overlap",
+        type=_overlap,
+        default=None,
+        metavar="CAMERA[:MM]",
+        help="turn the hand so that the closed markers overlap in that camera, their centres"
+        " MM apart (default 3; the marker diameter makes them touch)",
+    )
     g = p.add_argument_group("imaging")
     g.add_argument(
         "--size", type=_size, default=(1280, 1024), metavar="WxH", help="image size, e.g. 1280x1024"
@@ -164,7 +204,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         default=0.0,
         metavar="LEVEL",
-        help="draw the hand and forearm at this gray level (0 = not drawn, e.g. 25)",
+        help="draw the IR-lit hand, skin facing the camera at this gray level"
+        " (0 = not drawn; 57 is a bright case, a quarter of the markers)",
+    )
+    g.add_argument(
+        "--nail-glints",
+        type=float,
+        default=0.0,
+        metavar="LEVEL",
+        help="nail-polish highlights beside the markers at this peak gray level (with --skin)",
     )
     g.add_argument(
         "--codec",
@@ -200,6 +248,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from app.cli.progress import progress_bar
     from core.camera import ImageSize, StereoRig
+    from core.simulation.hand import overlap_orientation_deg
     from core.simulation.kinematics import TappingScenario, simulate_tapping
     from core.simulation.rig import default_rig
     from core.simulation.session import ImagingScenario, simulate_session
@@ -220,6 +269,7 @@ def run(args: argparse.Namespace) -> int:
             drift_mm=args.drift,
             hand=args.hand,
             hand_marker=args.hand_marker,
+            turns=tuple(args.turn),
         )
         imaging = ImagingScenario(
             image_size=ImageSize(*args.size),
@@ -248,6 +298,7 @@ def run(args: argparse.Namespace) -> int:
                 readout_ms=args.rolling_shutter_ms,
                 image_size=None if args.right_size is None else ImageSize(*args.right_size),
             ),
+            nail_glint_peak=args.nail_glints,
         )
         # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
         simulate_tapping(tapping, seed=args.seed)
@@ -259,6 +310,13 @@ def run(args: argparse.Namespace) -> int:
         rig = default_rig(image_size=imaging.image_size)
         if args.right_size is not None:
             rig = StereoRig(rig.left, default_rig(image_size=imaging.camera_size("right")).right)
+        if args.overlap is not None:
+            cam_name, separation = args.overlap
+            camera = rig.left if cam_name == "left" else rig.right
+            tapping = replace(
+                tapping,
+                orientation_deg=overlap_orientation_deg(tapping, camera, separation_mm=separation),
+            )
     except ValueError as exc:
         raise InputError(f"invalid scenario: {exc}; see bradyscope simulate --help.") from exc
     try:

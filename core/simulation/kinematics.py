@@ -50,20 +50,9 @@ _HAND_MARKER_LOCAL_MM = np.array([-40.0, -20.0, 15.0])  # back of the hand, behi
 # right (forwards), slightly down and towards the cameras; the index opens upwards (-y).
 _RIGHT_HAND_U = np.array([1.0, 0.12, -0.35])
 _RIGHT_HAND_V_HINT = np.array([0.0, -1.0, 0.0])
-
-# The body as capsules (start, end, radius), hand frame, mm, for drawing the skin:
-# the metacarpals (two capsules side by side), the middle to little fingers curled
-# into the palm, the forearm. The index runs from the MCP joint (origin) to its
-# marker, the thumb from THUMB_BASE_MM (its base, palmar) to its marker.
-HAND_BODY_CAPSULES_MM = (
-    ((-85.0, -20.0, -5.0), (-5.0, -15.0, -5.0), 20.0),
-    ((-85.0, -50.0, -5.0), (-10.0, -50.0, -5.0), 20.0),
-    ((0.0, -25.0, -10.0), (10.0, -45.0, -40.0), 10.0),
-    ((-85.0, -35.0, -5.0), (-330.0, -45.0, -5.0), 28.0),
-)
-INDEX_RADIUS_MM = 9.0
-THUMB_BASE_MM = (-50.0, -10.0, -20.0)
-THUMB_RADIUS_MM = 10.0
+# The long axis of the hand and forearm (hand frame, mm): a turn (``TappingScenario.turns``)
+# rolls the hand about the line through this point along u, as the forearm does.
+ROLL_AXIS_POINT_MM = (0.0, -35.0, -5.0)
 
 # Timeline constants (s).
 _LEAD_IN_S = 0.5  # fingers closed and still before the first tap
@@ -112,6 +101,18 @@ class TappingScenario:
     hand_center_mm : tuple of 3 floats
         Where the middle of the two fingertip markers is at half opening, in the
         rig's world frame (mm); the default rig converges there.
+    orientation_deg : tuple of 3 floats
+        An extra, fixed rotation of the hand about ``hand_center_mm``: a
+        rotation vector (degrees) in the hand frame (u distal, v radial, w
+        dorsal). ``(0, 0, 0)`` is the standard posture of ``docs/simulator.md``;
+        :func:`core.simulation.hand.overlap_orientation_deg` finds the one
+        that makes the closed markers overlap in one camera.
+    turns : tuple of (t_start_s, duration_s, angle_deg)
+        The hand rolls about its long axis (the line through
+        ``ROLL_AXIS_POINT_MM`` along u) by ``angle_deg`` and back: a third of
+        the duration turning (smootherstep), a third held, a third turning
+        back. Rigid, so every marker distance stays the same; used to hide a
+        marker partly behind a finger in one camera.
     """
 
     duration_s: float = 10.0
@@ -129,11 +130,17 @@ class TappingScenario:
     closed_distance_mm: float = 18.0
     hand_marker: bool = False
     hand_center_mm: tuple[float, float, float] = (0.0, 0.0, 500.0)
+    orientation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    turns: tuple[tuple[float, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hesitations", tuple(int(k) for k in self.hesitations))
         object.__setattr__(self, "halts", tuple((int(k), float(d)) for k, d in self.halts))
         object.__setattr__(self, "hand_center_mm", tuple(float(v) for v in self.hand_center_mm))
+        object.__setattr__(self, "orientation_deg", tuple(float(v) for v in self.orientation_deg))
+        object.__setattr__(
+            self, "turns", tuple((float(t0), float(d), float(a)) for t0, d, a in self.turns)
+        )
         if not (self.duration_s > 0 and np.isfinite(self.duration_s)):
             raise ValueError(f"duration_s must be positive, got {self.duration_s}")
         if not (self.fps > 0 and np.isfinite(self.fps)):
@@ -169,6 +176,18 @@ class TappingScenario:
             raise ValueError(
                 f"hand_center_mm must be (x, y, z) with z > 100 mm, got {self.hand_center_mm}"
             )
+        if len(self.orientation_deg) != 3 or not all(
+            np.isfinite(v) and abs(v) <= 180 for v in self.orientation_deg
+        ):
+            raise ValueError(
+                f"orientation_deg must be 3 finite angles within ±180, got {self.orientation_deg}"
+            )
+        for t0, dur, angle in self.turns:
+            if not (np.isfinite(t0) and dur > 0 and np.isfinite(dur) and abs(angle) <= 120):
+                raise ValueError(
+                    "a turn is (t_start_s, duration_s > 0, angle_deg within ±120),"
+                    f" got {(t0, dur, angle)}"
+                )
 
     @property
     def marker_names(self) -> tuple[str, ...]:
@@ -277,15 +296,35 @@ class TappingModel:
         closed, hand drifting), so cameras with a frame offset can be rendered.
         """
         t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        return self._to_world(t, self.local_positions_mm(t))
+
+    def local_positions_mm(self, t_s: ArrayLike) -> FloatArray:
+        """Marker centres ``(N, M, 3)`` in the hand frame (mm) at times ``t_s`` ``(N,)``.
+
+        The hand frame (origin at the index MCP joint, u distal, v radial, w
+        dorsal) before the drift, the turns and the mirroring of a left hand;
+        :meth:`hand_points_mm` takes such points to the world.
+        """
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
         if t.ndim != 1:
             raise ValueError(f"t_s must be a scalar or have shape (N,), got {t.shape}")
-        local = _local_positions(
+        return _local_positions(
             self.opening_mm(t),
             closed_distance_mm=self.scenario.closed_distance_mm,
             thumb_closed_local_mm=self.thumb_closed_local_mm,
             hand_marker=self.scenario.hand_marker,
-        )  # (N, M, 3)
-        return self._to_world(t, local)
+        )
+
+    def roll_deg(self, t_s: ArrayLike) -> FloatArray:
+        """Roll of the hand about its long axis from ``TappingScenario.turns`` (degrees)."""
+        t = np.asarray(t_s, dtype=np.float64)
+        out = np.zeros_like(t)
+        for t0, dur, angle in self.scenario.turns:
+            x = np.clip((t - t0) / dur, 0.0, 1.0)
+            up = _smootherstep(np.clip(3.0 * x, 0.0, 1.0))
+            down = _smootherstep(np.clip(3.0 * x - 2.0, 0.0, 1.0))
+            out = out + angle * (up - down)
+        return out
 
     def hand_points_mm(self, t_s: ArrayLike, local_points_mm: ArrayLike) -> FloatArray:
         """World positions ``(N, P, 3)`` of points fixed to the hand (moving with its drift).
@@ -306,6 +345,12 @@ class TappingModel:
         return self._to_world(t, np.broadcast_to(pts, (len(t), *pts.shape)))
 
     def _to_world(self, t: FloatArray, local: FloatArray) -> FloatArray:
+        if self.scenario.turns:
+            # Roll about the hand's long axis (u through ROLL_AXIS_POINT_MM), hand frame.
+            roll = np.deg2rad(self.roll_deg(t))
+            axis_pt = np.asarray(ROLL_AXIS_POINT_MM)
+            R_roll = _rotations(roll[:, None] * np.array([1.0, 0.0, 0.0])[None])
+            local = np.einsum("nij,nmj->nmi", R_roll, local - axis_pt) + axis_pt
         # Rigid drift: rotation about the MCP joint (hand frame axes), then translation.
         d = self.drift
         phase = 2 * np.pi * d.freqs_hz[None] * t[:, None, None] + d.phases[None]
@@ -391,6 +436,8 @@ class TappingTruth:
                 "drift_mm": s.drift_mm,
                 "hand_marker": s.hand_marker,
                 "hand_center_mm": list(s.hand_center_mm),
+                "orientation_deg": list(s.orientation_deg),
+                "turns": [list(tr) for tr in s.turns],
             },
         }
 
@@ -459,12 +506,17 @@ def _local_positions(
     return np.stack(markers, axis=1)
 
 
-def _hand_rotation() -> FloatArray:
+def _hand_rotation(orientation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FloatArray:
+    """``R_world_from_hand`` of the standard posture, turned by ``orientation_deg``
+    (a rotation vector in the hand frame, degrees)."""
     u = _RIGHT_HAND_U / np.linalg.norm(_RIGHT_HAND_U)
     v = _RIGHT_HAND_V_HINT - (_RIGHT_HAND_V_HINT @ u) * u
     v /= np.linalg.norm(v)
     w = np.cross(u, v)
-    return np.column_stack([u, v, w])
+    R = np.column_stack([u, v, w])
+    if any(orientation_deg):
+        R = R @ _rotations(np.deg2rad(np.asarray(orientation_deg, dtype=np.float64))[None])[0]
+    return R
 
 
 def _build_timeline(
@@ -586,7 +638,7 @@ def simulate_tapping(scenario: TappingScenario, *, seed: int) -> TappingTruth:
     rng = np.random.default_rng([int(seed), 0x7A9])
     timeline, hes, halts = _build_timeline(scenario, rng)
     drift = _build_drift(scenario, rng)
-    R = _hand_rotation()
+    R = _hand_rotation(scenario.orientation_deg)
     thumb_closed = _thumb_closed_local(scenario.closed_distance_mm)
     # Put the middle of thumb and index at half the first opening on hand_center_mm.
     half = _local_positions(

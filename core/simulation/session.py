@@ -31,11 +31,8 @@ from numpy.typing import NDArray
 from core.camera import Camera, FloatArray, ImageSize, StereoRig, write_rig
 from core.errors import InputError
 from core.progress import ProgressCallback, report
+from core.simulation.hand import SkinLook, composite_spheres, draw_skin, nail_glints, tapping_hand
 from core.simulation.kinematics import (
-    HAND_BODY_CAPSULES_MM,
-    INDEX_RADIUS_MM,
-    THUMB_BASE_MM,
-    THUMB_RADIUS_MM,
     TappingModel,
     TappingScenario,
     TappingTruth,
@@ -46,7 +43,6 @@ from core.simulation.render import (
     GLINT,
     SensorNoise,
     SphereLayer,
-    draw_capsules,
     draw_spheres,
     make_background,
     to_uint8,
@@ -100,8 +96,16 @@ class ImagingScenario:
     psf_sigma_px : float
         Lens blur (px).
     skin_level : float
-        Gray level of the hand and forearm (skin lit by the ring light), drawn
-        as soft capsules under the markers; 0 (default) leaves them out.
+        Gray level of skin that faces the camera at 500 mm under the ring
+        light; > 0 draws the IR-lit hand of :mod:`core.simulation.hand`
+        (fingers, back of the hand, forearm; shaded, with soft edges; the
+        markers sit on the nails and are hidden where skin is in front of
+        them). 0 (default) leaves the hand out. ``docs/simulator.md`` gives
+        the brightness ratios and their sources (about 0.25 x
+        ``marker_peak`` is a bright, pessimistic case).
+    nail_glint_peak : float
+        Peak gray level of the nail-polish highlights beside the thumb and
+        index markers (only with the hand); 0 (default): matt nails.
     left_timing, right_timing : CameraTiming
         Free-running cameras (frame rate, start, drift, lost frames, jitter,
         variable-frame-rate timestamps, rolling shutter, image size); the
@@ -123,6 +127,7 @@ class ImagingScenario:
     background_texture: float = 5.0
     psf_sigma_px: float = 0.5
     skin_level: float = 0.0
+    nail_glint_peak: float = 0.0
     left_timing: CameraTiming = CameraTiming()  # noqa: RUF009 (frozen)
     right_timing: CameraTiming = CameraTiming()  # noqa: RUF009 (frozen)
 
@@ -157,6 +162,8 @@ class ImagingScenario:
         video_suffix(self.codec)  # raises ValueError for an unknown codec
         if not 0 <= self.skin_level <= 200:
             raise ValueError(f"skin_level must be in [0, 200], got {self.skin_level}")
+        if not 0 <= self.nail_glint_peak <= 255:
+            raise ValueError(f"nail_glint_peak must be in [0, 255], got {self.nail_glint_peak}")
         if not 0 <= self.psf_sigma_px <= 5:
             raise ValueError(f"psf_sigma_px must be in [0, 5], got {self.psf_sigma_px}")
         if self.offset_frames != 0 and self.right_timing.start_s != 0:
@@ -442,6 +449,9 @@ class StereoRenderer:
         self.occluded = {
             c: np.zeros((self.frame_counts[c], len(names)), dtype=bool) for c in CAMERA_NAMES
         }
+        # visible fraction of each marker per frame of each camera (own numbering)
+        self.visibility = {c: np.ones((self.frame_counts[c], len(names))) for c in CAMERA_NAMES}
+        self._skin_look = SkinLook(level=imaging.skin_level) if imaging.skin_level > 0 else None
         for cam_name, marker, t0, dur in imaging.occlusions:
             t = self.times[cam_name]
             self.occluded[cam_name][:, names.index(marker)] |= (t >= t0) & (t < t0 + dur)
@@ -479,6 +489,8 @@ class StereoRenderer:
         return self._render_camera(c, j)
 
     def _render_camera(self, c: str, j: int) -> NDArray[np.uint8]:
+        if self._skin_look is not None:
+            return self._render_camera_with_hand(c, j)
         imaging = self.imaging
         cam = self._cameras[c]
         S = int(self._n_sub[c][j])
@@ -486,55 +498,86 @@ class StereoRenderer:
         sub = imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
         sub_t = t_mid + sub
         frame = self._noises[c].noisy(self._backgrounds[c])
-        if imaging.skin_level > 0:
-            self._draw_skin(frame, cam, t_mid)
         for layer in self._static_layers:
             draw_spheres(frame, cam, layer, psf_sigma_px=imaging.psf_sigma_px)
         if self.movings:
-            centres = np.stack([d.positions_mm(self.model, sub_t) for d in self.movings], axis=1)
-            peaks = np.array([d.brightness(np.array([t_mid]))[0] for d in self.movings])
-            radii = np.array([d.radius_mm for d in self.movings])
-            draw_spheres(
-                frame,
-                cam,
-                SphereLayer(centres, radii, peaks, GLINT),
-                psf_sigma_px=imaging.psf_sigma_px,
-            )
+            self._draw_moving(frame, cam, sub_t, t_mid)
         peaks = np.where(self.occluded[c][j], 0.0, self._marker_peaks)
-        readout_s = self._timing(c).readout_ms * 1e-3
-        if readout_s > 0:
-            # Rolling shutter: each marker at the instant its row is read.
-            n_m = len(self._radius_mm)
-            t_m = rolling_shutter_times(cam, self.model.positions_mm, t_mid, readout_s, n_m)
-            times = (t_m[None, :] + sub[:, None]).ravel()
-            centres = self.model.positions_mm(times).reshape(S, n_m, n_m, 3)
-            centres = centres[:, np.arange(n_m), np.arange(n_m)]
-        else:
-            centres = self.model.positions_mm(sub_t)
         draw_spheres(
             frame,
             cam,
-            SphereLayer(centres, self._radius_mm, peaks, DISC),
+            SphereLayer(self._marker_centres(c, t_mid, sub), self._radius_mm, peaks, DISC),
             psf_sigma_px=imaging.psf_sigma_px,
             shot_noise=(self._shot_rngs[c], _SHOT_NOISE_GAIN) if imaging.noise_sigma > 0 else None,
         )
+        self.visibility[c][j] = np.where(self.occluded[c][j], 0.0, 1.0)
         return to_uint8(frame)
 
     def _timing(self, c: str) -> CameraTiming:
         return self.imaging.left_timing if c == "left" else self.imaging.right_timing
 
-    def _draw_skin(self, frame: NDArray[np.float32], cam: Camera, t_mid: float) -> None:
-        t = np.array([t_mid])
-        markers = self.model.positions_mm(t)[0]
-        body = np.array([[*a, *b, r] for a, b, r in HAND_BODY_CAPSULES_MM])
-        rigid = self.model.hand_points_mm(
-            t, np.vstack([body[:, :3], body[:, 3:6], [0.0, 0.0, 0.0], THUMB_BASE_MM])
-        )[0]
-        k = len(body)
-        starts = np.vstack([rigid[:k], rigid[2 * k : 2 * k + 2]])
-        ends = np.vstack([rigid[k : 2 * k], markers[1], markers[0]])
-        radii = np.concatenate([body[:, 6], [INDEX_RADIUS_MM, THUMB_RADIUS_MM]])
-        draw_capsules(frame, cam, starts, ends, radii, level=self.imaging.skin_level)
+    def _marker_centres(self, c: str, t_mid: float, sub: FloatArray) -> FloatArray:
+        """Marker centres ``(S, M, 3)`` at the exposure's sub-samples ``t_mid + sub``;
+        with a rolling shutter, each marker at the instant its row is read."""
+        readout_s = self._timing(c).readout_ms * 1e-3
+        if readout_s <= 0:
+            return self.model.positions_mm(t_mid + sub)
+        n_m = len(self._radius_mm)
+        cam = self._cameras[c]
+        t_m = rolling_shutter_times(cam, self.model.positions_mm, t_mid, readout_s, n_m)
+        times = (t_m[None, :] + sub[:, None]).ravel()
+        centres = self.model.positions_mm(times).reshape(len(sub), n_m, n_m, 3)
+        return centres[:, np.arange(n_m), np.arange(n_m)]
+
+    def _render_camera_with_hand(self, c: str, j: int) -> NDArray[np.uint8]:
+        """A frame with the IR-lit hand (core.simulation.hand): the skin replaces the
+        background, the markers are opaque and hidden where skin is in front of them;
+        records each marker's visible fraction."""
+        imaging = self.imaging
+        assert self._skin_look is not None
+        cam = self._cameras[c]
+        S = int(self._n_sub[c][j])
+        t_mid = self.times[c][j]
+        sub = imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
+        sub_t = t_mid + sub
+        frame = self._backgrounds[c].copy()
+        radius = imaging.marker_diameter_mm / 2.0
+        capsules = tapping_hand(self.model, t_mid, marker_radius_mm=radius)
+        skin = draw_skin(frame, cam, capsules, self._skin_look)
+        for layer in self._static_layers:
+            draw_spheres(frame, cam, layer, psf_sigma_px=imaging.psf_sigma_px)
+        if self.movings:
+            self._draw_moving(frame, cam, sub_t, t_mid)
+        if imaging.nail_glint_peak > 0:
+            glints = nail_glints(
+                self.model, cam, t_mid, marker_radius_mm=radius, peak=imaging.nail_glint_peak
+            )
+            draw_spheres(frame, cam, glints, psf_sigma_px=imaging.psf_sigma_px)
+        peaks = np.where(self.occluded[c][j], 0.0, self._marker_peaks)
+        vis = composite_spheres(
+            frame,
+            cam,
+            SphereLayer(self._marker_centres(c, t_mid, sub), self._radius_mm, peaks, DISC),
+            skin,
+            psf_sigma_px=imaging.psf_sigma_px,
+            shot_noise=(self._shot_rngs[c], _SHOT_NOISE_GAIN) if imaging.noise_sigma > 0 else None,
+        )
+        self.visibility[c][j] = vis
+        self._noises[c].add_to(frame)
+        return to_uint8(frame)
+
+    def _draw_moving(
+        self, frame: NDArray[np.float32], cam: Camera, sub_t: FloatArray, t_mid: float
+    ) -> None:
+        centres = np.stack([d.positions_mm(self.model, sub_t) for d in self.movings], axis=1)
+        peaks = np.array([d.brightness(np.array([t_mid]))[0] for d in self.movings])
+        radii = np.array([d.radius_mm for d in self.movings])
+        draw_spheres(
+            frame,
+            cam,
+            SphereLayer(centres, radii, peaks, GLINT),
+            psf_sigma_px=self.imaging.psf_sigma_px,
+        )
 
     def truth_document(self, *, video_names: dict[str, str]) -> dict[str, Any]:
         """The ``truth.json`` document (``bradyscope.truth/1``)."""
@@ -544,6 +587,7 @@ class StereoRenderer:
             imaging=self.imaging,
             video_names=video_names,
             occluded=self.occluded,
+            visibility=self.visibility,
             statics=self.statics,
             movings=self.movings,
             model=self.model,
@@ -685,6 +729,7 @@ def _truth_document(
     imaging: ImagingScenario,
     video_names: dict[str, str],
     occluded: dict[str, NDArray[np.bool_]],
+    visibility: dict[str, FloatArray],
     statics: list[_StaticDistractor],
     movings: list[_MovingDistractor],
     model: TappingModel,
@@ -752,6 +797,8 @@ def _truth_document(
     kin.pop("marker_names")
     doc.update(kin)
     doc["occlusions"] = occlusions
+    # [camera][frame of that camera][marker]: share of the marker's image not hidden
+    doc["visibility"] = {c: np.round(visibility[c], 4).tolist() for c in CAMERA_NAMES}
     t = t_left
     doc["distractors"] = {
         "static": [

@@ -10,7 +10,6 @@ from core.simulation.render import (
     GLINT,
     SensorNoise,
     SphereLayer,
-    draw_capsules,
     draw_spheres,
     intensity_centroid,
     make_background,
@@ -150,23 +149,6 @@ def test_default_rig_geometry():
     assert RIG.right.center_world_mm[0] > 200
     small = default_rig(image_size=ImageSize(640, 512))
     assert small.left.K[0, 0] == pytest.approx(625.0)  # same field of view
-
-
-def test_capsules_draw_a_soft_union_of_limbs():
-    cam = RIG.left
-    canvas = np.zeros((1024, 1280), np.float32)
-    a = np.array([[-40.0, 0.0, 500.0], [-40.0, 0.0, 500.0]])
-    b = np.array([[40.0, 0.0, 500.0], [40.0, 0.0, 500.0]])  # the same capsule twice
-    draw_capsules(canvas, cam, a, b, [8.0, 8.0], level=30.0)
-    centre = cam.project([[0.0, 0.0, 500.0]])[0]
-    x, y = int(np.rint(centre[0])), int(np.rint(centre[1]))
-    assert canvas[y, x] == pytest.approx(30.0, abs=0.5)  # union, not 60
-    # 8 mm radius at 500 mm is 20 px: inside at 15 px, outside at 28 px.
-    assert canvas[y + 15, x] > 25.0
-    assert canvas[y + 28, x] < 1.0
-    assert canvas[y, x + 150] < 1.0  # beyond the end (40 mm + 8 mm = 120 px)
-    with pytest.raises(ValueError, match="same shape"):
-        draw_capsules(canvas, cam, a, b[:1], 8.0, level=30.0)
 
 
 def test_to_uint8_rounds_and_saturates():

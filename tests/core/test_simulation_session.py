@@ -268,6 +268,12 @@ def test_cli_end_to_end(tmp_path, capsys):
             "1.5",
             "--skin",
             "20",
+            "--nail-glints",
+            "90",
+            "--turn",
+            "0.0:0.3:40",
+            "--overlap",
+            "right:2.5",
         ]
     )
     assert status == 0
@@ -277,6 +283,10 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert doc["marker_names"] == ["thumb", "index", "hand"]
     assert doc["imaging"]["image_size"] == [320, 256]
     assert doc["imaging"]["skin_level"] == 20.0
+    assert doc["imaging"]["nail_glint_peak"] == 90.0
+    assert doc["scenario"]["turns"] == [[0.0, 0.3, 40.0]]
+    assert np.linalg.norm(doc["scenario"]["orientation_deg"]) > 20  # degrees: turned to overlap
+    assert len(doc["visibility"]["right"]) == 30
     assert (out / "left.mkv").is_file() and (out / "right.mkv").is_file()
     assert (out / "rig.json").is_file()
 
@@ -290,6 +300,9 @@ def test_cli_bad_input_is_one_sentence(tmp_path, capsys):
     assert "invalid scenario" in err and "Traceback" not in err
     status = cli_main(["simulate", "-o", str(tmp_path), "--occlusion", "left:pinky:0:1"])
     assert status == 2
+    status = cli_main(["simulate", "-o", str(tmp_path), "--overlap", "right:30"])
+    assert status == 2
+    assert "invalid scenario" in capsys.readouterr().err
     a_file = tmp_path / "not-a-folder"
     a_file.write_text("x")
     status = cli_main(["simulate", "-o", str(a_file), "--duration", "0.1"])
