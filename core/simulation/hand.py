@@ -125,7 +125,7 @@ TIP_BEYOND_MARKER_MM = 9.0
 
 
 def _unit(v: FloatArray) -> FloatArray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.asarray(v / np.linalg.norm(v, axis=-1, keepdims=True), dtype=np.float64)
 
 
 def nail_normals_local(model: TappingModel) -> tuple[FloatArray, FloatArray]:
