@@ -15,6 +15,7 @@ code path updates or deletes its rows.
 from __future__ import annotations
 
 from contextvars import ContextVar
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from sqlalchemy.orm import Session
@@ -29,22 +30,43 @@ client_ip_var: ContextVar[str | None] = ContextVar("client_ip", default=None)
 Action = Literal[
     "list", "read", "create", "update", "delete", "export", "login", "logout", "access"
 ]
-Outcome = Literal["success", "denied", "not_found", "invalid", "error"]
+Outcome = Literal["success", "denied", "not_found", "invalid", "error", "throttled"]
 
 ANONYMOUS: Literal["anonymous"] = ACTOR_ANONYMOUS
 """Pass as the actor when nobody is authenticated (e.g. a failed login); no ``actor_id``."""
 
 
+@dataclass(frozen=True)
+class SystemActor:
+    """The system acting for a named operator (e.g. ``cli:root`` for an ``admin`` command).
+
+    Recorded with the actor type ``system`` and ``name`` as its ``actor_id``.
+    """
+
+    name: str
+
+
+AnyActor = Actor | SystemActor | Literal["anonymous"] | None
+
+
 def _event(
-    actor: Actor | Literal["anonymous"] | None,
+    actor: AnyActor,
     action: str,
     resource_type: str,
     resource_id: Any,
     patient_id: int | None,
     outcome: str,
 ) -> AuditEvent:
-    actor_type: str = "system" if actor is None else ANONYMOUS if actor == ANONYMOUS else actor.type
-    actor_id = None if actor is None or actor == ANONYMOUS else str(actor.id)
+    actor_type: str
+    actor_id: str | None
+    if actor is None:
+        actor_type, actor_id = "system", None
+    elif isinstance(actor, SystemActor):
+        actor_type, actor_id = "system", actor.name[:64]
+    elif actor == ANONYMOUS:
+        actor_type, actor_id = ANONYMOUS, None
+    else:
+        actor_type, actor_id = actor.type, str(actor.id)
     return AuditEvent(
         actor_type=actor_type,
         actor_id=actor_id,
@@ -60,7 +82,7 @@ def _event(
 
 def audit(
     db: Session,
-    actor: Actor | Literal["anonymous"] | None,
+    actor: AnyActor,
     action: Action | str,
     resource_type: str,
     resource_id: Any = None,
@@ -99,7 +121,7 @@ def audit(
 
 def audit_failure(
     db: Session,
-    actor: Actor | Literal["anonymous"] | None,
+    actor: AnyActor,
     action: Action | str,
     resource_type: str,
     resource_id: Any = None,

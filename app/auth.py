@@ -14,10 +14,13 @@ Two kinds of callers, one :class:`Actor`:
   session's CSRF token, in the ``X-CSRF-Token`` header or a ``csrf_token``
   form field (403 otherwise). Users have every data scope; admins also
   ``admin``.
-- **Login throttling**: after ``settings.login_max_failures`` failed attempts
-  for one e-mail address within ``settings.login_window_s`` (or four times as
-  many from one IP address), further attempts are refused with 429 until the
-  window has passed, even with the right password.
+- **Login throttling** (:mod:`app.throttle`): growing delays per account and
+  per (address, account) pair, counted atomically before the password is
+  checked; 429 with ``Retry-After`` while an attempt must wait.
+- A browser session ends after ``settings.session_ttl_s`` (absolute) or after
+  ``settings.session_idle_s`` without a request (idle).
+- :func:`reauthenticate` checks a logged-in user's password again (for
+  signing), through the same throttle.
 
 Dependencies (``Annotated`` aliases for route signatures): :data:`SessionDep`,
 :data:`CurrentActor`, :data:`CurrentUser`, :data:`OptionalUser`, and
@@ -35,20 +38,20 @@ from datetime import timedelta
 from typing import Annotated, Any
 
 from fastapi import Depends, Request, Response
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app import throttle
 from app.actors import ADMIN_SCOPE, ROLE_SCOPES, Actor
 from app.apikeys import SCOPES, parse_api_key, verify_api_key
 from app.audit import ANONYMOUS, audit, audit_failure
 from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
-from app.models import ApiClient, BrowserSession, LoginAttempt, User, utcnow
+from app.models import ApiClient, BrowserSession, User, utcnow
 from app.passwords import DUMMY_HASH, hash_password, needs_rehash, verify_password
 
 SESSION_COOKIE = "bradyscope_session"
 CSRF_HEADER = "X-CSRF-Token"
 CSRF_FORM_FIELD = "csrf_token"
-IP_FAILURE_FACTOR = 4  # one IP may fail this many times more than one e-mail address
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "TRACE"})
 _TOUCH_INTERVAL = timedelta(minutes=1)  # last_used/last_seen are updated at most this often
 
@@ -73,13 +76,8 @@ def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def email_hash(email: str) -> str:
-    """SHA-256 (hex) of the normalised e-mail address, as stored in ``LoginAttempt``."""
-    return _sha256(normalise_email(email))
-
-
-def normalise_email(email: str) -> str:
-    return email.strip().lower()
+email_hash = throttle.email_hash
+normalise_email = throttle.normalise_email
 
 
 def _client_ip(request: Request) -> str | None:
@@ -94,7 +92,11 @@ def _settings(request: Request) -> Any:
 
 
 def authenticate_api_key(db: Session, token: str) -> Actor:
-    """The API client owning ``token``; :class:`AuthenticationError` if unknown or revoked."""
+    """The API client owning ``token``.
+
+    Raises :class:`AuthenticationError` if the key is unknown, revoked, expired,
+    or its owner's account was deactivated.
+    """
     prefix = parse_api_key(token)
     if prefix is None:
         raise AuthenticationError(
@@ -107,6 +109,17 @@ def authenticate_api_key(db: Session, token: str) -> Actor:
     if client.revoked_at is not None:
         raise AuthenticationError("The API key was revoked; ask the administrator for a new one.")
     now = utcnow()
+    if client.expires_at is not None and client.expires_at <= now:
+        raise AuthenticationError(
+            f"The API key expired on {client.expires_at:%Y-%m-%d}; ask the administrator for a new one."
+        )
+    if client.owner_user_id is not None:
+        owner = db.get(User, client.owner_user_id)
+        if owner is None or not owner.is_active:
+            raise AuthenticationError(
+                "The API key's owner no longer has an active account; ask the administrator"
+                " for a new key."
+            )
     if client.last_used_at is None or now - client.last_used_at > _TOUCH_INTERVAL:
         client.last_used_at = now  # committed with the request's use case, if any
     return Actor(
@@ -120,12 +133,13 @@ def authenticate_api_key(db: Session, token: str) -> Actor:
 # --------------------------------------------------------------------------- browser sessions
 
 
-def _browser_session(db: Session, token: str) -> BrowserSession | None:
+def _browser_session(db: Session, token: str, idle_s: float | None) -> BrowserSession | None:
     row = db.get(BrowserSession, _sha256(token))
     if row is None:
         return None
     now = utcnow()
-    if row.expires_at <= now:
+    idle = idle_s is not None and now - row.last_seen_at > timedelta(seconds=idle_s)
+    if row.expires_at <= now or idle:
         db.delete(row)
         db.commit()
         return None
@@ -134,9 +148,14 @@ def _browser_session(db: Session, token: str) -> BrowserSession | None:
     return row
 
 
-def authenticate_session_cookie(db: Session, token: str) -> Actor | None:
-    """The logged-in user of a session cookie, or ``None`` if absent, expired or inactive."""
-    row = _browser_session(db, token)
+def authenticate_session_cookie(
+    db: Session, token: str, *, idle_s: float | None = None
+) -> Actor | None:
+    """The logged-in user of a session cookie, or ``None`` if absent, expired or inactive.
+
+    ``idle_s``: a session unused this long has ended too (``settings.session_idle_s``).
+    """
+    row = _browser_session(db, token, idle_s)
     if row is None:
         return None
     user = db.get(User, row.user_id)
@@ -182,6 +201,13 @@ async def check_csrf(request: Request, actor: Actor) -> None:
 # --------------------------------------------------------------------------- dependencies
 
 
+def _cookie_actor(request: Request, db: Session) -> Actor | None:
+    cookie = request.cookies.get(SESSION_COOKIE)
+    if not cookie:
+        return None
+    return authenticate_session_cookie(db, cookie, idle_s=float(_settings(request).session_idle_s))
+
+
 def _authenticate(request: Request, db: SessionDep) -> Actor:
     # Synchronous (FastAPI runs it in the thread pool): it queries the database.
     authorization = request.headers.get("authorization")
@@ -192,8 +218,7 @@ def _authenticate(request: Request, db: SessionDep) -> Actor:
                 "Use 'Authorization: Bearer <api key>' to call the bradyscope API."
             )
         return authenticate_api_key(db, token.strip())
-    cookie = request.cookies.get(SESSION_COOKIE)
-    actor = authenticate_session_cookie(db, cookie) if cookie else None
+    actor = _cookie_actor(request, db)
     if actor is None:
         raise AuthenticationError(
             "Authentication required: send an API key ('Authorization: Bearer ...') or log in."
@@ -219,8 +244,7 @@ CurrentActor = Annotated[Actor, Depends(get_actor)]
 
 
 def _authenticate_user(request: Request, db: SessionDep) -> Actor:
-    cookie = request.cookies.get(SESSION_COOKIE)
-    actor = authenticate_session_cookie(db, cookie) if cookie else None
+    actor = _cookie_actor(request, db)
     if actor is None:
         raise AuthenticationError("Please log in.")
     return actor
@@ -242,8 +266,7 @@ CurrentUser = Annotated[Actor, Depends(get_current_user)]
 
 def get_optional_user(request: Request, db: SessionDep) -> Actor | None:
     """The logged-in browser user, or ``None`` (for the login page itself)."""
-    cookie = request.cookies.get(SESSION_COOKIE)
-    return authenticate_session_cookie(db, cookie) if cookie else None
+    return _cookie_actor(request, db)
 
 
 OptionalUser = Annotated[Actor | None, Depends(get_optional_user)]
@@ -288,42 +311,62 @@ RigWriter = Annotated[Actor, Depends(require_scope("rigs:write"))]
 # --------------------------------------------------------------------------- login / logout
 
 
-def _check_throttle(db: Session, settings: Any, e_hash: str, ip: str | None) -> None:
-    since = utcnow() - timedelta(seconds=float(settings.login_window_s))
-    last_success = db.scalar(
-        select(func.max(LoginAttempt.at)).where(
-            LoginAttempt.email_hash == e_hash, LoginAttempt.success.is_(True)
-        )
-    )
-    window_start = max(since, last_success) if last_success is not None else since
-    failures = db.scalar(
-        select(func.count())
-        .select_from(LoginAttempt)
-        .where(
-            LoginAttempt.email_hash == e_hash,
-            LoginAttempt.success.is_(False),
-            LoginAttempt.at > window_start,
-        )
-    )
-    ip_failures = 0
-    if ip is not None:
-        ip_failures = (
-            db.scalar(
-                select(func.count())
-                .select_from(LoginAttempt)
-                .where(
-                    LoginAttempt.ip == ip, LoginAttempt.success.is_(False), LoginAttempt.at > since
-                )
-            )
-            or 0
-        )
-    limit = int(settings.login_max_failures)
-    if (failures or 0) >= limit or ip_failures >= limit * IP_FAILURE_FACTOR:
-        minutes = max(1, round(float(settings.login_window_s) / 60))
-        raise RateLimitedError(
-            f"Too many failed logins; wait {minutes} minutes before trying again"
-            " or ask an administrator to reset the password."
-        )
+def _check_password(
+    db: Session, settings: Any, *, email: str, password: str, ip: str | None
+) -> User:
+    """The active user whose password this is (throttled); audits and raises otherwise."""
+    try:
+        throttle.admit_attempt(db, settings, email, ip)  # commits the counted attempt
+    except RateLimitedError:
+        audit_failure(db, ANONYMOUS, "login", "user", None, outcome="throttled")
+        raise
+    user = db.scalar(select(User).where(User.email == normalise_email(email)))
+    # Verify against a dummy hash for unknown users: same time, no account enumeration.
+    ok = verify_password(user.password_hash if user else DUMMY_HASH, password)
+    if not ok or user is None or not user.is_active:
+        audit(db, ANONYMOUS, "login", "user", user.id if user else None, outcome="denied")
+        db.commit()
+        raise AuthenticationError("The e-mail address or the password is wrong.")
+    throttle.record_success(db, settings, email, ip)
+    throttle.forget_stale(db, settings)
+    return user
+
+
+def reauthenticate(
+    db: Session, settings: Any, actor: Actor, password: str, *, ip: str | None = None
+) -> User:
+    """Check the logged-in user's password again (e.g. before signing a report).
+
+    Goes through the login throttle of that account and address, and audits the
+    check (``reauthenticate``; ``denied`` on a wrong password). Commits.
+
+    Raises
+    ------
+    PermissionDeniedError
+        ``actor`` is not a browser user (API keys cannot re-authenticate).
+    RateLimitedError
+        Too many wrong passwords (429).
+    AuthenticationError
+        The password is wrong, or the account was deactivated (401).
+    """
+    if actor.type != "user":
+        raise PermissionDeniedError("Only a logged-in person can confirm with a password.")
+    user = db.get(User, actor.id)
+    if user is None or not user.is_active:
+        raise AuthenticationError("This account is no longer active.")
+    try:
+        throttle.admit_attempt(db, settings, user.email, ip)
+    except RateLimitedError:
+        audit_failure(db, actor, "reauthenticate", "user", user.id, outcome="throttled")
+        raise
+    if not verify_password(user.password_hash, password):
+        audit(db, actor, "reauthenticate", "user", user.id, outcome="denied")
+        db.commit()
+        raise AuthenticationError("The password is wrong.")
+    throttle.record_success(db, settings, user.email, ip)
+    audit(db, actor, "reauthenticate", "user", user.id)
+    db.commit()
+    return user
 
 
 @dataclass(frozen=True)
@@ -352,7 +395,7 @@ def login_user(
     ----------
     db : Session
     settings : app.settings.Settings
-        For ``login_max_failures``, ``login_window_s`` and ``session_ttl_s``.
+        For the throttle (``login_*``) and ``session_ttl_s``.
     email, password : str
     ip, user_agent : str, optional
         Recorded with the attempt and the session.
@@ -363,21 +406,11 @@ def login_user(
     Raises
     ------
     RateLimitedError
-        Too many recent failures for this e-mail address or IP (429).
+        The account, or this address for this account, must wait (429).
     AuthenticationError
         Wrong e-mail or password, or an inactive account (401).
     """
-    e_hash = email_hash(email)
-    _check_throttle(db, settings, e_hash, ip)
-    user = db.scalar(select(User).where(User.email == normalise_email(email)))
-    # Verify against a dummy hash for unknown users: same time, no account enumeration.
-    ok = verify_password(user.password_hash if user else DUMMY_HASH, password)
-    ok = ok and user is not None and user.is_active
-    db.add(LoginAttempt(email_hash=e_hash, ip=ip, success=bool(ok)))
-    if not ok or user is None:
-        audit(db, ANONYMOUS, "login", "user", user.id if user else None, outcome="denied")
-        db.commit()
-        raise AuthenticationError("The e-mail address or the password is wrong.")
+    user = _check_password(db, settings, email=email, password=password, ip=ip)
     if replace_token:
         old = db.get(BrowserSession, _sha256(replace_token))
         if old is not None:

@@ -67,9 +67,17 @@ class UnsupportedMediaError(AppError):
 
 
 class RateLimitedError(AppError):
-    """Too many attempts (for example logins); try again later."""
+    """Too many attempts (for example logins); try again later.
+
+    ``retry_after_s`` becomes the ``Retry-After`` header (None: no time can be
+    given, e.g. an account locked until an administrator unlocks it).
+    """
 
     http_status = 429
+
+    def __init__(self, message: str, *, retry_after_s: int | None = None) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
 
 
 class StorageError(AppError):
@@ -82,6 +90,16 @@ class ServiceUnavailableError(AppError):
     """The database or another dependency is not reachable right now."""
 
     http_status = 503
+
+
+class StorageReadOnlyError(ServiceUnavailableError):
+    """The data directory or the database refuses writes (read-only file system)."""
+
+
+class InsufficientStorageError(AppError):
+    """The disk holding the data directory or the database is full (HTTP 507)."""
+
+    http_status = 507
 
 
 def http_status_for(exc: BaseException) -> int:
@@ -98,6 +116,7 @@ __all__ = [
     "AuthenticationError",
     "CalibrationMissingError",
     "ConflictError",
+    "InsufficientStorageError",
     "InvalidRequestError",
     "NotFoundError",
     "PayloadTooLargeError",
@@ -105,6 +124,7 @@ __all__ = [
     "RateLimitedError",
     "ServiceUnavailableError",
     "StorageError",
+    "StorageReadOnlyError",
     "UnsupportedMediaError",
     "http_status_for",
 ]

@@ -26,11 +26,12 @@ from sqlalchemy.orm import sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from app import db as app_db
 from app.api import api_router
 from app.audit import client_ip_var, request_id_var
-from app.errors import AppError, PayloadTooLargeError
+from app.errors import AppError, PayloadTooLargeError, RateLimitedError
 from app.settings import Settings, get_settings
 from app.storage import Storage
 from app.web import router as web_router
@@ -201,7 +202,11 @@ def _install_error_handlers(app: FastAPI) -> None:
             return RedirectResponse(f"/login?next={target}", status_code=303)
         if status >= 500:
             log.error("request %s failed: %s", request_id_var.get(), exc, exc_info=exc)
-        return _error(status, str(exc) or type(exc).__name__)
+        response = _error(status, str(exc) or type(exc).__name__)
+        retry_after = getattr(exc, "retry_after_s", None)
+        if isinstance(exc, RateLimitedError) and retry_after is not None:
+            response.headers["Retry-After"] = str(int(retry_after))
+        return response
 
     @app.exception_handler(BradyscopeError)
     async def domain_error(request: Request, exc: BradyscopeError) -> JSONResponse:
@@ -286,6 +291,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(
         SecurityHeadersMiddleware, hsts=bool(getattr(settings, "secure_cookies", False))
     )
+    if settings.trusted_proxy_list:
+        # Outermost: the client address every layer sees (throttle, audit) is the one the
+        # trusted proxy forwarded. From any other peer, X-Forwarded-* headers are ignored.
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=settings.trusted_proxy_list)
 
     app.include_router(api_router, prefix=API_PREFIX)
 

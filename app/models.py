@@ -178,6 +178,10 @@ class ApiClient(Base):
     revoked_at: Mapped[datetime | None]
     last_used_at: Mapped[datetime | None]
     created_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+    owner_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+    """The person answerable for the key; the key stops working when they are deactivated."""
+    expires_at: Mapped[datetime | None]
+    """The key is refused from this time on (NULL: keys made before expiry dates existed)."""
 
 
 class BrowserSession(Base):
@@ -197,20 +201,28 @@ class BrowserSession(Base):
     user: Mapped[User] = relationship()
 
 
-class LoginAttempt(Base):
-    """One login attempt, for throttling. ``email_hash`` = SHA-256 (hex) of the lower-cased email."""
+class LoginThrottle(Base):
+    """The failure streak of one account, or of one (address, account) pair (see ``app.throttle``).
 
-    __tablename__ = "login_attempts"
-    __table_args__ = (
-        Index("ix_login_attempts_email_hash_at", "email_hash", "at"),
-        Index("ix_login_attempts_ip_at", "ip", "at"),
-    )
+    ``key`` is the SHA-256 (hex) of ``"account|<email_hash>"`` or of
+    ``"pair|<ip>|<email_hash>"``; ``email_hash`` is the SHA-256 (hex) of the
+    lower-cased e-mail address (so ``admin unlock`` finds every row of an
+    account, and unknown addresses are throttled like known ones).
+    ``failures`` counts the attempts admitted since the last success; an
+    attempt is counted when it is admitted, before its password is checked,
+    so that concurrent attempts cannot all pass the limit.
+    """
 
-    id: Mapped[int] = mapped_column(primary_key=True)
-    at: Mapped[datetime] = mapped_column(default=utcnow)
-    email_hash: Mapped[str] = mapped_column(String(64))
+    __tablename__ = "login_throttles"
+
+    key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    email_hash: Mapped[str] = mapped_column(String(64), index=True)
     ip: Mapped[str | None] = mapped_column(String(45))
-    success: Mapped[bool] = mapped_column(Boolean)
+    """The address of a pair's row; NULL for the account's own row."""
+    failures: Mapped[int] = mapped_column(Integer, default=0)
+    blocked_until: Mapped[datetime | None]
+    """No attempt is admitted before this time (the growing delay)."""
+    last_attempt_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
 
 
 # --------------------------------------------------------------------------- patients
@@ -560,7 +572,7 @@ __all__ = [
     "BrowserSession",
     "Calibration",
     "Job",
-    "LoginAttempt",
+    "LoginThrottle",
     "Patient",
     "RecordingSession",
     "Result",

@@ -11,6 +11,7 @@ environment.
 
 from __future__ import annotations
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -46,9 +47,56 @@ class Settings(BaseSettings):
     secure_cookies: bool = Field(
         default=False, description="Set the Secure flag on cookies (enable behind HTTPS)."
     )
-    session_ttl_s: float = Field(default=8 * 3600.0, gt=0, description="Browser session life.")
-    login_max_failures: int = Field(default=5, ge=1)
-    login_window_s: float = Field(default=15 * 60.0, gt=0)
+    session_ttl_s: float = Field(
+        default=8 * 3600.0, gt=0, description="Absolute life of a browser login (s)."
+    )
+    session_idle_s: float = Field(
+        default=30 * 60.0, gt=0, description="A browser login unused this long ends (s)."
+    )
+    login_max_failures: int = Field(
+        default=5,
+        ge=1,
+        description="Failed logins from one address for one account before delays begin "
+        "(twice as many for the account from all addresses together).",
+    )
+    login_delay_s: float = Field(
+        default=30.0, gt=0, description="First delay after the free failures; doubles each time."
+    )
+    login_max_delay_s: float = Field(
+        default=15 * 60.0, gt=0, description="Longest delay between two login attempts."
+    )
+    login_lock_after_failures: int = Field(
+        default=100,
+        ge=10,
+        description="Consecutive failures that lock an account until 'admin unlock' "
+        "(NIST SP 800-63B: at most 100).",
+    )
+    login_window_s: float = Field(
+        default=24 * 3600.0,
+        gt=0,
+        description="A failure streak (below the lock) is forgotten after this long without attempts.",
+    )
+    trusted_proxies: str = Field(
+        default="",
+        description="Comma-separated addresses or networks of reverse proxies whose "
+        "X-Forwarded-For/-Proto headers are believed; empty: none (the socket's address counts).",
+    )
+    password_min_length: int = Field(
+        default=15, ge=8, le=64, description="NIST SP 800-63B-4: 15 for a single factor."
+    )
+    api_key_days: int = Field(
+        default=365, ge=1, description="Default life of a new API key (days)."
+    )
+    retention_days: int | None = Field(
+        default=None,
+        ge=1,
+        description="Erase a patient this many days after their last recording "
+        "('admin apply-retention'); unset: keep until erased by hand.",
+    )
+    audit_key_file: Path | None = Field(
+        default=None,
+        description="Secret key of the audit hash chain; default <data_dir>/audit.key.",
+    )
     sqlite_busy_timeout_ms: int = Field(default=30_000, ge=0)
     migration_lock_timeout_s: float = Field(default=300.0, gt=0)
     log_level: str = Field(default="INFO")
@@ -57,6 +105,30 @@ class Settings(BaseSettings):
     @classmethod
     def _absolute(cls, value: Path) -> Path:
         return value.expanduser().resolve()
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _proxy_addresses(cls, value: str) -> str:
+        items = [item.strip() for item in value.split(",") if item.strip()]
+        for item in items:
+            try:
+                ipaddress.ip_network(item, strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"BRADYSCOPE_TRUSTED_PROXIES holds {item!r}, which is not an IP address or "
+                    "network; list the proxies' addresses, e.g. 10.0.0.5,10.0.1.0/24"
+                ) from None
+        return ",".join(items)
+
+    @property
+    def trusted_proxy_list(self) -> list[str]:
+        """The trusted proxies' addresses and networks (empty: trust no forwarded header)."""
+        return [item for item in self.trusted_proxies.split(",") if item]
+
+    @property
+    def audit_key_path(self) -> Path:
+        """Where the audit chain's secret key is kept."""
+        return self.audit_key_file or self.data_dir / "audit.key"
 
     @property
     def effective_database_url(self) -> str:

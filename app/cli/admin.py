@@ -6,10 +6,14 @@ start-up lock), so it works on a fresh data directory.
 - ``create-user EMAIL --role clinician|admin``: the password comes from
   ``BRADYSCOPE_PASSWORD`` or is asked twice at the prompt (never an argument,
   which would end up in the shell history).
-- ``set-password EMAIL``: same password sources.
-- ``create-api-key NAME [--scopes S ...]``: prints the new key once, on stdout;
-  only its hash is stored.
-- ``revoke-api-key NAME``, ``list-api-keys``, ``migrate``.
+- ``set-password EMAIL``: same password sources; re-activates the account,
+  ends its browser sessions and lifts any login delay or lock.
+- ``list-users``, ``deactivate-user EMAIL`` (ends its sessions; its API keys
+  stop working), ``set-role EMAIL ROLE``, ``unlock EMAIL`` (lifts the login
+  delays and lock of an account, from every address).
+- ``create-api-key NAME [--scopes S ...] [--owner EMAIL] [--expires-days N]``:
+  prints the new key once, on stdout; only its hash is stored.
+- ``revoke-api-key NAME``, ``list-api-keys`` (owner, expiry, last use), ``migrate``.
 - ``check-migrations``: exit 2 if ``app/models.py`` and ``migrations/`` disagree
   (``alembic check`` against the migrated database).
 """
@@ -21,13 +25,20 @@ import getpass
 import os
 import re
 import sys
+from datetime import timedelta
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from app.errors import ConflictError, InvalidRequestError, NotFoundError
 from app.settings import Settings, settings_with
+
+if TYPE_CHECKING:
+    from app.audit import SystemActor
+    from app.models import User
 
 _EMAIL_RE = re.compile(r"^[^@\s]+@[^@\s]+\.[^@\s]+$")
 PASSWORD_ENV = "BRADYSCOPE_PASSWORD"
@@ -53,8 +64,36 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     pw.add_argument("email")
     pw.set_defaults(admin_func=set_password)
 
+    lu = asub.add_parser("list-users", help="list accounts: role, state, last login, login delays")
+    lu.set_defaults(admin_func=list_users)
+
+    du = asub.add_parser(
+        "deactivate-user", help="deactivate an account (logs it out; its API keys stop working)"
+    )
+    du.add_argument("email")
+    du.set_defaults(admin_func=deactivate_user)
+
+    sr = asub.add_parser("set-role", help="change an account's role")
+    sr.add_argument("email")
+    sr.add_argument("role", choices=ROLES)
+    sr.set_defaults(admin_func=set_role)
+
+    ul = asub.add_parser("unlock", help="lift the login delays and lock of an account")
+    ul.add_argument("email")
+    ul.set_defaults(admin_func=unlock_user)
+
     k = asub.add_parser("create-api-key", help="create an API client; prints its key once")
     k.add_argument("name")
+    k.add_argument(
+        "--owner", default=None, metavar="EMAIL", help="the user answerable for this key"
+    )
+    k.add_argument(
+        "--expires-days",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the key stops working after N days (default BRADYSCOPE_API_KEY_DAYS, 365)",
+    )
     k.add_argument(
         "--scopes",
         nargs="+",
@@ -91,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     return int(args.admin_func(settings, args) or 0)
 
 
-def _read_password() -> str:
+def _read_password(settings: Settings, email: str) -> str:
     from app.passwords import check_password_strength
 
     password = os.environ.get(PASSWORD_ENV)
@@ -103,8 +142,19 @@ def _read_password() -> str:
         password = getpass.getpass("Password: ")
         if getpass.getpass("Repeat the password: ") != password:
             raise InvalidRequestError("the two passwords differ; run the command again.")
-    check_password_strength(password)
+    check_password_strength(password, email=email, min_length=settings.password_min_length)
     return password
+
+
+def cli_actor() -> SystemActor:
+    """Who acts on the command line: the system, named after the operating-system user."""
+    from app.audit import SystemActor
+
+    try:
+        who = getpass.getuser()
+    except (KeyError, OSError):
+        who = str(os.getuid())
+    return SystemActor(f"cli:{who}"[:64])
 
 
 def _normal_email(email: str) -> str:
@@ -120,7 +170,7 @@ def create_user(settings: Settings, args: argparse.Namespace) -> int:
     from app.passwords import hash_password
 
     email = _normal_email(args.email)
-    password = _read_password()
+    password = _read_password(settings, email)
     try:
         with session_scope(settings) as db:
             if db.scalar(select(User.id).where(User.email == email)) is not None:
@@ -141,56 +191,165 @@ def create_user(settings: Settings, args: argparse.Namespace) -> int:
     return 0
 
 
+def _user(db: Session, email: str) -> User:
+    from app.models import User
+
+    user = db.scalars(select(User).where(User.email == email)).first()
+    if user is None:
+        raise NotFoundError(f"there is no user {email}; create it with 'admin create-user'.")
+    return user
+
+
+def _end_sessions(db: Session, user_id: int) -> int:
+    from app.models import BrowserSession
+
+    rows = list(db.scalars(select(BrowserSession).where(BrowserSession.user_id == user_id)))
+    for row in rows:
+        db.delete(row)
+    return len(rows)
+
+
+def _audit_admin(db: Session, action: str, user_id: int) -> None:
+    """An account change made on the command line, in the audit trail (actor: system)."""
+    from app.audit import audit
+
+    audit(db, cli_actor(), action, "user", user_id)
+
+
 def set_password(settings: Settings, args: argparse.Namespace) -> int:
+    from app import throttle
     from app.db import session_scope
-    from app.models import BrowserSession, User
     from app.passwords import hash_password
 
     email = _normal_email(args.email)
-    password = _read_password()
+    password = _read_password(settings, email)
     with session_scope(settings) as db:
-        user = db.scalars(select(User).where(User.email == email)).first()
-        if user is None:
-            raise NotFoundError(f"there is no user {email}; create it with 'admin create-user'.")
+        user = _user(db, email)
         user.password_hash = hash_password(password)
         user.is_active = True
         # Log the user out everywhere: the old password may be known to someone else.
-        for session in db.scalars(select(BrowserSession).where(BrowserSession.user_id == user.id)):
-            db.delete(session)
+        _end_sessions(db, user.id)
+        # Guesses at the old password say nothing about the new one.
+        throttle.unlock(db, email)
+        _audit_admin(db, "set_password", user.id)
     print(f"password of {email} changed", file=sys.stderr)
+    return 0
+
+
+def list_users(settings: Settings, args: argparse.Namespace) -> int:
+    from app import throttle
+    from app.db import session_scope
+    from app.models import User, utcnow
+
+    now = utcnow()
+    with session_scope(settings) as db:
+        print("email\trole\tstate\tlast login\tlogin throttle")
+        for user in db.scalars(select(User).order_by(User.email)):
+            state = "active" if user.is_active else "deactivated"
+            last = f"{user.last_login_at:%Y-%m-%d %H:%M}" if user.last_login_at else "never"
+            streak = throttle.account_state(db, settings, user.email)
+            if streak is None or streak.failures == 0:
+                held = "-"
+            elif streak.locked:
+                held = f"LOCKED after {streak.failures} failures (admin unlock)"
+            elif streak.blocked_until is not None and streak.blocked_until > now:
+                held = (
+                    f"{streak.failures} failures, waits until {streak.blocked_until:%H:%M:%S} UTC"
+                )
+            else:
+                held = f"{streak.failures} failures"
+            print(f"{user.email}\t{user.role}\t{state}\t{last}\t{held}")
+    return 0
+
+
+def deactivate_user(settings: Settings, args: argparse.Namespace) -> int:
+    from app.db import session_scope
+
+    email = _normal_email(args.email)
+    with session_scope(settings) as db:
+        user = _user(db, email)
+        user.is_active = False
+        ended = _end_sessions(db, user.id)
+        _audit_admin(db, "deactivate", user.id)
+    print(
+        f"{email} deactivated ({ended} browser session(s) ended; API keys it owns stop working);"
+        " 'admin set-password' re-activates it",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def set_role(settings: Settings, args: argparse.Namespace) -> int:
+    from app.db import session_scope
+
+    email = _normal_email(args.email)
+    with session_scope(settings) as db:
+        user = _user(db, email)
+        before = user.role
+        user.role = args.role
+        # A role change takes effect at once: the sessions carry the old scopes' CSRF state.
+        _end_sessions(db, user.id)
+        _audit_admin(db, f"set_role:{args.role}", user.id)
+    print(f"{email}: role {before} -> {args.role} (logged out everywhere)", file=sys.stderr)
+    return 0
+
+
+def unlock_user(settings: Settings, args: argparse.Namespace) -> int:
+    from app import throttle
+    from app.db import session_scope
+    from app.models import User
+
+    email = _normal_email(args.email)
+    with session_scope(settings) as db:
+        removed = throttle.unlock(db, email)
+        user = db.scalars(select(User).where(User.email == email)).first()
+        if user is not None:
+            _audit_admin(db, "unlock", user.id)
+    what = "lifted" if removed else "none was held"
+    print(f"login delays and lock of {email}: {what}", file=sys.stderr)
     return 0
 
 
 def create_api_key(settings: Settings, args: argparse.Namespace) -> int:
     from app.apikeys import generate_api_key, hash_api_key
     from app.db import session_scope
-    from app.models import ApiClient
+    from app.models import ApiClient, utcnow
 
     name = args.name.strip()
     if not name or len(name) > 100:
         raise InvalidRequestError("give the API client a name of 1 to 100 characters.")
+    days = settings.api_key_days if args.expires_days is None else args.expires_days
+    if not 1 <= days <= 3650:
+        raise InvalidRequestError("--expires-days must be between 1 and 3650.")
+    expires_at = utcnow() + timedelta(days=days)
     key, prefix = generate_api_key()
     try:
         with session_scope(settings) as db:
+            owner_id = _user(db, _normal_email(args.owner)).id if args.owner else None
             if db.scalar(select(ApiClient.id).where(ApiClient.name == name)) is not None:
                 raise ConflictError(
                     f"an API client named {name!r} already exists; choose another name or "
                     "revoke it first."
                 )
-            db.add(
-                ApiClient(
-                    name=name,
-                    key_prefix=prefix,
-                    key_hash=hash_api_key(key),
-                    scopes=sorted(set(args.scopes)),
-                )
+            client = ApiClient(
+                name=name,
+                key_prefix=prefix,
+                key_hash=hash_api_key(key),
+                scopes=sorted(set(args.scopes)),
+                owner_user_id=owner_id,
+                expires_at=expires_at,
             )
+            db.add(client)
+            db.flush()
+            from app.audit import audit
+
+            audit(db, cli_actor(), "create", "api_client", client.id)
     except IntegrityError as exc:
         raise ConflictError(f"an API client named {name!r} already exists.") from exc
     print(key)
     print(
-        f"API key for {name!r} (scopes: {', '.join(sorted(set(args.scopes)))}). It is shown "
-        "only now; store it safely.",
+        f"API key for {name!r} (scopes: {', '.join(sorted(set(args.scopes)))}), valid until"
+        f" {expires_at:%Y-%m-%d}. It is shown only now; store it safely.",
         file=sys.stderr,
     )
     return 0
@@ -206,18 +365,39 @@ def revoke_api_key(settings: Settings, args: argparse.Namespace) -> int:
             raise NotFoundError(f"there is no API client named {args.name!r}.")
         if client.revoked_at is None:
             client.revoked_at = utcnow()
+            from app.audit import audit
+
+            audit(db, cli_actor(), "revoke", "api_client", client.id)
     print(f"API key of {args.name!r} revoked", file=sys.stderr)
     return 0
 
 
 def list_api_keys(settings: Settings, args: argparse.Namespace) -> int:
     from app.db import session_scope
-    from app.models import ApiClient
+    from app.models import ApiClient, User, utcnow
 
+    now = utcnow()
     with session_scope(settings) as db:
+        print("name\tkey\tstate\towner\texpires\tlast used\tscopes")
         for c in db.scalars(select(ApiClient).order_by(ApiClient.name)):
-            state = f"revoked {c.revoked_at:%Y-%m-%d}" if c.revoked_at else "active"
-            print(f"{c.name}\tbsk_{c.key_prefix}_…\t{state}\t{' '.join(c.scopes)}")
+            if c.revoked_at:
+                state = f"revoked {c.revoked_at:%Y-%m-%d}"
+            elif c.expires_at is not None and c.expires_at <= now:
+                state = "expired"
+            else:
+                state = "active"
+            owner = db.get(User, c.owner_user_id) if c.owner_user_id else None
+            owner_text = (
+                "-"
+                if owner is None
+                else owner.email + ("" if owner.is_active else " (deactivated)")
+            )
+            expires = f"{c.expires_at:%Y-%m-%d}" if c.expires_at else "never"
+            used = f"{c.last_used_at:%Y-%m-%d %H:%M}" if c.last_used_at else "never"
+            print(
+                f"{c.name}\tbsk_{c.key_prefix}_…\t{state}\t{owner_text}\t{expires}\t{used}"
+                f"\t{' '.join(c.scopes)}"
+            )
     return 0
 
 

@@ -82,6 +82,26 @@ def start_embedded_workers(
     return threads
 
 
+def uvicorn_config(app: Any, *, host: str, port: int, verbose: bool = False) -> Any:
+    """uvicorn's settings for the app: no proxy headers of its own.
+
+    uvicorn would believe ``X-Forwarded-For`` from any loopback client
+    (``proxy_headers`` with its default ``FORWARDED_ALLOW_IPS``); the app honours
+    them itself, only from ``BRADYSCOPE_TRUSTED_PROXIES`` (``app.main.create_app``).
+    """
+    import uvicorn
+
+    return uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level="debug" if verbose else "info",
+        proxy_headers=False,
+        forwarded_allow_ips="",
+        server_header=False,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -111,14 +131,7 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    config = uvicorn.Config(
-        app,
-        host=args.host,
-        port=args.port,
-        log_level="debug" if args.verbose else "info",
-        proxy_headers=True,
-        server_header=False,
-    )
+    config = uvicorn_config(app, host=args.host, port=args.port, verbose=args.verbose)
 
     # uvicorn handles SIGINT/SIGTERM itself, then re-raises the signal once it has shut
     # down; these handlers receive it so that the embedded workers stop cleanly too.

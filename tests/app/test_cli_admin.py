@@ -32,7 +32,7 @@ def _db(data_dir):
 
 
 def test_console_script_creates_user_on_fresh_data_dir(fresh_dir):
-    env = {**os.environ, "BRADYSCOPE_PASSWORD": "s3cret-pass"}
+    env = {**os.environ, "BRADYSCOPE_PASSWORD": "amber kettle sunrise"}
     bin_dir = os.path.dirname(sys.executable)
     proc = subprocess.run(
         [
@@ -54,12 +54,12 @@ def test_console_script_creates_user_on_fresh_data_dir(fresh_dir):
         user = db.scalars(select(User)).one()
     assert (user.email, user.role, user.is_active) == ("dr.who@clinic.org", "clinician", True)
     assert user.password_hash.startswith("$argon2id$")
-    assert verify_password(user.password_hash, "s3cret-pass")
-    assert not verify_password(user.password_hash, "wrong-pass")
+    assert verify_password(user.password_hash, "amber kettle sunrise")
+    assert not verify_password(user.password_hash, "wrong kettle sunrise")
 
 
 def test_duplicate_user_is_one_sentence_and_exit_2(fresh_dir, monkeypatch, capsys):
-    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "s3cret-pass")
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "amber kettle sunrise")
     assert main(["admin", "create-user", "a@b.org", "--role", "admin"]) == 0
     assert main(["admin", "create-user", "A@B.org", "--role", "clinician"]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
@@ -73,19 +73,21 @@ def test_missing_or_short_password_is_refused(fresh_dir, monkeypatch, capsys):
     assert "BRADYSCOPE_PASSWORD" in capsys.readouterr().err
     monkeypatch.setenv("BRADYSCOPE_PASSWORD", "short")
     assert main(["admin", "create-user", "a@b.org", "--role", "admin"]) == 2
-    assert "at least 8" in capsys.readouterr().err
+    assert "at least 15" in capsys.readouterr().err
     assert main(["admin", "create-user", "not-an-email", "--role", "admin"]) == 2
 
 
 def test_password_is_prompted_twice_in_a_terminal(fresh_dir, monkeypatch):
     import getpass
 
-    answers = iter(["prompted-pass", "prompted-pass"])
+    answers = iter(["prompted violet harbour", "prompted violet harbour"])
     monkeypatch.setattr(getpass, "getpass", lambda prompt="": next(answers))
     monkeypatch.setattr(sys.stdin, "isatty", lambda: True, raising=False)
     assert main(["admin", "create-user", "p@b.org", "--role", "clinician"]) == 0
     with _db(fresh_dir) as db:
-        assert verify_password(db.scalars(select(User)).one().password_hash, "prompted-pass")
+        assert verify_password(
+            db.scalars(select(User)).one().password_hash, "prompted violet harbour"
+        )
 
 
 def test_api_key_is_printed_once_and_only_its_hash_stored(fresh_dir, capsys):
@@ -120,30 +122,30 @@ def test_two_keys_differ(fresh_dir, capsys):
 
 
 def test_set_password_replaces_hash(fresh_dir, monkeypatch):
-    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "first-pass")
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "first copper lantern")
     main(["admin", "create-user", "a@b.org", "--role", "admin"])
-    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "second-pass")
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "second walnut meadow")
     assert main(["admin", "set-password", "a@b.org"]) == 0
     with _db(fresh_dir) as db:
-        assert verify_password(db.scalars(select(User)).one().password_hash, "second-pass")
+        assert verify_password(db.scalars(select(User)).one().password_hash, "second walnut meadow")
     assert main(["admin", "set-password", "nobody@b.org"]) == 2
 
 
 def test_set_password_logs_the_user_out_of_every_browser(fresh_dir, monkeypatch):
     from app.auth import authenticate_session_cookie, login_user
 
-    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "first-pass")
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "first copper lantern")
     main(["admin", "create-user", "a@b.org", "--role", "clinician"])
     main(["admin", "create-user", "c@b.org", "--role", "clinician"])
     settings = Settings(data_dir=fresh_dir)
     with _db(fresh_dir) as db:
         tokens = [
-            login_user(db, settings=settings, email=email, password="first-pass").token
+            login_user(db, settings=settings, email=email, password="first copper lantern").token
             for email in ("a@b.org", "a@b.org", "c@b.org")
         ]
         assert all(authenticate_session_cookie(db, t) is not None for t in tokens)
         db.commit()
-    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "second-pass")
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", "second walnut meadow")
     assert main(["admin", "set-password", "a@b.org"]) == 0
     with _db(fresh_dir) as db:
         assert [row.user.email for row in db.scalars(select(BrowserSession))] == ["c@b.org"]
