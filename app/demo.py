@@ -38,7 +38,8 @@ from app.actors import ROLE_SCOPES, Actor
 from app.db import get_sessionmaker
 from app.models import Calibration, Patient, RecordingSession, Rig, Trial, User
 from app.passwords import hash_password, verify_password
-from app.services.trials import create_trial
+from app.schemas import TrialRatingUpdate
+from app.services.trials import create_trial, rate_trial
 from app.settings import Settings
 from app.storage import Storage
 from app.uploads import ParsedUpload, StagedFile
@@ -76,7 +77,8 @@ class DemoTrial:
 
 @dataclass(frozen=True)
 class DemoVisit:
-    """A clinic visit: months before today, the clinician's 3.4 ratings (off, on), notes."""
+    """A clinic visit: months before today, the clinician's 3.4 ratings of the right hand
+    (off, on; the left hand, less affected, one lower), notes."""
 
     months_ago: int
     rating_off: int
@@ -224,7 +226,9 @@ def _seed_rows(db: Session, settings: Settings, now: datetime) -> dict[str, Any]
                     clinician_user_id=user.id,
                     medication_state=med,
                     dbs_state="none",
-                    updrs_34_rating=visit.rating_off if med == "off" else visit.rating_on,
+                    time_since_levodopa_min=120 if med == "on" else 12 * 60,
+                    more_affected_side="right",
+                    dominant_hand="right",
                     notes=f"{_visit_tag(i)} {visit.note}"
                     + (
                         " Two hours after 200 mg levodopa."
@@ -301,8 +305,21 @@ def _simulate(
     return sim.left_video, sim.right_video
 
 
+def demo_rating(trial: DemoTrial) -> int:
+    """The clinician's 3.4 rating of a demo trial: the visit's for the right hand, one lower left."""
+    visit = VISITS[trial.visit]
+    rating = visit.rating_off if trial.medication_state == "off" else visit.rating_on
+    return rating if trial.hand == "right" else max(0, rating - 1)
+
+
 def _upload_trial(
-    settings: Settings, user_id: int, session_id: int, hand: str, left: Path, right: Path
+    settings: Settings,
+    user_id: int,
+    session_id: int,
+    hand: str,
+    left: Path,
+    right: Path,
+    rating: int | None = None,
 ) -> int:
     """Store the two videos through the service's trial use case; returns the job id."""
     storage = Storage.from_settings(settings)
@@ -324,6 +341,8 @@ def _upload_trial(
         )
         with get_sessionmaker(settings)() as db:
             out = create_trial(db, actor, session_id, upload)
+            if rating is not None:
+                rate_trial(db, actor, out.trial.id, TrialRatingUpdate(clinician_rating=rating))
         return out.job_id
     finally:
         upload.close()
@@ -347,7 +366,9 @@ def generate_recordings(
         tmp = Path(tempfile.mkdtemp(prefix="demo-", dir=work))
         try:
             left, right = _simulate(trial, tmp, clip_s=clip_s, stop_event=stop_event)
-            job_id = _upload_trial(settings, user_id, session_id, trial.hand, left, right)
+            job_id = _upload_trial(
+                settings, user_id, session_id, trial.hand, left, right, demo_rating(trial)
+            )
             log.info(
                 "demo: queued visit %d, %s hand, medication %s (job %d)",
                 trial.visit,

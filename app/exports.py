@@ -26,7 +26,7 @@ import numpy as np
 from fhir.resources.R4B.bundle import Bundle
 from numpy.typing import NDArray
 
-from app.reports.catalogue import metric_spec
+from app.reports.catalogue import display_value, metric_spec
 from app.reports.data import ReportData
 from core.markers_csv import MarkerTable
 
@@ -209,12 +209,15 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
         }
     ]
     entries += _observation_entries(data, patient_url, effective)
+    measured_urls = [str(e["fullUrl"]) for e in entries[1:]]
+    if data.clinician_rating is not None:
+        entries.append({"fullUrl": _urn(), "resource": _rating_observation(data, patient_url)})
     report = _diagnostic_report(
         data,
         patient_url,
         effective=effective,
         issued=issued,
-        observation_urls=[str(e["fullUrl"]) for e in entries[1:]],
+        observation_urls=measured_urls,
         pdf_bytes=pdf_bytes,
     )
     entries.append({"fullUrl": _urn(), "resource": report})
@@ -229,6 +232,58 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     return doc
 
 
+RATING_CODE_SYSTEM = "urn:bradyscope:clinician-rating"
+
+
+def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
+    """The clinician's own MDS-UPDRS rating of the trial: an Observation of its own.
+
+    Distinct from the measured Observations: its own code system
+    (``urn:bradyscope:clinician-rating``), category ``exam`` with the text
+    "Clinician's rating", the clinician as ``performer``, an integer value
+    0–4, and the comment as ``note``. The DiagnosticReport (the instrument's
+    measurement) does not list it among its results.
+    """
+    obs: dict[str, Any] = {
+        "resourceType": "Observation",
+        "status": "final",
+        "category": [
+            {
+                "coding": [
+                    {
+                        "system": "http://terminology.hl7.org/CodeSystem/observation-category",
+                        "code": "exam",
+                        "display": "Exam",
+                    }
+                ],
+                "text": "Clinician's rating",
+            }
+        ],
+        "code": {
+            "coding": [
+                {
+                    "system": RATING_CODE_SYSTEM,
+                    "code": "mds-updrs-3.4",
+                    "display": "MDS-UPDRS 3.4 finger tapping, clinician's rating (0-4)",
+                }
+            ],
+            "text": f"Clinician's MDS-UPDRS 3.4 rating ({data.hand} hand)",
+        },
+        "subject": {"reference": patient_ref},
+        "effectiveDateTime": _iso(data.recorded_at),
+        "bodySite": {"text": f"{data.hand} hand"},
+        "method": {"text": "Rated by the clinician on the MDS-UPDRS wording; not measured"},
+        "valueInteger": int(data.clinician_rating or 0),
+    }
+    if data.rated_at is not None:
+        obs["issued"] = _iso(data.rated_at)
+    if data.rated_by:
+        obs["performer"] = [{"display": data.rated_by}]
+    if data.rating_comment:
+        obs["note"] = [{"text": data.rating_comment}]
+    return obs
+
+
 def _urn() -> str:
     return f"urn:uuid:{uuid.uuid4()}"
 
@@ -239,7 +294,8 @@ def _observation_entries(
     """One Observation entry per numeric metric of the result (an undefined one: data absent)."""
     entries = []
     for key, value in data.analysis.metrics.items():
-        number = math.nan if value is None else float(value)
+        # Tap numbers are counted from 1, as the definition in the note says.
+        number = math.nan if value is None else display_value(key, float(value))
         entries.append(
             {
                 "fullUrl": _urn(),

@@ -66,6 +66,9 @@ SEXES = ("female", "male", "other", "unknown")
 MEDICATION_STATES = ("on", "off", "unknown")
 DBS_STATES = ("on", "off", "none", "unknown")
 HANDS = ("left", "right")
+MORE_AFFECTED_SIDES = ("left", "right", "equal")
+DOMINANT_HANDS = ("left", "right", "both")
+CLINICIAN_RATINGS = (0, 1, 2, 3, 4)
 SIDES = ("left", "right")
 CALIBRATION_SOURCES = ("rig_file", "board_videos")
 CALIBRATION_STATUSES = ("pending", "ready", "failed")
@@ -355,8 +358,16 @@ class RecordingSession(Base):
         CheckConstraint(_in("medication_state", MEDICATION_STATES), name="medication_state"),
         CheckConstraint(_in("dbs_state", DBS_STATES), name="dbs_state"),
         CheckConstraint(
-            "updrs_34_rating IS NULL OR (updrs_34_rating >= 0 AND updrs_34_rating <= 4)",
-            name="updrs_34_rating",
+            f"more_affected_side IS NULL OR {_in('more_affected_side', MORE_AFFECTED_SIDES)}",
+            name="more_affected_side",
+        ),
+        CheckConstraint(
+            f"dominant_hand IS NULL OR {_in('dominant_hand', DOMINANT_HANDS)}",
+            name="dominant_hand",
+        ),
+        CheckConstraint(
+            "time_since_levodopa_min IS NULL OR time_since_levodopa_min >= 0",
+            name="time_since_levodopa_min",
         ),
         Index("ix_sessions_patient_id_recorded_at", "patient_id", "recorded_at"),
     )
@@ -371,8 +382,12 @@ class RecordingSession(Base):
     medication_state: Mapped[str] = mapped_column(String(16), default="unknown")
     dbs_state: Mapped[str] = mapped_column(String(16), default="unknown")
     notes: Mapped[str | None] = mapped_column(Text)
-    updrs_34_rating: Mapped[int | None] = mapped_column(Integer)
-    """The clinician's own MDS-UPDRS 3.4 (finger tapping) rating, 0–4, if given."""
+    time_since_levodopa_min: Mapped[int | None] = mapped_column(Integer)
+    """Minutes from the last levodopa dose to the recording; NULL when not recorded."""
+    more_affected_side: Mapped[str | None] = mapped_column(String(8))
+    """The more affected side as the clinician judges it: left, right or equal."""
+    dominant_hand: Mapped[str | None] = mapped_column(String(8))
+    """left, right or both (ambidextrous)."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     deleted_at: Mapped[datetime | None]
 
@@ -389,6 +404,10 @@ class Trial(Base):
     __table_args__ = (
         CheckConstraint(_in("hand", HANDS), name="hand"),
         CheckConstraint(_in("status", TRIAL_STATUSES), name="status"),
+        CheckConstraint(
+            "clinician_rating IS NULL OR (clinician_rating >= 0 AND clinician_rating <= 4)",
+            name="clinician_rating",
+        ),
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -398,10 +417,17 @@ class Trial(Base):
     """Mirrors the analysis job: queued, running, succeeded, failed."""
     offset_frames: Mapped[float | None] = mapped_column(Float)
     """Known camera offset (right frame j ~ left frame j + K); NULL = estimate it."""
+    clinician_rating: Mapped[int | None] = mapped_column(Integer)
+    """The clinician's own MDS-UPDRS rating of this hand's item (3.4 for finger tapping), 0–4."""
+    rating_comment: Mapped[str | None] = mapped_column(Text)
+    rated_at: Mapped[datetime | None]
+    rated_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+    """The user who rated (NULL when an API client set the rating)."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     deleted_at: Mapped[datetime | None]
 
     session: Mapped[RecordingSession] = relationship(back_populates="trials")
+    rated_by: Mapped[User | None] = relationship()
     videos: Mapped[list[Video]] = relationship(back_populates="trial", order_by="Video.side")
     result: Mapped[Result | None] = relationship(back_populates="trial")
 
@@ -557,11 +583,14 @@ __all__ = [
     "CALIBRATION_SOURCES",
     "CALIBRATION_STATUSES",
     "CALIBRATION_VERDICTS",
+    "CLINICIAN_RATINGS",
     "DBS_STATES",
+    "DOMINANT_HANDS",
     "HANDS",
     "JOB_KINDS",
     "JOB_STATUSES",
     "MEDICATION_STATES",
+    "MORE_AFFECTED_SIDES",
     "ROLES",
     "SEXES",
     "SIDES",

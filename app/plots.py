@@ -192,9 +192,10 @@ def _tap_marks(
             fontsize=6.5,
             color="#3e4c59",
         )
-    for tp in taps:
-        if math.isfinite(_value(tp, "t_start_s")):
-            ax.axvline(_value(tp, "t_start_s"), color="#cbd2d9", lw=0.5, zorder=0)
+    starts = [_value(tp, "t_start_s") for tp in taps]
+    for k, start in enumerate(s for s in starts if math.isfinite(s)):
+        # The legend names the thin grey lines once ("tap start").
+        ax.axvline(start, color="#cbd2d9", lw=0.5, zorder=0, label="tap start" if k == 0 else None)
 
 
 def aperture_plot(

@@ -16,6 +16,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StringConstraints,
+    model_validator,
 )
 
 T = TypeVar("T")
@@ -23,6 +24,8 @@ T = TypeVar("T")
 MedicationState = Literal["on", "off", "unknown"]
 DbsState = Literal["on", "off", "none", "unknown"]
 Hand = Literal["left", "right"]
+MoreAffectedSide = Literal["left", "right", "equal"]
+DominantHand = Literal["left", "right", "both"]
 Sex = Literal["female", "male", "other", "unknown"]
 JobStatus = Literal["queued", "running", "succeeded", "failed"]
 
@@ -179,28 +182,58 @@ class CalibrationRead(_Out):
 # --------------------------------------------------------------------------- sessions
 
 
-class SessionCreate(_In):
+RATING_MOVED = (
+    "updrs_34_rating is no longer a session field: the MDS-UPDRS rating is given per trial"
+    " (per hand); send it as clinician_rating with PATCH /api/v1/trials/{trial_id}."
+)
+
+
+def _no_session_rating(data: Any) -> Any:
+    if isinstance(data, dict) and "updrs_34_rating" in data:
+        raise ValueError(RATING_MOVED)
+    return data
+
+
+LevodopaMinutes = Annotated[
+    int,
+    Field(
+        ge=0,
+        le=7 * 24 * 60,
+        description="Minutes from the last levodopa dose to the recording.",
+    ),
+]
+
+
+class _SessionFields(_In):
+    notes: ShortText | None = None
+    time_since_levodopa_min: LevodopaMinutes | None = None
+    more_affected_side: MoreAffectedSide | None = Field(
+        default=None, description="The more affected side, as the clinician judges it."
+    )
+    dominant_hand: DominantHand | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _rating_moved(cls, data: Any) -> Any:
+        return _no_session_rating(data)
+
+
+class SessionCreate(_SessionFields):
     patient_id: Id
     rig_id: Id
     recorded_at: UtcDateTime = Field(description="When the recording was made (UTC if no zone).")
     medication_state: MedicationState = "unknown"
     dbs_state: DbsState = "unknown"
-    notes: ShortText | None = None
-    updrs_34_rating: int | None = Field(
-        default=None, ge=0, le=4, description="The clinician's MDS-UPDRS 3.4 rating (0-4)."
-    )
     calibration_id: Id | None = Field(
         default=None, description="Use this calibration instead of the newest valid one."
     )
 
 
-class SessionUpdate(_In):
+class SessionUpdate(_SessionFields):
     """Fields to change; omitted fields stay as they are."""
 
     medication_state: MedicationState | None = None
     dbs_state: DbsState | None = None
-    notes: ShortText | None = None
-    updrs_34_rating: int | None = Field(default=None, ge=0, le=4)
     calibration_id: Id | None = None
 
 
@@ -213,7 +246,9 @@ class SessionRead(_Out):
     medication_state: str
     dbs_state: str
     notes: str | None
-    updrs_34_rating: int | None
+    time_since_levodopa_min: int | None
+    more_affected_side: str | None
+    dominant_hand: str | None
     created_at: datetime
 
 
@@ -250,6 +285,26 @@ class TrialRead(_Out):
     job_id: int | None = None
     has_result: bool = False
     videos: list[VideoRead] = Field(default_factory=list)
+    clinician_rating: int | None = Field(
+        default=None, description="The clinician's own MDS-UPDRS rating of this trial (0-4)."
+    )
+    comment: str | None = Field(default=None, description="The clinician's comment.")
+    rated_at: datetime | None = None
+    rated_by_user_id: int | None = Field(
+        default=None, description="Who rated (null when an API client set the rating)."
+    )
+
+
+class TrialRatingUpdate(_In):
+    """The clinician's rating of one trial (one hand); omitted fields stay as they are."""
+
+    clinician_rating: int | None = Field(
+        default=None,
+        ge=0,
+        le=4,
+        description="MDS-UPDRS rating of the item (3.4 for finger tapping), 0-4; null clears it.",
+    )
+    comment: ShortText | None = None
 
 
 class JobRead(_Out):

@@ -15,6 +15,7 @@ import ipaddress
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -100,6 +101,23 @@ class Settings(BaseSettings):
     sqlite_busy_timeout_ms: int = Field(default=30_000, ge=0)
     migration_lock_timeout_s: float = Field(default=300.0, gt=0)
     log_level: str = Field(default="INFO")
+    timezone: str = Field(
+        default="UTC",
+        description="The clinic's time zone (IANA name, e.g. Europe/Prague): session dates are"
+        " entered and shown in it; the database stores UTC.",
+    )
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_zone(cls, value: str) -> str:
+        try:
+            ZoneInfo(value)
+        except (ZoneInfoNotFoundError, ValueError):
+            raise ValueError(
+                f"BRADYSCOPE_TIMEZONE={value!r} is not a time zone name; use an IANA name"
+                " such as Europe/Prague or UTC"
+            ) from None
+        return value
 
     @field_validator("data_dir")
     @classmethod

@@ -14,23 +14,41 @@ from typing import Any
 from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoescape
 from starlette.templating import Jinja2Templates
 
+from app.timezones import to_zone
+
 TEMPLATES_DIR = Path(__file__).resolve().parents[1] / "templates"
 
 
-def _datetime(value: datetime | None, fmt: str = "%Y-%m-%d %H:%M") -> str:
+def _datetime(value: datetime | None, tz: str | None = None, fmt: str = "%Y-%m-%d %H:%M") -> str:
+    """``2026-03-01 14:05 CET`` in the clinic's zone ``tz`` (the zone's abbreviation added)."""
     if value is None:
         return "–"
-    return f"{value:{fmt}}"
+    if tz is None:
+        return f"{value:{fmt}}"
+    local = to_zone(value, tz)
+    return f"{local:{fmt}} {local.tzname()}"
 
 
-def _date(value: datetime | None) -> str:
-    return _datetime(value, "%Y-%m-%d")
+def _date(value: datetime | None, tz: str | None = None) -> str:
+    if value is None:
+        return "–"
+    return f"{to_zone(value, tz):%Y-%m-%d}"
 
 
 def _percent(value: Any, digits: int = 0) -> str:
     if value is None:
         return "–"
     return f"{100 * float(value):.{digits}f} %"
+
+
+def _minutes_ago(value: int | None) -> str:
+    """``90`` -> ``"1 h 30 min before"``; "–" when not recorded."""
+    if value is None:
+        return "–"
+    hours, minutes = divmod(int(value), 60)
+    if not hours:
+        return f"{minutes} min before"
+    return f"{hours} h {minutes:02d} min before"
 
 
 def _make_env() -> Environment:
@@ -44,6 +62,7 @@ def _make_env() -> Environment:
     env.filters["datetime"] = _datetime
     env.filters["date"] = _date
     env.filters["percent"] = _percent
+    env.filters["minutes_ago"] = _minutes_ago
     return env
 
 

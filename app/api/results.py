@@ -16,6 +16,11 @@ router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
 EXPORT_ERRORS = json_errors(*AUTH, 404, 409)
 
 
+def _tz(request: Request) -> str:
+    """The clinic's time zone (``BRADYSCOPE_TIMEZONE``), in which reports show dates."""
+    return str(request.app.state.settings.timezone)
+
+
 @router.get(
     "/result",
     response_model=dict[str, Any],
@@ -56,7 +61,9 @@ def get_markers_csv(
 def get_report_html(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> HTMLResponse:
-    return HTMLResponse(service.report_html(db, actor, trial_id, request.app.state.storage))
+    return HTMLResponse(
+        service.report_html(db, actor, trial_id, request.app.state.storage, timezone=_tz(request))
+    )
 
 
 @router.get(
@@ -74,7 +81,7 @@ def get_report_html(
 def get_report_pdf(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> Response:
-    pdf = service.report_pdf(db, actor, trial_id, request.app.state.storage)
+    pdf = service.report_pdf(db, actor, trial_id, request.app.state.storage, timezone=_tz(request))
     return Response(
         pdf,
         media_type="application/pdf",
@@ -95,5 +102,7 @@ def get_report_pdf(
     summary="The trial's result as a FHIR R4 Bundle",
 )
 def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request) -> Response:
-    bundle = service.fhir_bundle(db, actor, trial_id, request.app.state.storage)
+    bundle = service.fhir_bundle(
+        db, actor, trial_id, request.app.state.storage, timezone=_tz(request)
+    )
     return JSONResponse(bundle, media_type="application/fhir+json")

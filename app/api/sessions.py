@@ -4,14 +4,16 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Response, status
+from fastapi import APIRouter, Query, Request, Response, status
+from fastapi.responses import HTMLResponse
 
-from app.api.responses import AUTH, IdPath, Limit, Offset, errors, page
+from app.api.responses import AUTH, IdPath, Limit, Offset, errors, json_errors, page
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Writer
-from app.auth import SessionDep
+from app.auth import ResultReader, SessionDep
 from app.schemas import MAX_ID, Page, SessionCreate, SessionRead, SessionUpdate
 from app.services import sessions as service
+from app.services import visits
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 
@@ -78,3 +80,49 @@ def update_session(
 def delete_session(session_id: IdPath, actor: Writer, db: SessionDep) -> Response:
     service.delete_session(db, actor, session_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.get(
+    "/{session_id}/report.html",
+    response_class=HTMLResponse,
+    responses={
+        200: {"content": {"text/html": {"schema": {"type": "string"}}}, "description": "HTML"},
+        **json_errors(*AUTH, 404),
+    },
+    summary="The visit report (every trial of the session's day) as a standalone HTML page",
+)
+def get_visit_report_html(
+    session_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> HTMLResponse:
+    settings = request.app.state.settings
+    return HTMLResponse(
+        visits.visit_report_html(
+            db, actor, session_id, request.app.state.storage, timezone=settings.timezone
+        )
+    )
+
+
+@router.get(
+    "/{session_id}/report.pdf",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/pdf": {"schema": {"type": "string", "format": "binary"}}},
+            "description": "PDF; page 1 is the one-page visit summary.",
+        },
+        **json_errors(*AUTH, 404),
+    },
+    summary="The visit report (every trial of the session's day) as PDF",
+)
+def get_visit_report_pdf(
+    session_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> Response:
+    settings = request.app.state.settings
+    pdf = visits.visit_report_pdf(
+        db, actor, session_id, request.app.state.storage, timezone=settings.timezone
+    )
+    return Response(
+        pdf,
+        media_type="application/pdf",
+        headers={"Content-Disposition": f'attachment; filename="visit-{session_id}-report.pdf"'},
+    )

@@ -9,8 +9,9 @@ from app.api.uploads import BINARY, multipart_body, run_api_upload
 from app.auth import CurrentActor, SessionDep
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Deleter
+from app.auth import PatientWriter as Rater
 from app.auth import RecordingWriter as Uploader
-from app.schemas import JobRead, TrialCreated, TrialRead
+from app.schemas import JobRead, TrialCreated, TrialRatingUpdate, TrialRead
 from app.services import trials as service
 from app.uploads import ParsedUpload
 
@@ -74,6 +75,19 @@ def list_trials(session_id: IdPath, actor: Reader, db: SessionDep) -> list[Trial
 )
 def get_trial(trial_id: IdPath, actor: Reader, db: SessionDep) -> TrialRead:
     return TrialRead(**service.get_trial(db, actor, trial_id))
+
+
+@router.patch(
+    "/trials/{trial_id}",
+    response_model=TrialRead,
+    responses=errors(*AUTH, 404, 400),
+    summary="Set the clinician's rating (0-4) and comment of a trial (one hand)",
+)
+def rate_trial(
+    trial_id: IdPath, data: TrialRatingUpdate, actor: Rater, db: SessionDep
+) -> TrialRead:
+    trial = service.rate_trial(db, actor, trial_id, data)
+    return TrialRead(**service.trial_view(db, trial))
 
 
 @router.delete(

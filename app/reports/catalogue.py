@@ -164,11 +164,11 @@ METRICS: dict[str, MetricSpec] = {
         primary=False,
     ),
     "amplitude_decrement_onset_tap": MetricSpec(
-        "Decrement onset (tap index)",
+        "Decrement onset (last steady tap)",
         "",
         "1",
         0,
-        "The last tap (counted from 0) before the amplitude starts to fall; empty when "
+        "The last tap (counted from 1) before the amplitude starts to fall; empty when "
         "there is no clear decrement.",
         primary=False,
     ),
@@ -269,11 +269,12 @@ METRICS: dict[str, MetricSpec] = {
         primary=False,
     ),
     "opening_velocity_decrement_onset_tap": MetricSpec(
-        "Opening velocity decrement onset (tap index)",
+        "Opening velocity decrement onset (last steady tap)",
         "",
         "1",
         0,
-        "The last tap (from 0) before the opening speed starts to fall; empty without a clear decrement.",
+        "The last tap (counted from 1) before the opening speed starts to fall; empty without a"
+        " clear decrement.",
         primary=False,
     ),
     "closing_velocity_decrement_mm_s_per_tap": MetricSpec(
@@ -339,14 +340,28 @@ TREND_METRICS: tuple[tuple[str, str, str], ...] = (
 )
 
 
+def is_tap_number(key: str) -> bool:
+    """Whether the metric ``key`` is a tap number (0-based in result.json, shown from 1)."""
+    return key.endswith("_onset_tap")
+
+
+def display_value(key: str, value: float) -> float:
+    """The value a person reads: tap numbers counted from 1 (INTERFACES.md), others as stored."""
+    return value + 1 if is_tap_number(key) else value
+
+
 def format_metric(key: str, value: object) -> str:
-    """``value`` formatted with the metric's decimals (no unit); "–" when absent."""
+    """``value`` formatted with the metric's decimals (no unit); "–" when absent.
+
+    Tap numbers (``*_onset_tap``) are shown counted from 1.
+    """
     if value is None or isinstance(value, bool):
         return "–"
     if not isinstance(value, int | float):
         return str(value)
     if not math.isfinite(float(value)):
         return "–"
+    value = display_value(key, value)
     spec = METRICS.get(key)
     decimals = spec.decimals if spec else (0 if isinstance(value, int) else 3)
     if key.endswith(("_count", "_onset_tap")) and float(value).is_integer():

@@ -13,6 +13,7 @@ from functools import cached_property
 from typing import Any
 
 from app.reports.result import TrialResult, read_result
+from app.reports.summary import SummaryColumn
 from core.markers_csv import MarkerTable
 
 
@@ -26,6 +27,7 @@ class CalibrationInfo:
     rms_px: float | None
     verdict: str | None = None
     reasons: tuple[str, ...] = ()
+    id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -40,10 +42,24 @@ class ReportData:
     hand : ``"left"`` or ``"right"``
     recorded_at : datetime (UTC)
     medication_state, dbs_state : str
-    updrs_34_rating : int or None
-        The clinician's own MDS-UPDRS 3.4 rating, if given.
+    clinician_rating : int or None
+        The clinician's own MDS-UPDRS rating of this trial (3.4 for finger tapping), 0–4.
+    rating_comment : str or None
+    rated_by : str or None
+        Who gave the rating (a user's name; None for an API client or no rating).
+    rated_at : datetime (UTC) or None
     clinician : str or None
     notes : str or None
+    task : str
+        ``finger_tapping`` (the tasks of MDS-UPDRS 3.4–3.7, INTERFACES.md).
+    time_since_levodopa_min : int or None
+    more_affected_side, dominant_hand : str or None
+    timezone : str
+        The clinic's time zone (IANA name): dates are shown in it.
+    beside : tuple of SummaryColumn
+        The other hand (same medication state) and the same hand in the other
+        medication state, from the same visit, where they exist: shown beside
+        this trial's summary block.
     result : dict
         ``result.json`` as stored (docs/interfaces.md); :attr:`analysis` reads it, typed.
     markers : MarkerTable or None
@@ -59,9 +75,18 @@ class ReportData:
     medication_state: str
     result: dict[str, Any]
     dbs_state: str = "unknown"
-    updrs_34_rating: int | None = None
+    clinician_rating: int | None = None
+    rating_comment: str | None = None
+    rated_by: str | None = None
+    rated_at: datetime | None = None
     clinician: str | None = None
     notes: str | None = None
+    task: str = "finger_tapping"
+    time_since_levodopa_min: int | None = None
+    more_affected_side: str | None = None
+    dominant_hand: str | None = None
+    timezone: str = "UTC"
+    beside: tuple[SummaryColumn, ...] = ()
     session_id: int | None = None
     patient_id: int | None = None
     markers: MarkerTable | None = None
@@ -130,3 +155,16 @@ def _calibration_rows(cal: CalibrationInfo | None) -> list[QualityRow]:
         QualityRow("Calibration used", name),
         QualityRow("Calibration RMS error", rms, warn=cal.verdict == "poor"),
     ]
+
+
+def summary_column(data: ReportData) -> SummaryColumn:
+    """The summary block's column of one trial."""
+    return SummaryColumn(
+        trial_id=data.trial_id,
+        task=data.task,
+        hand=data.hand,
+        medication_state=data.medication_state,
+        result=data.analysis,
+        clinician_rating=data.clinician_rating,
+        rating_comment=data.rating_comment,
+    )

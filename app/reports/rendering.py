@@ -8,17 +8,35 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from app.reports.catalogue import METRICS, metric_rows
-from app.reports.data import ReportData, quality_rows
+from app.reports.data import ReportData, quality_rows, summary_column
 from app.reports.figures import report_plots
+from app.reports.summary import short_taps_note, summary_rows
+from app.reports.visit import VisitData, task_groups
 from app.templating import jinja_env
+from core.version import software_version
+
+
+def summary_context(data: ReportData) -> dict[str, Any]:
+    """The summary block of one trial, with the other hand and medication state beside it."""
+    columns = [summary_column(data), *data.beside]
+    return {
+        "summary_columns": columns,
+        "summary_rows": summary_rows(columns),
+        "summary_first": True,
+        "summary_caption": "First 10 taps against the MDS-UPDRS 3.4 wording"
+        + (", beside the same visit's other trials" if data.beside else ""),
+        "summary_note": short_taps_note(columns[0]),
+    }
 
 
 def report_context(data: ReportData) -> dict[str, Any]:
     """The template context shared by the report and the trial page."""
     return {
+        **summary_context(data),
         "data": data,
         "metric_rows": metric_rows(data.analysis),
         "more_metric_rows": metric_rows(data.analysis, primary=False),
@@ -28,6 +46,7 @@ def report_context(data: ReportData) -> dict[str, Any]:
         "events": list(data.analysis.events),
         "plots": report_plots(data),
         "metric_specs": {k: v for k, v in METRICS.items() if v.primary},
+        "software_version": software_version(),
     }
 
 
@@ -51,10 +70,76 @@ def _refusing_fetcher() -> Any:
     return RefusingURLFetcher(allowed_protocols=("data",), fail_on_errors=False)
 
 
-def render_report_pdf(data: ReportData) -> bytes:
-    """The report of one trial as PDF bytes (WeasyPrint; no URL is ever fetched)."""
+def html_to_pdf(html: str) -> bytes:
+    """A standalone HTML page as PDF bytes (WeasyPrint; no URL is ever fetched)."""
     import weasyprint
 
-    html = render_report_html(data)
     document = weasyprint.HTML(string=html, base_url=None, url_fetcher=_refusing_fetcher())
     return bytes(document.write_pdf())
+
+
+def render_report_pdf(data: ReportData) -> bytes:
+    """The report of one trial as PDF bytes (WeasyPrint; no URL is ever fetched)."""
+    return html_to_pdf(render_report_html(data))
+
+
+def visit_context(visit: VisitData) -> dict[str, Any]:
+    """The template context of the visit report."""
+    details = [
+        {
+            "data": data,
+            "column": summary_column(data),
+            "plots": report_plots(data),
+            "metric_rows": metric_rows(data.analysis),
+            "quality_rows": quality_rows(data),
+            "warnings": list(data.analysis.quality.warnings),
+        }
+        for group in task_groups(visit.trials)
+        for column in group.columns
+        for data in visit.trials
+        if data.trial_id == column.trial_id
+    ]
+    return {
+        "visit": visit,
+        "provenance": provenance_lines(visit.trials),
+        "groups": task_groups(visit.trials),
+        "details": details,
+        "metric_specs": {k: v for k, v in METRICS.items() if v.primary},
+    }
+
+
+def provenance_lines(trials: Sequence[ReportData]) -> list[str]:
+    """What measured the trials, one line per software, algorithm and calibration.
+
+    ``"trials #10, #11: bradyscope 0.1.0, algorithm 2026.1, calibration id 3 (clinic-A v3)"``.
+    """
+    groups: dict[str, list[int]] = {}
+    for data in trials:
+        result, cal = data.analysis, data.calibration
+        cal_id = result.calibration_id or (cal.id if cal is not None else None)
+        text = (
+            f"bradyscope {result.software_version or '(version not recorded)'},"
+            f" algorithm {result.algorithm_version or '(not recorded)'},"
+            f" calibration id {cal_id if cal_id is not None else '–'}"
+        )
+        if cal is not None and cal.version:
+            text += f" ({cal.rig_name} v{cal.version})"
+        groups.setdefault(text, []).append(data.trial_id)
+    return [
+        f"trial{'s' if len(ids) > 1 else ''} {', '.join(f'#{i}' for i in sorted(ids))}: {text}"
+        for text, ids in groups.items()
+    ]
+
+
+def render_visit_html(visit: VisitData) -> str:
+    """The visit report as a standalone HTML page: page 1 the visit summary, then each trial.
+
+    A pure function of ``visit``: the same data give the same page (except the
+    plots' element ids), so that a signed copy can be stored and reproduced.
+    """
+    return jinja_env.get_template("visit_report.html").render(**visit_context(visit))
+
+
+def render_visit_pdf(visit: VisitData) -> bytes:
+    """The visit report as PDF bytes (A4; page 1 is the one-page visit summary)."""
+    return html_to_pdf(render_visit_html(visit))

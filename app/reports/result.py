@@ -37,6 +37,11 @@ def _list(value: object) -> list[object] | tuple[object, ...]:
     return value if isinstance(value, list | tuple) else ()
 
 
+def _text(value: object) -> str | None:
+    """A JSON string, else None."""
+    return value if isinstance(value, str) and value else None
+
+
 def _numbers(value: object) -> dict[str, Number | None]:
     """The numeric (or null) entries of a JSON object; other kinds are not metrics."""
     return {
@@ -83,6 +88,11 @@ class TrialResult:
     events : tuple of PlotEvent
         Hesitations, halts and gaps, in s.
     quality : ResultQuality
+    software_version, algorithm_version : str or None
+        The ``software`` object: package and algorithm version that measured it
+        (None for results older than that key).
+    calibration_id : int or None
+        The id of the calibration the worker measured with (``calibration.id``).
     """
 
     fps: float | None = None
@@ -92,6 +102,9 @@ class TrialResult:
     taps: tuple[Mapping[str, object], ...] = ()
     events: tuple[PlotEvent, ...] = ()
     quality: ResultQuality = field(default_factory=ResultQuality)
+    software_version: str | None = None
+    algorithm_version: str | None = None
+    calibration_id: int | None = None
 
     def metric(self, key: str) -> float | None:
         """The metric ``key`` as a float, None when absent or undefined."""
@@ -138,6 +151,8 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         return None if value is None else float(value)
 
     warnings = quality.get("warnings")
+    software = _mapping(doc.get("software"))
+    cal_id = _number(_mapping(doc.get("calibration")).get("id"))
     return TrialResult(
         fps=float(fps) if fps else None,
         sync=SyncSummary(
@@ -148,6 +163,9 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         metrics_first_10=_numbers(doc.get("metrics_first_10")),
         taps=tuple(tp for tp in _list(taps) if isinstance(tp, Mapping)),
         events=tuple(result_events(doc)),
+        software_version=_text(software.get("version")),
+        algorithm_version=_text(software.get("algorithm")),
+        calibration_id=int(cal_id) if isinstance(cal_id, int) else None,
         quality=ResultQuality(
             tracked_fraction=fraction("tracked_fraction"),
             interpolated_fraction=fraction("interpolated_fraction"),

@@ -12,6 +12,7 @@ from app.actors import Actor
 from app.audit import audit_failure
 from app.errors import NotFoundError
 from app.models import Job, Patient, RecordingSession, Rig, Trial
+from app.timezones import local_date
 
 T = TypeVar("T")
 
@@ -103,3 +104,29 @@ def cancel_trial_jobs(db: Session, trial_ids: Select[Any]) -> int:
         select(Job.id).where(Job.trial_id.in_(trial_ids), Job.status.in_(("queued", "running")))
     ).all()
     return sum(jobs.cancel(db, job_id, DELETED_MESSAGE) for job_id in job_ids)
+
+
+def visit_sessions(session: RecordingSession, timezone: str) -> list[RecordingSession]:
+    """The visible sessions of ``session``'s visit, oldest first.
+
+    A visit is the patient's sessions on one calendar day in the clinic's time
+    zone ``timezone`` (``Settings.timezone``), e.g. off medication and, an hour
+    later, on medication.
+    """
+    day = local_date(session.recorded_at, timezone)
+    same_day = [
+        s
+        for s in session.patient.sessions
+        if s.deleted_at is None and local_date(s.recorded_at, timezone) == day
+    ]
+    return sorted(same_day, key=lambda s: (s.recorded_at, s.id))
+
+
+def visit_trials(session: RecordingSession, timezone: str) -> list[Trial]:
+    """The visible trials with a result of ``session``'s visit, oldest session first."""
+    return [
+        t
+        for s in visit_sessions(session, timezone)
+        for t in s.trials
+        if t.deleted_at is None and t.result is not None
+    ]

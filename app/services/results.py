@@ -24,7 +24,9 @@ from app.exports import write_c3d, write_trc
 from app.models import Calibration, Job, Patient, Result, Trial, User
 from app.reports.data import CalibrationInfo, ReportData
 from app.reports.rendering import render_report_html, render_report_pdf
-from app.services.common import load_trial, visible_trial
+from app.reports.result import read_result
+from app.reports.summary import SummaryColumn, neighbours
+from app.services.common import load_trial, visible_trial, visit_trials
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
 
@@ -81,11 +83,31 @@ def _calibration_info(db: Session, trial: Trial, result: Result) -> CalibrationI
         rms_px=cal.rms_px,
         verdict=cal.verdict,
         reasons=tuple(cal.verdict_reasons or ()),
+        id=cal.id,
     )
 
 
-def load_report_data(db: Session, trial: Trial, storage: Storage) -> ReportData:
+def trial_column(trial: Trial) -> SummaryColumn:
+    """A trial with a result as a column of a summary block (no markers are read)."""
+    if trial.result is None:
+        raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
+    return SummaryColumn(
+        trial_id=trial.id,
+        task="finger_tapping",
+        hand=trial.hand,
+        medication_state=trial.session.medication_state,
+        result=read_result(trial.result.document),
+        clinician_rating=trial.clinician_rating,
+        rating_comment=trial.rating_comment,
+    )
+
+
+def load_report_data(
+    db: Session, trial: Trial, storage: Storage, *, timezone: str = "UTC"
+) -> ReportData:
     """What the report of ``trial`` shows (the trial must have a result).
+
+    ``timezone`` is the clinic's (``Settings.timezone``): the report shows dates in it.
 
     Raises
     ------
@@ -96,6 +118,12 @@ def load_report_data(db: Session, trial: Trial, storage: Storage) -> ReportData:
     if result is None:
         raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
     session = trial.session
+    this = trial_column(trial)
+    beside = tuple(
+        c
+        for c in neighbours(this, [trial_column(t) for t in visit_trials(session, timezone)])
+        if c is not None
+    )
     clinician = None
     if session.clinician_user_id is not None:
         user = db.get(User, session.clinician_user_id)
@@ -110,9 +138,17 @@ def load_report_data(db: Session, trial: Trial, storage: Storage) -> ReportData:
         recorded_at=session.recorded_at,
         medication_state=session.medication_state,
         dbs_state=session.dbs_state,
-        updrs_34_rating=session.updrs_34_rating,
+        clinician_rating=trial.clinician_rating,
+        rating_comment=trial.rating_comment,
+        rated_by=(trial.rated_by.display_name or trial.rated_by.email) if trial.rated_by else None,
+        rated_at=trial.rated_at,
         clinician=clinician,
         notes=session.notes,
+        time_since_levodopa_min=session.time_since_levodopa_min,
+        more_affected_side=session.more_affected_side,
+        dominant_hand=session.dominant_hand,
+        timezone=timezone,
+        beside=beside,
         result=dict(result.document),
         markers=_markers(result, storage),
         calibration=_calibration_info(db, trial, result),
@@ -141,25 +177,31 @@ def markers_csv_path(db: Session, actor: Actor, trial_id: int, storage: Storage)
 
 
 def _report_data(
-    db: Session, actor: Actor, trial_id: int, storage: Storage
+    db: Session, actor: Actor, trial_id: int, storage: Storage, timezone: str
 ) -> tuple[Trial, ReportData]:
     trial, _ = _result_of(db, actor, trial_id, "export")
-    return trial, load_report_data(db, trial, storage)
+    return trial, load_report_data(db, trial, storage, timezone=timezone)
 
 
-def report_html(db: Session, actor: Actor, trial_id: int, storage: Storage) -> str:
-    trial, data = _report_data(db, actor, trial_id, storage)
+def report_html(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
+) -> str:
+    trial, data = _report_data(db, actor, trial_id, storage, timezone)
     return _exported(db, actor, trial, "report_html", render_report_html(data))
 
 
-def report_pdf(db: Session, actor: Actor, trial_id: int, storage: Storage) -> bytes:
-    trial, data = _report_data(db, actor, trial_id, storage)
+def report_pdf(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
+) -> bytes:
+    trial, data = _report_data(db, actor, trial_id, storage, timezone)
     return _exported(db, actor, trial, "report_pdf", render_report_pdf(data))
 
 
-def fhir_bundle(db: Session, actor: Actor, trial_id: int, storage: Storage) -> dict[str, Any]:
+def fhir_bundle(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
+) -> dict[str, Any]:
     """A FHIR R4 Bundle (DiagnosticReport + Observations, the PDF attached)."""
-    trial, data = _report_data(db, actor, trial_id, storage)
+    trial, data = _report_data(db, actor, trial_id, storage, timezone)
     bundle = make_fhir_bundle(data, render_report_pdf(data))
     return _exported(db, actor, trial, "fhir_bundle", bundle)
 
@@ -219,7 +261,13 @@ class TrialPage:
 
 
 def trial_page(
-    db: Session, actor: Actor, trial_id: int, storage: Storage, *, compare: int | None = None
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    storage: Storage,
+    *,
+    compare: int | None = None,
+    timezone: str = "UTC",
 ) -> TrialPage:
     """The trial page: its result (audited as a read of the result) or its pending job."""
     trial = load_trial(db, actor, trial_id, "read")
@@ -229,7 +277,7 @@ def trial_page(
         audit(db, actor, "read", "trial", trial.id, patient.id)
         db.commit()
         return page
-    data = load_report_data(db, trial, storage)
+    data = load_report_data(db, trial, storage, timezone=timezone)
     comparison, compare_error = None, None
     if compare is not None:
         other = visible_trial(db, compare)
@@ -239,7 +287,9 @@ def trial_page(
                 " or belongs to another patient."
             )
         else:
-            comparison = Comparison(trial=other, data=load_report_data(db, other, storage))
+            comparison = Comparison(
+                trial=other, data=load_report_data(db, other, storage, timezone=timezone)
+            )
     page = TrialPage(
         trial=trial,
         patient=patient,

@@ -24,6 +24,7 @@ from app.actors import Actor
 from app.audit import audit
 from app.errors import InvalidRequestError, NotFoundError
 from app.models import Job, Result, Trial, utcnow
+from app.schemas import TrialRatingUpdate
 from app.services.calibrations import calibration_for, rig_to_check_against
 from app.services.common import cancel_trial_jobs, load_session, load_trial, trial_is_visible
 from app.services.videos import add_videos, check_video_pair
@@ -113,6 +114,10 @@ def trial_view(db: Session, trial: Trial) -> dict[str, Any]:
         "job_id": job.id if job is not None else None,
         "has_result": trial.result is not None,
         "videos": list(trial.videos),
+        "clinician_rating": trial.clinician_rating,
+        "comment": trial.rating_comment,
+        "rated_at": trial.rated_at,
+        "rated_by_user_id": trial.rated_by_user_id,
     }
 
 
@@ -131,6 +136,26 @@ def get_trial(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
     audit(db, actor, "read", "trial", trial.id, trial.session.patient_id)
     db.commit()
     return view
+
+
+def rate_trial(db: Session, actor: Actor, trial_id: int, data: TrialRatingUpdate) -> Trial:
+    """Set the clinician's rating (0–4) and comment of one trial; omitted fields stay.
+
+    The rating belongs to the trial's hand (and task); who rated and when are
+    recorded with it. Audited as an update of the trial.
+    """
+    trial = load_trial(db, actor, trial_id, "update")
+    changes = data.model_dump(exclude_unset=True)
+    if "clinician_rating" in changes:
+        trial.clinician_rating = changes["clinician_rating"]
+    if "comment" in changes:
+        trial.rating_comment = changes["comment"] or None
+    if changes:
+        trial.rated_at = utcnow()
+        trial.rated_by_user_id = actor.user_id
+    audit(db, actor, "update", "trial", trial.id, trial.session.patient_id)
+    db.commit()
+    return trial
 
 
 def delete_trial(db: Session, actor: Actor, trial_id: int) -> None:

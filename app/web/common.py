@@ -134,6 +134,7 @@ def render(
         "csrf_token": user.csrf_token if user is not None else "",
         "nav": NAV,
         "active": active,
+        "clinic_tz": settings_of(request).timezone,
         "error": context.pop("error", None),
         "message": context.pop("message", request.query_params.get("msg")),
     }
@@ -174,12 +175,14 @@ def status_of(exc: BaseException) -> int:
     return int(getattr(exc, "http_status", 400))
 
 
-def validation_message(exc: ValidationError) -> str:
-    """The first problems of a form as one sentence."""
+def validation_message(exc: ValidationError, labels: Mapping[str, str] | None = None) -> str:
+    """The first problems of a form as one sentence, each named by the form's own label."""
     parts = []
     for err in exc.errors()[:3]:
         field = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
-        parts.append(f"{field.replace('_', ' ')}: {err.get('msg', 'invalid')}")
+        name = (labels or {}).get(field) or field.replace("_", " ").capitalize()
+        message = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+        parts.append(f"{name}: {message}" if name else message)
     return "Please correct the form — " + "; ".join(parts) + "."
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 from typing import Annotated, Any
+from zoneinfo import ZoneInfo
 
 from fastapi import APIRouter, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
@@ -25,6 +26,7 @@ from app.schemas import PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient
 from app.services.rigs import all_rigs
+from app.timezones import from_local
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
@@ -32,6 +34,7 @@ from app.web.common import (
     error_page,
     not_found_page,
     render,
+    settings_of,
     status_of,
     validation_message,
 )
@@ -90,7 +93,15 @@ def patient_create(
         patient = patients.create_patient(db, user, data)
     except (ValidationError, ValueError) as exc:
         message = (
-            validation_message(exc)
+            validation_message(
+                exc,
+                {
+                    "code": "Patient code",
+                    "birth_year": "Birth year",
+                    "sex": "Sex",
+                    "notes": "Notes",
+                },
+            )
             if isinstance(exc, ValidationError)
             else "Birth year must be a year such as 1951."
         )
@@ -154,6 +165,19 @@ def session_new(request: Request, db: SessionDep, user: PageUser, patient_id: in
     return _session_form(request, user, patient, all_rigs(db), {})
 
 
+SESSION_LABELS = {
+    "rig_id": "Camera rig",
+    "recorded_at": "Date and time of the recording",
+    "medication_state": "Medication state",
+    "dbs_state": "Deep brain stimulation",
+    "time_since_levodopa_min": "Time since the last levodopa dose",
+    "more_affected_side": "More affected side",
+    "dominant_hand": "Dominant hand",
+    "notes": "Notes",
+}
+"""The session form's labels, used in its error messages."""
+
+
 def _session_form(
     request: Request,
     user: Actor,
@@ -164,13 +188,15 @@ def _session_form(
     error: str | None = None,
     status_code: int = 200,
 ) -> Response:
-    now = datetime.now(UTC)
+    now = datetime.now(UTC).astimezone(ZoneInfo(settings_of(request).timezone))
     defaults = {
         "rig_id": str(rigs[0].id) if rigs else "",
         "recorded_at": now.strftime("%Y-%m-%dT%H:%M"),
         "medication_state": "unknown",
         "dbs_state": "unknown",
-        "updrs_34_rating": "",
+        "time_since_levodopa_min": "",
+        "more_affected_side": "",
+        "dominant_hand": "",
         "notes": "",
     }
     defaults.update({k: v for k, v in values.items() if v is not None})
@@ -200,7 +226,9 @@ def session_create(
     recorded_at: Annotated[str, Form(max_length=40)] = "",
     medication_state: Annotated[str, Form(max_length=20)] = "unknown",
     dbs_state: Annotated[str, Form(max_length=20)] = "unknown",
-    updrs_34_rating: Annotated[str, Form(max_length=5)] = "",
+    time_since_levodopa_min: Annotated[str, Form(max_length=10)] = "",
+    more_affected_side: Annotated[str, Form(max_length=10)] = "",
+    dominant_hand: Annotated[str, Form(max_length=10)] = "",
     notes: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
@@ -214,39 +242,42 @@ def session_create(
         "recorded_at": recorded_at,
         "medication_state": medication_state,
         "dbs_state": dbs_state,
-        "updrs_34_rating": updrs_34_rating,
+        "time_since_levodopa_min": time_since_levodopa_min,
+        "more_affected_side": more_affected_side,
+        "dominant_hand": dominant_hand,
         "notes": notes,
     }
     if not csrf_ok(user, csrf_token):
         return _session_form(
             request, user, patient, all_rigs(db), values, error=CSRF_MESSAGE, status_code=403
         )
+    tz = settings_of(request).timezone
     try:
-        when = datetime.fromisoformat(recorded_at.strip()) if recorded_at.strip() else None
-        if when is None:
-            raise ValueError("recorded_at")
-        if when.tzinfo is None:
-            when = when.replace(tzinfo=UTC)
+        problem = "Date and time of the recording: give a date and time such as 2026-03-01 14:30."
+        when = from_local(recorded_at, tz)
+        problem = "Camera rig: choose a rig."
+        rig = int(rig_id)
+        problem = "Time since the last levodopa dose: give a whole number of minutes, or nothing."
+        minutes = int(time_since_levodopa_min) if time_since_levodopa_min.strip() else None
         data = SessionCreate(
             patient_id=patient.id,
-            rig_id=int(rig_id),
+            rig_id=rig,
             recorded_at=when,
             medication_state=medication_state,  # type: ignore[arg-type]
             dbs_state=dbs_state,  # type: ignore[arg-type]
-            updrs_34_rating=int(updrs_34_rating) if updrs_34_rating.strip() else None,
+            time_since_levodopa_min=minutes,
+            more_affected_side=more_affected_side or None,  # type: ignore[arg-type]
+            dominant_hand=dominant_hand or None,  # type: ignore[arg-type]
             notes=notes.strip() or None,
         )
         session = sessions.create_session(db, user, data)
     except (ValueError, AppError) as exc:  # ValidationError is a ValueError
         if isinstance(exc, ValidationError):
-            error, status = validation_message(exc), 422
+            error, status = validation_message(exc, SESSION_LABELS), 422
         elif isinstance(exc, AppError):
             error, status = str(exc), status_of(exc)
         else:
-            error = (
-                "Choose a rig and give the date and time of the recording (rating 0–4 or empty)."
-            )
-            status = 422
+            error, status = problem, 422
         db.rollback()
         return _session_form(
             request, user, patient, all_rigs(db), values, error=error, status_code=status

@@ -24,7 +24,7 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Job, Trial
-from app.services import sessions, trials
+from app.services import sessions, trials, visits
 from app.uploads import ParsedUpload
 from app.web.common import (
     PageUser,
@@ -33,6 +33,8 @@ from app.web.common import (
     page_user,
     render,
     run_page_upload,
+    settings_of,
+    status_of,
     wants_json,
     with_own_db,
 )
@@ -91,6 +93,30 @@ def _session_response(
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)
 def session_page(request: Request, db: SessionDep, user: PageUser, session_id: int) -> Response:
     return _session_response(request, db, user, session_id)
+
+
+@router.get("/sessions/{session_id}/visit-report.{kind}")
+def visit_report(
+    request: Request, db: SessionDep, user: PageUser, session_id: int, kind: str
+) -> Response:
+    """The visit report of the session's day, as PDF (a download) or HTML."""
+    if kind not in ("pdf", "html"):
+        return error_page(request, user, status_code=404, message=f"There is no {kind!r} report.")
+    storage, tz = request.app.state.storage, settings_of(request).timezone
+    try:
+        if kind == "html":
+            return HTMLResponse(
+                visits.visit_report_html(db, user, session_id, storage, timezone=tz)
+            )
+        pdf = visits.visit_report_pdf(db, user, session_id, storage, timezone=tz)
+    except AppError as exc:
+        db.rollback()
+        return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    return Response(
+        pdf,
+        media_type="application/pdf",
+        headers={"Content-Disposition": f'attachment; filename="visit-{session_id}-report.pdf"'},
+    )
 
 
 def _user_and_target(

@@ -9,24 +9,36 @@ event; the page itself one ``read`` event.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Request
-from fastapi.responses import HTMLResponse, Response
+from fastapi import APIRouter, Form, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Trial
-from app.reports.catalogue import format_metric, metric_rows
+from app.reports.catalogue import format_metric, is_tap_number, metric_rows
 from app.reports.data import ReportData
 from app.reports.figures import comparison_plots
 from app.reports.rendering import report_context
-from app.services import results
+from app.schemas import TrialRatingUpdate
+from app.services import results, trials
 from app.services.common import load_trial
 from app.storage import Storage
-from app.web.common import PageUser, error_page, not_found_page, render, status_of
+from app.web.common import (
+    CSRF_MESSAGE,
+    PageUser,
+    csrf_ok,
+    error_page,
+    not_found_page,
+    render,
+    settings_of,
+    status_of,
+    validation_message,
+)
 
 router = APIRouter()
 
@@ -53,17 +65,20 @@ def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
     rows = []
     for key in [k for k in rows_a if k in rows_b]:
         a, b = data.analysis.metric(key), other.analysis.metric(key)
-        diff = "–"
-        if a is not None and b is not None:
+        diff, pct = "–", "–"
+        if a is not None and b is not None and not is_tap_number(key):
             diff = format_metric(key, b - a)
             if not diff.startswith(("-", "+", "–")):
                 diff = "+" + diff
+            if a != 0:
+                pct = f"{100 * (b - a) / abs(a):+.0f} %"
         rows.append(
             {
                 "label": rows_a[key].label,
                 "a": rows_a[key].value,
                 "b": rows_b[key].value,
                 "diff": diff,
+                "pct": pct,
                 "unit": rows_a[key].unit,
             }
         )
@@ -103,10 +118,19 @@ def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]
 
 @router.get("/trials/{trial_id}", response_class=HTMLResponse)
 def trial_page(
-    request: Request, db: SessionDep, user: PageUser, trial_id: int, compare: int | None = None
+    request: Request, db: SessionDep, user: PageUser, trial_id: int, compare: str | None = None
 ) -> Response:
+    # ``compare`` is read here, not by FastAPI: a bad value gets this page, not a JSON error.
+    compare_id = int(compare) if compare and compare.strip().isdigit() else None
     try:
-        page = results.trial_page(db, user, trial_id, request.app.state.storage, compare=compare)
+        page = results.trial_page(
+            db,
+            user,
+            trial_id,
+            request.app.state.storage,
+            compare=compare_id,
+            timezone=settings_of(request).timezone,
+        )
     except NotFoundError as exc:
         return not_found_page(request, user, exc)
     trial, patient = page.trial, page.patient
@@ -137,8 +161,13 @@ def trial_page(
         label=trial_label(trial),
         candidates=_suggested(trial, list(page.candidates)),
         comparison=comparison,
-        compare_id=compare,
-        compare_error=page.compare_error,
+        compare_id=compare_id,
+        compare_error=page.compare_error
+        or (
+            f"“{compare[:20]}” is not a trial number; choose a trial from the list."
+            if compare and compare_id is None
+            else None
+        ),
         downloads=DOWNLOADS,
         **report_context(page.data),
     )
@@ -148,13 +177,15 @@ def _attachment(name: str) -> dict[str, str]:
     return {"Content-Disposition": f'attachment; filename="{name}"'}
 
 
-def _download(db: Session, user: Actor, trial_id: int, kind: str, storage: Storage) -> bytes | str:
+def _download(
+    db: Session, user: Actor, trial_id: int, kind: str, storage: Storage, tz: str
+) -> bytes | str:
     if kind == "pdf":
-        return results.report_pdf(db, user, trial_id, storage)
+        return results.report_pdf(db, user, trial_id, storage, timezone=tz)
     if kind == "html":
-        return results.report_html(db, user, trial_id, storage)
+        return results.report_html(db, user, trial_id, storage, timezone=tz)
     if kind == "fhir":
-        return json.dumps(results.fhir_bundle(db, user, trial_id, storage), indent=1)
+        return json.dumps(results.fhir_bundle(db, user, trial_id, storage, timezone=tz), indent=1)
     if kind == "json":
         return json.dumps(results.get_result(db, user, trial_id), indent=1)
     if kind == "csv":
@@ -175,8 +206,47 @@ def trial_download(
     _, media_type, suffix = DOWNLOADS[kind]
     filename = f"{trial.session.patient.code}-trial{trial.id}-{trial.hand}{suffix}"
     try:
-        body = _download(db, user, trial.id, kind, request.app.state.storage)
+        body = _download(
+            db, user, trial.id, kind, request.app.state.storage, settings_of(request).timezone
+        )
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
     return Response(content=body, media_type=media_type, headers=_attachment(filename))
+
+
+@router.post("/trials/{trial_id}/rating", response_class=HTMLResponse)
+def trial_rating(
+    request: Request,
+    db: SessionDep,
+    user: PageUser,
+    trial_id: int,
+    clinician_rating: Annotated[str, Form(max_length=5)] = "",
+    comment: Annotated[str, Form(max_length=5000)] = "",
+    csrf_token: Annotated[str, Form(max_length=200)] = "",
+) -> Response:
+    """Save the clinician's rating (0–4) and comment of the trial, then show the trial again."""
+    if not csrf_ok(user, csrf_token):
+        return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
+    rating = clinician_rating.strip()
+    if rating not in ("", "0", "1", "2", "3", "4"):
+        return error_page(
+            request, user, status_code=422, message="Rating: choose 0 to 4, or not rated."
+        )
+    try:
+        data = TrialRatingUpdate(
+            clinician_rating=int(rating) if rating else None, comment=comment.strip() or None
+        )
+        trials.rate_trial(db, user, trial_id, data)
+    except ValidationError as exc:
+        db.rollback()
+        return error_page(
+            request,
+            user,
+            status_code=422,
+            message=validation_message(exc, {"clinician_rating": "Rating", "comment": "Comment"}),
+        )
+    except AppError as exc:
+        db.rollback()
+        return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    return RedirectResponse(f"/trials/{trial_id}?msg=Rating+saved.#rating", status_code=303)

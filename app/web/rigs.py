@@ -123,7 +123,12 @@ def rig_create(
     except ValidationError as exc:
         db.rollback()
         return _rig_list(
-            request, db, user, error=validation_message(exc), status_code=422, form=form
+            request,
+            db,
+            user,
+            error=validation_message(exc, {"name": "Name", "description": "Description"}),
+            status_code=422,
+            form=form,
         )
     except AppError as exc:
         db.rollback()

@@ -15,6 +15,7 @@ import numpy as np
 
 from app.reports.data import CalibrationInfo, ReportData
 from core.markers_csv import MarkerTable
+from core.version import software_document
 
 FPS = 100.0  # Hz
 CLOSED_MM = 18.0  # thumb–index distance with the fingers together (marker offset)
@@ -100,9 +101,18 @@ def synthetic_trial(
         "halt_count": 0,
     }
     # As core.pipeline writes them: first-10 metrics and located events at the top level.
+    # The summary block's values over the first 10 taps (hesitations: the pause comes later
+    # unless ``pause_after_tap`` < 10; a linear decrement falls from the first tap on).
     metrics_first_10 = {
+        "tap_count": min(n_taps, 10),
+        "reliable_tap_count": min(n_taps, 10),
         "amplitude_mm_mean": float(np.mean(amplitudes[:10])),
         "frequency_hz": frequency_hz,
+        "opening_velocity_mm_s_max": float(np.mean(v_peak[:10])),
+        "hesitation_count": int(pause_after_tap < 10),
+        "halt_count": 0,
+        "amplitude_decrement_mm_per_tap": decrement_mm_per_tap,
+        "amplitude_decrement_onset_tap": 0 if decrement_mm_per_tap < 0 else None,
     }
     events = [
         {
@@ -114,6 +124,7 @@ def synthetic_trial(
     ]
     result = {
         "format": "bradyscope.result/1",
+        "software": software_document(),
         "fps": FPS,
         "sync": {"offset_frames": 1.25, "method": "auto"},
         "metrics": metrics,
@@ -140,7 +151,10 @@ def sample_report_data(*, patient_code: str = "PD-0042", hand: str = "right") ->
         recorded_at=datetime(2025, 3, 14, 9, 30, tzinfo=UTC),
         medication_state="off",
         dbs_state="none",
-        updrs_34_rating=2,
+        clinician_rating=2,
+        rating_comment="Slowing from the 6th tap.",
+        time_since_levodopa_min=720,
+        more_affected_side="right",
         clinician="Dr. Demo",
         notes="12 h after last levodopa dose.",
         result=result,

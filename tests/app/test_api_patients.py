@@ -131,21 +131,25 @@ def test_sessions_create_list_update_delete(api: Api) -> None:
     assert via_patient == listed
     r = api.client.patch(
         f"/api/v1/sessions/{ids[0]}",
-        json={"medication_state": "on", "updrs_34_rating": 3, "dbs_state": None},
+        json={"medication_state": "on", "time_since_levodopa_min": 90, "dbs_state": None},
         headers=h,
     )
     assert r.status_code == 200
-    assert (r.json()["medication_state"], r.json()["updrs_34_rating"], r.json()["dbs_state"]) == (
+    body = r.json()
+    assert (body["medication_state"], body["time_since_levodopa_min"], body["dbs_state"]) == (
         "on",
-        3,
+        90,
         "unknown",
     )
     assert (
         api.client.patch(
-            f"/api/v1/sessions/{ids[0]}", json={"updrs_34_rating": 5}, headers=h
+            f"/api/v1/sessions/{ids[0]}", json={"more_affected_side": "both"}, headers=h
         ).status_code
         == 422
     )
+    # The session-level rating moved to the trials: a clear 422 says where.
+    r = api.client.patch(f"/api/v1/sessions/{ids[0]}", json={"updrs_34_rating": 3}, headers=h)
+    assert r.status_code == 422 and "PATCH /api/v1/trials/" in r.text
     assert (
         api.client.patch(
             f"/api/v1/sessions/{ids[0]}", json={"calibration_id": 77}, headers=h

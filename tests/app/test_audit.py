@@ -51,9 +51,12 @@ CASES = [
     Case("GET", "/api/v1/sessions/{session_id}", "read", "session"),
     Case("PATCH", "/api/v1/sessions/{session_id}", "update", "session"),
     Case("DELETE", "/api/v1/sessions/{session_id}", "delete", "session"),
+    Case("GET", "/api/v1/sessions/{session_id}/report.html", "export", "visit_report_html"),
+    Case("GET", "/api/v1/sessions/{session_id}/report.pdf", "export", "visit_report_pdf"),
     Case("POST", "/api/v1/sessions/{session_id}/trials", "create", "trial"),
     Case("GET", "/api/v1/sessions/{session_id}/trials", "list", "trial"),
     Case("GET", "/api/v1/trials/{trial_id}", "read", "trial"),
+    Case("PATCH", "/api/v1/trials/{trial_id}", "update", "trial"),
     Case("GET", "/api/v1/trials/{trial_id}/result", "read", "result"),
     Case("GET", "/api/v1/trials/{trial_id}/markers.csv", "export", "markers_csv"),
     Case("GET", "/api/v1/trials/{trial_id}/report.html", "export", "report_html"),
@@ -92,7 +95,9 @@ def _request(api: Api, case: Case, ids: dict[str, int], video_pair) -> tuple[int
     if (case.method, case.route) == ("POST", "/api/v1/patients"):
         r = c.post(url, json={"code": "PD-NEW", "notes": NOTES}, headers=h)
         return r.status_code, r.json()["id"]
-    if case.method == "PATCH":
+    if case.method == "PATCH" and case.route == "/api/v1/trials/{trial_id}":
+        r = c.patch(url, json={"clinician_rating": 2, "comment": NOTES}, headers=h)
+    elif case.method == "PATCH":
         r = c.patch(url, json={"notes": NOTES + " (updated)"}, headers=h)
     elif case.route == "/api/v1/sessions" and case.method == "POST":
         body = {
@@ -100,7 +105,7 @@ def _request(api: Api, case: Case, ids: dict[str, int], video_pair) -> tuple[int
             "rig_id": ids["rig_id"],
             "recorded_at": "2026-04-01T10:00:00Z",
             "notes": NOTES,
-            "updrs_34_rating": 2,
+            "time_since_levodopa_min": 90,
         }
         r = c.post(url, json=body, headers=h)
     elif case.route == "/api/v1/sessions" and case.method == "GET":

@@ -66,7 +66,8 @@ def test_naive_timestamps_are_refused(db_session):
     ("model", "values"),
     [
         (RecordingSession, {"medication_state": "maybe"}),
-        (RecordingSession, {"updrs_34_rating": 5}),
+        (RecordingSession, {"more_affected_side": "both"}),
+        (RecordingSession, {"time_since_levodopa_min": -5}),
         (RecordingSession, {"dbs_state": "yes"}),
     ],
 )

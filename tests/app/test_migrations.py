@@ -129,3 +129,63 @@ def test_ready_calibrations_get_their_verdict_on_upgrade(tmp_path, make_settings
     assert [(r[0], r[1]) for r in rows] == [(1, "good"), (2, "poor"), (3, None)]
     assert "reprojection error" in rows[1][2]  # the reason is stored with the verdict
     dispose_engines()
+
+
+def test_session_rating_moves_to_the_trials_of_that_session(tmp_path, make_settings):
+    """Revision 0006 on a database made by 0005: the session's 3.4 rating goes to each
+    of its trials (both hands), a session without a trial keeps it in its notes, and a
+    downgrade brings one session rating back."""
+    settings = make_settings(tmp_path / "data")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.effective_database_url
+    command.upgrade(alembic_config(url), "0005")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        run = conn.exec_driver_sql
+        run(
+            "INSERT INTO users (id, email, password_hash, role, is_active, created_at)"
+            " VALUES (7, 'dr@example.org', 'x', 'clinician', 1, '2026-01-01')"
+        )
+        run("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
+        run("INSERT INTO rigs (id, name, created_at) VALUES (1, 'r', '2026-01-01')")
+        for sid, rating, notes in ((1, 2, None), (2, None, None), (3, 3, "tremor")):
+            run(
+                "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, clinician_user_id,"
+                " medication_state, dbs_state, notes, updrs_34_rating, created_at)"
+                " VALUES (?, 1, 1, '2026-02-01 10:00:00', 7, 'off', 'none', ?, ?,"
+                " '2026-02-01 10:05:00')",
+                (sid, notes, rating),
+            )
+        for tid, sid, hand in ((1, 1, "left"), (2, 1, "right"), (3, 2, "left")):
+            run(
+                "INSERT INTO trials (id, session_id, hand, status, created_at)"
+                " VALUES (?, ?, ?, 'succeeded', '2026-02-01')",
+                (tid, sid, hand),
+            )
+    engine.dispose()
+
+    command.upgrade(alembic_config(url), "head")
+    engine = sa.create_engine(url)
+    with engine.connect() as conn:
+        trials = conn.exec_driver_sql(
+            "SELECT id, clinician_rating, rating_comment, rated_by_user_id, rated_at"
+            " FROM trials ORDER BY id"
+        ).all()
+        notes = conn.exec_driver_sql("SELECT id, notes FROM sessions ORDER BY id").all()
+        columns = {c["name"] for c in sa.inspect(conn).get_columns("sessions")}
+    engine.dispose()
+    assert [(t[0], t[1], t[3]) for t in trials] == [(1, 2, 7), (2, 2, 7), (3, None, None)]
+    assert "not recorded" in trials[0][2] and trials[2][2] is None
+    assert str(trials[0][4]).startswith("2026-02-01 10:05")
+    assert notes[0][1] is None and notes[1][1] is None
+    assert notes[2][1].startswith("tremor\n") and notes[2][1].endswith(": 3.")
+    assert "updrs_34_rating" not in columns
+    assert {"time_since_levodopa_min", "more_affected_side", "dominant_hand"} <= columns
+
+    command.downgrade(alembic_config(url), "0005")
+    engine = sa.create_engine(url)
+    with engine.connect() as conn:
+        back = conn.exec_driver_sql("SELECT id, updrs_34_rating FROM sessions ORDER BY id").all()
+    engine.dispose()
+    assert [tuple(r) for r in back] == [(1, 2), (2, None), (3, None)]
+    dispose_engines()

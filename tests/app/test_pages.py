@@ -79,7 +79,6 @@ def seeded(app_settings, db_sessionmaker, storage):
                 recorded_at=when,
                 medication_state=med,
                 dbs_state="none",
-                updrs_34_rating=2,
                 clinician_user_id=user.id,
             )
             db.add(s)
@@ -87,7 +86,12 @@ def seeded(app_settings, db_sessionmaker, storage):
             for hand in ("left", "right") if i == 1 else ("right",):
                 markers, result = synthetic_trial(amplitude0_mm=52.0 - 5 * i, seed=i)
                 stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
-                trial = Trial(session_id=s.id, hand=hand, status="succeeded")
+                trial = Trial(
+                    session_id=s.id,
+                    hand=hand,
+                    status="succeeded",
+                    clinician_rating=2 if hand == "right" else None,
+                )
                 db.add(trial)
                 db.flush()
                 job = Job(
@@ -248,9 +252,13 @@ def test_new_session_form_and_creation(client, seeded, db_sessionmaker):
     token = login(client)
     pid = seeded["patient_id"]
     form = client.get(f"/patients/{pid}/sessions/new").text
-    for field in ("rig_id", "recorded_at", "updrs_34_rating", "notes"):
+    for field in ("rig_id", "recorded_at", "time_since_levodopa_min", "notes"):
         assert f'for="{field}"' in form, field  # every field is labelled
     assert "<legend>Medication state</legend>" in form
+    assert (
+        "<legend>More affected side</legend>" in form and "<legend>Dominant hand</legend>" in form
+    )
+    assert "updrs_34_rating" not in form  # rated per trial (per hand), not per session
     r = client.post(
         f"/patients/{pid}/sessions",
         data={
@@ -258,8 +266,10 @@ def test_new_session_form_and_creation(client, seeded, db_sessionmaker):
             "recorded_at": "2025-06-01T10:30",
             "medication_state": "off",
             "dbs_state": "on",
-            "updrs_34_rating": "3",
-            "notes": "Morning, 12 h off levodopa.",
+            "time_since_levodopa_min": "720",
+            "more_affected_side": "right",
+            "dominant_hand": "left",
+            "notes": "Morning.",
             "csrf_token": token,
         },
         follow_redirects=False,
@@ -268,21 +278,28 @@ def test_new_session_form_and_creation(client, seeded, db_sessionmaker):
     page = client.get(r.headers["location"]).text
     assert "Upload the left hand" in page and "Upload the right hand" in page
     assert page.count("<progress") >= 2  # an upload progress bar per hand
+    assert "12 h 00 min before" in page
     with db_sessionmaker() as db:
         s = db.scalars(select(RecordingSession).order_by(RecordingSession.id.desc())).first()
-        assert (s.medication_state, s.dbs_state, s.updrs_34_rating) == ("off", "on", 3)
+        assert (s.medication_state, s.dbs_state) == ("off", "on")
+        assert (s.time_since_levodopa_min, s.more_affected_side, s.dominant_hand) == (
+            720,
+            "right",
+            "left",
+        )
         assert s.recorded_at == datetime(2025, 6, 1, 10, 30, tzinfo=UTC)
-    # A bad rating is refused with a message and the values are kept.
+    # A bad value is refused with a message in the form's own words; the values are kept.
     r = client.post(
         f"/patients/{pid}/sessions",
         data={
             "rig_id": str(seeded["rig_id"]),
             "recorded_at": "2025-06-01T10:30",
-            "updrs_34_rating": "7",
+            "time_since_levodopa_min": "soon",
             "csrf_token": token,
         },
     )
-    assert r.status_code == 422 and "Please correct the form" in r.text
+    assert r.status_code == 422 and "Time since the last levodopa dose" in r.text
+    assert 'value="soon"' in r.text
 
 
 def test_session_page_offers_the_left_right_comparison(client, seeded, db_sessionmaker):

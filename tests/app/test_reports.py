@@ -145,16 +145,18 @@ def _plot_regions(pdf: Path) -> dict[str, tuple[int, tuple[float, float, float, 
         ).group(1)
     )
     captions = {
-        "Aperture": "aperture",
+        "Thumb–index": "aperture",
         "Amplitude": "amplitude",
         "Peak": "velocity",
         "Fingertip": "paths",
     }
     regions = {}
-    in_movement = False  # captions follow the "Movement" heading; earlier words are tables
+    # Captions follow the "Aperture over time" heading (page 1, after the summary block,
+    # whose rows name the same measures); earlier words are tables.
+    in_movement = False
     for page in range(1, n_pages + 1):
         for word, x0, y0, _x1, _y1 in _pdf_words(pdf, page):
-            in_movement = in_movement or word == "Movement"
+            in_movement = in_movement or word == "Aperture"
             name = captions.get(word)
             if in_movement and name and name not in regions:
                 width = 240.0 if name in ("amplitude", "velocity") else 490.0

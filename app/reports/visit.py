@@ -1,0 +1,152 @@
+"""What the visit report shows: :class:`VisitData` and its task groups.
+
+A *visit* is what a patient does in clinic on one day: the sessions of one
+patient on one calendar day in the clinic's time zone (typically one off
+medication and one on, an hour or two apart), each with trials of a task on
+one side. Page 1 of the visit report summarises every trial in one table per
+task (finger tapping first): the summary block of each trial (hand ×
+medication state), the right–left asymmetry and the medication response of
+the key metrics, and the clinician's ratings and comments. The per-trial
+detail follows.
+
+Plain data, no database (``app.services.visits`` fills it), so that rendering
+is a pure function of a :class:`VisitData` and a signed copy can be stored
+and reproduced.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, date, datetime
+
+from app.reports.data import ReportData, summary_column
+from app.reports.summary import (
+    TASK_ORDER,
+    TASK_TITLES,
+    Comparison,
+    SummaryColumn,
+    SummaryRow,
+    asymmetry_rows,
+    medication_rows,
+    short_taps_note,
+    summary_rows,
+)
+
+MEDICATION_ORDER = ("off", "on", "unknown")
+HAND_ORDER = ("right", "left")
+
+
+@dataclass(frozen=True)
+class SessionFacts:
+    """One session of the visit, as the report header lists it."""
+
+    id: int
+    recorded_at: datetime
+    medication_state: str
+    dbs_state: str
+    time_since_levodopa_min: int | None = None
+    more_affected_side: str | None = None
+    dominant_hand: str | None = None
+    notes: str | None = None
+    clinician: str | None = None
+
+
+@dataclass(frozen=True)
+class VisitData:
+    """Everything the visit report shows.
+
+    Attributes
+    ----------
+    patient_code : str
+        The pseudonymous code; the report holds no other identifying data.
+    session_id : int
+        The session the report was asked for (its visit is reported).
+    visit_date : date
+        The day, in the clinic's time zone.
+    timezone : str
+        The clinic's time zone (IANA name).
+    sessions : tuple of SessionFacts
+        The visit's sessions in time order.
+    trials : tuple of ReportData
+        Every trial of the visit with a result.
+    software_version : str
+        The software that rendered the report (each trial names what measured it).
+    generated_at : datetime (UTC)
+    """
+
+    patient_code: str
+    session_id: int
+    visit_date: date
+    timezone: str
+    sessions: tuple[SessionFacts, ...]
+    trials: tuple[ReportData, ...]
+    software_version: str
+    generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
+
+
+@dataclass(frozen=True)
+class TaskGroup:
+    """One task's part of the visit summary (a row group of page 1)."""
+
+    task: str
+    title: str
+    columns: tuple[SummaryColumn, ...]
+    rows: tuple[SummaryRow, ...]
+    asymmetry: tuple[tuple[str, tuple[Comparison, ...]], ...]
+    """Per medication state with both hands: right − left, % of their mean."""
+    medication: tuple[tuple[str, tuple[Comparison, ...]], ...]
+    """Per hand with both states: on − off, % of off."""
+    notes: tuple[str, ...]
+
+
+def _order(column: SummaryColumn) -> tuple[int, int, int]:
+    med = (
+        MEDICATION_ORDER.index(column.medication_state)
+        if column.medication_state in MEDICATION_ORDER
+        else 9
+    )
+    hand = HAND_ORDER.index(column.hand) if column.hand in HAND_ORDER else 9
+    return med, hand, column.trial_id
+
+
+def _newest(columns: Sequence[SummaryColumn], hand: str, med: str) -> SummaryColumn | None:
+    found = [c for c in columns if c.hand == hand and c.medication_state == med]
+    return max(found, key=lambda c: c.trial_id) if found else None
+
+
+def task_groups(trials: Sequence[ReportData]) -> list[TaskGroup]:
+    """The visit's trials grouped by task (finger tapping first), columns off→on, right→left."""
+    columns = [summary_column(t) for t in trials]
+    tasks = sorted(
+        {c.task for c in columns},
+        key=lambda t: (TASK_ORDER.index(t) if t in TASK_ORDER else len(TASK_ORDER), t),
+    )
+    groups = []
+    for task in tasks:
+        cols = sorted((c for c in columns if c.task == task), key=_order)
+        asymmetry = []
+        for med in MEDICATION_ORDER:
+            right, left = _newest(cols, "right", med), _newest(cols, "left", med)
+            if right is not None and left is not None:
+                asymmetry.append((med, tuple(asymmetry_rows(right, left))))
+        medication = []
+        for hand in HAND_ORDER:
+            on, off = _newest(cols, hand, "on"), _newest(cols, hand, "off")
+            if on is not None and off is not None:
+                medication.append((hand, tuple(medication_rows(on, off))))
+        notes = tuple(
+            f"{c.label}: {note}" for c in cols if (note := short_taps_note(c)) is not None
+        )
+        groups.append(
+            TaskGroup(
+                task=task,
+                title=TASK_TITLES.get(task, task.replace("_", " ").capitalize()),
+                columns=tuple(cols),
+                rows=tuple(summary_rows(cols)),
+                asymmetry=tuple(asymmetry),
+                medication=tuple(medication),
+                notes=notes,
+            )
+        )
+    return groups

@@ -1,0 +1,89 @@
+"""The visit report: every trial of one visit on one page, then each trial's detail.
+
+A visit is the patient's sessions on one calendar day in the clinic's time
+zone (:func:`app.services.common.visit_sessions`). :func:`load_visit` gathers
+it into a :class:`~app.reports.visit.VisitData`; rendering is a pure function
+of that (``app.reports.rendering.render_visit_html`` / ``render_visit_pdf``).
+Each report is audited as one ``export`` of the session it was asked for.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy.orm import Session
+
+from app.actors import Actor
+from app.audit import audit
+from app.models import RecordingSession, User
+from app.reports.rendering import render_visit_html, render_visit_pdf
+from app.reports.visit import SessionFacts, VisitData
+from app.services.common import load_session, visit_sessions, visit_trials
+from app.services.results import load_report_data
+from app.storage import Storage
+from app.timezones import local_date
+from core.version import software_version
+
+
+def _clinician(db: Session, user_id: int | None) -> str | None:
+    user = db.get(User, user_id) if user_id is not None else None
+    return None if user is None else (user.display_name or user.email)
+
+
+def load_visit(
+    db: Session, session: RecordingSession, storage: Storage, *, timezone: str = "UTC"
+) -> VisitData:
+    """The visit of ``session``: its sessions and every trial of them with a result."""
+    sessions = visit_sessions(session, timezone)
+    return VisitData(
+        patient_code=session.patient.code,
+        session_id=session.id,
+        visit_date=local_date(session.recorded_at, timezone),
+        timezone=timezone,
+        sessions=tuple(
+            SessionFacts(
+                id=s.id,
+                recorded_at=s.recorded_at,
+                medication_state=s.medication_state,
+                dbs_state=s.dbs_state,
+                time_since_levodopa_min=s.time_since_levodopa_min,
+                more_affected_side=s.more_affected_side,
+                dominant_hand=s.dominant_hand,
+                notes=s.notes,
+                clinician=_clinician(db, s.clinician_user_id),
+            )
+            for s in sessions
+        ),
+        trials=tuple(
+            load_report_data(db, t, storage, timezone=timezone)
+            for t in visit_trials(session, timezone)
+        ),
+        software_version=software_version(),
+    )
+
+
+def _visit(
+    db: Session, actor: Actor, session_id: int, storage: Storage, timezone: str
+) -> tuple[RecordingSession, VisitData]:
+    session = load_session(db, actor, session_id, "export")
+    return session, load_visit(db, session, storage, timezone=timezone)
+
+
+def visit_report_html(
+    db: Session, actor: Actor, session_id: int, storage: Storage, *, timezone: str = "UTC"
+) -> str:
+    """The visit report of ``session_id``'s visit as HTML (audited ``export visit_report_html``)."""
+    session, visit = _visit(db, actor, session_id, storage, timezone)
+    html = render_visit_html(visit)
+    audit(db, actor, "export", "visit_report_html", session.id, session.patient_id)
+    db.commit()
+    return html
+
+
+def visit_report_pdf(
+    db: Session, actor: Actor, session_id: int, storage: Storage, *, timezone: str = "UTC"
+) -> bytes:
+    """The visit report of ``session_id``'s visit as PDF (audited ``export visit_report_pdf``)."""
+    session, visit = _visit(db, actor, session_id, storage, timezone)
+    pdf = render_visit_pdf(visit)
+    audit(db, actor, "export", "visit_report_pdf", session.id, session.patient_id)
+    db.commit()
+    return pdf
