@@ -302,6 +302,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def health() -> dict[str, str]:
         return {"status": "ok"}
 
+    @app.get("/favicon.ico", include_in_schema=False)
+    def favicon() -> Response:
+        # Standalone pages (the HTML reports) link no icon: answer browsers' implicit request.
+        return Response(status_code=204)
+
     app.include_router(web_router)
 
     @app.exception_handler(LoginRequired)

@@ -24,6 +24,7 @@ import matplotlib.dates as mdates
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 from numpy.typing import ArrayLike, NDArray
 
 matplotlib.use("Agg")
@@ -110,12 +111,24 @@ def _figure(width_in: float, height_in: float) -> Figure:
 _ID_RE = re.compile(r'id="([^"]+)"')
 
 
-def _to_svg(fig: Figure, *, title: str, name: str) -> str:
-    """Serialise ``fig`` as an inline ``<svg>`` with unique ids and an accessible title."""
+def _escape(text: str) -> str:
+    return (
+        text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
+    )
+
+
+def _to_svg(fig: Figure, *, title: str, name: str, hover: Mapping[str, str] | None = None) -> str:
+    """Serialise ``fig`` as an inline ``<svg>`` with unique ids and an accessible title.
+
+    ``hover`` maps an artist's gid to the text a browser shows when the pointer
+    rests on it (an SVG ``<title>`` inside that artist's group).
+    """
     buf = io.StringIO()
     with matplotlib.rc_context(_RC):
         fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
     svg = buf.getvalue()
+    for gid, text in (hover or {}).items():
+        svg = svg.replace(f'<g id="{gid}">', f'<g id="{gid}"><title>{_escape(text)}</title>', 1)
     start = svg.find("<svg")
     if start < 0:  # pragma: no cover - matplotlib always writes an <svg>
         raise ValueError("matplotlib did not produce an SVG document")
@@ -406,17 +419,33 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
     return _to_svg(fig, title="Fingertip paths in front, side and 3D views (mm)", name="paths")
 
 
+#: Sideways spread of the series of one visit, in share of the time axis: hands and
+#: medication states measured an hour apart would otherwise hide each other.
+DODGE_FRACTION = 0.012
+_DODGE_SLOTS = {
+    ("left", "off"): -1.5,
+    ("left", "on"): -0.5,
+    ("right", "off"): 0.5,
+    ("right", "on"): 1.5,
+}
+
+
 def trend_plot(
     points: Sequence[TrendPoint],
     *,
     label: str,
     unit: str,
+    integer: bool = False,
 ) -> str:
     """One metric over sessions, per hand, with medication on and off drawn apart.
 
     Left and right hands have their own colour; "on" medication is a solid line
     with filled dots, "off" a dashed line with open dots, "unknown" grey
-    crosses, so that progression and treatment effect are both visible.
+    crosses, so that progression and treatment effect are both visible. Points
+    of one visit are spread slightly sideways (:data:`DODGE_FRACTION` of the
+    axis per series) so that none hides another; resting the pointer on a
+    point shows its date, hand, medication state and value. ``integer`` puts
+    ticks on whole numbers only (counts).
     """
     fig = _figure(3.6, 2.3)
     usable = [p for p in points if p.value is not None and math.isfinite(float(p.value))]
@@ -428,6 +457,9 @@ def trend_plot(
         "off": {"ls": "--", "marker": "o", "mfc": "white"},
         "unknown": {"ls": ":", "marker": "x", "mfc": None},
     }
+    days = [_as_datetime(p.recorded_at) for p in usable]
+    span = max(max(days) - min(days), timedelta(days=90))
+    hover: dict[str, str] = {}
     with matplotlib.rc_context(_RC):
         ax = fig.add_subplot()
         for hand in ("left", "right"):
@@ -438,34 +470,39 @@ def trend_plot(
                 )
                 if not series:
                     continue
-                xs: Any = [_as_datetime(p.recorded_at) for p in series]
+                shift = span * DODGE_FRACTION * _DODGE_SLOTS.get((hand, med), 0.0)
+                xs: Any = [_as_datetime(p.recorded_at) + shift for p in series]
                 ys = [float(p.value) for p in series]  # type: ignore[arg-type]
                 colour = COLOURS[hand]
-                ax.plot(
-                    xs,
-                    ys,
-                    ls=style["ls"],
-                    marker=style["marker"],
-                    ms=4,
-                    lw=1.1,
-                    color=colour,
-                    mfc=style["mfc"] or colour,
-                    label=f"{hand}, {med}",
-                )
+                ax.plot(xs, ys, ls=style["ls"], lw=1.1, color=colour, label=f"{hand}, {med}")
+                for p, x, y in zip(series, xs, ys, strict=True):
+                    (dot,) = ax.plot(
+                        [x], [y], ls="", marker=style["marker"], ms=4.5, color=colour,
+                        mfc=style["mfc"] or colour, alpha=0.85,
+                    )  # fmt: skip
+                    gid = f"pt{len(hover)}"
+                    dot.set_gid(gid)
+                    value = f"{y:.0f}" if integer else f"{y:.3g}"
+                    hover[gid] = (
+                        f"{_as_datetime(p.recorded_at):%Y-%m-%d %H:%M}, {hand} hand,"
+                        f" medication {med}: {value}{' ' + unit if unit and unit != 'count' else ''}"
+                    )
         ax.set_ylabel(f"{label} ({unit})" if unit else label)
         ax.legend(loc="best", fontsize=7)
+        if integer:
+            ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))
         # matplotlib.dates has no type hints: its three calls are the untyped ones here.
         locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
         ax.xaxis.set_major_locator(locator)
         ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
-        days = [_as_datetime(p.recorded_at) for p in usable]
         if max(days) - min(days) < timedelta(days=60):
             centre = min(days) + (max(days) - min(days)) / 2
             ax.set_xlim(
                 mdates.date2num(centre - timedelta(days=45)),  # type: ignore[no-untyped-call]
                 mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
             )
-    return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend")
+    return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend", hover=hover)
 
 
 def _as_datetime(value: date | datetime) -> datetime:

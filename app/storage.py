@@ -223,6 +223,11 @@ class IncomingFile:
         elif self._committed is None:
             self.abort()
 
+    @property
+    def sha256(self) -> str:
+        """SHA-256 (hex) of the bytes received so far."""
+        return self._sha.hexdigest()
+
     def write(self, chunk: bytes) -> None:
         """Append ``chunk``; raises :class:`PayloadTooLargeError` past ``max_bytes``."""
         if self._fh.closed:

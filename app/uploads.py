@@ -118,7 +118,13 @@ class ParsedUpload:
     storage: Storage
     fields: dict[str, str] = field(default_factory=dict)
     files: dict[str, StagedFile] = field(default_factory=dict)
+    labels: dict[str, str] = field(default_factory=dict)
+    """The form's own labels of its parts (a page's form): messages name them instead."""
     _published: list[str] = field(default_factory=list)
+
+    def label(self, name: str) -> str:
+        """How a message names the part ``name``: the form's label, else the field name."""
+        return f"“{self.labels[name]}”" if name in self.labels else repr(name)
 
     def publish(self, name: str) -> StoredFile:
         """Publish one file; remembered so that :meth:`discard` can remove it again."""
@@ -144,12 +150,16 @@ class ParsedUpload:
 
     def require_file(self, name: str) -> StagedFile:
         if name not in self.files:
-            raise InvalidUpload(f"The upload lacks the file field {name!r}; attach it and retry.")
+            raise InvalidUpload(
+                f"The upload lacks the file {self.label(name)}; attach it and retry."
+            )
         return self.files[name]
 
     def require_field(self, name: str) -> str:
         value = self.fields.get(name)
         if value is None or value.strip() == "":
+            if name in self.labels:
+                raise InvalidUpload(f"Fill in {self.label(name)} and send the form again.")
             raise InvalidUpload(f"The upload lacks the form field {name!r}; fill it in and retry.")
         return value.strip()
 

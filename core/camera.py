@@ -417,6 +417,11 @@ def rig_from_dict(doc: Any, *, source: str = "the rig file") -> StereoRig:
     if not isinstance(doc, dict):
         raise RigFileError(f"{source} is not a JSON object; expected a bradyscope rig file.")
     fmt = doc.get("format")
+    if fmt is None and "cameras" not in doc:
+        raise RigFileError(
+            f"{source} is not a rig file: it has neither 'format' nor 'cameras'; upload the"
+            " rig.json that 'bradyscope calibrate' wrote."
+        )
     if fmt != RIG_FORMAT:
         raise RigFileError(
             f"{source} has format {fmt!r}, but this version of bradyscope reads {RIG_FORMAT!r};"

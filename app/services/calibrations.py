@@ -144,7 +144,10 @@ def _number(
     except ValueError:
         value = None
     if value is None or not math.isfinite(value) or not low <= value <= high:
-        raise InvalidUpload(f"{name} must be a {kind.__name__} between {low:g} and {high:g}.")
+        what = "a whole number" if kind is int else "a number"
+        raise InvalidUpload(
+            f"{upload.labels.get(name, name)} must be {what} between {low:g} and {high:g}."
+        )
     return value
 
 

@@ -195,7 +195,11 @@ class PatientOverview:
 
 
 def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
-    """Per trend metric, one point per analysed trial of the patient."""
+    """Per trend metric, one point per analysed trial of the patient: its first-10-tap value.
+
+    The MDS-UPDRS item is rated on the first 10 taps, so the trends follow
+    ``metrics_first_10`` (a result without it has no point).
+    """
     points: dict[str, list[TrendPoint]] = {key: [] for key, _, _ in TREND_METRICS}
     for s in patient.sessions:
         if s.deleted_at is not None:
@@ -204,10 +208,12 @@ def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
             if t.deleted_at is not None or t.result is None:
                 continue
             result = read_result(t.result.document)
+            first10 = result.metrics_first_10
             for key, _, _ in TREND_METRICS:
-                value = result.metric(key)
+                raw = first10.get(key)
+                value = None if raw is None else float(raw)
                 if key == "hesitation_count" and value is not None:
-                    value += result.metric("halt_count") or 0.0  # pauses: hesitations and halts
+                    value += float(first10.get("halt_count") or 0)  # interruptions: both kinds
                 points[key].append(
                     TrendPoint(
                         recorded_at=s.recorded_at,

@@ -16,7 +16,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, select
+from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from app import jobs
@@ -196,6 +196,16 @@ def job_page(db: Session, actor: Actor, job_id: int) -> Job:
         audit(db, actor, "read", "trial", job.trial.id, job.trial.session.patient_id)
     db.commit()
     return job
+
+
+def queue_position(db: Session, job: Job) -> int | None:
+    """1 for the next queued job to be claimed, 2 for the one after...; None unless queued."""
+    if job.status != "queued":
+        return None
+    ahead = db.scalar(
+        select(func.count()).select_from(Job).where(Job.status == "queued", Job.id < job.id)
+    )
+    return int(ahead or 0) + 1
 
 
 def job_progress(db: Session, actor: Actor, job_id: int) -> Job:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from app.models import Video
-from app.uploads import ParsedUpload, validate_stereo_pair, validate_video
+from app.uploads import InvalidUpload, ParsedUpload, validate_stereo_pair, validate_video
 from core.camera import StereoRig
 from core.video import VideoInfo
 
@@ -23,6 +23,10 @@ def check_video_pair(
     """
     left_file = upload.require_file("left_video")
     right_file = upload.require_file("right_video")
+    if left_file.incoming.sha256 == right_file.incoming.sha256:
+        raise InvalidUpload(
+            "The left and right videos are the same file; choose the recording of each camera."
+        )
     left = validate_video(left_file.path, label="The left video", filename=left_file.filename)
     right = validate_video(right_file.path, label="The right video", filename=right_file.filename)
     warnings = validate_stereo_pair(left, right, rig=rig)

@@ -78,6 +78,7 @@
         var link = done.querySelector("a");
         if (link) link.focus();
       }
+      if (job.title) document.title = job.title + " — bradyscope";
       section.setAttribute("data-status", job.status);
     }
     function poll() {

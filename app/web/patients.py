@@ -7,7 +7,7 @@ session form (``read patient``) and the creations (through the services).
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import UTC, date, datetime
 from typing import Annotated, Any
 from zoneinfo import ZoneInfo
 
@@ -20,13 +20,13 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import DBS_STATES, MEDICATION_STATES, Patient, Rig
-from app.plots import trend_plot
+from app.plots import TrendPoint, trend_plot
 from app.reports.catalogue import TREND_METRICS, format_metric
 from app.schemas import PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient
 from app.services.rigs import all_rigs
-from app.timezones import from_local
+from app.timezones import from_local, local_date
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
@@ -136,11 +136,22 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
     except NotFoundError as exc:
         return not_found_page(request, user, exc)
     points = overview.trends
-    trends = [
-        {"key": key, "label": label, "svg": trend_plot(points[key], label=label, unit=unit)}
-        for key, label, unit in TREND_METRICS
-    ]
-    n_results = sum(1 for p in points[TREND_METRICS[0][0]] if p.value is not None)
+    tz = settings_of(request).timezone
+    measured = [p for key, _, _ in TREND_METRICS for p in points[key] if p.value is not None]
+    n_results = len({(p.recorded_at, p.hand) for p in measured})
+    visits = {local_date(_aware(p.recorded_at), tz) for p in measured}
+    trends, trend_table = [], None
+    if len(visits) > 1:
+        trends = [
+            {
+                "key": key,
+                "label": label,
+                "svg": trend_plot(points[key], label=label, unit=unit, integer=unit == "count"),
+            }
+            for key, label, unit in TREND_METRICS
+        ]
+    elif measured:
+        trend_table = _single_visit_table(points)
     return render(
         request,
         "patient.html",
@@ -150,10 +161,41 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
         patient=overview.patient,
         rows=[{"session": r.session, "trials": r.trials} for r in overview.sessions],
         trends=trends,
+        trend_table=trend_table,
         n_results=n_results,
         job_ids=overview.job_ids,
         format_metric=format_metric,
     )
+
+
+def _aware(value: date | datetime) -> datetime:
+    if isinstance(value, datetime):
+        return value
+    return datetime(value.year, value.month, value.day, tzinfo=UTC)
+
+
+def _single_visit_table(points: dict[str, list[TrendPoint]]) -> dict[str, Any]:
+    """One visit: a table (metric × hand and medication state) instead of one-dot plots."""
+    columns = sorted(
+        {(p.medication_state, p.hand) for key, _, _ in TREND_METRICS for p in points[key]},
+        key=lambda c: (
+            ("off", "on", "unknown").index(c[0]) if c[0] in ("off", "on", "unknown") else 9,
+            c[1] != "right",
+        ),
+    )
+    rows = []
+    for key, label, unit in TREND_METRICS:
+        by_column = {(p.medication_state, p.hand): p.value for p in points[key]}
+        cells = [
+            "–" if by_column.get(c) is None else format_metric(key, by_column[c]) for c in columns
+        ]
+        rows.append(
+            {"key": key, "label": label, "unit": "" if unit == "count" else unit, "cells": cells}
+        )
+    return {
+        "columns": [f"{hand} hand, medication {med}" for med, hand in columns],
+        "rows": rows,
+    }
 
 
 @router.get("/patients/{patient_id}/sessions/new", response_class=HTMLResponse)

@@ -189,6 +189,11 @@ def _job_view(db: Session, job: Job) -> dict[str, Any]:
         )
     }
     out["stage_label"] = _stage_label(job.stage, job.status)
+    position = trials.queue_position(db, job)
+    out["queue_position"] = position
+    if position is not None:
+        out["stage_label"] = f"Waiting for a worker: number {position} in the queue"
+    out["title"] = _job_title(job)
     if job.kind == "calibrate" and job.stage == "detection" and job.status == "running":
         out["stage_label"] = "Finding the calibration board"
     if job.trial_id is not None:
@@ -215,6 +220,15 @@ _STAGES = {
 }
 
 
+def _job_title(job: Job) -> str:
+    """The page title: what the job does and, once it ended, how it ended."""
+    what = f"Analysis {job.id}" if job.trial_id is not None else f"Calibration job {job.id}"
+    ended = {"succeeded": "finished", "failed": "failed"}.get(job.status)
+    if ended is None:
+        return f"{what}: {'queued' if job.status == 'queued' else 'running'}"
+    return f"{what}: {ended}"
+
+
 def _stage_label(stage: str | None, status: str) -> str:
     if status == "succeeded":
         return "Finished"
@@ -239,7 +253,7 @@ def job_page(request: Request, db: SessionDep, user: PageUser, job_id: int) -> R
         "job.html",
         user,
         active="patients" if trial is not None else "rigs",
-        title=f"Analysis {job.id}" if trial is not None else f"Calibration job {job.id}",
+        title=_job_title(job),
         job=_job_view(db, job),
         trial=trial,
         patient=trial.session.patient if trial is not None else None,

@@ -41,16 +41,35 @@ router = APIRouter()
 # Quality figures shown on the calibration report, in this order, with labels and units.
 QUALITY_LABELS: dict[str, tuple[str, str]] = {
     "rms_px": ("RMS reprojection error (stereo)", "px"),
-    "rms_left_px": ("RMS reprojection error, left camera", "px"),
-    "rms_right_px": ("RMS reprojection error, right camera", "px"),
+    "rms_px_left": ("RMS reprojection error, left camera", "px"),
+    "rms_px_right": ("RMS reprojection error, right camera", "px"),
+    "view_rms_px_max": ("Worst board view, RMS error", "px"),
     "epipolar_px_mean": ("Mean epipolar error", "px"),
     "epipolar_px_max": ("Largest epipolar error", "px"),
+    "epipolar_px_mean_check": ("Mean epipolar error, held-out views", "px"),
+    "square_mm": ("Board square, given", "mm"),
+    "square_mm_measured": ("Board square, measured in 3D", "mm"),
+    "square_error_mm_mean": ("Square size error, mean", "mm"),
+    "square_error_mm_rms": ("Square size error, RMS", "mm"),
+    "square_check_views": ("Views used for the square check", ""),
+    "square_check_method": ("Square check method", ""),
+    "coverage_left": ("Image coverage, left camera", "%"),
+    "coverage_right": ("Image coverage, right camera", "%"),
+    "views_used": ("Board views used", ""),
+    "views_rejected": ("Board views rejected", ""),
+    "views_blurred": ("Blurred views skipped", ""),
+    "views_duplicate": ("Near-duplicate views skipped", ""),
+    "views_held_out": ("Views held out for checking", ""),
+    "views_both_detected": ("Views with the board in both cameras", ""),
+    "frames_tried": ("Frames searched", ""),
+    "frames_total": ("Frames in the videos", ""),
+    "frames_left_detected": ("Frames with the board, left camera", ""),
+    "frames_right_detected": ("Frames with the board, right camera", ""),
+    "baseline_mm": ("Baseline between the cameras", "mm"),
     "n_pairs": ("Board views used (pairs)", ""),
     "n_frames_used": ("Frames used", ""),
-    "coverage_left": ("Image coverage, left", ""),
-    "coverage_right": ("Image coverage, right", ""),
-    "baseline_mm": ("Baseline between the cameras", "mm"),
 }
+"""Labels and units of ``core.calibration``'s quality figures; others are not shown."""
 
 
 def _quality_items(quality: dict[str, Any] | None) -> list[tuple[str, str]]:
@@ -58,8 +77,12 @@ def _quality_items(quality: dict[str, Any] | None) -> list[tuple[str, str]]:
     for key, value in (quality or {}).items():
         if isinstance(value, bool) or not isinstance(value, int | float | str):
             continue
-        label, unit = QUALITY_LABELS.get(key, (key.replace("_", " ").capitalize(), ""))
-        if isinstance(value, float):
+        if key not in QUALITY_LABELS:
+            continue  # internal or structured figures (per_view, board, method...)
+        label, unit = QUALITY_LABELS[key]
+        if unit == "%" and isinstance(value, int | float):
+            text = f"{100 * float(value):.0f}"
+        elif isinstance(value, float):
             text = f"{value:.3g}"
         else:
             text = str(value)
@@ -206,8 +229,27 @@ def _create(
     return RedirectResponse(target, status_code=303)
 
 
+CALIBRATION_FORM_LABELS = {
+    "rig_json": "Rig file (rig.json)",
+    "left_video": "Board video, left camera",
+    "right_video": "Board video, right camera",
+    "board": "Board",
+    "dictionary": "ArUco dictionary",
+    "cols": "Columns",
+    "rows": "Rows",
+    "square_mm": "Square size (mm)",
+    "marker_mm": "Marker size (mm)",
+    "valid_from": "Valid from",
+}
+"""The calibration forms' labels (templates/rig.html), named by their error messages."""
+
+
 def _drop_unused_parts(upload: ParsedUpload) -> None:
-    """The form has a rig-file and a board-video part: the one not used arrives empty."""
+    """The form has a rig-file and a board-video part: the one not used arrives empty.
+
+    Errors then name the form's labels, not the field names.
+    """
+    upload.labels.update(CALIBRATION_FORM_LABELS)
     for name in list(upload.files):
         staged = upload.files[name]
         if staged.size_bytes == 0 and not (staged.filename or ""):

@@ -62,8 +62,13 @@ def write_video(
     fps: float = VIDEO_FPS,
     codec: str = "mp4v",
     noise: bool = False,
+    shift_px: int = 0,
 ) -> Path:
-    """A real video (MPEG-4 by default) of a bright dot moving on grey (or on noise)."""
+    """A real video (MPEG-4 by default) of a bright dot moving on grey (or on noise).
+
+    ``shift_px`` moves the dot sideways: the right camera's video of a pair differs
+    from the left one (two identical files are refused as a pair).
+    """
     yy, xx = np.mgrid[0 : size.height, 0 : size.width]
     rng = np.random.default_rng(3)
     with VideoWriter(path, fps=fps, image_size=size, codec=codec) as writer:
@@ -71,7 +76,7 @@ def write_video(
             frame = np.full((size.height, size.width), 60, np.uint8)
             if noise:  # incompressible: every frame takes its share of the file
                 frame = rng.integers(0, 200, (size.height, size.width), dtype=np.uint8)
-            cx, cy = 20 + 5 * i, size.height / 2
+            cx, cy = 20 + shift_px + 5 * i, size.height / 2
             frame[(xx - cx) ** 2 + (yy - cy) ** 2 < 36] = 230
             writer.write(frame)
     return path
@@ -127,7 +132,7 @@ def api(app_settings: Settings, db_sessionmaker: sessionmaker[Session]) -> Itera
 @pytest.fixture(scope="session")
 def video_pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     folder = tmp_path_factory.mktemp("videos")
-    return write_video(folder / "left.mp4"), write_video(folder / "right.mp4")
+    return write_video(folder / "left.mp4"), write_video(folder / "right.mp4", shift_px=2)
 
 
 @dataclass(frozen=True)

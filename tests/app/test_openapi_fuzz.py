@@ -46,10 +46,11 @@ def fuzz_app(app_settings, db_sessionmaker, tmp_path) -> Iterator[tuple[Any, str
         api = Api(app, client, app_settings, db_sessionmaker, key)
         seeded = seed_recording_target(api)
         left = write_video(tmp_path / "l.mp4")
+        right = write_video(tmp_path / "r.mp4", shift_px=2)
         r = client.post(
             f"/api/v1/sessions/{seeded.session_id}/trials",
             data={"hand": "left"},
-            files=trial_files(left, left),
+            files=trial_files(left, right),
             headers=api.headers,
         )
         assert r.status_code == 201, r.text

@@ -411,11 +411,11 @@ def tiny_videos(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("videos")
     paths = []
-    for side in ("left", "right"):
+    for k, side in enumerate(("left", "right")):
         path = out / f"{side}.mkv"
         with VideoWriter(path, fps=100.0, image_size=ImageSize(640, 512)) as w:
-            for i in range(10):
-                w.write(np.full((512, 640), 10 + i, dtype=np.uint8))
+            for i in range(10):  # the two sides differ (an identical pair is refused)
+                w.write(np.full((512, 640), 10 + i + 3 * k, dtype=np.uint8))
         paths.append(path)
     return paths
 
@@ -623,3 +623,40 @@ def test_upload_to_a_rig_without_calibration_is_refused_early(
         headers={"X-CSRF-Token": token, "Accept": "application/json"},
     )
     assert r.status_code == 409 and "calibration" in r.json()["detail"]
+
+
+def test_a_single_visit_is_a_table_not_one_dot_plots(client, seeded, db_sessionmaker):
+    login(client)
+    with db_sessionmaker() as db:
+        first = db.get(Trial, seeded["trials"][(0, "right")]).session
+        first.deleted_at = datetime(2026, 1, 1, tzinfo=UTC)  # only the 2025 visit remains
+        db.commit()
+    html = client.get(f"/patients/{seeded['patient_id']}").text
+    assert "data-trend-table" in html and 'data-plot="trend"' not in html
+    assert "right hand, medication on" in html and "left hand, medication on" in html
+
+
+def test_trends_follow_the_first_10_taps(client, seeded):
+    login(client)
+    html = client.get(f"/patients/{seeded['patient_id']}").text
+    assert "First-10-tap values" in html
+    # Hover text of a point: its date, hand, medication state and first-10 value.
+    assert "2025-03-01 09:00, left hand, medication on:" in html
+
+
+def test_job_page_title_says_how_it_ended_and_the_queue_position(client, seeded, db_sessionmaker):
+    login(client)
+    with db_sessionmaker() as db:
+        done = db.scalar(select(Job.id).where(Job.trial_id == seeded["trials"][(0, "right")]))
+        waiting = [
+            Job(kind="analyze_trial", trial_id=seeded["trials"][(1, hand)], status="queued")
+            for hand in ("left", "right")
+        ]
+        db.add_all(waiting)
+        db.commit()
+        second = waiting[1].id
+    page = client.get(f"/jobs/{done}").text
+    assert f"<title>Analysis {done}: finished — bradyscope</title>" in page
+    status = client.get(f"/jobs/{second}/status").json()
+    assert status["queue_position"] == 2 and "number 2 in the queue" in status["stage_label"]
+    assert status["title"] == f"Analysis {second}: queued"

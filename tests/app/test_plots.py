@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 from datetime import UTC, datetime
 
@@ -150,3 +151,50 @@ def test_missing_and_unreliable_tap_values_do_not_break_the_plots(trial):
     a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
     taps[6]["t_max_aperture_s"] = None
     assert plots.aperture_plot(markers.time_s, a, taps=taps).startswith("<svg")
+
+
+def _same_day_points(values=(1.0, 2.0, 0.0, 3.0)):
+    """Four trials of one visit (both hands, off and on, an hour apart) and one a year before."""
+    day = datetime(2025, 3, 1, 9, tzinfo=UTC)
+    pts = [
+        plots.TrendPoint(day.replace(hour=9 + 2 * (med == "on")), hand, med, v)
+        for (hand, med), v in zip(
+            (("left", "off"), ("right", "off"), ("left", "on"), ("right", "on")),
+            values,
+            strict=True,
+        )
+    ]
+    return [*pts, plots.TrendPoint(datetime(2024, 3, 1, tzinfo=UTC), "right", "off", 2.0)]
+
+
+def test_trend_points_show_their_values_on_hover():
+    pts = _same_day_points()
+    svg = plots.trend_plot(pts, label="Hesitations and halts", unit="count", integer=True)
+    titles = re.findall(r"<title>([^<]*)</title>", svg)[1:]  # the first is the plot's own
+    assert len(titles) == len(pts)
+    assert "2025-03-01 11:00, right hand, medication on: 3" in titles
+
+
+def _y_ticks(svg: str) -> list[str]:
+    return re.findall(r'id="trend\d+-ytick_\d+">.*?<text [^>]*>([^<]+)</text>', svg, re.S)
+
+
+def test_count_trends_have_whole_number_ticks():
+    svg = plots.trend_plot(_same_day_points(), label="Hesitations", unit="count", integer=True)
+    ticks = _y_ticks(svg)
+    assert ticks and all(float(t).is_integer() for t in ticks), ticks
+    # The check can fail: matplotlib's default ticks for 0-3 include halves.
+    plain = plots.trend_plot(_same_day_points(), label="Hesitations", unit="count")
+    assert any(not float(t).is_integer() for t in _y_ticks(plain)), _y_ticks(plain)
+
+
+def test_points_of_one_visit_do_not_hide_each_other():
+    # Same value everywhere: without the sideways spread the two on/off pairs would coincide.
+    svg = plots.trend_plot(_same_day_points((2.0, 2.0, 2.0, 2.0)), label="A", unit="mm")
+    xs = [
+        float(x)
+        for x in re.findall(r'<g id="trend\d+-pt\d+">.*?<use [^>]*?x="([\d.]+)"', svg, re.S)
+    ]
+    assert len(xs) == 5
+    visit = sorted(xs)[1:]  # the year-before point is leftmost
+    assert min(b - a for a, b in itertools.pairwise(visit)) > 2.0  # pt apart

@@ -210,3 +210,54 @@ def test_visit_report_html_and_its_404(api: Api):
     assert html.count("trial-detail") >= 4
     r = api.client.get("/api/v1/sessions/9999/report.pdf", headers=h)
     assert r.status_code == 404 and "detail" in r.json()
+
+
+def test_calibration_quality_is_labelled_with_units():
+    from app.web.rigs import _quality_items
+
+    items = dict(
+        _quality_items(
+            {"rms_px_left": 0.21, "coverage_left": 0.62, "per_view": [1], "method": "opencv"}
+        )
+    )
+    assert items == {
+        "RMS reprojection error, left camera": "0.21 px",
+        "Image coverage, left camera": "62 %",
+    }
+
+
+def test_a_json_file_that_is_not_a_rig_file_says_so():
+    from core.camera import rig_from_dict
+    from core.errors import RigFileError
+
+    with pytest.raises(RigFileError, match="is not a rig file"):
+        rig_from_dict({"patient": "x", "values": [1, 2]})
+
+
+def test_two_identical_videos_are_refused(api: Api, tmp_path):
+    from api_support import trial_files, write_video
+
+    seeded = seed_recording_target(api)
+    video = write_video(tmp_path / "same.mp4")
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "left"},
+        files=trial_files(video, video),
+        headers=api.headers,
+    )
+    assert r.status_code == 422 and "same file" in r.json()["detail"], r.text
+    assert api.stored_files() == []  # nothing kept
+
+
+def test_calibration_form_errors_name_the_form_labels():
+    from app.services.calibrations import _board_fields
+    from app.uploads import InvalidUpload, ParsedUpload
+    from app.web.rigs import CALIBRATION_FORM_LABELS
+
+    upload = ParsedUpload(storage=None, fields={"board": "charuco", "cols": "8", "rows": "6"})
+    upload.labels.update(CALIBRATION_FORM_LABELS)
+    with pytest.raises(InvalidUpload, match=r"Fill in “Square size \(mm\)”"):
+        _board_fields(upload)
+    upload.fields["square_mm"] = "-3"
+    with pytest.raises(InvalidUpload, match=r"^Square size \(mm\) must be a number"):
+        _board_fields(upload)

@@ -196,13 +196,34 @@ def test_clinician_flow(browser, served, recording, screenshot_dir, tmp_path):
     assert values.get("tap_count") not in (None, "–", "0"), values
     assert page.locator("text=Measurement quality").count() == 1
     assert page.locator("text=Calibration used").count() == 1
+    # The summary block (first 10 taps, four aspects with their bands) is in the first screen.
+    page.evaluate("() => window.scrollTo(0, 0)")
+    box = page.locator("table[data-summary]").bounding_box()
+    assert box is not None and box["y"] + box["height"] <= VIEWPORTS["desktop"]["height"], box
+    assert page.locator("table[data-summary] [data-band]").count() >= 4
     _shots(page, "result", screenshot_dir)
+    trial_url = page.url
+
+    # 5b. The clinician's own rating of this hand, saved on the trial.
+    page.select_option("#clinician_rating", "2")
+    page.fill("#rating_comment", "Slows after tap 6.")
+    page.click("text=Save rating")
+    page.wait_for_url(re.compile(r"/trials/\d+"))
+    pages.check("rated trial")
+    assert page.locator("#clinician_rating").input_value() == "2"
+    # A bad comparison id answers with the page and a message, not raw JSON.
+    response = page.goto(f"{trial_url}?compare=abc")
+    assert response is not None and response.status == 200
+    assert "is not a trial number" in page.locator("#compare").inner_text()
+    page.goto(trial_url)
 
     # 6. The patient's page now shows the trend plots.
     page.click("nav.crumbs >> text=PD-7777")
     page.wait_for_url(re.compile(r"/patients/\d+$"))
     pages.check("patient page with result")
-    assert page.locator("svg[data-plot=trend]").count() == 5
+    # One visit: a table of its first-10-tap values, not five one-dot plots.
+    assert page.locator("[data-trend-table]").count() == 1
+    assert page.locator("svg[data-plot=trend]").count() == 0
     _shots(page, "patient", screenshot_dir)
     page.go_back()
     page.wait_for_url(re.compile(r"/trials/\d+$"))
@@ -221,5 +242,27 @@ def test_clinician_flow(browser, served, recording, screenshot_dir, tmp_path):
         for key in ("tap_count", "frequency_hz", "amplitude_mm_mean"):
             assert values[key] in text, (key, values[key])
     pages.check("after download")
+
+    # 8. The visit report from the session page: page 1 summarises the visit.
+    page.click("nav.crumbs >> text=Session")
+    page.wait_for_url(re.compile(r"/sessions/\d+$"))
+    session_url = page.url
+    with page.expect_download() as info:
+        page.click("a[data-visit-report]")
+    visit_pdf = tmp_path / "visit.pdf"
+    info.value.save_as(visit_pdf)
+    if shutil.which("pdftotext"):
+        page1 = subprocess.run(
+            ["pdftotext", "-f", "1", "-l", "1", str(visit_pdf), "-"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        page1 = " ".join(page1.split())
+        assert "Right hand, medication off" in page1
+        assert values["frequency_hz"] in page1 or "Tapping frequency" in page1
+        assert "Slows after tap 6." in page1 and "bradyscope" in page1
+    pages.goto(f"{session_url}/visit-report.html", "visit report")
+    _shots(page, "visit-report", screenshot_dir)
     context.close()
     print(f"\nscreenshots in {screenshot_dir}")
