@@ -66,6 +66,12 @@ class BoardSpec:
     dictionary : str or None
         ChArUco only: an OpenCV predefined dictionary name such as
         ``"DICT_4X4_1000"`` (the default when omitted).
+    legacy : bool
+        ChArUco only: the layout of boards printed with OpenCV before 4.6
+        (``CharucoBoard.setLegacyPattern``): with an even number of rows,
+        the top-left square is white instead of black, so the markers sit
+        in the other squares. Boards with an odd number of rows are the same
+        either way.
     """
 
     kind: BoardKind
@@ -74,6 +80,7 @@ class BoardSpec:
     square_mm: float
     marker_mm: float | None = None
     dictionary: str | None = None
+    legacy: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in ("chessboard", "charuco"):
@@ -95,8 +102,8 @@ class BoardSpec:
                     f"a {self.cols}x{self.rows} chessboard is symmetric, so its orientation is"
                     " ambiguous; use a board whose inner-corner counts differ (e.g. 9x6)"
                 )
-            if self.marker_mm is not None or self.dictionary is not None:
-                raise ValueError("marker_mm and dictionary apply to charuco boards only")
+            if self.marker_mm is not None or self.dictionary is not None or self.legacy:
+                raise ValueError("marker_mm, dictionary and legacy apply to charuco boards only")
         else:
             if self.cols < 3 or self.rows < 3:
                 raise ValueError(
@@ -163,19 +170,22 @@ class BoardSpec:
             )
         return (
             f"{self.cols}x{self.rows}-square ChArUco board ({self.square_mm:g} mm squares,"
-            f" {self.marker_mm:g} mm {self.dictionary} markers)"
+            f" {self.marker_mm:g} mm {self.dictionary} markers"
+            + (", legacy layout)" if self.legacy else ")")
         )
 
     def charuco_board(self) -> Any:
         """The ``cv2.aruco.CharucoBoard`` of a ChArUco spec."""
         if self.kind != "charuco":
             raise ValueError("charuco_board() applies to charuco boards only")
-        return cv2.aruco.CharucoBoard(
+        board = cv2.aruco.CharucoBoard(
             (self.cols, self.rows),
             self.square_mm,
             float(self.marker_mm or 0.0),
             _aruco_dictionary(str(self.dictionary)),
         )
+        board.setLegacyPattern(bool(self.legacy))
+        return board
 
     # -- JSON ---------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -190,6 +200,8 @@ class BoardSpec:
         if self.kind == "charuco":
             doc["marker_mm"] = self.marker_mm
             doc["dictionary"] = self.dictionary
+            if self.legacy:
+                doc["legacy"] = True
         return doc
 
     @classmethod
@@ -232,9 +244,23 @@ class BoardSpec:
                 square_mm=doc["square_mm"],
                 marker_mm=doc.get("marker_mm"),
                 dictionary=doc.get("dictionary"),
+                legacy=_flag(doc.get("legacy", False)),
             )
         except (TypeError, ValueError) as exc:
             raise InputError(f"the board description is invalid: {exc}.") from exc
+
+
+def _flag(value: Any) -> bool:
+    """A JSON or form boolean (``true``, ``"true"``, ``"1"``, ``"on"``...)."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.strip().lower() in ("1", "true", "yes", "on"):
+        return True
+    if isinstance(value, str) and value.strip().lower() in ("", "0", "false", "no", "off"):
+        return False
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    raise ValueError(f"legacy must be true or false, got {value!r}")
 
 
 def _aruco_dictionary(name: str) -> Any:

@@ -26,6 +26,8 @@ The path from two recordings to a rig (``calibrate_stereo_from_paths``):
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -36,6 +38,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from core import board_sync
+from core.board_sync import BoardSync, BoardTrack
 from core.boards import BoardDetection, BoardSpec, chessboard_extends, detect_board
 from core.camera import Camera, ImageSize, StereoRig
 from core.errors import CalibrationError, DetectionError, InputError
@@ -65,6 +69,13 @@ _PROBE_FRAMES = 12
 _SIZE_CHECKS = 8
 #: Coverage grid (columns, rows) over the image.
 _COVERAGE_GRID = (10, 8)
+#: Two videos at one rate whose board motion lines up within this many frames
+#: are taken as synchronous (frames paired by number) until the fitted rig says otherwise.
+_SYNCHRONOUS_FRAMES = 0.5
+#: After the epipolar refinement, an offset within this many frames of 0 is a lab rig's.
+_SYNCHRONOUS_REFINED_FRAMES = 0.1
+#: How far (frames) an offset refined by epipolar consistency is taken to be off.
+_REFINED_UNCERTAINTY_FRAMES = 0.1
 
 
 # -- data ----------------------------------------------------------------------
@@ -101,23 +112,43 @@ class ViewCollection:
     Attributes
     ----------
     views : list of StereoView
-        One per searched frame pair (detected or not).
+        One per searched left frame (detected or not), its right board at the
+        same instant where it could be told.
     image_size : ImageSize
-        Common ``(width, height)`` of both cameras.
+        ``(width, height)`` of the left camera (of both unless ``image_size_right``).
     frames_total : int
-        Frame pairs in the recordings.
+        Frame pairs in the recordings (the shorter video's frames).
     source : str
         ``"video"`` or ``"images"``.
+    image_size_right : ImageSize or None
+        The right camera's size when it differs from the left one's.
+    left_track, right_track : BoardTrack or None
+        Each camera's detections at its searched frames, with their times
+        (videos); the views pair them.
+    sync : BoardSync or None
+        How the two recordings' clocks relate and how the views were paired.
+    warnings : tuple of str
+        What did not stop the calibration but deserves a look (one sentence each).
     """
 
     views: list[StereoView]
     image_size: ImageSize
     frames_total: int
     source: str
+    image_size_right: ImageSize | None = None
+    left_track: BoardTrack | None = None
+    right_track: BoardTrack | None = None
+    sync: BoardSync | None = None
+    warnings: tuple[str, ...] = ()
 
     @property
     def frames_tried(self) -> int:
         return len(self.views)
+
+    @property
+    def sizes(self) -> tuple[ImageSize, ImageSize]:
+        """``(left, right)`` image sizes."""
+        return self.image_size, self.image_size_right or self.image_size
 
 
 @dataclass(frozen=True)
@@ -158,26 +189,49 @@ def _sample_indices(n_frames: int, max_candidates: int) -> list[int]:
     return sorted({round(v) for v in np.linspace(0, n_frames - 1, max_candidates)})
 
 
-def _iter_pairs(
-    kind: str, left: Any, right: Any, indices: Sequence[int]
-) -> Iterator[tuple[int, NDArray[np.uint8], NDArray[np.uint8]]]:
+def _sampled_frames(
+    kind: str, src: Any, indices: Sequence[int], times_out: list[float] | None
+) -> Iterator[tuple[int, NDArray[np.uint8]]]:
+    """``(frame number, gray frame)`` of the searched frames of one input, in order."""
     from core.video import iter_frames, read_image
 
     if kind == "images":
         for i in indices:
-            yield i, read_image(left[i]), read_image(right[i])
+            yield i, read_image(src[i])
+        return
+    if not indices:
         return
     wanted = set(indices)
-    stop = max(indices) + 1 if indices else 0
-    frames_l: Any = iter_frames(left.path, gray=True, stop=stop)
-    frames_r: Any = iter_frames(right.path, gray=True, stop=stop)
+    frames: Any = iter_frames(src.path, gray=True, stop=max(indices) + 1, times_out=times_out)
     try:
-        for i, (fl, fr) in enumerate(zip(frames_l, frames_r, strict=False)):
+        for i, frame in enumerate(frames):
             if i in wanted:
-                yield i, fl, fr
+                yield i, frame
     finally:
-        frames_l.close()
-        frames_r.close()
+        frames.close()
+
+
+def _right_indices(left_idx: list[int], fps_l: float, fps_r: float, n_right: int) -> list[int]:
+    """The right frames nearest the left searched frames' nominal times (cameras at other rates)."""
+    idx = np.clip(np.rint(np.asarray(left_idx) * fps_r / fps_l), 0, n_right - 1).astype(int)
+    return sorted({int(i) for i in idx})
+
+
+def _length_warning(kind: str, n_left: int, n_right: int, fps: tuple[float, float]) -> str | None:
+    if kind == "images" or n_left == n_right:
+        return None
+    if abs(fps[0] - fps[1]) <= 1e-3 * max(fps):
+        return (
+            f"the left video has {n_left} frames and the right {n_right}; the frames past the"
+            f" end of the shorter one ({min(n_left, n_right)}) are not used."
+        )
+    d_l, d_r = n_left / fps[0], n_right / fps[1]
+    if abs(d_l - d_r) <= 1.0 / min(fps):
+        return None
+    return (
+        f"the left video lasts {d_l:.2f} s ({n_left} frames at {fps[0]:g} Hz) and the right"
+        f" {d_r:.2f} s ({n_right} at {fps[1]:g} Hz); only the part both recorded is used."
+    )
 
 
 def collect_views(
@@ -188,27 +242,29 @@ def collect_views(
     max_candidates: int = 240,
     progress: ProgressCallback | None = None,
 ) -> ViewCollection:
-    """Search evenly spaced frame pairs of two recordings for the board.
+    """Search evenly spaced frames of two recordings for the board and pair the views in time.
 
     Parameters
     ----------
     left, right : str or Path
-        Synchronous videos, or folders of images paired in sorted file-name order.
+        Two videos (synchronous or not: the time offset is found from the
+        board's motion, :mod:`core.board_sync`), or two folders of images
+        paired in sorted file-name order.
     board : BoardSpec
     max_candidates : int, keyword-only
-        Frame pairs searched at most (evenly spaced over the recording).
+        Frames searched at most in each recording (evenly spaced over it).
     progress : callable, optional
         ``progress("detection", done, total)``.
 
     Raises
     ------
     InputError
-        Unreadable input, a folder and a video mixed, different image sizes,
-        or different numbers of images.
+        Unreadable input, a folder and a video mixed, or different numbers
+        of images.
     """
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be >= 1, got {max_candidates}")
-    from core.video import check_stereo_videos, read_image
+    from core.timing import frame_times_from_timestamps, uniform_times
 
     kind_l, src_l = _frame_source(left, "left")
     kind_r, src_r = _frame_source(right, "right")
@@ -216,42 +272,157 @@ def collect_views(
         raise InputError(
             "one input is a video and the other a folder of images; give two videos or two folders."
         )
+    warnings: list[str] = []
     if kind_l == "images":
         if len(src_l) != len(src_r):
             raise InputError(
                 f"the left folder holds {len(src_l)} images but the right {len(src_r)}; the images"
                 " are paired in file-name order, so both folders need the same number."
             )
-        size_l = ImageSize.of_image(read_image(src_l[0]))
-        size_r = ImageSize.of_image(read_image(src_r[0]))
-        if size_l != size_r:
-            raise InputError(
-                f"the left images are {size_l.width}x{size_l.height} but the right are"
-                f" {size_r.width}x{size_r.height}; both cameras must record at the same resolution."
-            )
-        n_total = len(src_l)
+        n_left = n_right = len(src_l)
+        fps_l = fps_r = 1.0
     else:
-        check_stereo_videos(src_l, src_r)
-        size_l = src_l.image_size
-        n_total = min(src_l.frame_count, src_r.frame_count)
-    if kind_l == "video" or n_total > _PROBE_FRAMES:
-        _probe(kind_l, src_l, src_r, board, n_total)
-    indices = _sample_indices(n_total, max_candidates)
-    views: list[StereoView] = []
-    # Left and right are searched at once: OpenCV releases the GIL while it detects.
+        n_left, n_right = src_l.frame_count, src_r.frame_count
+        fps_l, fps_r = src_l.fps, src_r.fps
+    same_rate = abs(fps_l - fps_r) <= 1e-3 * max(fps_l, fps_r)
+    note = _length_warning(kind_l, n_left, n_right, (fps_l, fps_r))
+    if note:
+        warnings.append(note)
+    n_total = min(n_left, n_right)
+    _probe(kind_l, src_l, src_r, board, n_total)
+    if same_rate:
+        idx_l = idx_r = _sample_indices(n_total, max_candidates)
+    else:
+        idx_l = _sample_indices(n_left, max_candidates)
+        idx_r = _right_indices(idx_l, fps_l, fps_r, n_right)
+    times_l: list[float] | None = None if kind_l == "images" else []
+    times_r: list[float] | None = None if kind_l == "images" else []
+    found: dict[str, list[tuple[int, BoardDetection | None, float]]] = {"left": [], "right": []}
+    sizes: dict[str, ImageSize] = {}
     checked: list[bool] = []
+    n_steps = max(len(idx_l), len(idx_r))
+    # Left and right are searched at once: OpenCV releases the GIL while it detects.
     with ThreadPoolExecutor(max_workers=2) as pool:
-        for done, (i, img_l, img_r) in enumerate(_iter_pairs(kind_l, src_l, src_r, indices)):
-            view = _detect_pair(pool, i, img_l, img_r, board, size_l)
-            views.append(view)
-            if board.kind == "chessboard" and view.left is not None and len(checked) < _SIZE_CHECKS:
-                checked.append(chessboard_extends(img_l, view.left, board))
-                if len(checked) == _SIZE_CHECKS:
-                    _check_board_size(checked, board)
-            report(progress, "detection", done + 1, len(indices))
+        pairs = itertools.zip_longest(
+            _sampled_frames(kind_l, src_l, idx_l, times_l),
+            _sampled_frames(kind_r, src_r, idx_r, times_r),
+        )
+        for done, (item_l, item_r) in enumerate(pairs):
+            futures = {}
+            for side, item in (("left", item_l), ("right", item_r)):
+                if item is None:
+                    continue
+                i, img = item
+                size = ImageSize.of_image(img)
+                if sizes.setdefault(side, size) != size:
+                    raise InputError(
+                        f"{side} frame {i} is {size.width}x{size.height}, not"
+                        f" {sizes[side].width}x{sizes[side].height}; all images of one camera"
+                        " must have one size."
+                    )
+                futures[side] = pool.submit(_detect_one, img, board)
+            for side, item in (("left", item_l), ("right", item_r)):
+                if item is None:
+                    continue
+                det, width = futures[side].result()
+                found[side].append((item[0], det, width))
+                if (
+                    side == "left"
+                    and board.kind == "chessboard"
+                    and det is not None
+                    and len(checked) < _SIZE_CHECKS
+                ):
+                    checked.append(chessboard_extends(item[1], det, board))
+                    if len(checked) == _SIZE_CHECKS:
+                        _check_board_size(checked, board)
+            report(progress, "detection", done + 1, n_steps)
     if len(checked) >= 2:
         _check_board_size(checked, board)
-    return ViewCollection(views, size_l, n_total, kind_l)
+    tracks = []
+    for side, times, fps, src in (
+        ("left", times_l, fps_l, src_l),
+        ("right", times_r, fps_r, src_r),
+    ):
+        rows = found[side]
+        frames = np.array([r[0] for r in rows], dtype=np.int64)
+        if times is None or kind_l == "images":
+            t_all = uniform_times(int(frames.max()) + 1 if len(frames) else 0, fps).t_s
+        else:
+            t_all = frame_times_from_timestamps(times, fps=fps, name=src.path.name).t_s
+            if len(t_all) <= (int(frames.max()) if len(frames) else -1):
+                t_all = uniform_times(int(frames.max()) + 1, fps).t_s
+        tracks.append(
+            BoardTrack(
+                frames=frames,
+                t_s=np.asarray(t_all[frames], dtype=np.float64),
+                detections=tuple(r[1] for r in rows),
+                edge_width_px=np.array([r[2] for r in rows], dtype=np.float64),
+                fps=fps,
+                image_size=sizes.get(side, ImageSize(1, 1)),
+            )
+        )
+    track_l, track_r = tracks
+    size_l, size_r = track_l.image_size, track_r.image_size
+    if kind_l == "images":
+        sync = BoardSync(0.0, fps_left=fps_l, method=board_sync.IMAGES)
+    else:
+        sync = board_sync.estimate_offset(track_l, track_r, board)
+        whole_frame = abs(sync.offset_s) * fps_l < _SYNCHRONOUS_FRAMES
+        if same_rate and (not np.isfinite(sync.correlation) or whole_frame):
+            sync = dataclasses.replace(sync, offset_s=0.0, method=board_sync.SYNCHRONOUS)
+        elif not np.isfinite(sync.correlation) or sync.correlation < board_sync.MIN_CORRELATION:
+            # Cameras at different rates, and no motion to time them by.
+            sync = dataclasses.replace(sync, offset_s=0.0, method=board_sync.SYNCHRONOUS)
+    views = pair_views(track_l, track_r, board, sync)
+    return ViewCollection(
+        views,
+        size_l,
+        n_total,
+        kind_l,
+        image_size_right=size_r if size_r != size_l else None,
+        left_track=track_l,
+        right_track=track_r,
+        sync=sync,
+        warnings=tuple(warnings),
+    )
+
+
+def pair_views(
+    left: BoardTrack, right: BoardTrack, board: BoardSpec, sync: BoardSync
+) -> list[StereoView]:
+    """One stereo view per searched left frame, its right board at the same instant.
+
+    ``"synchronous"`` and ``"images"``: the frames searched together are
+    paired as they are. ``"estimated"``: the right board at the left
+    instant, where :func:`core.board_sync.right_at_left_instants` can tell it
+    well (``right`` is None elsewhere).
+    """
+    if sync.method != board_sync.ESTIMATED:
+        # Frames searched together (the same numbers), as far as both recordings go.
+        at = {int(f): j for j, f in enumerate(right.frames)}
+        out = []
+        for k, dl in enumerate(left.detections):
+            j = at.get(int(left.frames[k]))
+            if j is None:
+                continue
+            dr = right.detections[j]
+            width = (
+                max(left.edge_width_px[k], right.edge_width_px[j])
+                if dl is not None and dr is not None
+                else np.nan
+            )
+            out.append(StereoView(int(left.frames[k]), dl, dr, float(width)))
+        return out
+    paired = {p.left_index: p for p in board_sync.right_at_left_instants(left, right, board, sync)}
+    views = []
+    for k, dl in enumerate(left.detections):
+        p = paired.get(k)
+        if dl is None or p is None:
+            views.append(StereoView(int(left.frames[k]), dl, None))
+            continue
+        width = max([left.edge_width_px[k], *(right.edge_width_px[j] for j in p.right_indices)])
+        views.append(StereoView(int(left.frames[k]), dl, p.detection, float(width)))
+    return views
 
 
 def _check_board_size(extends: list[bool], board: BoardSpec) -> None:
@@ -265,28 +436,10 @@ def _check_board_size(extends: list[bool], board: BoardSpec) -> None:
         )
 
 
-def _detect_pair(
-    pool: ThreadPoolExecutor,
-    i: int,
-    img_l: NDArray[np.uint8],
-    img_r: NDArray[np.uint8],
-    board: BoardSpec,
-    size_l: ImageSize,
-) -> StereoView:
-    """Detect the board in one frame pair (left in a worker thread) and measure its blur."""
-    if ImageSize.of_image(img_l) != size_l or ImageSize.of_image(img_r) != size_l:
-        a, b = ImageSize.of_image(img_l), ImageSize.of_image(img_r)
-        raise InputError(
-            f"frame pair {i} is {a.width}x{a.height} (left) and {b.width}x{b.height} (right),"
-            f" not {size_l.width}x{size_l.height}; all images must have one size."
-        )
-    future_l = pool.submit(detect_board, img_l, board)
-    det_r = detect_board(img_r, board)
-    det_l = future_l.result()
-    width = np.nan
-    if det_l is not None and det_r is not None:
-        width = max(edge_width_px(img_l, det_l), edge_width_px(img_r, det_r))
-    return StereoView(i, det_l, det_r, float(width))
+def _detect_one(image: NDArray[np.uint8], board: BoardSpec) -> tuple[BoardDetection | None, float]:
+    """The board in one image and the blur of its edges (NaN when not found)."""
+    det = detect_board(image, board)
+    return det, (edge_width_px(image, det) if det is not None else float("nan"))
 
 
 def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) -> None:
@@ -294,15 +447,19 @@ def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) ->
 
     A board that is absent, or whose size was given wrong, makes every
     detection fail slowly; a dozen frames tell. Videos are read by seeking
-    (not frame-exact, which does not matter here).
+    (not frame-exact, which does not matter here). When the board is in none
+    of them, the same frames are searched for the board described the other
+    way round (``--cols/--rows`` swapped) and, for ChArUco, in the legacy
+    layout, so that the error can say which was meant.
     """
     from core.video import read_image
 
     indices = _sample_indices(n_total, _PROBE_FRAMES)
-    found = {"left": 0, "right": 0}
     img: Any
     for side, src in (("left", src_l), ("right", src_r)):
         cap = None if kind == "images" else cv2.VideoCapture(str(src.path), cv2.CAP_FFMPEG)
+        seen: list[Any] = []
+        found = False
         try:
             for i in indices:
                 if cap is None:
@@ -313,16 +470,50 @@ def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) ->
                     if not ok or img is None:
                         continue
                 if detect_board(img, board) is not None:
-                    found[side] += 1
+                    found = True
                     break
+                seen.append(img)
         finally:
             if cap is not None:
                 cap.release()
-        if found[side] == 0:
+        if not found:
             raise DetectionError(
                 f"the board ({board.describe()}) was found in 0 of {len(indices)} {side} frames"
-                f" tried across the recording; {_board_hint(board)}."
+                f" tried across the recording; {_variant_hint(seen, board) or _board_hint(board)}."
             )
+
+
+def _board_variants(board: BoardSpec) -> list[tuple[BoardSpec, str]]:
+    """Boards a user may have meant instead, with what to change (ends without a full stop)."""
+    out: list[tuple[BoardSpec, str]] = []
+    swapped = dataclasses.replace(board, cols=board.rows, rows=board.cols)
+    if board.kind == "charuco":
+        # A chessboard is found whichever way round it is described (the grid is the same).
+        swap = f"swap --cols and --rows (--cols {board.rows} --rows {board.cols})"
+        flip = dataclasses.replace(board, legacy=not board.legacy)
+        legacy = (
+            "it is a board in OpenCV's layout of before 4.6: add --legacy"
+            if not board.legacy
+            else "it is a board in OpenCV's current layout: drop --legacy"
+        )
+        out.append((swapped, f"the board is found the other way round: {swap}"))
+        if board.rows % 2 == 0 or board.cols % 2 == 0:
+            out.append((flip, legacy))
+            out.append(
+                (dataclasses.replace(swapped, legacy=not board.legacy), f"{legacy}, and {swap}")
+            )
+    return out
+
+
+def _variant_hint(images: Sequence[Any], board: BoardSpec) -> str | None:
+    """What to change when ``board`` is in none of ``images`` but a variant of it is."""
+    for variant, hint in _board_variants(board):
+        try:
+            if any(detect_board(img, variant) is not None for img in images):
+                return hint
+        except (ValueError, cv2.error):
+            continue
+    return None
 
 
 def _board_hint(board: BoardSpec) -> str:
@@ -566,7 +757,7 @@ def _reconcile_numbering(
     d_l: FloatArray,
     K_r: FloatArray,
     d_r: FloatArray,
-) -> tuple[list[BoardDetection], list[bool]]:
+) -> tuple[list[BoardDetection], list[bool], FloatArray]:
     """Make the right numbering agree with the left; flag views whose relative pose disagrees.
 
     For each view the left and right board poses give a left-to-right
@@ -582,6 +773,11 @@ def _reconcile_numbering(
     rights : list of BoardDetection
         Right detections, renumbered where needed.
     consistent : list of bool
+    deviations : ndarray, shape (n,)
+        Each view's disagreement with the consensus, in units of (3 degrees,
+        5 % of the baseline; inf where no pose was found): the median is well
+        below 1 when the left and right views were taken at the same moments,
+        far above when they were not.
     """
     candidates: list[list[tuple[BoardDetection, FloatArray, FloatArray]]] = []
     for dl, dr in zip(lefts, rights, strict=True):
@@ -600,7 +796,7 @@ def _reconcile_numbering(
         candidates.append(view_opts)
     all_opts = [(R, t) for opts in candidates for (_, R, t) in opts]
     if not all_opts:
-        return rights, [False] * len(rights)
+        return rights, [False] * len(rights), np.full(len(rights), np.inf)
     scale = float(np.median([np.linalg.norm(t) for _, t in all_opts])) or 1.0
 
     def dist(a: tuple[FloatArray, FloatArray], b: tuple[FloatArray, FloatArray]) -> float:
@@ -629,7 +825,7 @@ def _reconcile_numbering(
         else:
             out.append(dr)
             consistent.append(False)
-    return out, consistent
+    return out, consistent, devs
 
 
 @dataclass
@@ -697,9 +893,11 @@ def _outliers(per_view_rms: FloatArray) -> NDArray[np.bool_]:
     return (worst > _OUTLIER_FLOOR_PX) & (worst > _OUTLIER_FACTOR * med)
 
 
-def _rig_from_fit(fit: _StereoFit, size: ImageSize, quality: dict[str, Any]) -> StereoRig:
-    left = Camera("left", size, _clean_K(fit.K_l), fit.d_l)
-    right = Camera("right", size, _clean_K(fit.K_r), fit.d_r, _orthonormal(fit.R), fit.T)
+def _rig_from_fit(
+    fit: _StereoFit, sizes: tuple[ImageSize, ImageSize], quality: dict[str, Any]
+) -> StereoRig:
+    left = Camera("left", sizes[0], _clean_K(fit.K_l), fit.d_l)
+    right = Camera("right", sizes[1], _clean_K(fit.K_r), fit.d_r, _orthonormal(fit.R), fit.T)
     return StereoRig(left, right, quality)
 
 
@@ -726,23 +924,33 @@ def _short(exc: BaseException) -> str:
     return line[-120:].rstrip(".")
 
 
+#: Views whose board poses disagree (median, in units of 3 degrees / 5 % of the
+#: baseline) by more than this were not taken at the same moments.
+_UNPAIRED_SPREAD = 1.0
+
+
 def _fit(
     used: list[int],
     lefts_d: list[BoardDetection],
     rights_d: list[BoardDetection],
     board: BoardSpec,
-    size: ImageSize,
+    sizes: tuple[ImageSize, ImageSize],
     *,
     progress: ProgressCallback | None,
-) -> tuple[_StereoFit, list[int], list[BoardDetection], list[BoardDetection], list[int]]:
-    """Steps 1-3 of :func:`calibrate_stereo`: returns the fit, the views kept and those rejected."""
+) -> tuple[_StereoFit, list[int], list[BoardDetection], list[BoardDetection], list[int], float]:
+    """Steps 1-3 of :func:`calibrate_stereo`: the fit, the views kept and rejected, the spread
+    of the views' left-to-right transforms (see :func:`_reconcile_numbering`)."""
+    size_l, size_r = sizes
     # 1. Intrinsics of each camera, with outlier views removed.
     rejected: list[int] = []
-    _, K_l, d_l, *_rest_l, pv_l = _calibrate_camera(lefts_d, size)
-    _, K_r, d_r, *_rest_r, pv_r = _calibrate_camera(rights_d, size)
+    _, K_l, d_l, *_rest_l, pv_l = _calibrate_camera(lefts_d, size_l)
+    _, K_r, d_r, *_rest_r, pv_r = _calibrate_camera(rights_d, size_r)
     report(progress, "calibration", 1, 4)
     # 2. Consistent numbering and a consistent left-to-right transform.
-    rights_d, consistent = _reconcile_numbering(lefts_d, rights_d, board, K_l, d_l, K_r, d_r)
+    rights_d, consistent, devs = _reconcile_numbering(lefts_d, rights_d, board, K_l, d_l, K_r, d_r)
+    spread = float(np.median(devs))
+    if not spread <= _UNPAIRED_SPREAD:
+        raise _Unpaired(spread, int(np.sum(~(devs <= _UNPAIRED_SPREAD))), len(devs))
     bad = ~np.array(consistent) | _outliers(np.column_stack([pv_l, pv_r]))
     if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
         rejected += [used[k] for k in np.flatnonzero(bad)]
@@ -750,11 +958,11 @@ def _fit(
         used = [used[k] for k in keep]
         lefts_d = [lefts_d[k] for k in keep]
         rights_d = [rights_d[k] for k in keep]
-        _, K_l, d_l, *_ = _calibrate_camera(lefts_d, size, K=K_l, dist=d_l)
-        _, K_r, d_r, *_ = _calibrate_camera(rights_d, size, K=K_r, dist=d_r)
+        _, K_l, d_l, *_ = _calibrate_camera(lefts_d, size_l, K=K_l, dist=d_l)
+        _, K_r, d_r, *_ = _calibrate_camera(rights_d, size_r, K=K_r, dist=d_r)
     report(progress, "calibration", 2, 4)
     # 3. Joint refinement, once more without outliers.
-    fit = _stereo_calibrate(lefts_d, rights_d, size, K_l, d_l, K_r, d_r)
+    fit = _stereo_calibrate(lefts_d, rights_d, size_l, K_l, d_l, K_r, d_r)
     bad = _outliers(fit.per_view)
     if np.any(bad) and np.sum(~bad) >= MIN_VIEWS:
         rejected += [used[k] for k in np.flatnonzero(bad)]
@@ -762,8 +970,114 @@ def _fit(
         used = [used[k] for k in keep]
         lefts_d = [lefts_d[k] for k in keep]
         rights_d = [rights_d[k] for k in keep]
-        fit = _stereo_calibrate(lefts_d, rights_d, size, fit.K_l, fit.d_l, fit.K_r, fit.d_r)
-    return fit, used, lefts_d, rights_d, rejected
+        fit = _stereo_calibrate(lefts_d, rights_d, size_l, fit.K_l, fit.d_l, fit.K_r, fit.d_r)
+    return fit, used, lefts_d, rights_d, rejected, spread
+
+
+class _Unpaired(Exception):
+    """The left and right views disagree on the left-to-right transform: not simultaneous."""
+
+    def __init__(self, spread: float, n_bad: int, n: int) -> None:
+        super().__init__(f"spread {spread:.1f}")
+        self.spread, self.n_bad, self.n = spread, n_bad, n
+
+
+@dataclass(frozen=True)
+class _Calibrated:
+    """One fit of :func:`calibrate_stereo` before its quality figures."""
+
+    collection: ViewCollection
+    selection: ViewSelection
+    fit: _StereoFit
+    used: list[int]
+    lefts: list[BoardDetection]
+    rights: list[BoardDetection]
+    rejected: list[int]
+    spread: float
+    rig: StereoRig
+
+
+def _fit_views(
+    collection: ViewCollection,
+    board: BoardSpec,
+    *,
+    max_views: int,
+    max_held_out: int,
+    progress: ProgressCallback | None,
+) -> _Calibrated:
+    """Select views, fit the rig; :class:`CalibrationError` (or :class:`_Unpaired`) if it fails."""
+    views = collection.views
+    selection = select_views(collection, max_views=max_views, max_held_out=max_held_out)
+    if len(selection.used) < MIN_VIEWS:
+        raise CalibrationError(_too_few_views_message(collection, len(selection.used)))
+    used = list(selection.used)
+    lefts_d = [d for d in (views[i].left for i in used) if d is not None]
+    rights_d = [d for d in (views[i].right for i in used) if d is not None]
+    assert len(lefts_d) == len(used) and len(rights_d) == len(used)
+    failure = (
+        "the calibration could not be computed from these views ({});"
+        " record the board in more varied poses, tilted and across the whole image."
+    )
+    try:
+        fit, used, lefts_d, rights_d, rejected, spread = _fit(
+            used, lefts_d, rights_d, board, collection.sizes, progress=progress
+        )
+    except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:
+        raise CalibrationError(failure.format(_short(exc))) from exc
+    try:
+        rig = _rig_from_fit(fit, collection.sizes, {})
+    except ValueError as exc:
+        raise CalibrationError(failure.format(_short(exc))) from exc
+    return _Calibrated(collection, selection, fit, used, lefts_d, rights_d, rejected, spread, rig)
+
+
+def _too_few_views_message(collection: ViewCollection, n_used: int) -> str:
+    n_both = sum(v.both for v in collection.views)
+    sync = collection.sync
+    if sync is not None and sync.method == board_sync.ESTIMATED:
+        return (
+            f"only {n_used} sharp, distinct views show the board in both cameras at the same"
+            f" moment ({n_both} left frames could be paired with the right camera, which"
+            f" {_offset_words(sync)}); at least {MIN_VIEWS} are needed — the cameras are not"
+            " synchronised, so hold the board still for about a second in each pose."
+        )
+    return (
+        f"only {n_used} sharp, distinct views show the board in both cameras"
+        f" ({n_both} frame pairs in all); at least {MIN_VIEWS} are needed — move the board"
+        " slowly through the region both cameras see, holding it still at varied angles."
+    )
+
+
+def _offset_words(sync: BoardSync) -> str:
+    """``"starts 0.300 s (4.5 frames) after the left"`` for the right camera."""
+    when = "after" if sync.offset_s >= 0 else "before"
+    return (
+        f"starts {abs(sync.offset_s):.3f} s ({abs(sync.offset_frames):.1f} frames) {when} the left"
+    )
+
+
+def _unpaired_message(collection: ViewCollection, exc: _Unpaired) -> str:
+    disagree = f"{exc.n_bad} of {exc.n} views"
+    if collection.source == "images":
+        return (
+            "the left and right images do not pair up: the board's pose relative to the two"
+            f" cameras changes from pair to pair ({disagree} disagree), so each left image was"
+            " not taken at the same moment as the right image of the same rank in file-name"
+            " order; give two folders of simultaneous pairs with matching names."
+        )
+    sync = collection.sync
+    if sync is not None and sync.method == board_sync.ESTIMATED:
+        return (
+            "the two videos do not show the board at the same moments even at the time offset"
+            f" found from its motion (the right {_offset_words(sync)}; {disagree} disagree);"
+            " check that they were recorded together, and hold the board still for about a"
+            " second in each pose."
+        )
+    return (
+        "the two videos do not show the board at the same moments and their time offset could"
+        f" not be found from its motion ({disagree} disagree); check that they were recorded"
+        " together, and move the board between poses held still for about a second."
+    )
 
 
 def calibrate_stereo(
@@ -775,6 +1089,12 @@ def calibrate_stereo(
     progress: ProgressCallback | None = None,
 ) -> CalibrationResult:
     """Calibrate a stereo rig from detected board views.
+
+    When the collection holds the two cameras' board tracks (videos), the
+    time offset found from the board's motion is refined by epipolar
+    consistency with the fitted rig, the views are paired again at that
+    offset and the rig is fitted again (:mod:`core.board_sync`); the offset
+    is reported in ``quality["sync"]``.
 
     Parameters
     ----------
@@ -794,72 +1114,247 @@ def calibrate_stereo(
     DetectionError
         The board was found in too few frames of either camera.
     CalibrationError
-        Too few usable common views, or a fit too poor to be the board asked for.
+        Too few usable common views, views that were not taken at the same
+        moments (and no time offset explains them), or a fit too poor to be
+        the board asked for.
     """
     views = collection.views
-    n_tried = collection.frames_tried
-    n_left = sum(v.left is not None for v in views)
-    n_right = sum(v.right is not None for v in views)
-    for side, n in (("left", n_left), ("right", n_right)):
+    counts = [(sum(v.left is not None for v in views), len(views))] * 2
+    counts[1] = (sum(v.right is not None for v in views), len(views))
+    track = collection.right_track
+    if track is not None and collection.sync and collection.sync.method == board_sync.ESTIMATED:
+        counts[1] = (track.detected, len(track))  # the views hold the paired right boards only
+    for side, (n, n_tried) in zip(("left", "right"), counts, strict=True):
         if n < MIN_VIEWS:
             raise DetectionError(
                 f"the board ({board.describe()}) was found in {n} of {n_tried} {side} frames;"
                 f" at least {MIN_VIEWS} are needed — {_board_hint(board)}."
             )
     report(progress, "calibration", 0, 4)
-    selection = select_views(collection, max_views=max_views, max_held_out=max_held_out)
-    n_both = sum(v.both for v in views)
-    if len(selection.used) < MIN_VIEWS:
-        raise CalibrationError(
-            f"only {len(selection.used)} sharp, distinct views show the board in both cameras"
-            f" ({n_both} frame pairs in all); at least {MIN_VIEWS} are needed — move the board"
-            " slowly through the region both cameras see, holding it still at varied angles."
-        )
-    size = collection.image_size
-    used = list(selection.used)
-    lefts = [views[i].left for i in used]
-    rights = [views[i].right for i in used]
-    assert all(d is not None for d in lefts) and all(d is not None for d in rights)
-    lefts_d: list[BoardDetection] = [d for d in lefts if d is not None]
-    rights_d: list[BoardDetection] = [d for d in rights if d is not None]
-
-    failure = (
-        "the calibration could not be computed from these views ({});"
-        " record the board in more varied poses, tilted and across the whole image."
-    )
-    try:
-        fit, used, lefts_d, rights_d, rejected = _fit(
-            used, lefts_d, rights_d, board, size, progress=progress
-        )
-    except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:
-        raise CalibrationError(failure.format(_short(exc))) from exc
+    options = {"max_views": max_views, "max_held_out": max_held_out, "progress": progress}
+    done = _calibrate_in_time(collection, board, options)
+    fit = done.fit
+    collection = done.collection
     report(progress, "calibration", 3, 4)
     if not np.isfinite(fit.rms) or fit.rms > _FAIL_RMS_PX:
+        sync = collection.sync
+        if sync is not None and sync.method == board_sync.ESTIMATED:
+            raise CalibrationError(
+                f"the board views of the two cameras do not fit one rig (reprojection error"
+                f" {fit.rms:.1f} px) at the time offset found from the board's motion (the right"
+                f" {_offset_words(sync)}); check that the videos were recorded together and that"
+                f" --cols/--rows/--square-mm describe the board filmed ({board.describe()})."
+            )
         raise CalibrationError(
             f"the board corners do not fit one rig (reprojection error {fit.rms:.1f} px);"
             f" check that --cols/--rows/--square-mm describe the board filmed ({board.describe()})."
         )
-    try:
-        rig = _rig_from_fit(fit, size, {})
-    except ValueError as exc:
-        raise CalibrationError(failure.format(_short(exc))) from exc
     # 4. Quality.
-    held = [views[i] for i in selection.held_out]
+    held = [collection.views[i] for i in done.selection.held_out]
     quality = _quality(
-        rig,
+        done.rig,
         board,
         fit,
-        used=used,
-        lefts=lefts_d,
-        rights=rights_d,
+        used=done.used,
+        lefts=done.lefts,
+        rights=done.rights,
         held_out=held,
         collection=collection,
-        selection=selection,
-        rejected=rejected,
+        selection=done.selection,
+        rejected=done.rejected,
     )
-    rig = StereoRig(rig.left, rig.right, quality)
+    rig = StereoRig(done.rig.left, done.rig.right, quality)
     report(progress, "calibration", 4, 4)
     return CalibrationResult(rig=rig, quality=quality)
+
+
+def _calibrate_in_time(
+    collection: ViewCollection, board: BoardSpec, options: dict[str, Any]
+) -> _Calibrated:
+    """Fit, then (videos) refine the time offset with the rig and fit again where it moved.
+
+    A first fit uses the views as paired: frames searched together when the
+    board motion says the cameras were synchronous, else the still views at
+    the coarse offset. If its views were not simultaneous (their
+    left-to-right transforms disagree), the still views at the coarse offset
+    and then at its rivals (other offsets where the board motion lines up
+    almost as well) are tried. The rig then gives the offset by epipolar
+    consistency (:func:`_refine_offset`); where it differs from the pairing
+    used, the views are paired again and the rig refitted.
+    """
+    sync = collection.sync
+    left, right = collection.left_track, collection.right_track
+    if collection.source != "video" or sync is None or left is None or right is None:
+        try:
+            return _fit_views(collection, board, **options)
+        except _Unpaired as exc:
+            raise CalibrationError(_unpaired_message(collection, exc)) from None
+    try:
+        done = _fit_views(collection, board, **options)
+    except (_Unpaired, CalibrationError) as exc:
+        failures: list[_Unpaired | CalibrationError] = [exc]
+        for candidate in _rival_pairings(collection, board):
+            try:
+                done = _fit_views(candidate, board, **options)
+                break
+            except (_Unpaired, CalibrationError) as rival_failure:
+                failures.append(rival_failure)
+        else:
+            unpaired = [f for f in failures if isinstance(f, _Unpaired)]
+            if unpaired:
+                # No offset tried gives simultaneous views: say so, not which offset was tried.
+                untimed = dataclasses.replace(collection, sync=None)
+                raise CalibrationError(_unpaired_message(untimed, unpaired[0])) from None
+            raise failures[0] from None
+    collection = done.collection
+    assert collection.sync is not None
+    refined = _refine_offset(done.rig, board, left, right, collection.sync)
+    if refined is None:
+        return done
+    if collection.sync.method == board_sync.SYNCHRONOUS and (
+        abs(refined.offset_s) * left.fps < _SYNCHRONOUS_REFINED_FRAMES
+    ):
+        # A lab rig: frames were paired right; report the measured offset.
+        kept = dataclasses.replace(refined, method=board_sync.SYNCHRONOUS)
+        return dataclasses.replace(done, collection=dataclasses.replace(collection, sync=kept))
+    refined = dataclasses.replace(refined, method=board_sync.ESTIMATED)
+    again = dataclasses.replace(
+        collection, views=pair_views(left, right, board, refined), sync=refined
+    )
+    try:
+        return _fit_views(again, board, **options)
+    except _Unpaired as exc:
+        raise CalibrationError(_unpaired_message(again, exc)) from None
+
+
+#: Rival offsets tried at most when the first pairing's views are not simultaneous.
+_MAX_RIVALS = 4
+
+
+def _rival_pairings(collection: ViewCollection, board: BoardSpec) -> Iterator[ViewCollection]:
+    """The collection paired at the coarse offset (if it was paired by frame number) and
+    at its rivals, still views only, best scored first; last, by frame number (one rate)."""
+    sync = collection.sync
+    left, right = collection.left_track, collection.right_track
+    if sync is None or left is None or right is None or not np.isfinite(sync.correlation):
+        return
+    offsets = [] if sync.method == board_sync.ESTIMATED else [sync.coarse_offset_s]
+    offsets += list(sync.candidates_s[:_MAX_RIVALS])
+    for offset in offsets:
+        coarse = dataclasses.replace(sync, offset_s=offset, method=board_sync.ESTIMATED)
+        yield dataclasses.replace(
+            collection, views=pair_views(left, right, board, coarse), sync=coarse
+        )
+    if sync.method == board_sync.ESTIMATED and left.frames.tolist() == right.frames.tolist():
+        # Last: the frames searched together, as a lab rig's.
+        together = dataclasses.replace(sync, offset_s=0.0, method=board_sync.SYNCHRONOUS)
+        yield dataclasses.replace(
+            collection, views=pair_views(left, right, board, together), sync=together
+        )
+
+
+def _refine_offset(
+    rig: StereoRig,
+    board: BoardSpec,
+    left: BoardTrack,
+    right: BoardTrack,
+    sync: BoardSync,
+) -> BoardSync | None:
+    """The clock offset at which the board corners of the two cameras agree best with the rig.
+
+    Around ``sync.offset_s`` (over ``±max(2 × its uncertainty, 1.5 frames)``,
+    in steps of a tenth of a left frame) the right corners are interpolated
+    in time to each left detection's instant (cubic through the four
+    searched right frames around it), and the symmetric epipolar distance of every
+    common corner (px, truncated at 3 px) is averaged over the views that
+    cover every offset tried. The minimum, refined by a parabola, is the
+    offset. None when fewer than ``MIN_VIEWS`` views cover the range or the
+    cost does not depend on the offset (the board never moved).
+    """
+    fps = left.fps
+    step = 0.1 / fps
+    span = max(2.0 * sync.uncertainty_s, 1.5 / fps)
+    n = int(np.ceil(span / step))
+    offsets = sync.offset_s + np.arange(-n, n + 1) * step
+    max_gap = 1.5 * right.sample_interval_s + 1e-9
+    E = rig.essential_matrix
+    f_l = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
+    f_r = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
+    costs = []
+    for k, dl in enumerate(left.detections):
+        if dl is None:
+            continue
+        taus = (left.t_s[k] - offsets) / sync.rate  # decreasing with the offset
+        # The searched right frames around every instant, one more on each side (cubic).
+        j0 = int(np.searchsorted(right.t_s, taus.min(), side="right")) - 2
+        j1 = int(np.searchsorted(right.t_s, taus.max(), side="left")) + 1
+        if j0 < 0 or j1 >= len(right) or j1 - j0 < 3:
+            continue
+        window = list(range(j0, j1 + 1))
+        t_win = right.t_s[window]
+        if np.any(np.diff(t_win) > max_gap):
+            continue
+        ref = right.detections[j0]
+        if ref is None:
+            continue
+        ref = _best_numbering(rig, board, dl, ref)
+        dets = [ref]
+        for j in window[1:]:
+            d = right.detections[j]
+            if d is None:
+                break
+            dets.append(board_sync.align_numbering(dets[-1], d, board))
+        if len(dets) != len(window):
+            continue
+        ids = dl.ids
+        for d in dets:
+            ids = np.intersect1d(ids, d.ids)
+        if len(ids) < 4:
+            continue
+        xl = rig.left.undistort_points(dl.corners_px[np.isin(dl.ids, ids)])
+        xr = np.stack(
+            [rig.right.undistort_points(d.corners_px[np.isin(d.ids, ids)]) for d in dets]
+        )  # (W, n, 2)
+        pts = _cubic_at(t_win, xr, taus)
+        hl = np.column_stack([xl, np.ones(len(xl))])  # (n, 3)
+        hr = np.concatenate([pts, np.ones((*pts.shape[:2], 1))], axis=2)  # (m, n, 3)
+        lines_r = hl @ E.T  # (n, 3): epipolar lines in the right image
+        alg = np.einsum("mni,ni->mn", hr, lines_r)
+        lines_l = hr @ E  # (m, n, 3)
+        d_r = np.abs(alg) / np.linalg.norm(lines_r[:, :2], axis=1)[None, :] * f_r
+        d_l = np.abs(alg) / np.linalg.norm(lines_l[..., :2], axis=2) * f_l
+        d = np.minimum(np.sqrt(0.5 * (d_l**2 + d_r**2)), 3.0)
+        costs.append(np.mean(d**2, axis=1))
+    if len(costs) < MIN_VIEWS:
+        return None
+    cost = np.mean(np.array(costs), axis=0)
+    best = int(np.argmin(cost))
+    if not np.isfinite(cost[best]) or cost.max() - cost[best] < 0.05 * max(cost[best], 1e-6):
+        return None
+    offset = float(offsets[best])
+    if 0 < best < len(offsets) - 1:
+        y0, y1, y2 = cost[best - 1 : best + 2]
+        denom = y0 - 2 * y1 + y2
+        if denom > 0:
+            offset += float(np.clip(0.5 * (y0 - y2) / denom, -0.5, 0.5)) * step
+    return dataclasses.replace(
+        sync, offset_s=offset, uncertainty_s=_REFINED_UNCERTAINTY_FRAMES / fps, refined=True
+    )
+
+
+def _cubic_at(t: FloatArray, values: FloatArray, at: FloatArray) -> FloatArray:
+    """``values (W, ...)`` at times ``t (W,)`` interpolated at ``at (M,)``: the cubic through
+    the two samples before and the two after each instant (Lagrange; ``W >= 4``, and
+    every instant between ``t[1]`` and ``t[-2]``). Returns ``(M, ...)``."""
+    seg = np.clip(np.searchsorted(t, at, side="right") - 1, 1, len(t) - 3)
+    q = seg[:, None] + np.arange(-1, 3)[None, :]  # (M, 4) sample indices
+    tq = t[q]
+    w = np.ones(q.shape)
+    for a in range(4):
+        for b in range(4):
+            if a != b:
+                w[:, a] *= (at - tq[:, b]) / (tq[:, a] - tq[:, b])
+    return np.einsum("ma,ma...->m...", w, values[q])
 
 
 def calibrate_stereo_from_paths(
@@ -876,8 +1371,8 @@ def calibrate_stereo_from_paths(
     Parameters
     ----------
     left, right : str or Path
-        Synchronous videos of the board, or folders of images paired in
-        sorted file-name order.
+        Videos of the board (synchronous or not), or folders of images
+        paired in sorted file-name order.
     board : BoardSpec
         The board filmed.
     max_views : int, keyword-only
@@ -1029,7 +1524,7 @@ def _quality(
     )
     pts_l = np.concatenate([d.corners_px for d in lefts])
     pts_r = np.concatenate([d.corners_px for d in rights])
-    size = collection.image_size
+    size_l, size_r = collection.sizes
     return {
         "rms_px": _round(fit.rms),
         "rms_px_left": _round(float(np.sqrt(np.mean(fit.per_view[:, 0] ** 2)))),
@@ -1045,8 +1540,8 @@ def _quality(
         "square_error_mm_rms": _nan_stat(lambda e: np.sqrt(np.nanmean(e**2)), err),
         "square_check_views": len(held_pairs),
         "square_check_method": method,
-        "coverage_left": _round(image_coverage(pts_l, size), 3),
-        "coverage_right": _round(image_coverage(pts_r, size), 3),
+        "coverage_left": _round(image_coverage(pts_l, size_l), 3),
+        "coverage_right": _round(image_coverage(pts_r, size_r), 3),
         "views_used": len(used),
         "views_rejected": len(rejected),
         "views_rejected_frames": [views[i].frame for i in rejected],
@@ -1056,13 +1551,30 @@ def _quality(
         "views_both_detected": sum(v.both for v in views),
         "frames_tried": collection.frames_tried,
         "frames_total": collection.frames_total,
-        "frames_left_detected": sum(v.left is not None for v in views),
-        "frames_right_detected": sum(v.right is not None for v in views),
+        "frames_left_detected": _detected(collection.left_track, [v.left for v in views]),
+        "frames_right_detected": _detected(collection.right_track, [v.right for v in views]),
         "baseline_mm": _round(rig.baseline_mm),
         "board": board.to_dict(),
         "source": collection.source,
         "method": "opencv calibrateCamera + stereoCalibrate (intrinsics free), 5-coefficient lens model",
+        "sync": _sync_quality(collection),
+        "warnings": list(collection.warnings),
     }
+
+
+def _detected(track: BoardTrack | None, dets: Sequence[BoardDetection | None]) -> int:
+    return track.detected if track is not None else sum(d is not None for d in dets)
+
+
+def _sync_quality(collection: ViewCollection) -> dict[str, Any]:
+    """``quality["sync"]``: how the views of the two recordings were paired in time."""
+    if collection.sync is None:
+        return {"method": board_sync.IMAGES if collection.source == "images" else "given"}
+    doc = collection.sync.to_dict()
+    if collection.right_track is not None:
+        doc["fps_right"] = round(collection.right_track.fps, 4)
+    doc["views_paired"] = sum(v.both for v in collection.views)
+    return doc
 
 
 def _best_numbering(

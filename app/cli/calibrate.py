@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from core.boards import BoardSpec
@@ -15,9 +16,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "calibrate",
         help="calibrate a stereo rig from two board recordings",
         description=(
-            "Calibrate both cameras and their relative pose from synchronous recordings of a"
-            " chessboard or ChArUco board (two videos, or two folders of images paired in"
-            " file-name order). Writes the rig file with its quality figures."
+            "Calibrate both cameras and their relative pose from recordings of a chessboard or"
+            " ChArUco board (two videos, synchronous or free-running: their time offset is found"
+            " from the board's motion; or two folders of images paired in file-name order)."
+            " Writes the rig file with its quality figures."
         ),
     )
     p.add_argument("--left", required=True, type=Path, help="left video or image folder")
@@ -41,6 +43,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--dictionary", default=None, help="charuco: ArUco dictionary (default DICT_4X4_1000)"
     )
     p.add_argument(
+        "--legacy",
+        action="store_true",
+        help="charuco: a board printed with OpenCV before 4.6 (its layout with an even number"
+        " of rows)",
+    )
+    p.add_argument(
         "--max-views", type=int, default=40, help="stereo views used in the fit at most (40)"
     )
     p.add_argument("-o", "--output", required=True, type=Path, help="rig file to write (JSON)")
@@ -51,9 +59,12 @@ def _board(args: argparse.Namespace) -> BoardSpec:
     from core.boards import BoardSpec
     from core.errors import InputError
 
-    if args.board == "chessboard" and (args.marker_mm is not None or args.dictionary is not None):
+    if args.board == "chessboard" and (
+        args.marker_mm is not None or args.dictionary is not None or args.legacy
+    ):
         raise InputError(
-            "--marker-mm and --dictionary describe ChArUco boards; drop them for a chessboard."
+            "--marker-mm, --dictionary and --legacy describe ChArUco boards; drop them for a"
+            " chessboard."
         )
     try:
         return BoardSpec(
@@ -63,6 +74,7 @@ def _board(args: argparse.Namespace) -> BoardSpec:
             square_mm=args.square_mm,
             marker_mm=args.marker_mm,
             dictionary=args.dictionary,
+            legacy=args.legacy,
         )
     except ValueError as exc:
         raise InputError(f"the board description is invalid: {exc}.") from exc
@@ -94,4 +106,25 @@ def run(args: argparse.Namespace) -> int:
     )
     for reason in reasons:
         print(f"  {reason}")
+    sync_line = _sync_line(q.get("sync") or {})
+    if sync_line:
+        print(sync_line)
+    for warning in q.get("warnings") or []:
+        print(f"bradyscope calibrate: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _sync_line(sync: dict[str, Any]) -> str | None:
+    """One line on how the two videos were paired in time (None for image folders)."""
+    method = sync.get("method")
+    offset_s, frames = sync.get("offset_s"), sync.get("offset_frames")
+    if method == "estimated" and offset_s is not None and frames is not None:
+        when = "after" if offset_s >= 0 else "before"
+        return (
+            f"time offset: the right video starts {abs(offset_s):.3f} s ({abs(frames):.2f} frames)"
+            f" {when} the left; views were paired at common instants"
+        )
+    if method == "synchronous":
+        measured = f" (measured offset {frames:+.2f} frames)" if frames is not None else ""
+        return f"time offset: none, the two videos are synchronous{measured}"
+    return None

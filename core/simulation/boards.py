@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from core.boards import BoardSpec
 from core.camera import Camera, ImageSize, StereoRig, write_rig
+from core.simulation.timing import CameraTiming
 
 FloatArray = NDArray[np.float64]
 
@@ -405,13 +406,16 @@ def board_frame_poses(
     fps: float,
     pose_interval_s: float = 1.0,
     exposure_s: float = 0.0,
+    times_s: FloatArray | None = None,
 ) -> list[list[tuple[FloatArray, FloatArray]]]:
     """Board poses (left-camera frame) during each frame's exposure.
 
     Key poses come every ``pose_interval_s``; the board holds still for the
     first half of the interval and moves smoothly (cosine ease) to the next
     key pose during the second half. Frame ``i`` is exposed from ``i / fps``
-    to ``i / fps + exposure_s``.
+    to ``i / fps + exposure_s``, or from ``times_s[i]`` when given (true
+    capture times of a free-running camera, s, on the same clock as the key
+    poses; see :mod:`core.simulation.timing`).
 
     Returns
     -------
@@ -421,7 +425,17 @@ def board_frame_poses(
     """
     rng = np.random.default_rng(seed)
     frames_per_key = max(1.0, pose_interval_s * fps)
-    n_keys = int(np.ceil(n_frames / frames_per_key)) + 2
+    if times_s is None:
+        starts = np.arange(n_frames) / frames_per_key
+    else:
+        times = np.asarray(times_s, dtype=np.float64).reshape(-1)
+        if times.size == 0 or np.any(times < 0) or not np.all(np.isfinite(times)):
+            raise ValueError("times_s must be finite and >= 0")
+        starts = times * fps / frames_per_key
+    # Keys up to the last frame (one more past it for the move that follows).
+    n_keys = (
+        int(np.ceil(max(n_frames, float(starts[-1]) * frames_per_key + 1) / frames_per_key)) + 2
+    )
     keys = random_board_poses(rig, board, n_keys, rng=rng, allow_partial=board.kind == "charuco")
 
     def at(k: float) -> tuple[FloatArray, FloatArray]:
@@ -431,16 +445,15 @@ def board_frame_poses(
         return _slerp_pose(keys[k0], keys[min(k0 + 1, n_keys - 1)], float(s))
 
     frames = []
-    for i in range(n_frames):
-        k_start = i / frames_per_key
-        k_end = (i + exposure_s * fps) / frames_per_key
+    for k_start in starts:
+        k_end = k_start + exposure_s * fps / frames_per_key
         moving = exposure_s > 0 and (
             (k_start - np.floor(k_start)) >= 0.5 or (k_end - np.floor(k_start)) > 0.5
         )
         if moving:
             frames.append([at(k) for k in np.linspace(k_start, k_end, 5)])
         else:
-            frames.append([at(k_start)])
+            frames.append([at(float(k_start))])
     return frames
 
 
@@ -460,34 +473,61 @@ def render_stereo_frame(
     A list of poses is the board's path during the exposure: the images are
     their mean (motion blur).
     """
+    left, right = (
+        render_camera_frame(
+            cam,
+            board,
+            texture,
+            pose,
+            rng=rng,
+            supersample=supersample,
+            noise_std=noise_std,
+            blur_sigma_px=blur_sigma_px,
+        )
+        for cam in rig.cameras
+    )
+    return left, right
+
+
+def render_camera_frame(
+    cam: Camera,
+    board: BoardSpec,
+    texture: BoardTexture,
+    pose: tuple[FloatArray, FloatArray] | list[tuple[FloatArray, FloatArray]],
+    *,
+    rng: np.random.Generator,
+    supersample: int = 3,
+    noise_std: float = 1.5,
+    blur_sigma_px: float = 0.5,
+) -> NDArray[np.uint8]:
+    """One camera's image of a board pose ``(R_left_from_board, t_left_from_board_mm)``
+    (a list of poses: the mean over the exposure, motion blur); ``cam`` is a rig camera,
+    whose pose maps the left camera's frame to its own."""
     poses = pose if isinstance(pose, list) else [pose]
-    images = []
-    for cam in rig.cameras:
-        acc = None
-        for R_lb, t_lb in poses:
-            R = cam.R_cam_from_world @ R_lb
-            t = cam.R_cam_from_world @ t_lb + cam.t_cam_from_world_mm
-            single = len(poses) == 1
-            img = render_board_view(
-                cam,
-                texture,
-                R,
-                t,
-                board=board,
-                rng=rng,
-                supersample=supersample,
-                noise_std=noise_std if single else 0.0,
-                blur_sigma_px=blur_sigma_px if single else 0.0,
-            )
-            if single:
-                acc = img
-            else:
-                acc = img.astype(np.float32) if acc is None else acc + img
-        assert acc is not None
-        if len(poses) > 1:
-            acc = _finish(acc / len(poses), rng, noise_std, blur_sigma_px)
-        images.append(acc)
-    return images[0], images[1]
+    acc = None
+    for R_lb, t_lb in poses:
+        R = cam.R_cam_from_world @ R_lb
+        t = cam.R_cam_from_world @ t_lb + cam.t_cam_from_world_mm
+        single = len(poses) == 1
+        img = render_board_view(
+            cam,
+            texture,
+            R,
+            t,
+            board=board,
+            rng=rng,
+            supersample=supersample,
+            noise_std=noise_std if single else 0.0,
+            blur_sigma_px=blur_sigma_px if single else 0.0,
+        )
+        if single:
+            acc = img
+        else:
+            acc = img.astype(np.float32) if acc is None else acc + img
+    assert acc is not None
+    if len(poses) > 1:
+        acc = _finish(acc / len(poses), rng, noise_std, blur_sigma_px)
+    return np.asarray(acc, dtype=np.uint8)
 
 
 def write_board_recordings(
@@ -505,18 +545,21 @@ def write_board_recordings(
     supersample: int = 3,
     noise_std: float = 1.5,
     exposure_s: float = 0.0,
+    timing: tuple[CameraTiming, CameraTiming] | None = None,
+    codec: str = "lossless",
 ) -> list[Path]:
     """Write simulated stereo board recordings of ``rig`` into ``out_dir``.
 
     For each board: ``<kind>_left.mkv`` and ``<kind>_right.mkv`` (lossless
-    FFV1), or folders ``<kind>_left/`` and ``<kind>_right/`` of PNG frames with
-    ``as_images``, plus ``<kind>.json`` (the board spec, ``BoardSpec.to_dict``).
-    The true rig goes to ``rig_true.json``.
+    FFV1, or the suffix of ``codec``), or folders ``<kind>_left/`` and
+    ``<kind>_right/`` of PNG frames with ``as_images``, plus ``<kind>.json``
+    (the board spec, ``BoardSpec.to_dict``). The true rig goes to
+    ``rig_true.json``; with ``timing``, the true clocks to ``timing_true.json``.
 
     Parameters
     ----------
     rig : StereoRig
-        The truth.
+        The truth. The two cameras may have different image sizes.
     out_dir : str or Path
         Created if needed.
     seed : int
@@ -539,12 +582,23 @@ def write_board_recordings(
     exposure_s : float
         Exposure time (s): frames taken while the board moves are motion-blurred
         over it; 0 for instantaneous (sharp) frames.
+    timing : (CameraTiming, CameraTiming), optional
+        Free-running cameras (left, right): each captures at its own instants
+        (start, frame rate, clock drift, lost frames, jitter; rolling shutter
+        and image size are not simulated here: the rig's sizes are used), the
+        board moving in true time. ``vfr`` timings need a PyAV ``codec``
+        (``"h264"``, ``"vp9"``...). Without it both cameras are triggered
+        together at ``i / fps`` (a lab rig).
+    codec : str
+        A :class:`core.video.VideoWriter` codec.
 
     Returns
     -------
     list of Path
-        The written files/folders: per board left, right, spec; then ``rig_true.json``.
+        The written files/folders: per board left, right, spec; then
+        ``rig_true.json`` (and ``timing_true.json``).
     """
+    from core.simulation.timing import camera_clock
     from core.video import VideoWriter, video_suffix
 
     if board not in ("chessboard", "charuco", "both"):
@@ -553,8 +607,17 @@ def write_board_recordings(
         raise ValueError("chessboard and charuco must be a chessboard and a charuco BoardSpec")
     if not (duration_s > 0 and fps > 0):
         raise ValueError(f"duration_s and fps must be positive, got {duration_s}, {fps}")
-    if rig.left.image_size != rig.right.image_size:
-        raise ValueError("both cameras of the rig must have the same image size")
+    if timing is not None:
+        if len(timing) != 2:
+            raise ValueError("timing must be a (left, right) pair of CameraTiming")
+        if any(t.readout_ms > 0 for t in timing):
+            raise ValueError("rolling shutter is not simulated in board recordings")
+        if any(t.start_s < 0 for t in timing):
+            raise ValueError("camera start times must be >= 0 s")
+        if any(t.vfr for t in timing) and not as_images and video_suffix(codec) == ".mkv":
+            raise ValueError(
+                "variable-frame-rate timestamps need a PyAV codec (h264, hevc, vp9, vp8)"
+            )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n_frames = max(1, round(duration_s * fps))
@@ -565,51 +628,110 @@ def write_board_recordings(
     )
     written: list[Path] = []
     for k, spec in enumerate(specs):
-        poses = board_frame_poses(
-            rig,
-            spec,
-            seed=seed * 7919 + k,
-            n_frames=n_frames,
-            fps=fps,
-            pose_interval_s=pose_interval_s,
-            exposure_s=exposure_s,
-        )
         texture = board_texture(spec)
         rng = np.random.default_rng([seed, k, 1])
         paths = [out / f"{spec.kind}_left", out / f"{spec.kind}_right"]
+        if not as_images:
+            paths = [p.with_suffix(video_suffix(codec)) for p in paths]
+        # Per camera: the board's poses at each written frame and the frame's timestamp.
+        if timing is None:
+            poses = board_frame_poses(
+                rig,
+                spec,
+                seed=seed * 7919 + k,
+                n_frames=n_frames,
+                fps=fps,
+                pose_interval_s=pose_interval_s,
+                exposure_s=exposure_s,
+            )
+            frames: list[list[Any]] = [poses, poses]
+            stamps: list[FloatArray | None] = [None, None]
+            rates = [fps, fps]
+        else:
+            clock_rng = np.random.default_rng([seed, k, 2])
+            clocks = [
+                camera_clock(t, fps=fps, duration_s=duration_s, rng=clock_rng) for t in timing
+            ]
+            frames = [
+                board_frame_poses(
+                    rig,
+                    spec,
+                    seed=seed * 7919 + k,
+                    n_frames=n_frames,
+                    fps=fps,
+                    pose_interval_s=pose_interval_s,
+                    exposure_s=exposure_s,
+                    times_s=c.true_s,
+                )
+                for c in clocks
+            ]
+            stamps = [c.stamp_s if t.vfr else None for c, t in zip(clocks, timing, strict=True)]
+            rates = [c.fps for c in clocks]
+        render = functools.partial(
+            render_camera_frame,
+            board=spec,
+            texture=texture,
+            rng=rng,
+            supersample=supersample,
+            noise_std=noise_std,
+        )
         if as_images:
             for p in paths:
                 p.mkdir(exist_ok=True)
-            for i, pose in enumerate(poses):
-                pair = render_stereo_frame(
-                    rig, spec, texture, pose, rng=rng, supersample=supersample, noise_std=noise_std
-                )
-                for p, img in zip(paths, pair, strict=True):
-                    cv2.imwrite(str(p / f"{i:05d}.png"), img)
-        else:
-            suffix = video_suffix("lossless")
-            paths = [p.with_suffix(suffix) for p in paths]
-            size = rig.left.image_size
-            with (
-                VideoWriter(paths[0], fps=fps, image_size=size, codec="lossless") as wl,
-                VideoWriter(paths[1], fps=fps, image_size=size, codec="lossless") as wr,
-            ):
-                for pose in poses:
-                    left, right = render_stereo_frame(
-                        rig,
-                        spec,
-                        texture,
-                        pose,
-                        rng=rng,
-                        supersample=supersample,
-                        noise_std=noise_std,
-                    )
-                    wl.write(left)
-                    wr.write(right)
+        writers = (
+            [None, None]
+            if as_images
+            else [
+                VideoWriter(p, fps=r, image_size=cam.image_size, codec=codec)
+                for p, r, cam in zip(paths, rates, rig.cameras, strict=True)
+            ]
+        )
+        try:
+            # Left and right frames interleaved (the lab rig's noise draws as before).
+            for i in range(max(len(f) for f in frames)):
+                for cam, poses_c, stamp, writer, path in zip(
+                    rig.cameras, frames, stamps, writers, paths, strict=True
+                ):
+                    if i >= len(poses_c):
+                        continue
+                    img = render(cam, pose=poses_c[i])
+                    if writer is None:
+                        cv2.imwrite(str(path / f"{i:05d}.png"), img)
+                    else:
+                        writer.write(img, time_s=None if stamp is None else float(stamp[i]))
+        finally:
+            for w in writers:
+                if w is not None:
+                    w.close()
         spec_path = out / f"{spec.kind}.json"
         spec_path.write_text(json.dumps(spec.to_dict(), indent=2) + "\n", encoding="utf-8")
         written.extend([*paths, spec_path])
     rig_path = out / "rig_true.json"
     write_rig(rig, rig_path)
     written.append(rig_path)
+    if timing is not None:
+        timing_path = out / "timing_true.json"
+        timing_path.write_text(
+            json.dumps(true_clock_map(*timing, fps=fps), indent=2) + "\n", encoding="utf-8"
+        )
+        written.append(timing_path)
     return written
+
+
+def true_clock_map(left: CameraTiming, right: CameraTiming, *, fps: float) -> dict[str, Any]:
+    """The true map from the right camera's clock to the left one's, as ``core.clock`` states it.
+
+    ``t_left = offset_s + (1 + drift_ppm·1e-6) · t_right`` with both times on
+    each camera's own clock, 0 at its first frame (:mod:`core.simulation.timing`).
+    """
+    scale_l = 1.0 + left.drift_ppm * 1e-6
+    scale_r = 1.0 + right.drift_ppm * 1e-6
+    fps_left = float(left.fps if left.fps is not None else fps)
+    offset_s = (right.start_s - left.start_s) / scale_l
+    return {
+        "offset_s": offset_s,
+        "offset_frames": offset_s * fps_left,
+        "drift_ppm": (scale_r / scale_l - 1.0) * 1e6,
+        "left": left.to_dict(),
+        "right": right.to_dict(),
+    }

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from app.cli import main
-from core.camera import ImageSize, read_rig
+from core.camera import ImageSize, StereoRig, read_rig
 from core.simulation.boards import example_rig, write_board_recordings
 from core.video import VideoWriter
 
@@ -157,23 +158,31 @@ def test_board_size_that_does_not_match(small_recording, tmp_path, capsys):
     assert "7x5 inner-corner chessboard" in err and "found in 0 of 8 left frames" in err
 
 
-def test_left_and_right_of_different_sizes(small_recording, tmp_path, capsys):
-    right = _blank_video(tmp_path / "r.mkv", ImageSize(320, 256), 8, seed=3)
+def test_left_and_right_of_different_sizes(tmp_path, capsys):
+    """Two cameras of different resolutions calibrate, each at its own size (issue 11;
+    they were refused before)."""
+    rig = example_rig(image_size=SMALL)
+    rig = StereoRig(rig.left, example_rig(image_size=ImageSize(480, 384)).right)
+    write_board_recordings(
+        rig, tmp_path, seed=4, board="chessboard", duration_s=0.8, fps=10.0, pose_interval_s=0.1
+    )
+    out = tmp_path / "rig.json"
     code = main(
         [
             "calibrate",
             "--left",
-            str(small_recording / "chessboard_left.mkv"),
+            str(tmp_path / "chessboard_left.mkv"),
             "--right",
-            str(right),
+            str(tmp_path / "chessboard_right.mkv"),
             *CHESSBOARD_ARGS,
             "-o",
-            str(tmp_path / "rig.json"),
+            str(out),
         ]
     )
-    assert code == 2
-    err = _one_sentence_error(capsys)
-    assert "640x512" in err and "320x256" in err
+    assert code == 0, capsys.readouterr().err
+    found = read_rig(out)
+    assert found.left.image_size == SMALL and found.right.image_size == ImageSize(480, 384)
+    assert abs(found.baseline_mm - rig.baseline_mm) < 1.0  # mm, from only 8 views
 
 
 def test_small_recording_calibrates(small_recording, tmp_path):
@@ -236,3 +245,168 @@ def test_missing_input(tmp_path, capsys):
     )
     assert code == 2
     assert "does not exist" in _one_sentence_error(capsys)
+
+
+# -- free-running cameras, lengths, board layouts (issue 11) ---------------------------
+
+
+@pytest.fixture(scope="module")
+def late_start_recording(tmp_path_factory):
+    """The issue's case: the right camera starts 3 frames (0.3 s at 10 fps) late."""
+    from core.simulation.timing import CameraTiming
+
+    out = tmp_path_factory.mktemp("cli-late-start")
+    write_board_recordings(
+        example_rig(image_size=SMALL),
+        out,
+        seed=4,
+        board="chessboard",
+        duration_s=5.0,
+        fps=10.0,
+        pose_interval_s=0.6,
+        supersample=2,
+        timing=(CameraTiming(), CameraTiming(start_s=0.3)),
+    )
+    return out
+
+
+def test_free_running_videos_calibrate_and_print_the_offset(late_start_recording, tmp_path, capsys):
+    """Before: "the board corners do not fit one rig (reprojection error 19.9 px)..."."""
+    out = tmp_path / "rig.json"
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(late_start_recording / "chessboard_left.mkv"),
+            "--right",
+            str(late_start_recording / "chessboard_right.mkv"),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(out),
+        ]
+    )
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    found = re.search(
+        r"the right video starts ([0-9.]+) s \(([0-9.]+) frames\) after the left", printed.out
+    )
+    assert found, printed.out
+    assert abs(float(found.group(1)) - 0.3) < 0.005  # s
+    assert abs(float(found.group(2)) - 3.0) < 0.05  # frames
+    rig = read_rig(out)
+    assert rig.quality["sync"]["method"] == "estimated"
+    true = read_rig(late_start_recording / "rig_true.json")
+    assert abs(rig.baseline_mm - true.baseline_mm) < 1.0  # mm, at 640x512
+
+
+def test_videos_of_different_lengths_get_a_warning(late_start_recording, tmp_path, capsys):
+    """Before, the longer video was cut to the shorter one without a word."""
+    from core.video import iter_frames
+
+    right = tmp_path / "right.mkv"
+    with VideoWriter(right, fps=10.0, image_size=SMALL, codec="lossless") as w:
+        for frame in iter_frames(late_start_recording / "chessboard_right.mkv", stop=45):
+            w.write(frame)
+    out = tmp_path / "rig.json"
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(late_start_recording / "chessboard_left.mkv"),
+            "--right",
+            str(right),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(out),
+        ]
+    )
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    assert (
+        "bradyscope calibrate: warning: the left video has 50 frames and the right 45"
+        in printed.err
+    )
+    assert read_rig(out).quality["warnings"] == [
+        "the left video has 50 frames and the right 45; the frames past the end of the shorter"
+        " one (45) are not used."
+    ]
+
+
+@pytest.fixture(scope="module")
+def legacy_charuco_images(tmp_path_factory):
+    """A ChArUco board printed in OpenCV's layout of before 4.6 (8x6 squares: even rows)."""
+    from core.boards import BoardSpec
+
+    out = tmp_path_factory.mktemp("cli-legacy")
+    board = BoardSpec("charuco", cols=8, rows=6, square_mm=30.0, marker_mm=22.0, legacy=True)
+    write_board_recordings(
+        example_rig(image_size=SMALL),
+        out,
+        seed=3,
+        board="charuco",
+        charuco=board,
+        duration_s=0.8,
+        fps=10.0,
+        pose_interval_s=0.1,
+        as_images=True,
+        supersample=2,
+    )
+    return out
+
+
+CHARUCO_ARGS = ["--board", "charuco", "--square-mm", "30", "--marker-mm", "22"]
+
+
+@pytest.mark.parametrize(
+    ("extra", "hint"),
+    [
+        (["--cols", "8", "--rows", "6"], "add --legacy"),
+        (["--cols", "6", "--rows", "8", "--legacy"], "swap --cols and --rows (--cols 8 --rows 6)"),
+    ],
+)
+def test_charuco_board_described_wrong_gets_a_hint(
+    legacy_charuco_images, tmp_path, capsys, extra, hint
+):
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(legacy_charuco_images / "charuco_left"),
+            "--right",
+            str(legacy_charuco_images / "charuco_right"),
+            *CHARUCO_ARGS,
+            *extra,
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    err = _one_sentence_error(capsys)
+    assert "found in 0 of 8 left frames" in err and hint in err
+
+
+def test_legacy_charuco_board_calibrates(legacy_charuco_images, tmp_path):
+    out = tmp_path / "rig.json"
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(legacy_charuco_images / "charuco_left"),
+            "--right",
+            str(legacy_charuco_images / "charuco_right"),
+            *CHARUCO_ARGS,
+            "--cols",
+            "8",
+            "--rows",
+            "6",
+            "--legacy",
+            "-o",
+            str(out),
+        ]
+    )
+    assert code == 0
+    rig = read_rig(out)
+    assert rig.quality["board"]["legacy"] is True
+    assert rig.quality["sync"]["method"] == "images"
+    true = read_rig(legacy_charuco_images / "rig_true.json")
+    assert abs(rig.baseline_mm - true.baseline_mm) < 1.0  # mm, from 8 views at 640x512

@@ -204,6 +204,9 @@ def test_simulated_rig_is_recovered(sim, kind):
     assert q["coverage_left"] > 0.5 and q["coverage_right"] > 0.5
     assert q["views_used"] >= 20
     assert quality_verdict(q)[0] == "good"
+    # A lab rig: its frames are paired by number, and the offset measured is nil.
+    assert q["sync"]["method"] == "synchronous"
+    assert abs(q["sync"]["offset_frames"]) < 0.05  # frames
 
 
 def test_swapping_the_cameras_gives_the_swapped_rig(sim):
@@ -336,16 +339,33 @@ def test_input_errors(tmp_path, opencv_folders):
         (short / f.name).symlink_to(f.resolve())
     with pytest.raises(InputError, match="holds 5 images but the right 13"):
         collect_views(short, right, board)
-    small = tmp_path / "small"
-    small.mkdir()
-    for f in sorted(right.iterdir()):
-        cv2.imwrite(str(small / f"{f.stem}.png"), cv2.imread(str(f))[::2, ::2])
-    with pytest.raises(InputError, match="640x480 but the right are 320x240"):
-        collect_views(left, small, board)
     video = tmp_path / "v.mkv"
     video.write_bytes(b"not a video")
     with pytest.raises(InputError):
         collect_views(video, right, board)
+
+
+def test_cameras_of_different_resolutions(tmp_path, opencv_folders):
+    """A right camera at half the resolution: calibrated at its own size, same geometry.
+
+    (Before issue 11 two sizes were refused; a rig may hold two different cameras.)
+    """
+    left, right = opencv_folders
+    board = BoardSpec("chessboard", cols=9, rows=6, square_mm=25.0)
+    small = tmp_path / "small"
+    small.mkdir()
+    for f in sorted(right.iterdir()):
+        image = cv2.imread(str(f))
+        cv2.imwrite(str(small / f"{f.stem}.png"), cv2.resize(image, (320, 240), cv2.INTER_AREA))
+    full = calibrate_stereo_from_paths(left, right, board).rig
+    half = calibrate_stereo_from_paths(left, small, board).rig
+    assert half.left.image_size == ImageSize(640, 480)
+    assert half.right.image_size == ImageSize(320, 240)
+    # A pixel of the half-size image spans two of the full one (centre at (x + 0.5) / 2 - 0.5).
+    assert half.right.K[0, 0] == pytest.approx(full.right.K[0, 0] / 2, rel=0.01)  # 1 %
+    assert half.right.K[0, 2] == pytest.approx((full.right.K[0, 2] + 0.5) / 2 - 0.5, abs=2.0)  # px
+    assert half.baseline_mm == pytest.approx(full.baseline_mm, rel=0.01)  # 1 %
+    assert _rotation_deg(half.R_right_from_left, full.R_right_from_left) < 0.3  # degrees
 
 
 # -- quality --------------------------------------------------------------------------
@@ -439,3 +459,107 @@ def test_recordings_as_image_folders_calibrate_from_folders(tmp_path):
     )
     assert result.quality["source"] == "images"
     assert abs(result.rig.baseline_mm - rig.baseline_mm) < 2.0  # mm, 10 views at 640x512
+
+
+# -- free-running cameras (issue 11) ---------------------------------------------------
+
+#: Right camera starts this much later (s); 4.5 frames at 15 fps.
+LATE_START_S = 0.3
+
+
+@pytest.fixture(scope="module")
+def free_running_dir(tmp_path_factory):
+    """Two free-running 1280x1024 H.264 cameras with variable-frame-rate timestamps
+    (0.5 ms jitter), the right one starting 0.3 s later with a 100 ppm faster clock;
+    a board held still 0.2 s in each of 15 poses, moved in between (6 s at 15 fps)."""
+    from core.simulation.timing import CameraTiming
+
+    out = tmp_path_factory.mktemp("free-running-boards")
+    write_board_recordings(
+        example_rig(),
+        out,
+        seed=11,
+        board="chessboard",
+        duration_s=6.0,
+        fps=15.0,
+        pose_interval_s=0.4,
+        supersample=2,
+        codec="h264",
+        timing=(
+            CameraTiming(vfr=True, jitter_s=0.0005),
+            CameraTiming(start_s=LATE_START_S, drift_ppm=100.0, vfr=True, jitter_s=0.0005),
+        ),
+    )
+    return out
+
+
+def test_free_running_videos_calibrate_and_report_the_offset(free_running_dir):
+    """Acceptance (issue 11): baseline within 0.1 mm and rotation within 0.05 degrees of
+    the truth from two free-running board videos, one starting 0.3 s later; the offset
+    is reported. Pairing the frames by number, this recording failed with "the board
+    corners do not fit one rig (reprojection error 47.7 px)"."""
+    d = free_running_dir
+    board = BoardSpec.from_dict(json.loads((d / "chessboard.json").read_text()))
+    truth = json.loads((d / "timing_true.json").read_text())
+    assert truth["offset_s"] == pytest.approx(LATE_START_S)
+    result = calibrate_stereo_from_paths(
+        d / "chessboard_left.mp4", d / "chessboard_right.mp4", board
+    )
+    true = read_rig(d / "rig_true.json")
+    assert abs(result.rig.baseline_mm - true.baseline_mm) < 0.1  # mm (0.008 measured)
+    assert _rotation_deg(result.rig.R_right_from_left, true.R_right_from_left) < 0.05  # deg
+    sync = result.quality["sync"]
+    assert sync["method"] == "estimated" and sync["refined"]
+    assert abs(sync["offset_s"] - LATE_START_S) < 0.003  # s: 0.0002-0.0016 measured
+    assert sync["offset_frames"] == pytest.approx(sync["offset_s"] * 15.0, abs=0.01)  # frames
+    assert result.quality["views_used"] >= 12
+    assert result.quality["rms_px"] < 0.1  # px
+    json.dumps(result.quality)
+
+
+def test_images_that_do_not_pair_up_are_refused(tmp_path):
+    """Each left image paired with the next pose's right image: the error says the
+    folders do not pair up (before: "the board corners do not fit one rig")."""
+    write_board_recordings(
+        example_rig(image_size=ImageSize(640, 512)),
+        tmp_path,
+        seed=2,
+        board="chessboard",
+        duration_s=1.2,
+        fps=10.0,
+        pose_interval_s=0.1,
+        as_images=True,
+        supersample=2,
+    )
+    right = tmp_path / "chessboard_right"
+    names = sorted(f.name for f in right.iterdir())
+    for old, new in zip(names, names[1:] + names[:1], strict=True):
+        (right / old).rename(right / f"x{new}")
+    for f in right.iterdir():
+        f.rename(right / f.name[1:])
+    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
+    with pytest.raises(CalibrationError, match="images do not pair up") as err:
+        calibrate_stereo_from_paths(tmp_path / "chessboard_left", right, board)
+    assert "file-name order" in str(err.value)
+
+
+def test_videos_of_different_sessions_are_refused(tmp_path):
+    """Two recordings that were not made together: no offset explains them, and the
+    error says so instead of blaming the board."""
+    rig = example_rig(image_size=ImageSize(640, 512))
+    for seed in (5, 6):
+        write_board_recordings(
+            rig,
+            tmp_path / str(seed),
+            seed=seed,
+            board="chessboard",
+            duration_s=3.0,
+            fps=10.0,
+            pose_interval_s=0.5,
+            supersample=2,
+        )
+    board = BoardSpec.from_dict(json.loads((tmp_path / "5" / "chessboard.json").read_text()))
+    with pytest.raises(CalibrationError, match="do not show the board at the same moments"):
+        calibrate_stereo_from_paths(
+            tmp_path / "5" / "chessboard_left.mkv", tmp_path / "6" / "chessboard_right.mkv", board
+        )
