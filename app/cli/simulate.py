@@ -338,7 +338,18 @@ def run(args: argparse.Namespace) -> int:
                 "calibration-board recordings are not available in this version of bradyscope"
                 f" ({exc}); run without --boards."
             ) from exc
-        write_board_recordings(rig, args.out / "calibration", seed=args.seed)
+        # The board is filmed by the same free-running cameras (their start and clock;
+        # lost frames and rolling shutter belong to the tapping recording).
+        free = args.offset_s != 0 or args.drift_ppm != 0
+        timing = (
+            (
+                CameraTiming(start_s=max(0.0, -args.offset_s)),
+                CameraTiming(start_s=max(0.0, args.offset_s), drift_ppm=args.drift_ppm),
+            )
+            if free
+            else None
+        )
+        write_board_recordings(rig, args.out / "calibration", seed=args.seed, timing=timing)
     truth = session.truth
     print(
         f"wrote {args.out}: {session.left_video.name}, {session.right_video.name}"

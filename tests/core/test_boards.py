@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -102,8 +104,33 @@ def test_boardspec_rejects_bad_values(kwargs, match):
 
 
 def test_boardspec_round_trips_through_dict():
-    for board in (DEFAULT_CHESSBOARD, DEFAULT_CHARUCO):
+    legacy = dataclasses.replace(DEFAULT_CHARUCO, rows=6, legacy=True)
+    for board in (DEFAULT_CHESSBOARD, DEFAULT_CHARUCO, legacy):
         assert BoardSpec.from_dict(board.to_dict()) == board
+    assert "legacy" not in DEFAULT_CHARUCO.to_dict()  # older readers see the same document
+    assert legacy.to_dict()["legacy"] is True and "legacy layout" in legacy.describe()
+    # A form's check box sends text.
+    assert BoardSpec.from_dict({**legacy.to_dict(), "legacy": "on"}) == legacy
+    assert BoardSpec.from_dict({**legacy.to_dict(), "legacy": "false"}) == dataclasses.replace(
+        legacy, legacy=False
+    )
+    with pytest.raises(ValueError, match="charuco boards only"):
+        BoardSpec("chessboard", cols=9, rows=6, square_mm=25.0, legacy=True)
+
+
+def test_legacy_charuco_layout_is_found_only_as_legacy(rig):
+    """OpenCV < 4.6 printed even-row ChArUco boards with the markers in the other squares."""
+    current = BoardSpec("charuco", cols=8, rows=6, square_mm=30.0, marker_mm=22.0)
+    legacy = dataclasses.replace(current, legacy=True)
+    pose = random_board_poses(rig, legacy, 1, rng=np.random.default_rng(4))[0]
+    img, truth = _render(rig, legacy, pose)
+    det = detect_board(img, legacy)
+    assert det is not None and len(det) >= 0.9 * legacy.n_corners
+    np.testing.assert_allclose(det.corners_px, truth[det.ids], atol=0.25)  # px
+    assert detect_board(img, current) is None
+    # ...and a current board is not found as a legacy one.
+    img, _ = _render(rig, current, pose)
+    assert detect_board(img, current) is not None and detect_board(img, legacy) is None
 
 
 # -- detection ------------------------------------------------------------------
