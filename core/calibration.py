@@ -1354,7 +1354,7 @@ def _cubic_at(t: FloatArray, values: FloatArray, at: FloatArray) -> FloatArray:
         for b in range(4):
             if a != b:
                 w[:, a] *= (at - tq[:, b]) / (tq[:, a] - tq[:, b])
-    return np.einsum("ma,ma...->m...", w, values[q])
+    return np.asarray(np.einsum("ma,ma...->m...", w, values[q]), dtype=np.float64)
 
 
 def calibrate_stereo_from_paths(
