@@ -452,12 +452,12 @@ def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) ->
     way round (``--cols/--rows`` swapped) and, for ChArUco, in the legacy
     layout, so that the error can say which was meant.
     """
-    from core.video import read_image
+    from core.video import read_image, video_capture
 
     indices = _sample_indices(n_total, _PROBE_FRAMES)
     img: Any
     for side, src in (("left", src_l), ("right", src_r)):
-        cap = None if kind == "images" else cv2.VideoCapture(str(src.path), cv2.CAP_FFMPEG)
+        cap = None if kind == "images" else video_capture(src.path)
         seen: list[Any] = []
         found = False
         try:

@@ -92,6 +92,11 @@ class VideoInfo:
     has_timestamps : bool
         Whether the container's packets carry presentation timestamps (a raw
         H.264/HEVC stream has none).
+    rotation_deg : int
+        The rotation the container asks for at display (a phone held upright
+        stores landscape frames and a 90 or 270 degree display rotation), in
+        degrees clockwise; frames are read rotated by it, so ``image_size``
+        and every pixel position are those of the upright picture.
     """
 
     path: Path
@@ -100,14 +105,30 @@ class VideoInfo:
     image_size: ImageSize
     fourcc: str
     has_timestamps: bool = True
+    rotation_deg: int = 0
 
     @property
     def duration_s(self) -> float:
         return self.frame_count / self.fps
 
 
-def _open_capture(path: Path) -> cv2.VideoCapture:
+def video_capture(path: str | Path) -> cv2.VideoCapture:
+    """``cv2.VideoCapture`` of a file through FFmpeg, frames upright.
+
+    The container's display rotation (an MP4/MOV display matrix, a phone held
+    upright) is applied to every frame (``CAP_PROP_ORIENTATION_AUTO``, also to
+    the raw luma plane that :func:`iter_frames` reads), as a player shows it;
+    ``tests/core/test_video_formats.py`` checks it against PyAV's frames and
+    rotation. It may not be open: check ``isOpened()``.
+    """
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    if cap.isOpened():
+        cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)  # OpenCV's default; said, not assumed
+    return cap
+
+
+def _open_capture(path: Path) -> cv2.VideoCapture:
+    cap = video_capture(path)
     if not cap.isOpened():
         cap.release()
         raise InputError(
@@ -179,6 +200,7 @@ def probe_video(path: str | Path) -> VideoInfo:
         frame_count = round(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         ok, frame = cap.read()
         fourcc = _fourcc_to_str(cap.get(cv2.CAP_PROP_FOURCC))
+        rotation = round(cap.get(cv2.CAP_PROP_ORIENTATION_META)) % 360
     finally:
         cap.release()
     if not ok or frame is None:
@@ -205,6 +227,7 @@ def probe_video(path: str | Path) -> VideoInfo:
         image_size=ImageSize.of_image(frame),
         fourcc=fourcc,
         has_timestamps=has_pts,
+        rotation_deg=rotation,
     )
 
 
@@ -260,7 +283,7 @@ def decodes_frame(path: str | Path, index: int) -> bool:
     """
     if index < 0:
         raise ValueError(f"index must be >= 0, got {index}")
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    cap = video_capture(path)
     try:
         if not cap.isOpened() or not cap.set(cv2.CAP_PROP_POS_FRAMES, float(index)):
             return False
@@ -449,6 +472,11 @@ class VideoWriter:
         cameras, phones and browsers record (high quality settings).
     is_color : bool
         Frames are ``(H, W, 3)`` BGR if True, ``(H, W)`` gray otherwise.
+    rotation_deg : int
+        PyAV codecs: a display rotation (0, 90, 180 or 270 degrees clockwise)
+        stored in the container, as a phone held upright records: frames are
+        written as given (``image_size``, the sensor's) and shown, and read by
+        :func:`iter_frames`, rotated by it.
     """
 
     def __init__(
@@ -459,9 +487,15 @@ class VideoWriter:
         image_size: ImageSize,
         codec: str = "lossless",
         is_color: bool = False,
+        rotation_deg: int = 0,
     ) -> None:
         if codec not in CODECS:
             raise ValueError(f"codec must be one of {sorted(CODECS)}, got {codec!r}")
+        if rotation_deg % 90 or (rotation_deg % 360 and codec not in _AV_CODECS):
+            raise ValueError(
+                f"rotation_deg must be a multiple of 90 and needs a PyAV codec, got {rotation_deg}"
+            )
+        self.rotation_deg = rotation_deg % 360
         if not fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
         self.path = Path(path)
@@ -496,6 +530,9 @@ class VideoWriter:
             )
             stream.width, stream.height = self.image_size
             stream.pix_fmt = "yuv420p"
+            if self.rotation_deg:
+                # FFmpeg's display matrix turns counter-clockwise.
+                stream.set_display_rotation(-self.rotation_deg)
             stream.time_base = tb
             stream.codec_context.time_base = tb
             stream.options = dict(options)

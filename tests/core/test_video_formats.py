@@ -1,0 +1,152 @@
+"""The inputs people have (issue 11): every container and codec cameras, phones and
+browsers write is read frame-exactly, with its timestamps, and a phone held upright
+is read upright."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from core.camera import ImageSize, StereoRig
+from core.timing import FROM_FPS, frame_times_from_timestamps
+from core.video import VideoWriter, iter_frames, probe_video
+
+SIZE = ImageSize(320, 192)
+FPS = 30.0
+N = 12
+
+
+def _frames() -> list[np.ndarray]:
+    """A bright square that moves 2 px right and 1 px down per frame (each frame and
+    its orientation identifiable), on a gradient so that lossy codecs have texture."""
+    xs = np.linspace(40, 90, SIZE.width)[None, :]
+    ys = np.linspace(0, 30, SIZE.height)[:, None]
+    out = []
+    for i in range(N):
+        img = (xs + ys).astype(np.uint8).repeat(1, axis=0)
+        img = np.broadcast_to(img, (SIZE.height, SIZE.width)).copy()
+        img[20 + i : 44 + i, 30 + 2 * i : 62 + 2 * i] = 230
+        out.append(img)
+    return out
+
+
+def _square_centre(img: np.ndarray) -> np.ndarray:
+    """``(x, y)`` centre of the bright square (px)."""
+    ys, xs = np.nonzero(img > 180)
+    return np.array([xs.mean(), ys.mean()])
+
+
+@pytest.mark.parametrize(
+    ("codec", "suffix"),
+    [
+        ("lossless", ".mkv"),  # FFV1 in Matroska
+        ("mjpg", ".avi"),  # MJPEG in AVI (USB webcams)
+        ("mp4v", ".mp4"),
+        ("h264", ".mp4"),  # cameras, phones
+        ("h264", ".mov"),  # iPhones, QuickTime
+        ("hevc", ".mp4"),
+        ("hevc", ".mov"),
+        ("vp8", ".webm"),  # browsers (MediaRecorder)
+        ("vp9", ".webm"),
+    ],
+)
+def test_container_and_codec_are_read_frame_exactly(tmp_path, codec, suffix):
+    frames = _frames()
+    path = tmp_path / f"clip{suffix}"
+    with VideoWriter(path, fps=FPS, image_size=SIZE, codec=codec) as w:
+        for f in frames:
+            w.write(f)
+    info = probe_video(path)
+    assert info.image_size == SIZE and info.rotation_deg == 0
+    assert info.fps == pytest.approx(FPS, rel=1e-3)
+    assert info.frame_count == N
+    times: list[float] = []
+    got = list(iter_frames(path, times_out=times, expected_count=info.frame_count))
+    assert len(got) == N
+    for i, (a, b) in enumerate(zip(got, frames, strict=True)):
+        assert a.shape == (SIZE.height, SIZE.width)
+        # px: each frame is itself (the square moves 2 px a frame) and in order.
+        np.testing.assert_allclose(
+            _square_centre(a), _square_centre(b), atol=0.5, err_msg=f"frame {i}"
+        )
+        # Gray levels: the luma plane is in video range (16-235) for YUV codecs.
+        assert abs(float(np.median(a.astype(float) - b))) < 8  # gray levels
+    times_fit = frame_times_from_timestamps(times, fps=info.fps, name=path.name)
+    assert times_fit.source == FROM_FPS  # constant rate: i / fps
+    np.testing.assert_allclose(np.array(times) - times[0], np.arange(N) / FPS, atol=1.1e-3)  # s
+
+
+@pytest.mark.parametrize(
+    ("codec", "suffix", "rotation"),
+    [("h264", ".mp4", 90), ("h264", ".mp4", 180), ("h264", ".mp4", 270), ("hevc", ".mov", 90)],
+)
+def test_a_phone_held_upright_is_read_upright(tmp_path, codec, suffix, rotation):
+    """Landscape sensor frames with a display rotation (an MP4/MOV display matrix) are read
+    as a player shows them: OpenCV applies the rotation (CAP_PROP_ORIENTATION_AUTO, on the
+    luma plane too); PyAV decodes the sensor frames and reports the same rotation."""
+    import av
+
+    frames = _frames()
+    path = tmp_path / f"upright{suffix}"
+    with VideoWriter(path, fps=FPS, image_size=SIZE, codec=codec, rotation_deg=rotation) as w:
+        for f in frames:
+            w.write(f)
+    info = probe_video(path)
+    assert info.rotation_deg == rotation
+    upright = [np.rot90(f, -rotation // 90) for f in frames]  # clockwise
+    assert info.image_size == ImageSize.of_image(upright[0])
+    got = list(iter_frames(path))
+    assert len(got) == N
+    for a, b in zip(got, upright, strict=True):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(_square_centre(a), _square_centre(b), atol=0.5)  # px
+    # The container itself, read by PyAV: sensor frames and the rotation applied above.
+    with av.open(str(path)) as container:
+        first = next(container.decode(video=0))
+        assert (first.width, first.height) == tuple(SIZE)
+        assert (-first.rotation) % 360 == rotation  # FFmpeg counts counter-clockwise
+    with pytest.raises(ValueError, match="multiple of 90"):
+        VideoWriter(tmp_path / "x.mp4", fps=FPS, image_size=SIZE, codec="h264", rotation_deg=45)
+
+
+def test_upright_phones_calibrate_in_portrait(tmp_path):
+    """Two phones held upright: the rig is calibrated at the upright (portrait) size."""
+    import cv2
+
+    from core.boards import BoardSpec
+    from core.calibration import calibrate_stereo_from_paths
+    from core.simulation.boards import example_rig, write_board_recordings
+
+    portrait = ImageSize(384, 480)
+    rig = example_rig(image_size=portrait)
+    rig = StereoRig(rig.left, rig.right)
+    write_board_recordings(
+        rig,
+        tmp_path,
+        seed=4,
+        board="chessboard",
+        duration_s=0.8,
+        fps=10.0,
+        pose_interval_s=0.1,
+        as_images=True,
+        supersample=2,
+    )
+    # What each phone stores: landscape sensor frames, 90 degrees clockwise to show.
+    for side in ("left", "right"):
+        files = sorted((tmp_path / f"chessboard_{side}").glob("*.png"))
+        with VideoWriter(
+            tmp_path / f"{side}.mp4",
+            fps=10.0,
+            image_size=ImageSize(portrait.height, portrait.width),
+            codec="h264",
+            rotation_deg=90,
+        ) as w:
+            for f in files:
+                w.write(np.ascontiguousarray(np.rot90(cv2.imread(str(f), 0), 1)))
+    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
+    result = calibrate_stereo_from_paths(tmp_path / "left.mp4", tmp_path / "right.mp4", board)
+    assert result.rig.left.image_size == portrait and result.rig.right.image_size == portrait
+    assert abs(result.rig.baseline_mm - rig.baseline_mm) < 1.0  # mm, 8 views at 384x480
+    assert np.all(np.abs(result.rig.left.K[:2, 2] - rig.left.K[:2, 2]) < 3.0)  # px
