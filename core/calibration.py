@@ -452,30 +452,21 @@ def _probe(kind: str, src_l: Any, src_r: Any, board: BoardSpec, n_total: int) ->
     way round (``--cols/--rows`` swapped) and, for ChArUco, in the legacy
     layout, so that the error can say which was meant.
     """
-    from core.video import read_image, video_capture
+    from core.video import read_frame, read_image
 
     indices = _sample_indices(n_total, _PROBE_FRAMES)
     img: Any
     for side, src in (("left", src_l), ("right", src_r)):
-        cap = None if kind == "images" else video_capture(src.path)
         seen: list[Any] = []
         found = False
-        try:
-            for i in indices:
-                if cap is None:
-                    img = read_image(src[i])
-                else:
-                    cap.set(cv2.CAP_PROP_POS_FRAMES, float(i))
-                    ok, img = cap.read()
-                    if not ok or img is None:
-                        continue
-                if detect_board(img, board) is not None:
-                    found = True
-                    break
-                seen.append(img)
-        finally:
-            if cap is not None:
-                cap.release()
+        for i in indices:
+            img = read_image(src[i]) if kind == "images" else read_frame(src.path, i)
+            if img is None:
+                continue
+            if detect_board(img, board) is not None:
+                found = True
+                break
+            seen.append(img)
         if not found:
             raise DetectionError(
                 f"the board ({board.describe()}) was found in 0 of {len(indices)} {side} frames"

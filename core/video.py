@@ -22,6 +22,7 @@ encoders nor per-frame timestamps.
 from __future__ import annotations
 
 import atexit
+import functools
 import queue
 import threading
 from collections.abc import Callable, Iterator
@@ -61,6 +62,8 @@ _AV_CODECS = {
         {"crf": "12", "b": "0", "deadline": "realtime", "cpu-used": "8"},
     ),
     "vp8": ("libvpx", ".webm", {"crf": "6", "b": "20M", "deadline": "realtime", "cpu-used": "8"}),
+    # What newer browsers and phones record; OpenCV's FFmpeg cannot decode it, PyAV's can.
+    "av1": ("libsvtav1", ".webm", {"crf": "20", "preset": "12", "svtav1-params": "lp=1"}),
 }
 CODECS = (*_CODECS, *_AV_CODECS)
 
@@ -194,19 +197,28 @@ def probe_video(path: str | Path) -> VideoInfo:
         raise InputError(f"the video {p.name} does not exist; check the path.")
     if p.stat().st_size == 0:
         raise InputError(f"the video {p.name} is empty (0 bytes); record or upload it again.")
-    cap = _open_capture(p)
     try:
-        fps = float(cap.get(cv2.CAP_PROP_FPS))
-        frame_count = round(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        ok, frame = cap.read()
-        fourcc = _fourcc_to_str(cap.get(cv2.CAP_PROP_FOURCC))
-        rotation = round(cap.get(cv2.CAP_PROP_ORIENTATION_META)) % 360
-    finally:
-        cap.release()
+        cap = _open_capture(p)
+    except InputError:
+        if not _pyav_decodes(p):
+            raise
+        cap = None
+    ok, frame = False, None
+    if cap is not None:
+        try:
+            fps = float(cap.get(cv2.CAP_PROP_FPS))
+            frame_count = round(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            ok, frame = cap.read()
+            fourcc = _fourcc_to_str(cap.get(cv2.CAP_PROP_FOURCC))
+            rotation = round(cap.get(cv2.CAP_PROP_ORIENTATION_META)) % 360
+        finally:
+            cap.release()
     if not ok or frame is None:
-        raise InputError(
-            f"no frame of {p.name} could be decoded; the file is corrupt or not a video."
-        )
+        # OpenCV's FFmpeg lacks some decoders (AV1): PyAV's has them.
+        first = _pyav_first_frame(p)
+        if first is None:
+            raise InputError(_undecodable_message(p))
+        frame, fps, frame_count, fourcc, rotation = first
     count, has_pts, stated_fps = _container_facts(p)
     if count is not None and count > 0:
         frame_count = count
@@ -276,21 +288,128 @@ def _stop_readers() -> None:
         thread.join(timeout=5.0)
 
 
+def _codec_name(path: Path) -> str | None:
+    """The long name of the first video stream's codec, as PyAV reads it (None if none)."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                return None
+            codec = container.streams.video[0].codec_context.codec
+            return str(codec.long_name or codec.name)
+    except (av.FFmpegError, OSError, ValueError):
+        return None
+
+
+def _undecodable_message(path: Path) -> str:
+    codec = _codec_name(path)
+    if codec is None:
+        return f"no frame of {path.name} could be decoded; the file is corrupt or not a video."
+    return (
+        f"no frame of {path.name} could be decoded: it holds {codec} video that this installation"
+        " cannot decode, or the file is corrupt; re-export it as H.264 (MP4)."
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _opencv_decodes_file(path: str, mtime_ns: int, size: int) -> bool:
+    cap = video_capture(path)
+    try:
+        return bool(cap.isOpened() and cap.read()[0])
+    finally:
+        cap.release()
+
+
+def _opencv_decodes(path: Path) -> bool:
+    """Whether OpenCV's FFmpeg decodes the first frame of the file (cached per file version)."""
+    st = path.stat()
+    return _opencv_decodes_file(str(path), st.st_mtime_ns, st.st_size)
+
+
+def _pyav_decodes(path: Path) -> bool:
+    return _pyav_first_frame(path) is not None
+
+
+def _upright(image: NDArray[Any], frame: Any) -> NDArray[Any]:
+    """A PyAV frame's pixels turned as its display matrix says (FFmpeg counts
+    counter-clockwise; np.rot90 too)."""
+    turn = round(float(getattr(frame, "rotation", 0) or 0) / 90.0) % 4
+    return np.ascontiguousarray(np.rot90(image, turn)) if turn else image
+
+
+def _pyav_first_frame(path: Path) -> tuple[NDArray[np.uint8], float, int, str, int] | None:
+    """``(upright BGR frame, fps, frame count, fourcc, rotation_deg)`` decoded by PyAV."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                return None
+            stream = container.streams.video[0]
+            frame = next(container.decode(stream), None)
+            if frame is None:
+                return None
+            rate = stream.average_rate or stream.base_rate
+            image = _upright(frame.to_ndarray(format="bgr24"), frame)
+            rotation = (-round(float(getattr(frame, "rotation", 0) or 0))) % 360
+            name = str(stream.codec_context.codec_tag or stream.codec_context.codec.name)[:4]
+            return image, float(rate) if rate else 0.0, int(stream.frames or 0), name, rotation
+    except (av.FFmpegError, OSError, ValueError, StopIteration):
+        return None
+
+
+def read_frame(path: str | Path, index: int, *, gray: bool = True) -> NDArray[np.uint8] | None:
+    """Frame ``index`` of a video, upright, found by seeking (fast, not frame-exact in every
+    container); None where it does not decode."""
+    if index < 0:
+        raise ValueError(f"index must be >= 0, got {index}")
+    p = Path(path)
+    if not p.is_file():
+        return None
+    if _opencv_decodes(p):
+        cap = video_capture(p)
+        try:
+            if not cap.set(cv2.CAP_PROP_POS_FRAMES, float(index)):
+                return None
+            ok, frame = cap.read()
+        finally:
+            cap.release()
+        if not ok or frame is None or frame.size == 0:
+            return None
+        image = np.asarray(frame, dtype=np.uint8)
+        if gray and image.ndim == 3:
+            image = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+        return image
+    return _pyav_read_frame(p, index, gray=gray)
+
+
+def _pyav_read_frame(path: Path, index: int, *, gray: bool) -> NDArray[np.uint8] | None:
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            rate = float(stream.average_rate or stream.base_rate or 0)
+            if rate <= 0 or stream.time_base is None:
+                return None
+            target = index / rate
+            container.seek(int(target / float(stream.time_base)), stream=stream, backward=True)
+            for frame in container.decode(stream):
+                if frame.time is not None and frame.time >= target - 0.5 / rate:
+                    image = frame.to_ndarray(format="gray" if gray else "bgr24")
+                    return np.asarray(_upright(image, frame), dtype=np.uint8)
+    except (av.FFmpegError, OSError, ValueError, IndexError):
+        return None
+    return None
+
+
 def decodes_frame(path: str | Path, index: int) -> bool:
     """True if frame ``index`` of the video decodes; seeks, so it is fast on long videos.
 
     Used to catch truncated files whose header still announces every frame.
     """
-    if index < 0:
-        raise ValueError(f"index must be >= 0, got {index}")
-    cap = video_capture(path)
-    try:
-        if not cap.isOpened() or not cap.set(cv2.CAP_PROP_POS_FRAMES, float(index)):
-            return False
-        ok, frame = cap.read()
-        return bool(ok) and frame is not None and frame.size > 0
-    finally:
-        cap.release()
+    return read_frame(path, index) is not None
 
 
 def _reader(
@@ -304,6 +423,10 @@ def _reader(
 ) -> None:
     """Decode frames into ``out``; ends with ``None`` (done) or an exception instance."""
     try:
+        if not _opencv_decodes(path):
+            _decode_loop_av(path, gray, start, stop, out, halt, times)
+            out.put(None)
+            return
         cap = _open_capture(path)
         try:
             luma = False
@@ -370,6 +493,48 @@ def _decode_loop(
             except queue.Full:
                 continue
         index += 1
+
+
+def _decode_loop_av(
+    path: Path,
+    gray: bool,
+    start: int,
+    stop: int | None,
+    out: queue.Queue[Any],
+    halt: threading.Event,
+    times: list[float] | None,
+) -> None:
+    """:func:`_decode_loop` through PyAV, for codecs OpenCV's FFmpeg cannot decode (AV1)."""
+    import av
+
+    try:
+        container = av.open(str(path))
+    except (av.FFmpegError, OSError, ValueError) as exc:
+        raise InputError(_undecodable_message(path)) from exc
+    try:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        index = 0
+        try:
+            for frame in container.decode(stream):
+                if halt.is_set() or (stop is not None and index >= stop):
+                    break
+                if index >= start:
+                    image = frame.to_ndarray(format="gray" if gray else "bgr24")
+                    image = np.asarray(_upright(image, frame), dtype=np.uint8)
+                    if times is not None:
+                        times.append(float(frame.time) if frame.time is not None else np.nan)
+                    while not halt.is_set():
+                        try:
+                            out.put(image, timeout=0.1)
+                            break
+                        except queue.Full:
+                            continue
+                index += 1
+        except av.FFmpegError:
+            pass  # a damaged stream ends here, as with OpenCV; expected_count tells
+    finally:
+        container.close()
 
 
 def iter_frames(
@@ -468,8 +633,8 @@ class VideoWriter:
     codec : str
         One of :data:`CODECS`: ``"lossless"`` is FFV1 in MKV (every pixel
         kept, large files); ``"mp4v"`` MPEG-4 part 2 (small files, artefacts);
-        ``"h264"``/``"hevc"`` in MP4 and ``"vp9"``/``"vp8"`` in WebM are what
-        cameras, phones and browsers record (high quality settings).
+        ``"h264"``/``"hevc"`` in MP4 and ``"vp9"``/``"vp8"``/``"av1"`` in WebM
+        are what cameras, phones and browsers record (high quality settings).
     is_color : bool
         Frames are ``(H, W, 3)`` BGR if True, ``(H, W)`` gray otherwise.
     rotation_deg : int

@@ -50,6 +50,8 @@ def _square_centre(img: np.ndarray) -> np.ndarray:
         ("hevc", ".mov"),
         ("vp8", ".webm"),  # browsers (MediaRecorder)
         ("vp9", ".webm"),
+        ("av1", ".webm"),  # newer browsers and phones: decoded by PyAV (OpenCV cannot)
+        ("av1", ".mp4"),
     ],
 )
 def test_container_and_codec_are_read_frame_exactly(tmp_path, codec, suffix):
@@ -80,7 +82,13 @@ def test_container_and_codec_are_read_frame_exactly(tmp_path, codec, suffix):
 
 @pytest.mark.parametrize(
     ("codec", "suffix", "rotation"),
-    [("h264", ".mp4", 90), ("h264", ".mp4", 180), ("h264", ".mp4", 270), ("hevc", ".mov", 90)],
+    [
+        ("h264", ".mp4", 90),
+        ("h264", ".mp4", 180),
+        ("h264", ".mp4", 270),
+        ("hevc", ".mov", 90),
+        ("av1", ".mp4", 270),  # read through PyAV, turned by its display matrix
+    ],
 )
 def test_a_phone_held_upright_is_read_upright(tmp_path, codec, suffix, rotation):
     """Landscape sensor frames with a display rotation (an MP4/MOV display matrix) are read
@@ -150,3 +158,24 @@ def test_upright_phones_calibrate_in_portrait(tmp_path):
     assert result.rig.left.image_size == portrait and result.rig.right.image_size == portrait
     assert abs(result.rig.baseline_mm - rig.baseline_mm) < 1.0  # mm, 8 views at 384x480
     assert np.all(np.abs(result.rig.left.K[:2, 2] - rig.left.K[:2, 2]) < 3.0)  # px
+
+
+def test_frames_found_by_seeking_and_a_codec_named_when_it_cannot_be_read(tmp_path):
+    """read_frame (the calibration's quick check, the upload's truncation check) finds a
+    frame by seeking, through OpenCV or, for AV1, PyAV; an undecodable stream's error
+    names its codec."""
+    from core.video import _undecodable_message, decodes_frame, read_frame
+
+    frames = _frames()
+    for codec in ("h264", "av1"):
+        path = tmp_path / f"seek-{codec}.webm" if codec == "av1" else tmp_path / "seek.mp4"
+        with VideoWriter(path, fps=FPS, image_size=SIZE, codec=codec) as w:
+            for f in frames:
+                w.write(f)
+        for i in (0, 5, N - 1):
+            got = read_frame(path, i)
+            assert got is not None
+            np.testing.assert_allclose(_square_centre(got), _square_centre(frames[i]), atol=0.5)
+        assert decodes_frame(path, N - 1) and not decodes_frame(path, N + 5)
+    message = _undecodable_message(tmp_path / "seek-av1.webm")
+    assert "AV1" in message and "H.264" in message
