@@ -43,10 +43,10 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy import and_, exists, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import Calibration, Job, Trial, utcnow
+from app.models import Calibration, Job, Result, Trial, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -218,13 +218,13 @@ def _update_held(db: Session, job: ClaimedJob, values: dict[str, Any]) -> None:
 
 
 def _set_trial_status(db: Session, trial_id: int | None, status: str) -> None:
+    """A trial's status mirrors its analysis job until it has a result; a trial with a
+    result stays ``succeeded`` while a re-analysis runs or after one fails (its job says so)."""
     if trial_id is not None:
-        db.execute(
-            update(Trial)
-            .where(Trial.id == trial_id)
-            .values(status=status)
-            .execution_options(synchronize_session=False)
-        )
+        query = update(Trial).where(Trial.id == trial_id)
+        if status != "succeeded":
+            query = query.where(~exists().where(Result.trial_id == Trial.id))
+        db.execute(query.values(status=status).execution_options(synchronize_session=False))
 
 
 def heartbeat(

@@ -2,8 +2,8 @@
 
 One recording travels through these tables::
 
-    Patient ─< RecordingSession ─< Trial ─< Video (left, right)
-                     │                 └── Job (kind "analyze_trial") ──> Result (one per trial)
+    Patient ─< RecordingSession ─< Trial ─< Video (left, right; each with a browser proxy)
+                     │                 └── Job (kind "analyze_trial") ──> Result (revisions 1, 2...)
                      └── Rig ─< Calibration ─< Video (board recordings)
                                       └── Job (kind "calibrate")
 
@@ -76,6 +76,8 @@ CALIBRATION_VERDICTS = ("good", "acceptable", "poor")
 TRIAL_STATUSES = ("queued", "running", "succeeded", "failed")
 JOB_KINDS = ("analyze_trial", "calibrate")
 JOB_STATUSES = ("queued", "running", "succeeded", "failed")
+RESULT_KINDS = ("analysis", "correction")
+"""A result revision measured from the videos (``analysis``) or a clinician's correction of one."""
 ACTOR_TYPES = ("user", "api_client", "system", "anonymous")
 ACTOR_ANONYMOUS: Final = "anonymous"
 """Actor type of a request by nobody known yet, e.g. a failed login (no ``actor_id``)."""
@@ -425,11 +427,26 @@ class Trial(Base):
     """The user who rated (NULL when an API client set the rating)."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     deleted_at: Mapped[datetime | None]
+    """Set when the trial is hidden (soft-deleted); an admin can restore it."""
+    deleted_reason: Mapped[str | None] = mapped_column(Text)
+    """Why it was hidden (required when hiding from the pages or the API)."""
+    deleted_by: Mapped[str | None] = mapped_column(String(320))
+    """Who hid it (user e-mail or API client name)."""
 
     session: Mapped[RecordingSession] = relationship(back_populates="trials")
     rated_by: Mapped[User | None] = relationship()
     videos: Mapped[list[Video]] = relationship(back_populates="trial", order_by="Video.side")
-    result: Mapped[Result | None] = relationship(back_populates="trial")
+    results: Mapped[list[Result]] = relationship(back_populates="trial", order_by="Result.revision")
+    """Every revision of the trial's result, oldest first (none kept is ever changed)."""
+
+    @property
+    def result(self) -> Result | None:
+        """The current (newest) revision of the result, None before the first analysis."""
+        return self.results[-1] if self.results else None
+
+    def revision(self, number: int) -> Result | None:
+        """Revision ``number`` (1 = the first analysis), None if there is none."""
+        return next((r for r in self.results if r.revision == number), None)
 
 
 class Video(Base):
@@ -460,6 +477,9 @@ class Video(Base):
     height: Mapped[int] = mapped_column(Integer)
     codec: Mapped[str | None] = mapped_column(String(16))
     """FOURCC as probed."""
+    proxy_path: Mapped[str | None] = mapped_column(String(500))
+    """A browser-playable H.264 copy (``core.video.write_proxy``), relative to the data
+    directory; made at the trial's first analysis. The original is never changed."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     trial: Mapped[Trial | None] = relationship(back_populates="videos")
@@ -508,25 +528,48 @@ class Job(Base):
 
 
 class Result(Base):
-    """The measurement of a trial: the full ``result.json`` and the markers CSV file.
+    """One revision of a trial's measurement: the full ``result.json`` and its files.
 
-    ``trial_id`` is UNIQUE: a trial has at most one result, which the worker
-    inserts in the same transaction as it marks the job succeeded.
+    Revisions are numbered 1, 2... per trial (UNIQUE ``(trial_id, revision)``);
+    the newest is current and none is ever changed or removed. An ``analysis``
+    revision is measured from the videos by the worker (the first one, or a
+    re-analysis with a given offset or swapped cameras), inserted in the
+    transaction that marks its job succeeded; a ``correction`` revision is a
+    clinician's correction of the newest analysis (``base_revision``), measured
+    again from its stored trajectories. ``created_by``, ``reason`` and ``change``
+    say who asked for a revision after the first, why, and what changed.
     """
 
     __tablename__ = "results"
+    __table_args__ = (
+        UniqueConstraint("trial_id", "revision", name="uq_results_trial_revision"),
+        CheckConstraint(_in("kind", RESULT_KINDS), name="kind"),
+        CheckConstraint("revision >= 1", name="revision"),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
-    trial_id: Mapped[int] = mapped_column(ForeignKey("trials.id"), unique=True)
+    trial_id: Mapped[int] = mapped_column(ForeignKey("trials.id"), index=True)
+    revision: Mapped[int] = mapped_column(Integer, default=1)
+    kind: Mapped[str] = mapped_column(String(16), default="analysis")
+    base_revision: Mapped[int | None] = mapped_column(Integer)
+    """For a correction: the analysis revision whose trajectories were measured again."""
     job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id"))
     calibration_id: Mapped[int | None] = mapped_column(ForeignKey("calibrations.id"))
     document: Mapped[dict[str, Any]] = mapped_column(JSON)
-    """``result.json`` (INTERFACES.md, ``bradyscope.result/1``)."""
+    """``result.json`` (INTERFACES.md, ``bradyscope.result/1``), with ``revision`` and ``edits``."""
     markers_path: Mapped[str | None] = mapped_column(String(500))
-    """``markers.csv``, relative to the data directory."""
+    """``markers.csv``, relative to the data directory (shared by revisions that keep it)."""
+    overlay_path: Mapped[str | None] = mapped_column(String(500))
+    """The review view's overlay (``core.overlay``, JSON), relative to the data directory."""
+    created_by: Mapped[str | None] = mapped_column(String(320))
+    """Who asked for this revision (user e-mail or API client name); None for the first."""
+    created_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))
+    reason: Mapped[str | None] = mapped_column(Text)
+    change: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """What this revision changed (the request), e.g. ``{"exclude_taps": [3]}``."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
-    trial: Mapped[Trial] = relationship(back_populates="result")
+    trial: Mapped[Trial] = relationship(back_populates="results")
     calibration: Mapped[Calibration | None] = relationship()
 
 
@@ -591,6 +634,7 @@ __all__ = [
     "JOB_STATUSES",
     "MEDICATION_STATES",
     "MORE_AFFECTED_SIDES",
+    "RESULT_KINDS",
     "ROLES",
     "SEXES",
     "SIDES",

@@ -320,6 +320,69 @@ class JobRead(_Out):
     finished_at: datetime | None
 
 
+# --------------------------------------------------------------------------- revisions
+
+TapNumber = Annotated[int, Field(ge=0, le=100_000)]
+Reason = Annotated[
+    str,
+    StringConstraints(strip_whitespace=True, min_length=3, max_length=2000),
+    AfterValidator(_no_nul),
+    Field(description="Why the result is revised (kept with the revision; required)."),
+]
+
+
+class RevisionCreate(_In):
+    """A correction (stored at once) or a re-analysis (a job) of a trial's result.
+
+    Corrections not given stay as the current revision has them; tap numbers
+    are 0-based (``taps[].index`` of the newest analysis).
+    """
+
+    reason: Reason
+    exclude_taps: list[TapNumber] | None = Field(
+        default=None, max_length=10_000, description="Taps that do not count (all of them)."
+    )
+    dismiss_pauses: list[TapNumber] | None = Field(
+        default=None,
+        max_length=10_000,
+        description="Taps whose hesitation or halt is not one (e.g. the patient was talking).",
+    )
+    window_s: tuple[float, float] | None = Field(
+        default=None,
+        description="Only taps wholly inside [start, end] (s) count; null: the whole recording.",
+    )
+    swap_labels: bool | None = Field(
+        default=None, description="The thumb and index labels are the wrong way round."
+    )
+    offset_frames: float | None = Field(
+        default=None,
+        ge=-10_000,
+        le=10_000,
+        description="Measure the videos again with this offset (right frame j = left j + K).",
+    )
+    swap_cameras: bool | None = Field(
+        default=None, description="Measure again with the left and right videos exchanged."
+    )
+
+
+class RevisionCreated(BaseModel):
+    """The new revision (a correction), or the job that will store it (a re-analysis)."""
+
+    trial_id: int
+    revision: int | None = Field(description="The new revision; null while a re-analysis runs.")
+    job_id: int | None = Field(description="The re-analysis job; null for a correction.")
+
+
+class RevisionRead(BaseModel):
+    revision: int
+    kind: Literal["analysis", "correction"]
+    created_at: datetime
+    created_by: str | None
+    reason: str | None
+    change: dict[str, Any]
+    current: bool
+
+
 # --------------------------------------------------------------------------- auth
 
 

@@ -28,6 +28,7 @@ A handler is ``handler(ctx: JobContext) -> None`` registered per job kind
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import socket
@@ -43,12 +44,14 @@ from app import jobs
 from app.db import get_sessionmaker
 from app.errors import AppError
 from app.jobs import ClaimedJob, LeaseLostError
-from app.services import calibrations, trials
+from app.services import calibrations, revisions, trials
 from app.settings import Settings
 from app.storage import Storage
 from core.calibration import calibrate_stereo_from_paths
-from core.errors import BradyscopeError
+from core.errors import BradyscopeError, InputError
+from core.overlay import overlay_document
 from core.pipeline import analyze_recording, write_markers_csv
+from core.video import probe_video, write_proxy
 
 log = logging.getLogger(__name__)
 
@@ -225,14 +228,48 @@ def _upload_warnings(ctx: JobContext, document: dict[str, Any]) -> dict[str, Any
     return {**document, "quality": quality}
 
 
-def analyze_trial(ctx: JobContext) -> None:
-    """Measure a trial's two videos with the pipeline and store its :class:`Result`.
+def _make_proxies(ctx: JobContext, needed: dict[str, Path]) -> tuple[dict[str, str], list[str]]:
+    """Browser proxies (``core.video.write_proxy``) of the videos that have none yet.
 
-    The markers CSV is written under ``files/results/`` before the transaction;
-    if the transaction is rejected (lease lost) the file is removed again. An
-    earlier result of the same trial (a re-analysis) is replaced.
+    Returns the stored paths by side, and a warning per video whose proxy could
+    not be made (the measurement stands without it; the review view says so).
     """
-    offset = ctx.job.payload.get("offset_frames")
+    made: dict[str, str] = {}
+    warnings: list[str] = []
+    total = sum(max(1, probe_video(p).frame_count) for p in needed.values())
+    done = 0
+    for side, source in sorted(needed.items()):
+        try:
+            base = done
+
+            def step(n: int, base: int = base) -> None:
+                ctx.progress("proxy", base + n, total)
+
+            with ctx.storage.writing("proxies", ".mp4") as (tmp, path):
+                write_proxy(source, tmp, progress=step)
+        except InputError as exc:
+            log.warning("job %d: no proxy of the %s video: %s", ctx.job.id, side, exc)
+            warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
+            continue
+        done += probe_video(source).frame_count
+        made[side] = path
+    return made, warnings
+
+
+def analyze_trial(ctx: JobContext) -> None:
+    """Measure a trial's two videos with the pipeline and store the next result revision.
+
+    The markers CSV and the review overlay are written under ``files/`` before
+    the transaction, and the browser proxies of videos that have none; if the
+    transaction is rejected (lease lost) those files are removed again. A
+    re-analysis (the job's ``offset_frames`` or ``swap_cameras``, asked for
+    through :mod:`app.services.revisions`) adds a revision; none is replaced.
+    With ``swap_cameras`` the video stored as right is measured as the rig's
+    left camera and the other way round.
+    """
+    payload = ctx.job.payload
+    offset = payload.get("offset_frames")
+    swap = bool(payload.get("swap_cameras"))
     with ctx.sessions() as db:
         inputs = trials.analysis_inputs(
             db,
@@ -241,35 +278,53 @@ def analyze_trial(ctx: JobContext) -> None:
             offset_frames=float(offset) if offset is not None else None,
         )
     _require_files(ctx, (inputs.left, inputs.right), what=f"trial {inputs.trial_id}")
+    left, right = (inputs.right, inputs.left) if swap else (inputs.left, inputs.right)
     analysis = analyze_recording(
-        inputs.rig,
-        inputs.left,
-        inputs.right,
-        offset_frames=inputs.offset_frames,
-        progress=ctx.progress,
+        inputs.rig, left, right, offset_frames=inputs.offset_frames, progress=ctx.progress
     )
     document = dict(analysis.result_document())
     document.setdefault("calibration", inputs.calibration.document())
+    if swap:
+        document["cameras_swapped"] = True
     document = _upload_warnings(ctx, document)
-    with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
-        write_markers_csv(analysis, tmp_path)
+    overlay = overlay_document(analysis.overlays(inputs.rig), fps=analysis.fps)
+    # Which stored video each rig camera's overlay belongs to.
+    for cam in overlay["cameras"]:
+        cam["video"] = {"left": "right", "right": "left"}[cam["camera"]] if swap else cam["camera"]
 
-    replaced: list[str] = []
-
-    def write(db: Session) -> None:
-        old = trials.store_result(
-            db, inputs, job_id=ctx.job.id, document=document, markers_path=markers_path
-        )
-        if old is not None:
-            replaced.append(old)
-
+    written: list[str] = []
     try:
+        with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
+            write_markers_csv(analysis, tmp_path)
+        written.append(markers_path)
+        with ctx.storage.writing("overlays", ".json") as (tmp_path, overlay_path):
+            tmp_path.write_text(json.dumps(overlay, allow_nan=False), encoding="utf-8")
+        written.append(overlay_path)
+        proxies, proxy_warnings = _make_proxies(ctx, inputs.proxies_needed)
+        written.extend(proxies.values())
+        if proxy_warnings:
+            quality = dict(document.get("quality") or {})
+            quality["warnings"] = [*(quality.get("warnings") or []), *proxy_warnings]
+            document["quality"] = quality
+
+        def write(db: Session) -> None:
+            revisions.store_analysis(
+                db,
+                trial_id=inputs.trial_id,
+                job_id=ctx.job.id,
+                calibration_id=inputs.calibration.id,
+                document=document,
+                markers_path=markers_path,
+                overlay_path=overlay_path,
+                request=payload.get("revision_request"),
+            )
+            trials.store_proxies(db, inputs.trial_id, proxies)
+
         ctx.finish(write)
     except BaseException:
-        ctx.storage.delete(markers_path)
+        for path in written:
+            ctx.storage.delete(path)
         raise
-    for path in replaced:
-        ctx.storage.delete(path)
 
 
 def calibrate(ctx: JobContext) -> None:
@@ -294,6 +349,7 @@ STAGES: dict[str, tuple[tuple[str, float], ...]] = {
         ("triangulation", 0.04),
         ("tracking", 0.04),
         ("metrics", 0.03),
+        ("proxy", 0.15),
     ),
     # core.calibration.calibrate_stereo_from_paths's stages.
     "calibrate": (("detection", 0.7), ("calibration", 0.3)),

@@ -807,7 +807,7 @@ def write_proxy(
     tb = fractions.Fraction(1, 90000)
     n = 0
     try:
-        with av.open(str(out), "w", options={"movflags": "+faststart"}) as container:
+        with av.open(str(out), "w", format="mp4", options={"movflags": "+faststart"}) as container:
             stream: Any = container.add_stream(
                 "libx264", rate=fractions.Fraction(info.fps).limit_denominator(1001)
             )

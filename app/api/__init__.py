@@ -10,6 +10,7 @@ from fastapi import APIRouter
 from app.api.auth import router as auth_router
 from app.api.patients import router as patients_router
 from app.api.results import router as results_router
+from app.api.revisions import router as revisions_router
 from app.api.rigs import router as rigs_router
 from app.api.sessions import router as sessions_router
 from app.api.trials import router as trials_router
@@ -22,6 +23,7 @@ for _router in (
     sessions_router,
     trials_router,
     results_router,
+    revisions_router,
 ):
     api_router.include_router(_router)
 

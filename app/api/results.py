@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
 from app.api.responses import AUTH, IdPath, errors, json_errors
@@ -14,6 +14,14 @@ from app.services import results as service
 router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
 
 EXPORT_ERRORS = json_errors(*AUTH, 404, 409)
+RevisionQuery = Annotated[
+    int | None,
+    Query(
+        ge=1,
+        le=100_000,
+        description="A result revision (1 = the first analysis); default: the newest.",
+    ),
+]
 
 
 def _tz(request: Request) -> str:
@@ -27,8 +35,10 @@ def _tz(request: Request) -> str:
     responses=errors(*AUTH, 404, 409),
     summary="The result.json document (format bradyscope.result/1)",
 )
-def get_result(trial_id: IdPath, actor: ResultReader, db: SessionDep) -> dict[str, Any]:
-    return service.get_result(db, actor, trial_id)
+def get_result(
+    trial_id: IdPath, actor: ResultReader, db: SessionDep, revision: RevisionQuery = None
+) -> dict[str, Any]:
+    return service.get_result(db, actor, trial_id, revision)
 
 
 @router.get(
@@ -59,10 +69,16 @@ def get_markers_csv(
     summary="The trial's report as a standalone HTML page",
 )
 def get_report_html(
-    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+    trial_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    revision: RevisionQuery = None,
 ) -> HTMLResponse:
     return HTMLResponse(
-        service.report_html(db, actor, trial_id, request.app.state.storage, timezone=_tz(request))
+        service.report_html(
+            db, actor, trial_id, request.app.state.storage, revision, timezone=_tz(request)
+        )
     )
 
 
@@ -79,9 +95,15 @@ def get_report_html(
     summary="The trial's report as PDF",
 )
 def get_report_pdf(
-    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+    trial_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    revision: RevisionQuery = None,
 ) -> Response:
-    pdf = service.report_pdf(db, actor, trial_id, request.app.state.storage, timezone=_tz(request))
+    pdf = service.report_pdf(
+        db, actor, trial_id, request.app.state.storage, revision, timezone=_tz(request)
+    )
     return Response(
         pdf,
         media_type="application/pdf",

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response, status
+from typing import Annotated
 
+from fastapi import APIRouter, Depends, Query, Request, Response, status
+
+from app.actors import ADMIN_SCOPE, Actor
 from app.api.responses import AUTH, IdPath, errors
 from app.api.uploads import BINARY, multipart_body, run_api_upload
-from app.auth import CurrentActor, SessionDep
+from app.auth import CurrentActor, SessionDep, require_scope
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Deleter
 from app.auth import PatientWriter as Rater
@@ -16,6 +19,7 @@ from app.services import trials as service
 from app.uploads import ParsedUpload
 
 router = APIRouter(tags=["trials"])
+Admin = Annotated[Actor, Depends(require_scope(ADMIN_SCOPE))]
 
 TRIAL_BODY = multipart_body(
     {
@@ -95,11 +99,29 @@ def rate_trial(
     status_code=status.HTTP_204_NO_CONTENT,
     response_class=Response,
     responses=errors(*AUTH, 404),
-    summary="Delete a trial (soft: kept for the audit trail)",
+    summary="Hide a trial (soft delete, kept for the audit trail; an admin can restore it)",
 )
-def delete_trial(trial_id: IdPath, actor: Deleter, db: SessionDep) -> Response:
-    service.delete_trial(db, actor, trial_id)
+def delete_trial(
+    trial_id: IdPath,
+    actor: Deleter,
+    db: SessionDep,
+    reason: Annotated[
+        str | None, Query(max_length=2000, description="Why the trial is hidden (kept).")
+    ] = None,
+) -> Response:
+    service.delete_trial(db, actor, trial_id, reason)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.post(
+    "/trials/{trial_id}/restore",
+    response_model=TrialRead,
+    responses=errors(*AUTH, 404),
+    summary="Restore a hidden trial (administrators only)",
+)
+def restore_trial(trial_id: IdPath, actor: Admin, db: SessionDep) -> TrialRead:
+    trial = service.restore_trial(db, actor, trial_id)
+    return TrialRead(**service.trial_view(db, trial))
 
 
 @router.get(

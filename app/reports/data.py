@@ -66,6 +66,11 @@ class ReportData:
         Trajectories from ``markers.csv`` (None when the file is gone).
     calibration : CalibrationInfo or None
     generated_at : datetime (UTC)
+    revision : int
+        The result revision shown (1 = the first analysis).
+    edits : tuple of dict
+        Every correction or re-analysis up to that revision: ``revision``,
+        ``kind``, ``by``, ``at``, ``reason``, ``change`` (empty: not edited).
     """
 
     trial_id: int
@@ -92,6 +97,18 @@ class ReportData:
     markers: MarkerTable | None = None
     calibration: CalibrationInfo | None = None
     generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
+    revision: int = 1
+    edits: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def edited(self) -> bool:
+        """The result shown was corrected or measured again after the first analysis."""
+        return bool(self.edits)
+
+    @property
+    def edit_lines(self) -> list[str]:
+        """One line per edit, for the report: revision, who, when, what and why."""
+        return [edit_line(e) for e in self.edits]
 
     @cached_property
     def analysis(self) -> TrialResult:
@@ -167,4 +184,37 @@ def summary_column(data: ReportData) -> SummaryColumn:
         result=data.analysis,
         clinician_rating=data.clinician_rating,
         rating_comment=data.rating_comment,
+    )
+
+
+def edit_line(edit: dict[str, Any]) -> str:
+    """``Revision 2 (correction) by Dr X, 2026-01-02 10:00 UTC: exclude taps 3; reason: ...``.
+
+    Tap numbers are shown 1-based, as on every page and report.
+    """
+    change = edit.get("change") or {}
+    parts = []
+    for key, value in change.items():
+        if key in ("exclude_taps", "dismiss_pauses"):
+            taps = ", ".join(str(int(i) + 1) for i in value) or "none"
+            parts.append(
+                ("excluded taps " if key == "exclude_taps" else "dismissed pauses of taps ") + taps
+            )
+        elif key == "window_s":
+            parts.append(
+                "whole recording" if value is None else f"window {value[0]:g}–{value[1]:g} s"
+            )
+        elif key == "swap_labels":
+            parts.append("thumb and index labels swapped" if value else "labels as tracked")
+        elif key == "swap_cameras":
+            parts.append(
+                "measured again with the cameras swapped" if value else "cameras as uploaded"
+            )
+        elif key == "offset_frames":
+            parts.append(f"measured again with a camera offset of {value:g} frames")
+    at = str(edit.get("at") or "")[:16].replace("T", " ")
+    what = "; ".join(parts) or "changed"
+    return (
+        f"Revision {edit.get('revision')} ({edit.get('kind', 'correction')}) by {edit.get('by') or '–'},"
+        f" {at} UTC: {what}. Reason: {edit.get('reason') or '–'}"
     )

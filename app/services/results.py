@@ -27,15 +27,28 @@ from app.reports.rendering import render_report_html, render_report_pdf
 from app.reports.result import read_result
 from app.reports.summary import SummaryColumn, neighbours
 from app.services.common import load_trial, visible_trial, visit_trials
+from app.services.revisions import served_document
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
 
 T = TypeVar("T")
 
 
-def _result_of(db: Session, actor: Actor, trial_id: int, action: str) -> tuple[Trial, Result]:
+def _result_of(
+    db: Session, actor: Actor, trial_id: int, action: str, revision: int | None = None
+) -> tuple[Trial, Result]:
     trial = load_trial(db, actor, trial_id, action)
     result = trial.result
+    if result is not None and revision is not None:
+        found = trial.revision(revision)
+        if found is None:
+            audit(db, actor, action, "result", trial.id, trial.session.patient_id, "not_found")
+            db.commit()
+            raise NotFoundError(
+                f"The trial {trial.id} has no revision {revision};"
+                f" its revisions are 1 to {result.revision}."
+            )
+        result = found
     if result is None:
         if trial.status == "failed":
             job = jobs.latest_job(db, trial_id=trial.id)
@@ -87,25 +100,32 @@ def _calibration_info(db: Session, trial: Trial, result: Result) -> CalibrationI
     )
 
 
-def trial_column(trial: Trial) -> SummaryColumn:
-    """A trial with a result as a column of a summary block (no markers are read)."""
-    if trial.result is None:
+def trial_column(trial: Trial, result: Result | None = None) -> SummaryColumn:
+    """A trial with a result (its current one, or ``result``) as a column of a summary
+    block (no markers are read)."""
+    result = result or trial.result
+    if result is None:
         raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
     return SummaryColumn(
         trial_id=trial.id,
         task="finger_tapping",
         hand=trial.hand,
         medication_state=trial.session.medication_state,
-        result=read_result(trial.result.document),
+        result=read_result(served_document(result)),
         clinician_rating=trial.clinician_rating,
         rating_comment=trial.rating_comment,
     )
 
 
 def load_report_data(
-    db: Session, trial: Trial, storage: Storage, *, timezone: str = "UTC"
+    db: Session,
+    trial: Trial,
+    storage: Storage,
+    result: Result | None = None,
+    *,
+    timezone: str = "UTC",
 ) -> ReportData:
-    """What the report of ``trial`` shows (the trial must have a result).
+    """What the report of ``trial`` shows: its current result, or the revision ``result``.
 
     ``timezone`` is the clinic's (``Settings.timezone``): the report shows dates in it.
 
@@ -114,11 +134,11 @@ def load_report_data(
     ConflictError
         The trial has no result yet.
     """
-    result = trial.result
+    result = result or trial.result
     if result is None:
         raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
     session = trial.session
-    this = trial_column(trial)
+    this = trial_column(trial, result)
     beside = tuple(
         c
         for c in neighbours(this, [trial_column(t) for t in visit_trials(session, timezone)])
@@ -149,19 +169,26 @@ def load_report_data(
         dominant_hand=session.dominant_hand,
         timezone=timezone,
         beside=beside,
-        result=dict(result.document),
+        result=served_document(result),
         markers=_markers(result, storage),
         calibration=_calibration_info(db, trial, result),
+        revision=result.revision,
+        edits=tuple(e for e in (result.document.get("edits") or []) if isinstance(e, dict)),
     )
 
 
 # --------------------------------------------------------------------------- exports
 
 
-def get_result(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
-    """The trial's ``result.json`` document (409 until the analysis has succeeded)."""
-    trial, result = _result_of(db, actor, trial_id, "read")
-    document = dict(result.document)
+def get_result(
+    db: Session, actor: Actor, trial_id: int, revision: int | None = None
+) -> dict[str, Any]:
+    """The trial's ``result.json`` document: the current revision, or ``revision``.
+
+    409 until the first analysis has succeeded; 404 for a revision that does not exist.
+    """
+    trial, result = _result_of(db, actor, trial_id, "read", revision)
+    document = served_document(result)
     audit(db, actor, "read", "result", trial.id, trial.session.patient_id)
     db.commit()
     return document
@@ -177,23 +204,40 @@ def markers_csv_path(db: Session, actor: Actor, trial_id: int, storage: Storage)
 
 
 def _report_data(
-    db: Session, actor: Actor, trial_id: int, storage: Storage, timezone: str
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    storage: Storage,
+    revision: int | None,
+    timezone: str,
 ) -> tuple[Trial, ReportData]:
-    trial, _ = _result_of(db, actor, trial_id, "export")
-    return trial, load_report_data(db, trial, storage, timezone=timezone)
+    trial, result = _result_of(db, actor, trial_id, "export", revision)
+    return trial, load_report_data(db, trial, storage, result, timezone=timezone)
 
 
 def report_html(
-    db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    storage: Storage,
+    revision: int | None = None,
+    *,
+    timezone: str = "UTC",
 ) -> str:
-    trial, data = _report_data(db, actor, trial_id, storage, timezone)
+    trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
     return _exported(db, actor, trial, "report_html", render_report_html(data))
 
 
 def report_pdf(
-    db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    storage: Storage,
+    revision: int | None = None,
+    *,
+    timezone: str = "UTC",
 ) -> bytes:
-    trial, data = _report_data(db, actor, trial_id, storage, timezone)
+    trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
     return _exported(db, actor, trial, "report_pdf", render_report_pdf(data))
 
 

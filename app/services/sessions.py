@@ -6,13 +6,13 @@ from lists; rows, files and the audit trail are kept.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app import jobs
-from app.actors import Actor
+from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit
 from app.errors import AppError, InvalidRequestError
 from app.models import Calibration, Job, RecordingSession, Rig, Trial, utcnow
@@ -118,6 +118,19 @@ class TrialRow:
     trial: Trial
     job: Job | None
 
+    @property
+    def retry_with(self) -> tuple[str, ...]:
+        """The re-analyses a failed job's error suggests: ``swap_cameras``, ``offset``."""
+        if self.job is None or self.job.status != "failed" or not self.job.error:
+            return ()
+        error = self.job.error.lower()
+        out = []
+        if "swapped" in error:
+            out.append("swap_cameras")
+        if "offset" in error or "synchron" in error:
+            out.append("offset")
+        return tuple(out)
+
 
 @dataclass(frozen=True)
 class SessionOverview:
@@ -130,6 +143,8 @@ class SessionOverview:
     trials: list[TrialRow]
     calibration: Calibration | None
     calibration_problem: str | None
+    hidden: list[Trial] = field(default_factory=list)
+    """Hidden trials, listed for admins only (who can restore them)."""
 
 
 def session_overview(db: Session, actor: Actor, session_id: int) -> SessionOverview:
@@ -147,6 +162,9 @@ def session_overview(db: Session, actor: Actor, session_id: int) -> SessionOverv
         trials=[TrialRow(t, newest.get(t.id)) for t in trials],
         calibration=calibration,
         calibration_problem=problem,
+        hidden=[t for t in row.trials if t.deleted_at is not None]
+        if actor.has_scope(ADMIN_SCOPE)
+        else [],
     )
     audit(db, actor, "read", "session", row.id, row.patient_id)
     db.commit()

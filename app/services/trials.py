@@ -16,14 +16,14 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app import jobs
-from app.actors import Actor
-from app.audit import audit
-from app.errors import InvalidRequestError, NotFoundError
-from app.models import Job, Result, Trial, utcnow
+from app.actors import ADMIN_SCOPE, Actor
+from app.audit import audit, audit_failure
+from app.errors import InvalidRequestError, NotFoundError, PermissionDeniedError
+from app.models import Job, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import calibration_for, rig_to_check_against
 from app.services.common import cancel_trial_jobs, load_session, load_trial, trial_is_visible
@@ -158,16 +158,50 @@ def rate_trial(db: Session, actor: Actor, trial_id: int, data: TrialRatingUpdate
     return trial
 
 
-def delete_trial(db: Session, actor: Actor, trial_id: int) -> None:
-    """Soft-delete a trial: it answers 404 and leaves the lists; rows, files, audit stay.
+def delete_trial(db: Session, actor: Actor, trial_id: int, reason: str | None = None) -> None:
+    """Hide (soft-delete) a trial: it answers 404 and leaves the lists; rows, files, audit stay.
 
-    Its queued or running job is cancelled (nobody could see the result).
+    ``reason`` says why (the pages require one); an admin can restore the trial
+    (:func:`restore_trial`). Its queued or running job is cancelled (nobody
+    could see the result).
     """
     trial = load_trial(db, actor, trial_id, "delete")
     trial.deleted_at = utcnow()
+    trial.deleted_reason = (reason or "").strip() or None
+    trial.deleted_by = actor.name if actor.type == "user" else f"API client {actor.name}"
     cancel_trial_jobs(db, select(Trial.id).where(Trial.id == trial.id))
     audit(db, actor, "delete", "trial", trial.id, trial.session.patient_id)
     db.commit()
+
+
+def restore_trial(db: Session, actor: Actor, trial_id: int) -> Trial:
+    """Show a hidden trial again (admins only); a cancelled analysis is not restarted.
+
+    Raises
+    ------
+    PermissionDeniedError
+        The actor is not an admin (audited as denied).
+    NotFoundError
+        No hidden trial with this id in a visible session.
+    """
+    if not actor.has_scope(ADMIN_SCOPE):
+        audit_failure(db, actor, "restore", "trial", trial_id, outcome="denied")
+        raise PermissionDeniedError("Only an administrator can restore a hidden trial.")
+    trial = db.get(Trial, trial_id)
+    if (
+        trial is None
+        or trial.deleted_at is None
+        or trial.session.deleted_at is not None
+        or trial.session.patient.deleted_at is not None
+    ):
+        audit_failure(db, actor, "restore", "trial", trial_id, outcome="not_found")
+        raise NotFoundError(f"There is no hidden trial {trial_id} to restore.")
+    trial.deleted_at = None
+    trial.deleted_reason = None
+    trial.deleted_by = None
+    audit(db, actor, "restore", "trial", trial.id, trial.session.patient_id)
+    db.commit()
+    return trial
 
 
 def get_job(db: Session, actor: Actor, job_id: int) -> Job:
@@ -255,6 +289,8 @@ class TrialInputs:
     calibration : CalibrationUsed
     rig : core.camera.StereoRig
         The rig of that calibration.
+    proxies_needed : dict of str to Path
+        The stored videos (by side) that have no browser proxy yet.
     """
 
     trial_id: int
@@ -263,12 +299,16 @@ class TrialInputs:
     offset_frames: float | None
     calibration: CalibrationUsed
     rig: StereoRig
+    proxies_needed: dict[str, Path] = field(default_factory=dict)
 
 
 def analysis_inputs(
     db: Session, storage: Storage, trial_id: int | None, *, offset_frames: float | None = None
 ) -> TrialInputs:
-    """What the worker's analysis of ``trial_id`` needs (``offset_frames``: the job's, if any).
+    """What the worker's analysis of ``trial_id`` needs.
+
+    ``offset_frames`` is the job's (a re-analysis with a given offset); without
+    it, the trial's own (given at upload), else None (estimate it).
 
     Raises
     ------
@@ -302,38 +342,19 @@ def analysis_inputs(
         trial_id=trial.id,
         left=storage.absolute(videos["left"].path),
         right=storage.absolute(videos["right"].path),
-        offset_frames=trial.offset_frames if trial.offset_frames is not None else offset_frames,
+        offset_frames=offset_frames if offset_frames is not None else trial.offset_frames,
         calibration=used,
         rig=rig,
+        proxies_needed={
+            side: storage.absolute(v.path)
+            for side, v in videos.items()
+            if not v.proxy_path or not storage.exists(v.proxy_path)
+        },
     )
 
 
-def store_result(
-    db: Session,
-    inputs: TrialInputs,
-    *,
-    job_id: int,
-    document: dict[str, Any],
-    markers_path: str,
-) -> str | None:
-    """Store the trial's :class:`Result`, replacing an earlier one (a re-analysis).
-
-    In the caller's transaction. Returns the markers file of the replaced
-    result (to delete once committed), if any.
-    """
-    old = db.scalars(select(Result).where(Result.trial_id == inputs.trial_id)).first()
-    replaced = None
-    if old is not None:
-        replaced = old.markers_path
-        db.execute(delete(Result).where(Result.id == old.id))
-        db.flush()
-    db.add(
-        Result(
-            trial_id=inputs.trial_id,
-            job_id=job_id,
-            calibration_id=inputs.calibration.id,
-            document=document,
-            markers_path=markers_path,
-        )
-    )
-    return replaced
+def store_proxies(db: Session, trial_id: int, proxies: dict[str, str]) -> None:
+    """Record the browser proxies made for the trial's videos (``side -> stored path``)."""
+    for video in db.scalars(select(Video).where(Video.trial_id == trial_id)):
+        if video.side in proxies:
+            video.proxy_path = proxies[video.side]

@@ -9,10 +9,10 @@ REST API for hospital systems).
 
 from fastapi import APIRouter
 
-from app.web import auth_pages, patients, recordings, results, rigs
+from app.web import auth_pages, patients, record, recordings, results, review, rigs
 
 router = APIRouter(include_in_schema=False)
-for _module in (auth_pages, patients, recordings, results, rigs):
+for _module in (auth_pages, patients, record, recordings, results, review, rigs):
     router.include_router(_module.router)
 
 __all__ = ["router"]

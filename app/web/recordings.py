@@ -81,7 +81,11 @@ def _session_response(
         error=error,
         session=session,
         patient=session.patient,
-        trials=[{"trial": row.trial, "job": row.job} for row in overview.trials],
+        trials=[
+            {"trial": row.trial, "job": row.job, "retry_with": row.retry_with}
+            for row in overview.trials
+        ],
+        hidden_trials=overview.hidden,
         calibration=overview.calibration,
         calibration_problem=overview.calibration_problem,
         hands=("left", "right"),

@@ -189,3 +189,57 @@ def test_session_rating_moves_to_the_trials_of_that_session(tmp_path, make_setti
     engine.dispose()
     assert [tuple(r) for r in back] == [(1, 2), (2, None), (3, None)]
     dispose_engines()
+
+
+def test_results_become_revision_1_on_upgrade_and_revisions_can_follow(tmp_path, make_settings):
+    """Revision 0007 on a database made by 0006: each result becomes revision 1 (an
+    analysis), a second revision of the same trial can be stored, and a downgrade keeps
+    the newest revision of each trial."""
+    settings = make_settings(tmp_path / "data")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.effective_database_url
+    command.upgrade(alembic_config(url), "0006")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        sql = conn.exec_driver_sql
+        sql("INSERT INTO rigs (id, name, created_at) VALUES (1, 'r', '2026-01-01')")
+        sql("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
+        sql(
+            "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
+            " dbs_state, created_at) VALUES (1, 1, 1, '2026-01-01', 'off', 'none', '2026-01-01')"
+        )
+        sql(
+            "INSERT INTO trials (id, session_id, hand, status, created_at)"
+            " VALUES (1, 1, 'left', 'succeeded', '2026-01-01')"
+        )
+        sql(
+            "INSERT INTO results (id, trial_id, document, created_at)"
+            " VALUES (1, 1, '{\"metrics\": {\"tap_count\": 9}}', '2026-01-01')"
+        )
+    engine.dispose()
+    command.upgrade(alembic_config(url), "head")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        row = conn.exec_driver_sql(
+            "SELECT revision, kind, document, reason FROM results WHERE id = 1"
+        ).one()
+        assert (row[0], row[1], row[3]) == (1, "analysis", None)
+        assert '"tap_count": 9' in row[2]
+        conn.exec_driver_sql(
+            "INSERT INTO results (id, trial_id, revision, kind, base_revision, document, reason,"
+            " created_at) VALUES (2, 1, 2, 'correction', 1, '{}', 'why', '2026-01-02')"
+        )
+        with pytest.raises(sa.exc.IntegrityError):  # a revision number is taken once
+            with conn.begin_nested():
+                conn.exec_driver_sql(
+                    "INSERT INTO results (trial_id, revision, kind, document, created_at)"
+                    " VALUES (1, 2, 'analysis', '{}', '2026-01-03')"
+                )
+    engine.dispose()
+    dispose_engines()
+    command.downgrade(alembic_config(url), "0006")
+    engine = sa.create_engine(url)
+    with engine.connect() as conn:
+        assert conn.exec_driver_sql("SELECT id FROM results").all() == [(2,)]
+    engine.dispose()
+    dispose_engines()

@@ -1,0 +1,495 @@
+"""Result revisions: a clinician's corrections and re-analyses of a trial, every one kept.
+
+A trial's result is never replaced. Revision 1 is the first analysis; each
+correction or re-analysis adds the next number, with who asked for it, when,
+why (a reason is required) and what changed; the newest is current.
+
+- A **correction** (exclude taps, dismiss a hesitation or halt, set the
+  analysis window, swap the thumb/index labels) is measured again at once by
+  core (:func:`core.corrections.correct_metrics`) from the stored trajectories
+  of the newest *analysis* revision: a few milliseconds, so inside the request.
+  The request gives the corrections it changes; the others stay as the current
+  revision has them (``window_s: null`` clears the window).
+- A **re-analysis** (a given camera offset, or the two videos swapped) is a
+  job; when the worker has measured the videos again it stores the next
+  revision (:func:`store_analysis`). Corrections made before it referred to
+  the taps of the earlier analysis and do not carry over.
+
+Every revision is one audit event (``create revision``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from app import jobs
+from app.actors import Actor
+from app.audit import audit
+from app.errors import ConflictError, InvalidRequestError, NotFoundError
+from app.models import Result, Trial, User, utcnow
+from app.schemas import RevisionCreate
+from app.services.common import load_trial
+from app.storage import Storage
+from core.corrections import Corrections, correct_metrics, revised_document, swap_thumb_index
+from core.markers_csv import read_markers_csv, write_markers_csv
+from core.overlay import swap_overlay_labels
+
+CORRECTION_FIELDS = ("exclude_taps", "dismiss_pauses", "window_s", "swap_labels")
+REANALYSIS_FIELDS = ("offset_frames", "swap_cameras")
+
+
+@dataclass(frozen=True)
+class RevisionOut:
+    """What a revision request made: the new revision now, or the job that will make it."""
+
+    trial_id: int
+    revision: int | None
+    job_id: int | None
+
+
+@dataclass(frozen=True)
+class RevisionInfo:
+    """One revision in a trial's history (pages, API)."""
+
+    revision: int
+    kind: str
+    created_at: datetime
+    created_by: str | None
+    reason: str | None
+    change: dict[str, Any]
+    current: bool
+
+
+def actor_label(db: Session, actor: Actor) -> str:
+    """How the record names who acted: a user's name (or e-mail), or the API client."""
+    if actor.type == "user":
+        user = db.get(User, actor.id)
+        if user is not None and user.display_name:
+            return f"{user.display_name} <{user.email}>"
+        return actor.name
+    return f"API client {actor.name}"
+
+
+def served_document(result: Result) -> dict[str, Any]:
+    """``result.json`` of a revision as served: with ``revision`` and ``edits`` (INTERFACES.md)."""
+    doc = dict(result.document)
+    doc["revision"] = result.revision
+    doc["edits"] = list(doc.get("edits") or [])
+    return doc
+
+
+def revision_of(trial: Trial, revision: int | None) -> Result:
+    """Revision ``revision`` of the trial's result (None: the current one).
+
+    Raises
+    ------
+    NotFoundError
+        The trial has no such revision.
+    """
+    row = trial.result if revision is None else trial.revision(revision)
+    if row is None:
+        raise NotFoundError(
+            f"The trial {trial.id} has no revision {revision};"
+            f" its revisions are 1 to {len(trial.results)}."
+        )
+    return row
+
+
+def history(trial: Trial) -> list[RevisionInfo]:
+    """Every revision of the trial's result, newest first."""
+    current = trial.result
+    return [
+        RevisionInfo(
+            revision=r.revision,
+            kind=r.kind,
+            created_at=r.created_at,
+            created_by=r.created_by,
+            reason=r.reason,
+            change=dict(r.change or {}),
+            current=current is not None and r.id == current.id,
+        )
+        for r in reversed(trial.results)
+    ]
+
+
+def list_revisions(db: Session, actor: Actor, trial_id: int) -> list[RevisionInfo]:
+    """The revision history of a trial (audited as a read of its result)."""
+    trial = load_trial(db, actor, trial_id, "read")
+    out = history(trial)
+    audit(db, actor, "read", "revision", trial.id, trial.session.patient_id)
+    db.commit()
+    return out
+
+
+def latest_analysis(trial: Trial) -> Result | None:
+    """The newest revision measured from the videos (whose trajectories corrections use)."""
+    return next((r for r in reversed(trial.results) if r.kind == "analysis"), None)
+
+
+def _edit(revision: int, kind: str, by: str, reason: str, change: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "revision": revision,
+        "kind": kind,
+        "by": by,
+        "at": utcnow().isoformat().replace("+00:00", "Z"),
+        "reason": reason,
+        "change": change,
+    }
+
+
+def _change_of(data: RevisionCreate) -> dict[str, Any]:
+    return {
+        k: v
+        for k, v in data.model_dump(exclude_unset=True, exclude={"reason"}).items()
+        if k in CORRECTION_FIELDS or k in REANALYSIS_FIELDS
+    }
+
+
+def create_revision(
+    db: Session, actor: Actor, trial_id: int, data: RevisionCreate, storage: Storage
+) -> RevisionOut:
+    """A correction (stored now) or a re-analysis (queued) of the trial's result.
+
+    Raises
+    ------
+    InvalidRequestError
+        Nothing to change, correction and re-analysis fields mixed, a tap that
+        does not exist, or no tap left (422).
+    ConflictError
+        No result to correct yet, or an analysis of the trial is still running (409).
+    """
+    change = _change_of(data)
+    if not change:
+        raise InvalidRequestError(
+            "Say what to change: exclude_taps, dismiss_pauses, window_s or swap_labels to"
+            " correct the result, or offset_frames or swap_cameras to measure the videos again."
+        )
+    reanalysis = any(k in change for k in REANALYSIS_FIELDS)
+    if reanalysis and any(k in change for k in CORRECTION_FIELDS):
+        raise InvalidRequestError(
+            "A re-analysis (offset_frames, swap_cameras) measures the videos again and cannot be"
+            " combined with corrections of taps; send them as two revisions."
+        )
+    trial = load_trial(db, actor, trial_id, "update")
+    if reanalysis:
+        return _queue_reanalysis(db, actor, trial, data, change)
+    return _correct(db, actor, trial, data, change, storage)
+
+
+def _queue_reanalysis(
+    db: Session, actor: Actor, trial: Trial, data: RevisionCreate, change: dict[str, Any]
+) -> RevisionOut:
+    running = jobs.latest_job(db, trial_id=trial.id)
+    if running is not None and running.status in ("queued", "running"):
+        raise ConflictError(
+            f"An analysis of trial {trial.id} is already {running.status} (job {running.id});"
+            " wait for it to finish, then ask again."
+        )
+    payload: dict[str, Any] = {
+        "revision_request": {
+            "by": actor_label(db, actor),
+            "by_user_id": actor.user_id,
+            "reason": data.reason,
+            "change": change,
+        }
+    }
+    if data.offset_frames is not None:
+        payload["offset_frames"] = float(data.offset_frames)
+    if data.swap_cameras:
+        payload["swap_cameras"] = True
+    job = jobs.enqueue(db, "analyze_trial", trial_id=trial.id, payload=payload)
+    if trial.result is None:
+        trial.status = "queued"
+    audit(db, actor, "create", "revision", trial.id, trial.session.patient_id)
+    db.commit()
+    return RevisionOut(trial_id=trial.id, revision=None, job_id=job.id)
+
+
+def _correct(
+    db: Session,
+    actor: Actor,
+    trial: Trial,
+    data: RevisionCreate,
+    change: dict[str, Any],
+    storage: Storage,
+) -> RevisionOut:
+    current = trial.result
+    base = latest_analysis(trial)
+    if current is None or base is None:
+        raise ConflictError(
+            f"The trial {trial.id} has no result to correct yet; wait for its analysis."
+        )
+    task = base.document.get("task", "finger_tapping")
+    if task != "finger_tapping":
+        raise InvalidRequestError(f"Corrections of taps apply to finger tapping, not to {task}.")
+    before = (
+        Corrections.from_dict(current.document.get("corrections"))
+        if current.kind == "correction"
+        else Corrections()
+    )
+    merged = before.to_dict()
+    merged.update({k: (list(v) if isinstance(v, list | tuple) else v) for k, v in change.items()})
+    try:
+        corrections = Corrections.from_dict(merged)
+    except (ValueError, TypeError) as exc:
+        raise InvalidRequestError(f"The correction cannot be used: {exc}") from exc
+    if corrections == before:
+        raise InvalidRequestError(
+            f"Revision {current.revision} already has these corrections; nothing would change."
+        )
+    if not base.markers_path or not storage.exists(base.markers_path):
+        raise ConflictError(
+            f"The trajectories of trial {trial.id} are missing from storage; it cannot be"
+            " measured again (ask the administrator to restore the data directory)."
+        )
+    table = read_markers_csv(
+        storage.absolute(base.markers_path), fps=float(base.document.get("fps") or 0) or None
+    )
+    try:
+        corrected = correct_metrics(table, corrections)
+    except ValueError as exc:
+        raise InvalidRequestError(f"The correction cannot be applied: {exc}") from exc
+
+    number = _next_revision(db, trial.id)
+    by = actor_label(db, actor)
+    document = revised_document(base.document, corrected)
+    document["revision"] = number
+    document["edits"] = [
+        *(current.document.get("edits") or []),
+        _edit(number, "correction", by, data.reason, change),
+    ]
+    written: list[str] = []
+    markers_path, overlay_path = base.markers_path, base.overlay_path
+    try:
+        if corrections.swap_labels:
+            with storage.writing("results", ".csv") as (tmp, markers_path):
+                write_markers_csv(swap_thumb_index(table), tmp)
+            written.append(markers_path)
+            if base.overlay_path and storage.exists(base.overlay_path):
+                overlay = json.loads(storage.absolute(base.overlay_path).read_text())
+                with storage.writing("overlays", ".json") as (tmp, overlay_path):
+                    tmp.write_text(json.dumps(swap_overlay_labels(overlay)))
+                written.append(overlay_path)
+        db.add(
+            Result(
+                trial_id=trial.id,
+                revision=number,
+                kind="correction",
+                base_revision=base.revision,
+                job_id=None,
+                calibration_id=base.calibration_id,
+                document=document,
+                markers_path=markers_path,
+                overlay_path=overlay_path,
+                created_by=by,
+                created_by_user_id=actor.user_id,
+                reason=data.reason,
+                change=change,
+            )
+        )
+        audit(db, actor, "create", "revision", trial.id, trial.session.patient_id)
+        db.commit()
+    except IntegrityError as exc:
+        db.rollback()
+        for path in written:
+            storage.delete(path)
+        raise ConflictError(
+            f"Another revision of trial {trial.id} was stored at the same moment; reload and"
+            " check it before correcting again."
+        ) from exc
+    except BaseException:
+        db.rollback()
+        for path in written:
+            storage.delete(path)
+        raise
+    return RevisionOut(trial_id=trial.id, revision=number, job_id=None)
+
+
+def _next_revision(db: Session, trial_id: int) -> int:
+    current = db.scalar(select(func.max(Result.revision)).where(Result.trial_id == trial_id))
+    return int(current or 0) + 1
+
+
+# --------------------------------------------------------------------------- the worker's side
+
+
+def store_analysis(
+    db: Session,
+    *,
+    trial_id: int,
+    job_id: int,
+    calibration_id: int,
+    document: dict[str, Any],
+    markers_path: str,
+    overlay_path: str | None,
+    request: dict[str, Any] | None = None,
+) -> int:
+    """Store a new analysis revision in the caller's transaction; returns its number.
+
+    ``request`` is the job's ``revision_request`` (who asked for a re-analysis,
+    why and what changed), None for the analysis of an upload.
+    """
+    number = _next_revision(db, trial_id)
+    previous = db.scalar(
+        select(Result).where(Result.trial_id == trial_id).order_by(Result.revision.desc())
+    )
+    edits = list((previous.document.get("edits") if previous is not None else None) or [])
+    by = reason = None
+    change: dict[str, Any] | None = None
+    user_id = None
+    if request:
+        by, reason = str(request.get("by") or ""), str(request.get("reason") or "")
+        change = dict(request.get("change") or {})
+        user_id = request.get("by_user_id")
+        edits.append(_edit(number, "analysis", by, reason, change))
+    document = {**document, "revision": number, "edits": edits}
+    db.add(
+        Result(
+            trial_id=trial_id,
+            revision=number,
+            kind="analysis",
+            job_id=job_id,
+            calibration_id=calibration_id,
+            document=document,
+            markers_path=markers_path,
+            overlay_path=overlay_path,
+            created_by=by,
+            created_by_user_id=user_id if isinstance(user_id, int) else None,
+            reason=reason,
+            change=change,
+        )
+    )
+    return number
+
+
+def read_overlay(result: Result, storage: Storage) -> dict[str, Any] | None:
+    """The overlay document of a revision, None when it has none (older results)."""
+    if not result.overlay_path or not storage.exists(result.overlay_path):
+        return None
+    doc = json.loads(storage.absolute(result.overlay_path).read_text(encoding="utf-8"))
+    if not isinstance(doc, dict):
+        raise ValueError(f"the overlay {result.overlay_path} is not a JSON object")
+    return doc
+
+
+# --------------------------------------------------------------------------- the review view
+
+
+@dataclass(frozen=True)
+class ReviewPage:
+    """The review view of one revision of a trial's result.
+
+    ``data`` is what the player script draws (embedded in the page, so the one
+    audited view covers it): the aperture per left frame, the taps, pauses and
+    the overlay of each video. ``videos`` are the sides that have a browser
+    proxy; ``job`` the newest analysis job (a re-analysis in progress or failed).
+    """
+
+    trial: Trial
+    result: Result
+    revisions: list[RevisionInfo]
+    data: dict[str, Any]
+    videos: tuple[str, ...]
+    corrections: Corrections
+    job: Any = None
+
+
+def _aperture(table: Any) -> list[float | None]:
+    """Raw thumb–index distance per left frame (mm, 0.01 mm), None where unknown."""
+    import numpy as np
+
+    labels = list(table.labels)
+    if "thumb" not in labels or "index" not in labels:
+        return []
+    d = np.linalg.norm(
+        table.positions_mm[:, labels.index("thumb")] - table.positions_mm[:, labels.index("index")],
+        axis=1,
+    )
+    return [round(float(v), 2) if np.isfinite(v) else None for v in d]
+
+
+def review_page(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, *, revision: int | None = None
+) -> ReviewPage:
+    """The review view (one ``read review`` audit event per view).
+
+    Raises
+    ------
+    NotFoundError
+        No such trial or revision (audited).
+    ConflictError
+        The trial has no result yet.
+    """
+    trial = load_trial(db, actor, trial_id, "read")
+    if trial.result is None:
+        raise ConflictError(
+            f"The trial {trial.id} has no result to review yet; wait for its analysis."
+        )
+    result = trial.result if revision is None else trial.revision(revision)
+    if result is None:
+        audit(db, actor, "read", "review", trial.id, trial.session.patient_id, "not_found")
+        db.commit()
+        raise NotFoundError(
+            f"The trial {trial.id} has no revision {revision};"
+            f" its revisions are 1 to {trial.result.revision}."
+        )
+    doc = served_document(result)
+    aperture: list[float | None] = []
+    if result.markers_path and storage.exists(result.markers_path):
+        table = read_markers_csv(
+            storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
+        )
+        aperture = _aperture(table)
+    videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
+    corrections = Corrections.from_dict(doc.get("corrections"))
+    data = {
+        "trial_id": trial.id,
+        "revision": result.revision,
+        "current": result.id == trial.result.id,
+        "fps": doc.get("fps"),
+        "aperture_mm": aperture,
+        "taps": doc.get("taps") or [],
+        "excluded_taps": doc.get("excluded_taps") or [],
+        "outside_window_taps": doc.get("outside_window_taps") or [],
+        "events": doc.get("events") or [],
+        "dismissed_events": doc.get("dismissed_events") or [],
+        "window_s": corrections.to_dict()["window_s"],
+        "overlay": read_overlay(result, storage),
+        "videos": {side: f"/trials/{trial.id}/video/{side}" for side in videos},
+    }
+    page = ReviewPage(
+        trial=trial,
+        result=result,
+        revisions=history(trial),
+        data=data,
+        videos=videos,
+        corrections=corrections,
+        job=jobs.latest_job(db, trial_id=trial.id),
+    )
+    audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
+    db.commit()
+    return page
+
+
+def proxy_file(db: Session, actor: Actor, trial_id: int, side: str, storage: Storage) -> Any:
+    """The browser proxy of one video of a trial, for the review view's player.
+
+    Not audited on its own: the player fetches it in many range requests, all
+    part of the one audited view of the review page (``read review``).
+    """
+    trial = load_trial(db, actor, trial_id, "read")
+    video = next((v for v in trial.videos if v.side == side), None)
+    db.rollback()
+    if video is None or not video.proxy_path or not storage.exists(video.proxy_path):
+        raise NotFoundError(
+            f"The {side} video of trial {trial_id} has no browser copy; ask for a re-analysis"
+            " to make one."
+        )
+    return storage.absolute(video.proxy_path)

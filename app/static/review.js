@@ -1,0 +1,268 @@
+// bradyscope review view: both videos in step with the tracked markers drawn on them, the
+// aperture curve with a cursor at the videos' time. Plain JavaScript, no library, no inline code.
+//
+// Frame numbers are each video's own (the proxies hold frame i at i / fps). The left video
+// leads; the right one is kept on the frame the time model pairs with the left frame
+// (overlay.cameras[].left_frame). Overlay pixels are OpenCV's (centre of the top-left pixel
+// at 0, 0): a canvas pixel i spans [i, i + 1), so a point x is drawn at x + 0.5.
+"use strict";
+
+(function () {
+  var COLORS = { thumb: "rgb(255,127,14)", index: "rgb(31,119,180)" };
+  var OTHER = "rgb(148,103,189)";
+  var DETECTION = "rgb(0,200,0)";
+  var RADIUS = 6;
+
+  function frameOf(time, fps) { return Math.floor(time * fps + 0.001); }
+
+  function setup(data) {
+    var fps = data.fps || 100;
+    var cams = (data.overlay && data.overlay.cameras) || [];
+    var players = {};
+    cams.forEach(function (cam) {
+      var side = cam.video || cam.camera;
+      var video = document.querySelector('video[data-video="' + side + '"]');
+      var canvas = document.querySelector('canvas[data-overlay="' + side + '"]');
+      if (!video || !canvas) return;
+      canvas.width = cam.image_size[0];
+      canvas.height = cam.image_size[1];
+      players[side] = { cam: cam, video: video, canvas: canvas, frame: -1, fps: cam.fps || fps };
+    });
+    // Videos without an overlay still play (e.g. older results).
+    Array.prototype.forEach.call(document.querySelectorAll("video[data-video]"), function (video) {
+      var side = video.getAttribute("data-video");
+      if (!players[side]) players[side] = { cam: null, video: video, canvas: null, frame: -1, fps: fps };
+    });
+    var leadSide = players.left && players.left.cam && players.left.cam.camera === "left" ? "left"
+      : (players.right && players.right.cam && players.right.cam.camera === "left" ? "right" : "left");
+    var lead = players[leadSide];
+    var follow = players[leadSide === "left" ? "right" : "left"];
+    if (!lead) return;
+    var frameOut = document.querySelector("[data-frame-out]");
+    var timeOut = document.querySelector("[data-time-out]");
+    var container = document.querySelector("[data-review-player]");
+    var plot = document.querySelector("canvas[data-aperture]");
+    var playButton = document.querySelector('[data-action="play"]');
+
+    // For each lead frame, the follower frame the time model pairs with it.
+    var pairing = null;
+    if (follow && follow.cam && follow.cam.left_frame) {
+      pairing = [];
+      var lf = follow.cam.left_frame;
+      var j = 0;
+      var n = lead.cam ? lead.cam.frame_count : Math.ceil(lead.video.duration * fps);
+      for (var i = 0; i < n; i++) {
+        while (j + 1 < lf.length && lf[j + 1] !== null && Math.abs(lf[j + 1] - i) <= Math.abs((lf[j] === null ? 1e9 : lf[j]) - i)) j++;
+        pairing.push(lf[j] !== null && Math.abs(lf[j] - i) <= 1 ? j : null);
+      }
+    }
+
+    function draw(p, frame) {
+      p.frame = frame;
+      p.video.setAttribute("data-frame", String(frame));
+      if (!p.canvas || !p.cam) return;
+      var ctx = p.canvas.getContext("2d");
+      ctx.clearRect(0, 0, p.canvas.width, p.canvas.height);
+      var dets = p.cam.detections[frame] || [];
+      ctx.strokeStyle = DETECTION;
+      ctx.lineWidth = 1;
+      dets.forEach(function (d) {
+        if (!d) return;
+        var x = d[0] + 0.5, y = d[1] + 0.5;
+        ctx.beginPath();
+        ctx.moveTo(x - 12, y); ctx.lineTo(x - 8, y);
+        ctx.moveTo(x + 8, y); ctx.lineTo(x + 12, y);
+        ctx.moveTo(x, y - 12); ctx.lineTo(x, y - 8);
+        ctx.moveTo(x, y + 8); ctx.lineTo(x, y + 12);
+        ctx.stroke();
+      });
+      Object.keys(p.cam.tracks).forEach(function (name) {
+        var pt = p.cam.tracks[name][frame];
+        if (!pt) return;
+        var x = pt[0] + 0.5, y = pt[1] + 0.5;
+        ctx.fillStyle = COLORS[name] || OTHER;
+        ctx.beginPath();
+        ctx.arc(x, y, RADIUS, 0, 2 * Math.PI);
+        ctx.fill();
+        ctx.font = "bold 14px sans-serif";
+        ctx.fillStyle = "rgb(255,255,255)";
+        ctx.fillText(name, x + 14, y - 14);
+      });
+    }
+
+    function time() { return lead.video.currentTime; }
+
+    function show(frame) {
+      draw(lead, frame);
+      if (follow) {
+        var j = pairing ? pairing[frame] : frame;
+        if (j === null || j === undefined) {
+          if (follow.canvas) follow.canvas.getContext("2d").clearRect(0, 0, follow.canvas.width, follow.canvas.height);
+        } else {
+          if (follow.video.paused || Math.abs(frameOf(follow.video.currentTime, follow.fps) - j) > 1) {
+            if (lead.video.paused) follow.video.currentTime = (j + 0.25) / follow.fps;
+            else if (Math.abs(frameOf(follow.video.currentTime, follow.fps) - j) > 2) follow.video.currentTime = (j + 0.25) / follow.fps;
+          }
+          if (follow.video.paused) draw(follow, j);
+        }
+      }
+      var t = frame / fps;
+      if (frameOut) frameOut.textContent = String(frame);
+      if (timeOut) timeOut.textContent = t.toFixed(3);
+      if (container) { container.setAttribute("data-frame", String(frame)); container.setAttribute("data-time", t.toFixed(4)); }
+      drawPlot(t);
+    }
+
+    function seekFrame(frame) {
+      var max = lead.cam ? lead.cam.frame_count - 1 : Math.floor(lead.video.duration * fps) - 1;
+      frame = Math.max(0, Math.min(max, frame));
+      lead.video.pause();
+      if (follow) follow.video.pause();
+      lead.video.currentTime = (frame + 0.25) / fps;
+    }
+
+    lead.video.addEventListener("seeked", function () { show(frameOf(lead.video.currentTime, fps)); });
+    if (follow) follow.video.addEventListener("seeked", function () {
+      if (follow.video.paused) draw(follow, frameOf(follow.video.currentTime, follow.fps));
+    });
+    lead.video.addEventListener("loadeddata", function () { show(frameOf(lead.video.currentTime, fps)); });
+
+    function onFrame(p, isLead) {
+      if (!p.video.requestVideoFrameCallback) return;
+      var cb = function (now, meta) {
+        var frame = frameOf(meta.mediaTime, p.fps);
+        if (isLead) show(frame); else draw(p, frame);
+        p.video.requestVideoFrameCallback(cb);
+      };
+      p.video.requestVideoFrameCallback(cb);
+    }
+    onFrame(lead, true);
+    if (follow) onFrame(follow, false);
+    lead.video.addEventListener("timeupdate", function () {
+      if (!lead.video.requestVideoFrameCallback) show(frameOf(time(), fps));
+    });
+
+    function togglePlay() {
+      if (lead.video.paused) {
+        var p = lead.video.play();
+        if (follow) follow.video.play();
+        if (p && p.catch) p.catch(function () {});
+        playButton.textContent = "Pause";
+      } else {
+        lead.video.pause();
+        if (follow) follow.video.pause();
+        playButton.textContent = "Play";
+        show(frameOf(time(), fps));
+      }
+    }
+    lead.video.addEventListener("ended", function () {
+      playButton.textContent = "Play";
+      if (follow) follow.video.pause();
+    });
+    playButton.addEventListener("click", togglePlay);
+    document.querySelector('[data-action="prev"]').addEventListener("click", function () { seekFrame(lead.frame - 1); });
+    document.querySelector('[data-action="next"]').addEventListener("click", function () { seekFrame(lead.frame + 1); });
+    document.addEventListener("keydown", function (e) {
+      var tag = (e.target && e.target.tagName) || "";
+      if (/^(INPUT|TEXTAREA|SELECT|BUTTON|A)$/.test(tag)) return;
+      if (e.key === " ") { e.preventDefault(); togglePlay(); }
+      else if (e.key === "ArrowLeft") { e.preventDefault(); seekFrame(lead.frame - 1); }
+      else if (e.key === "ArrowRight") { e.preventDefault(); seekFrame(lead.frame + 1); }
+    });
+    Array.prototype.forEach.call(document.querySelectorAll("[data-jump]"), function (b) {
+      b.addEventListener("click", function () {
+        seekFrame(Math.round(parseFloat(b.getAttribute("data-jump")) * fps));
+        if (container) container.scrollIntoView({ block: "nearest" });
+      });
+    });
+
+    // ------------------------------------------------------------------ the aperture plot
+    var ap = data.aperture_mm || [];
+    var duration = ap.length / fps || lead.video.duration || 1;
+    var ymax = 0;
+    ap.forEach(function (v) { if (v !== null && v > ymax) ymax = v; });
+    ymax = ymax * 1.1 || 1;
+    var pad = { l: 48, r: 10, t: 10, b: 28 };
+    function X(t) { return pad.l + (plot.width - pad.l - pad.r) * t / duration; }
+    function Y(v) { return plot.height - pad.b - (plot.height - pad.t - pad.b) * v / ymax; }
+    function band(ctx, t0, t1, color, dashed) {
+      ctx.fillStyle = color;
+      ctx.fillRect(X(t0), pad.t, Math.max(1, X(t1) - X(t0)), plot.height - pad.t - pad.b);
+      if (dashed) {
+        ctx.setLineDash([4, 3]); ctx.strokeStyle = "rgb(120,120,120)";
+        ctx.strokeRect(X(t0), pad.t, Math.max(1, X(t1) - X(t0)), plot.height - pad.t - pad.b);
+        ctx.setLineDash([]);
+      }
+    }
+    function drawPlot(cursor) {
+      if (!plot) return;
+      var ctx = plot.getContext("2d");
+      ctx.clearRect(0, 0, plot.width, plot.height);
+      (data.events || []).forEach(function (e) {
+        var c = e.kind === "halt" ? "rgba(214,39,40,0.25)" : e.kind === "hesitation" ? "rgba(255,165,0,0.3)" : "rgba(128,128,128,0.25)";
+        band(ctx, e.t_start_s, e.t_start_s + Math.max(e.duration_s, 0.02), c, false);
+      });
+      (data.dismissed_events || []).forEach(function (e) {
+        band(ctx, e.t_start_s, e.t_start_s + Math.max(e.duration_s, 0.02), "rgba(200,200,200,0.15)", true);
+      });
+      (data.taps || []).forEach(function (tp) { band(ctx, tp.t_start_s, tp.t_end_s, "rgba(31,119,180,0.08)", false); });
+      (data.excluded_taps || []).concat(data.outside_window_taps || []).forEach(function (tp) {
+        band(ctx, tp.t_start_s, tp.t_end_s, "rgba(90,90,90,0.2)", true);
+      });
+      if (data.window_s) {
+        ctx.strokeStyle = "rgb(0,0,0)"; ctx.setLineDash([6, 4]);
+        [data.window_s[0], data.window_s[1]].forEach(function (t) { ctx.beginPath(); ctx.moveTo(X(t), pad.t); ctx.lineTo(X(t), plot.height - pad.b); ctx.stroke(); });
+        ctx.setLineDash([]);
+      }
+      ctx.strokeStyle = "rgb(40,40,40)"; ctx.lineWidth = 1.5; ctx.beginPath();
+      var pen = false;
+      ap.forEach(function (v, i) {
+        if (v === null) { pen = false; return; }
+        if (pen) ctx.lineTo(X(i / fps), Y(v)); else ctx.moveTo(X(i / fps), Y(v));
+        pen = true;
+      });
+      ctx.stroke();
+      ctx.fillStyle = "rgb(31,119,180)"; ctx.font = "11px sans-serif";
+      (data.taps || []).forEach(function (tp) {
+        var i = Math.round(tp.t_max_aperture_s * fps);
+        var v = ap[i];
+        if (v === null || v === undefined) return;
+        ctx.beginPath(); ctx.arc(X(tp.t_max_aperture_s), Y(v), 3, 0, 2 * Math.PI); ctx.fill();
+        ctx.fillText(String(tp.index + 1), X(tp.t_max_aperture_s) - 3, Y(v) - 6);
+      });
+      ctx.fillStyle = "rgb(60,60,60)";
+      ctx.fillText("mm", 4, pad.t + 10);
+      for (var s = 0; s <= duration; s += 1) ctx.fillText(s + " s", X(s) - 6, plot.height - 8);
+      for (var m = 0; m <= ymax; m += 20) ctx.fillText(String(m), 8, Y(m) + 4);
+      ctx.strokeStyle = "rgb(214,39,40)"; ctx.lineWidth = 2; ctx.beginPath();
+      ctx.moveTo(X(cursor), pad.t); ctx.lineTo(X(cursor), plot.height - pad.b); ctx.stroke();
+      plot.setAttribute("data-cursor-s", cursor.toFixed(4));
+      plot.setAttribute("data-cursor-x", X(cursor).toFixed(2));
+    }
+    if (plot) {
+      plot.addEventListener("click", function (e) {
+        var box = plot.getBoundingClientRect();
+        var x = (e.clientX - box.left) * plot.width / box.width;
+        var t = (x - pad.l) / (plot.width - pad.l - pad.r) * duration;
+        var hit = (data.taps || []).concat(data.excluded_taps || [], data.outside_window_taps || []).filter(function (tp) {
+          return t >= tp.t_start_s && t <= tp.t_end_s;
+        })[0];
+        seekFrame(Math.round((hit ? hit.t_start_s : t) * fps));
+      });
+      plot.addEventListener("keydown", function (e) {
+        if (e.key === "ArrowLeft" || e.key === "ArrowRight") {
+          e.preventDefault(); e.stopPropagation();
+          seekFrame(lead.frame + (e.key === "ArrowLeft" ? -1 : 1));
+        }
+      });
+    }
+    drawPlot(0);
+    window.bradyscopeReview = { seekFrame: seekFrame, fps: fps };
+  }
+
+  document.addEventListener("DOMContentLoaded", function () {
+    var block = document.getElementById("review-data");
+    if (!block) return;
+    setup(JSON.parse(block.textContent));
+  });
+})();

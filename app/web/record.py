@@ -1,0 +1,107 @@
+"""Managing the record from the pages: edit a session, hide a trial (with a reason), restore it.
+
+Each is a plain form post with the session's CSRF token, through the same use
+cases as the REST API (``PATCH /sessions/{id}``, ``DELETE /trials/{id}``,
+``POST /trials/{id}/restore``), so each is one audit event there.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Form, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from pydantic import ValidationError
+
+from app.auth import SessionDep
+from app.errors import AppError
+from app.schemas import SessionUpdate
+from app.services import sessions, trials
+from app.services.common import visible_trial
+from app.web.common import (
+    CSRF_MESSAGE,
+    PageUser,
+    csrf_ok,
+    error_page,
+    status_of,
+    validation_message,
+)
+
+router = APIRouter()
+
+
+@router.post("/sessions/{session_id}/edit", response_class=HTMLResponse)
+def session_edit(
+    request: Request,
+    db: SessionDep,
+    user: PageUser,
+    session_id: int,
+    medication_state: Annotated[str, Form(max_length=20)] = "",
+    dbs_state: Annotated[str, Form(max_length=20)] = "",
+    updrs_34_rating: Annotated[str, Form(max_length=5)] = "",
+    notes: Annotated[str, Form(max_length=5000)] = "",
+    csrf_token: Annotated[str, Form(max_length=200)] = "",
+) -> Response:
+    if not csrf_ok(user, csrf_token):
+        return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
+    try:
+        data = SessionUpdate(
+            medication_state=medication_state or None,  # type: ignore[arg-type]  # validated
+            dbs_state=dbs_state or None,  # type: ignore[arg-type]  # validated
+            updrs_34_rating=int(updrs_34_rating) if updrs_34_rating.strip() else None,
+            notes=notes.strip() or None,
+        )
+        sessions.update_session(db, user, session_id, data)
+    except ValidationError as exc:
+        return error_page(request, user, status_code=422, message=validation_message(exc))
+    except ValueError:
+        return error_page(
+            request, user, status_code=422, message="The 3.4 rating must be 0, 1, 2, 3 or 4."
+        )
+    except AppError as exc:
+        db.rollback()
+        return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    return RedirectResponse(f"/sessions/{session_id}?msg=Session+updated.", status_code=303)
+
+
+@router.post("/trials/{trial_id}/hide", response_class=HTMLResponse)
+def trial_hide(
+    request: Request,
+    db: SessionDep,
+    user: PageUser,
+    trial_id: int,
+    reason: Annotated[str, Form(max_length=2000)] = "",
+    csrf_token: Annotated[str, Form(max_length=200)] = "",
+) -> Response:
+    if not csrf_ok(user, csrf_token):
+        return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
+    if len(reason.strip()) < 3:
+        return error_page(
+            request, user, status_code=422, message="Say why the trial is hidden (a reason)."
+        )
+    trial = visible_trial(db, trial_id)
+    session_id = trial.session_id if trial is not None else None
+    try:
+        trials.delete_trial(db, user, trial_id, reason)
+    except AppError as exc:
+        db.rollback()
+        return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    return RedirectResponse(f"/sessions/{session_id}?msg=Trial+hidden.", status_code=303)
+
+
+@router.post("/trials/{trial_id}/restore", response_class=HTMLResponse)
+def trial_restore(
+    request: Request,
+    db: SessionDep,
+    user: PageUser,
+    trial_id: int,
+    csrf_token: Annotated[str, Form(max_length=200)] = "",
+) -> Response:
+    if not csrf_ok(user, csrf_token):
+        return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
+    try:
+        trial = trials.restore_trial(db, user, trial_id)
+    except AppError as exc:
+        db.rollback()
+        return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    return RedirectResponse(f"/sessions/{trial.session_id}?msg=Trial+restored.", status_code=303)

@@ -1,0 +1,116 @@
+"""The review view and the record's pages: one audit event each, corrections, hide, edit."""
+
+from __future__ import annotations
+
+import json
+import re
+
+from sqlalchemy import select
+from test_pages import _audit_count, client, login, seeded  # noqa: F401 - fixtures
+
+from app.models import AuditEvent, RecordingSession, Result, Trial
+
+
+def _events(db_sessionmaker, since: int) -> list[tuple[str, str, str]]:
+    with db_sessionmaker() as db:
+        rows = db.scalars(select(AuditEvent).where(AuditEvent.id > since).order_by(AuditEvent.id))
+        return [(e.action, e.resource_type, e.outcome) for e in rows]
+
+
+def _last_event_id(db_sessionmaker) -> int:
+    with db_sessionmaker() as db:
+        return db.scalar(select(AuditEvent.id).order_by(AuditEvent.id.desc())) or 0
+
+
+def test_review_view_is_one_audit_event_and_embeds_its_data(client, seeded, db_sessionmaker):  # noqa: F811
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    since = _last_event_id(db_sessionmaker)
+    page = client.get(f"/trials/{t}/review")
+    assert page.status_code == 200, page.text[:500]
+    assert _events(db_sessionmaker, since) == [("read", "review", "success")]
+    assert "<script>" not in page.text  # no inline script (CSP): the data block is JSON only
+    block = re.search(
+        r'<script type="application/json" id="review-data">(.*?)</script>', page.text, re.S
+    )
+    data = json.loads(block.group(1))
+    assert data["revision"] == 1 and data["current"] is True
+    assert len(data["aperture_mm"]) > 100 and data["taps"]
+    assert 'src="/static/review.js"' in page.text
+    # A trial without browser copies says so instead of showing a broken player.
+    assert "no browser copy" in page.text
+    assert client.get(f"/trials/{t}/video/left").status_code == 404
+    assert client.get(f"/trials/{t}/review?revision=7").status_code == 404
+
+
+def test_a_correction_from_the_page_is_a_revision_with_its_reason(client, seeded, db_sessionmaker):  # noqa: F811
+    csrf = login(client)
+    t = seeded["trials"][(1, "right")]
+    form = {"csrf_token": csrf, "kind": "correct", "exclude_taps": ["1", "4"], "reason": ""}
+    refused = client.post(f"/trials/{t}/revisions", data=form)
+    assert refused.status_code == 422 and "reason" in refused.text.lower()
+    since = _last_event_id(db_sessionmaker)
+    form["reason"] = "taps 2 and 5 were the patient adjusting the marker"
+    r = client.post(f"/trials/{t}/revisions", data=form, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"].startswith(f"/trials/{t}/review")
+    assert _events(db_sessionmaker, since) == [("create", "revision", "success")]
+    with db_sessionmaker() as db:
+        rows = list(
+            db.scalars(select(Result).where(Result.trial_id == t).order_by(Result.revision))
+        )
+        assert [r.revision for r in rows] == [1, 2]
+        assert rows[1].document["corrections"]["exclude_taps"] == [1, 4]
+        assert rows[1].created_by.startswith("Dr. Test")
+    page = client.get(f"/trials/{t}/review").text
+    assert "Revision 2</a> <strong>(current)</strong>" in page and "adjusting the marker" in page
+    old = client.get(f"/trials/{t}/review?revision=1").text
+    assert "not current" in old and 'name="exclude_taps"' not in old  # history is read-only
+    trial_page = client.get(f"/trials/{t}").text
+    assert "Result revision 2 (current), edited" in trial_page
+    assert (
+        client.post(f"/trials/{t}/revisions", data={**form, "csrf_token": "x"}).status_code == 403
+    )
+
+
+def test_hide_restore_and_edit_from_the_session_page(client, seeded, db_sessionmaker):  # noqa: F811
+    csrf = login(client)
+    t = seeded["trials"][(1, "left")]
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, t).session_id
+    page = client.get(f"/sessions/{session_id}").text
+    assert f'action="/trials/{t}/hide"' in page and "Hidden trials" not in page
+    assert (
+        client.post(f"/trials/{t}/hide", data={"csrf_token": csrf, "reason": ""}).status_code == 422
+    )
+    since = _last_event_id(db_sessionmaker)
+    r = client.post(
+        f"/trials/{t}/hide",
+        data={"csrf_token": csrf, "reason": "duplicate upload"},
+        follow_redirects=False,
+    )
+    assert r.status_code == 303
+    assert _events(db_sessionmaker, since) == [("delete", "trial", "success")]
+    assert client.get(f"/trials/{t}").status_code == 404
+    # A clinician cannot restore it; the refusal is audited.
+    since = _last_event_id(db_sessionmaker)
+    assert client.post(f"/trials/{t}/restore", data={"csrf_token": csrf}).status_code == 403
+    assert _events(db_sessionmaker, since) == [("restore", "trial", "denied")]
+
+    since = _last_event_id(db_sessionmaker)
+    r = client.post(
+        f"/sessions/{session_id}/edit",
+        data={
+            "csrf_token": csrf,
+            "medication_state": "off",
+            "dbs_state": "on",
+            "updrs_34_rating": "3",
+            "notes": "re-rated after the video review",
+        },
+        follow_redirects=False,
+    )
+    assert r.status_code == 303
+    assert _events(db_sessionmaker, since) == [("update", "session", "success")]
+    with db_sessionmaker() as db:
+        s = db.get(RecordingSession, session_id)
+        assert (s.medication_state, s.dbs_state, s.updrs_34_rating) == ("off", "on", 3)
+        assert s.notes == "re-rated after the video review"

@@ -1,0 +1,220 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
+"""Result revisions through the API: corrections measured by core, history, re-analysis jobs."""
+
+from __future__ import annotations
+
+import pytest
+from api_support import Api, add_result, api, seed_recording_target, trial_files, video_pair  # noqa: F401 - pytest fixtures
+from sqlalchemy import select
+
+from app.models import AuditEvent, Job, Result, Trial
+from app.storage import Storage
+from core.markers_csv import MEASURED, read_markers_csv
+from core.metrics import compute_metrics, tapping_metrics
+
+REASON = "tap 3 was the patient reaching for the glasses"
+
+
+def _trial(api: Api, video_pair) -> int:
+    seeded = seed_recording_target(api)
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "left"},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == 201, r.text
+    trial_id = int(r.json()["id"])
+    add_result(api, trial_id)
+    with api.sessions() as db:  # no analysis job will run in these tests
+        for job in db.scalars(select(Job).where(Job.trial_id == trial_id)):
+            job.status = "succeeded"
+        db.commit()
+    return trial_id
+
+
+def _core_metrics_without(
+    api: Api, trial_id: int, drop: set[int], dismiss: frozenset[int] = frozenset()
+):
+    """What core computes on the stored trajectories without those taps (the oracle)."""
+    with api.sessions() as db:
+        path = db.scalar(select(Result.markers_path).where(Result.trial_id == trial_id))
+    table = read_markers_csv(Storage.from_settings(api.settings).absolute(path), fps=100.0)
+    full = compute_metrics(table.positions_mm, table.fps, measured=table.status == MEASURED)
+    kept = [t for t in full.taps if t.index not in drop]
+    idx = {t.index for t in kept}
+    events = [
+        e
+        for e in full.events
+        if e["kind"] == "gap" or (e["tap_index"] in idx and e["tap_index"] not in dismiss)
+    ]
+    return full, tapping_metrics(kept, events)
+
+
+def test_excluding_a_tap_is_a_new_revision_measured_by_core(api: Api, video_pair) -> None:
+    trial_id = _trial(api, video_pair)
+    h = api.headers
+    original = api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()
+    assert original["revision"] == 1 and original["edits"] == []
+
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"exclude_taps": [2], "reason": REASON},
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    assert r.json() == {"trial_id": trial_id, "revision": 2, "job_id": None}
+
+    current = api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()
+    _, expected = _core_metrics_without(api, trial_id, {2})
+    assert current["revision"] == 2
+    assert current["metrics"] == pytest.approx(expected, abs=1e-12)  # JSON round trip only
+    assert current["metrics"]["tap_count"] == original["metrics"]["tap_count"] - 1
+    assert current["metrics"]["amplitude_mm_mean"] != original["metrics"]["amplitude_mm_mean"]
+    assert [t["index"] for t in current["excluded_taps"]] == [2]
+    assert 2 not in [t["index"] for t in current["taps"]]
+    (edit,) = current["edits"]
+    assert edit["reason"] == REASON and edit["change"] == {"exclude_taps": [2]}
+    assert edit["by"] == "API client hospital" and edit["revision"] == 2
+    # The measurement of the recording itself is kept.
+    assert current["sync"] == original["sync"] and current["fps"] == original["fps"]
+
+    # The original stays, unchanged, as revision 1.
+    first = api.client.get(f"/api/v1/trials/{trial_id}/result?revision=1", headers=h)
+    assert first.status_code == 200 and first.json() == original
+    assert (
+        api.client.get(f"/api/v1/trials/{trial_id}/result?revision=3", headers=h).status_code == 404
+    )
+
+    history = api.client.get(f"/api/v1/trials/{trial_id}/revisions", headers=h).json()
+    assert [(v["revision"], v["kind"], v["current"]) for v in history] == [
+        (2, "correction", True),
+        (1, "analysis", False),
+    ]
+    assert history[0]["reason"] == REASON and history[0]["created_by"] == "API client hospital"
+
+
+def test_corrections_accumulate_and_reports_state_the_revision(api: Api, video_pair) -> None:
+    trial_id = _trial(api, video_pair)
+    h = api.headers
+    url = f"/api/v1/trials/{trial_id}/revisions"
+    assert (
+        api.client.post(url, json={"exclude_taps": [2], "reason": REASON}, headers=h).status_code
+        == 201
+    )
+    doc = api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()
+    pauses = [e for e in doc["events"] if e["kind"] in ("hesitation", "halt")]
+    assert pauses, "the synthetic trial has a pause after tap 12"
+    tap = pauses[0]["tap_index"]
+    r = api.client.post(
+        url, json={"dismiss_pauses": [tap], "reason": "the patient was talking"}, headers=h
+    )
+    assert r.status_code == 201 and r.json()["revision"] == 3
+    doc = api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()
+    _, expected = _core_metrics_without(api, trial_id, {2}, frozenset({tap}))
+    assert doc["corrections"]["exclude_taps"] == [2]  # kept from revision 2
+    assert doc["metrics"] == pytest.approx(expected, abs=1e-12)
+    assert len(doc["edits"]) == 2
+
+    html = api.client.get(f"/api/v1/trials/{trial_id}/report.html", headers=h).text
+    assert "Result revision" in html and "3 — edited" in html
+    assert "the patient was talking" in html and "excluded taps 3" in html  # 1-based on reports
+    old = api.client.get(f"/api/v1/trials/{trial_id}/report.html?revision=1", headers=h).text
+    assert "1 — as measured" in old and "edited after" not in old
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "text"),
+    [
+        ({"exclude_taps": [2]}, 422, "reason"),
+        ({"exclude_taps": [2], "reason": "  "}, 422, "reason"),
+        ({"reason": REASON}, 422, "Say what to change"),
+        ({"exclude_taps": [999], "reason": REASON}, 422, "no tap 1000"),
+        ({"exclude_taps": [1], "swap_cameras": True, "reason": REASON}, 422, "two revisions"),
+        ({"window_s": [5.0, 1.0], "reason": REASON}, 422, "window_s"),
+        ({"exclude_taps": [], "reason": REASON}, 422, "nothing would change"),
+    ],
+)
+def test_bad_revisions_are_refused_and_store_nothing(api: Api, video_pair, body, status, text):
+    trial_id = _trial(api, video_pair)
+    r = api.client.post(f"/api/v1/trials/{trial_id}/revisions", json=body, headers=api.headers)
+    assert r.status_code == status, r.text
+    assert text in r.text
+    assert api.count(Result) == 1
+
+
+def test_reanalysis_is_a_job_and_keeps_the_current_result(api: Api, video_pair) -> None:
+    trial_id = _trial(api, video_pair)
+    h = api.headers
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"offset_frames": 3, "reason": "the clapper shows a 3-frame offset"},
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["revision"] is None and r.json()["job_id"] is not None
+    with api.sessions() as db:
+        job = db.get(Job, r.json()["job_id"])
+        assert job.status == "queued" and job.payload["offset_frames"] == 3.0
+        assert job.payload["revision_request"]["reason"] == "the clapper shows a 3-frame offset"
+        assert db.get(Trial, trial_id).status == "succeeded"  # the result stays current
+    again = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"swap_cameras": True, "reason": "second thoughts"},
+        headers=h,
+    )
+    assert again.status_code == 409 and "already queued" in again.json()["detail"]
+    assert api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()["revision"] == 1
+
+
+def test_each_revision_is_one_audit_event(api: Api, video_pair) -> None:
+    trial_id = _trial(api, video_pair)
+    before = {e.id for e in api.audit_events()}
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"window_s": [0.5, 6.0], "reason": REASON},
+        headers=api.headers,
+    )
+    assert r.status_code == 201
+    new = [e for e in api.audit_events() if e.id not in before]
+    assert [(e.action, e.resource_type, e.resource_id, e.outcome) for e in new] == [
+        ("create", "revision", str(trial_id), "success")
+    ]
+    with api.sessions() as db:
+        assert REASON not in " ".join(str(e.__dict__) for e in db.scalars(select(AuditEvent)))
+
+
+def test_hide_and_restore_follow_the_roles(api: Api, video_pair) -> None:
+    from api_support import make_api_key
+
+    trial_id = _trial(api, video_pair)
+    h = api.headers
+    r = api.client.delete(
+        f"/api/v1/trials/{trial_id}", params={"reason": "recorded the wrong hand"}, headers=h
+    )
+    assert r.status_code == 204
+    assert api.client.get(f"/api/v1/trials/{trial_id}", headers=h).status_code == 404
+    with api.sessions() as db:
+        trial = db.get(Trial, trial_id)
+        assert trial.deleted_reason == "recorded the wrong hand"
+        assert trial.deleted_by == "API client hospital"
+
+    before = {e.id for e in api.audit_events()}
+    refused = api.client.post(f"/api/v1/trials/{trial_id}/restore", headers=h)
+    assert refused.status_code == 403
+    admin = {
+        "Authorization": f"Bearer {make_api_key(api.sessions, name='admin', scopes=('admin',))}"
+    }
+    restored = api.client.post(f"/api/v1/trials/{trial_id}/restore", headers=admin)
+    assert restored.status_code == 200 and restored.json()["id"] == trial_id
+    again = api.client.post(f"/api/v1/trials/{trial_id}/restore", headers=admin)
+    assert again.status_code == 404  # nothing hidden any more
+    new = [e for e in api.audit_events() if e.id not in before]
+    assert [(e.action, e.resource_type, e.outcome) for e in new] == [
+        ("access", "route", "denied"),
+        ("restore", "trial", "success"),
+        ("restore", "trial", "not_found"),
+    ]
+    assert api.client.get(f"/api/v1/trials/{trial_id}", headers=h).status_code == 200
+    # The result and its revisions came back with the trial.
+    assert api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()["revision"] == 1

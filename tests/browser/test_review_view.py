@@ -1,0 +1,191 @@
+"""The review view in Debian's Chromium, against a real ``bradyscope serve`` and worker.
+
+A simulated recording is measured by the worker; its review view plays the
+browser proxies, draws the tracked markers where the detector found them
+(read back from the canvas pixels and compared with the overlay data), moves
+the aperture cursor with the video, jumps to a clicked tap; a tap excluded
+from the page with a reason gives the metrics core computes without it, and
+revision 1 is still served unchanged.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import time
+
+import pytest
+from test_browser_flow import VIEWPORTS, PageChecker
+
+from core.markers_csv import MEASURED, read_markers_csv
+from core.metrics import compute_metrics, tapping_metrics
+
+pytestmark = pytest.mark.browser
+
+# Centroid of the thumb's disc (exact fill colour, so antialiased edges and the labels
+# do not count), in OpenCV pixels: a canvas pixel i covers [i, i + 1) and the script
+# draws a point x at x + 0.5, so the mean pixel index is x itself.
+THUMB_DISC_JS = """(side) => {
+  const c = document.querySelector(`canvas[data-overlay="${side}"]`);
+  const img = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0, sx = 0, sy = 0;
+  for (let i = 0; i < img.length; i += 4) {
+    if (img[i] === 255 && img[i + 1] === 127 && img[i + 2] === 14 && img[i + 3] === 255) {
+      const p = i / 4; sx += p % c.width; sy += Math.floor(p / c.width); n++;
+    }
+  }
+  return n ? {x: sx / n, y: sy / n, n: n} : null;
+}"""
+
+
+def _api(page, method: str, url: str, csrf: str, **kw):
+    r = page.request.fetch(url, method=method, headers={"X-CSRF-Token": csrf}, **kw)
+    assert r.ok, (url, r.status, r.text()[:300])
+    return r
+
+
+def _measured_trial(page, served, recording, csrf: str) -> int:
+    base = f"{served.url}/api/v1"
+    rig = _api(page, "POST", f"{base}/rigs", csrf, data={"name": "review-rig"}).json()
+    _api(
+        page,
+        "POST",
+        f"{base}/rigs/{rig['id']}/calibrations",
+        csrf,
+        multipart={
+            "rig_json": {
+                "name": "rig.json",
+                "mimeType": "application/json",
+                "buffer": recording.rig.read_bytes(),
+            }
+        },
+    )
+    patient = _api(page, "POST", f"{base}/patients", csrf, data={"code": "PD-REVIEW"}).json()
+    session = _api(
+        page,
+        "POST",
+        f"{base}/sessions",
+        csrf,
+        data={
+            "patient_id": patient["id"],
+            "rig_id": rig["id"],
+            "recorded_at": "2026-05-01T10:00:00Z",
+            "medication_state": "off",
+        },
+    ).json()
+    files = {
+        name: {"name": path.name, "mimeType": "video/x-matroska", "buffer": path.read_bytes()}
+        for name, path in (("left_video", recording.left), ("right_video", recording.right))
+    }
+    trial = _api(
+        page,
+        "POST",
+        f"{base}/sessions/{session['id']}/trials",
+        csrf,
+        multipart={"hand": "right", **files},
+    ).json()
+    deadline = time.monotonic() + 240
+    while True:
+        job = page.request.get(f"{base}/jobs/{trial['job_id']}").json()
+        if job["status"] in ("succeeded", "failed"):
+            break
+        assert time.monotonic() < deadline, job
+        time.sleep(0.5)  # polling the worker, not timing a measurement
+    assert job["status"] == "succeeded", job["error"]
+    return int(trial["id"])
+
+
+def test_review_view(browser, served, recording, screenshot_dir):
+    context = browser.new_context(viewport=VIEWPORTS["desktop"])
+    page = context.new_page()
+    page.set_default_timeout(30_000)
+    pages = PageChecker(page)
+    pages.goto(f"{served.url}/login", "login")
+    page.fill("#email", served.email)
+    page.fill("#password", served.password)
+    page.keyboard.press("Enter")
+    page.wait_for_url(re.compile(r"/patients$"))
+    csrf = page.locator("input[name=csrf_token]").first.get_attribute("value")
+    trial_id = _measured_trial(page, served, recording, csrf)
+    original = page.request.get(f"{served.url}/api/v1/trials/{trial_id}/result").json()
+
+    pages.goto(f"{served.url}/trials/{trial_id}/review", "review view")
+    data = json.loads(page.locator("#review-data").text_content())
+    fps = data["fps"]
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('video')].every(v => v.readyState >= 2)"
+    )
+
+    # The videos play, and the aperture cursor follows the video time.
+    page.click("[data-action=play]")
+    page.wait_for_function(
+        "() => document.querySelector('video[data-video=left]').currentTime > 0.4"
+    )
+    gaps = []
+    for _ in range(5):
+        t, cursor = page.evaluate(
+            """() => [document.querySelector('video[data-video=left]').currentTime,
+                      parseFloat(document.querySelector('canvas[data-aperture]').dataset.cursorS)]"""
+        )
+        gaps.append(abs(t - cursor))
+        page.wait_for_timeout(80)
+    assert max(gaps) < 0.1, gaps  # s: within a few frames while playing
+    page.click("[data-action=play]")  # pause
+
+    # Step to the peak of a tap (markers far apart) with the keyboard and read the drawing back.
+    tap = data["taps"][2]
+    frame = round(tap["t_max_aperture_s"] * fps)
+    page.evaluate("(f) => window.bradyscopeReview.seekFrame(f - 3)", frame)
+    page.wait_for_function(
+        f"() => document.querySelector('[data-review-player]').dataset.frame === '{frame - 3}'"
+    )
+    page.locator("main h1").click()  # focus outside the form fields
+    for _ in range(3):
+        page.keyboard.press("ArrowRight")
+    page.wait_for_function(
+        f"() => document.querySelector('[data-review-player]').dataset.frame === '{frame}'"
+    )
+    cursor = float(page.locator("canvas[data-aperture]").get_attribute("data-cursor-s"))
+    assert cursor == pytest.approx(frame / fps, abs=1e-3)
+    for cam in data["overlay"]["cameras"]:
+        side = cam["video"]
+        own = int(page.locator(f"video[data-video={side}]").get_attribute("data-frame"))
+        drawn = page.evaluate(THUMB_DISC_JS, side)
+        assert drawn is not None and drawn["n"] > 50, (side, drawn)
+        tracked = cam["tracks"]["thumb"][own]
+        nearest = min(
+            cam["detections"][own],
+            key=lambda d: (d[0] - drawn["x"]) ** 2 + (d[1] - drawn["y"]) ** 2,
+        )
+        assert abs(drawn["x"] - tracked[0]) < 0.5 and abs(drawn["y"] - tracked[1]) < 0.5, side
+        assert abs(drawn["x"] - nearest[0]) < 1 and abs(drawn["y"] - nearest[1]) < 1, side  # px
+    page.screenshot(path=str(screenshot_dir / "review-desktop.png"), full_page=True)
+
+    # Jump to a tap by clicking it in the list.
+    jump = data["taps"][5]
+    page.click(f"[data-tap-row='{jump['index']}'] button[data-jump]")
+    target = str(round(jump["t_start_s"] * fps))
+    page.wait_for_function(
+        f"() => document.querySelector('[data-review-player]').dataset.frame === '{target}'"
+    )
+
+    # Exclude tap 3 (index 2) with a reason: a new revision with core's metrics without it.
+    page.check(f"#ex-{tap['index']}")
+    page.fill("#reason", "tap 3 was the patient scratching the thumb")
+    page.click("text=Store as a new revision")
+    page.wait_for_url(re.compile(rf"/trials/{trial_id}/review"))
+    pages.check("review after the correction")
+    assert "revision 2 (current)" in page.locator("[data-revision-pill]").inner_text()
+    current = page.request.get(f"{served.url}/api/v1/trials/{trial_id}/result").json()
+    csv = page.request.get(f"{served.url}/api/v1/trials/{trial_id}/markers.csv").text()
+    table = read_markers_csv(io.StringIO(csv), fps=fps)
+    full = compute_metrics(table.positions_mm, table.fps, measured=table.status == MEASURED)
+    kept = [t for t in full.taps if t.index != tap["index"]]
+    events = [e for e in full.events if e["kind"] == "gap" or e["tap_index"] != tap["index"]]
+    assert current["revision"] == 2
+    assert current["metrics"] == pytest.approx(tapping_metrics(kept, events), abs=1e-12)
+    assert current["metrics"]["tap_count"] == original["metrics"]["tap_count"] - 1
+    first = page.request.get(f"{served.url}/api/v1/trials/{trial_id}/result?revision=1").json()
+    assert first == original
+    context.close()
