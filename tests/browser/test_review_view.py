@@ -74,17 +74,14 @@ def _measured_trial(page, served, recording, csrf: str) -> int:
             "medication_state": "off",
         },
     ).json()
-    files = {
-        name: {"name": path.name, "mimeType": "video/x-matroska", "buffer": path.read_bytes()}
-        for name, path in (("left_video", recording.left), ("right_video", recording.right))
-    }
-    trial = _api(
-        page,
-        "POST",
-        f"{base}/sessions/{session['id']}/trials",
-        csrf,
-        multipart={"hand": "right", **files},
-    ).json()
+    # The videos go up through the session page's form (streamed from the files).
+    page.goto(f"{served.url}/sessions/{session['id']}")
+    page.set_input_files("#left-video-right", str(recording.left))
+    page.set_input_files("#right-video-right", str(recording.right))
+    page.click("text=Upload and measure the right hand")
+    page.wait_for_url(re.compile(r"/jobs/\d+"), timeout=120_000)
+    job_id = int(page.url.rstrip("/").split("/")[-1])
+    trial = {"job_id": job_id}
     deadline = time.monotonic() + 240
     while True:
         job = page.request.get(f"{base}/jobs/{trial['job_id']}").json()
@@ -93,7 +90,7 @@ def _measured_trial(page, served, recording, csrf: str) -> int:
         assert time.monotonic() < deadline, job
         time.sleep(0.5)  # polling the worker, not timing a measurement
     assert job["status"] == "succeeded", job["error"]
-    return int(trial["id"])
+    return int(job["trial_id"])
 
 
 def test_review_view(browser, served, recording, screenshot_dir):
