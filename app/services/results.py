@@ -245,7 +245,7 @@ def fhir_bundle(
     db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
 ) -> dict[str, Any]:
     """A FHIR R4 Bundle (DiagnosticReport + Observations, the PDF attached)."""
-    trial, data = _report_data(db, actor, trial_id, storage, timezone)
+    trial, data = _report_data(db, actor, trial_id, storage, None, timezone)
     bundle = make_fhir_bundle(data, render_report_pdf(data))
     return _exported(db, actor, trial, "fhir_bundle", bundle)
 

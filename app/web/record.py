@@ -38,25 +38,33 @@ def session_edit(
     session_id: int,
     medication_state: Annotated[str, Form(max_length=20)] = "",
     dbs_state: Annotated[str, Form(max_length=20)] = "",
-    updrs_34_rating: Annotated[str, Form(max_length=5)] = "",
+    time_since_levodopa_min: Annotated[str, Form(max_length=10)] = "",
+    more_affected_side: Annotated[str, Form(max_length=10)] = "",
+    dominant_hand: Annotated[str, Form(max_length=10)] = "",
     notes: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
     if not csrf_ok(user, csrf_token):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     try:
-        data = SessionUpdate(
-            medication_state=medication_state or None,  # type: ignore[arg-type]  # validated
-            dbs_state=dbs_state or None,  # type: ignore[arg-type]  # validated
-            updrs_34_rating=int(updrs_34_rating) if updrs_34_rating.strip() else None,
-            notes=notes.strip() or None,
+        data = SessionUpdate.model_validate(
+            {
+                "medication_state": medication_state or None,
+                "dbs_state": dbs_state or None,
+                "time_since_levodopa_min": int(time_since_levodopa_min)
+                if time_since_levodopa_min.strip()
+                else None,
+                "more_affected_side": more_affected_side or None,
+                "dominant_hand": dominant_hand or None,
+                "notes": notes.strip() or None,
+            }
         )
         sessions.update_session(db, user, session_id, data)
     except ValidationError as exc:
         return error_page(request, user, status_code=422, message=validation_message(exc))
     except ValueError:
         return error_page(
-            request, user, status_code=422, message="The 3.4 rating must be 0, 1, 2, 3 or 4."
+            request, user, status_code=422, message="The time since levodopa must be minutes."
         )
     except AppError as exc:
         db.rollback()

@@ -103,7 +103,8 @@ def test_hide_restore_and_edit_from_the_session_page(client, seeded, db_sessionm
             "csrf_token": csrf,
             "medication_state": "off",
             "dbs_state": "on",
-            "updrs_34_rating": "3",
+            "time_since_levodopa_min": "90",
+            "more_affected_side": "left",
             "notes": "re-rated after the video review",
         },
         follow_redirects=False,
@@ -112,5 +113,6 @@ def test_hide_restore_and_edit_from_the_session_page(client, seeded, db_sessionm
     assert _events(db_sessionmaker, since) == [("update", "session", "success")]
     with db_sessionmaker() as db:
         s = db.get(RecordingSession, session_id)
-        assert (s.medication_state, s.dbs_state, s.updrs_34_rating) == ("off", "on", 3)
+        assert (s.medication_state, s.dbs_state) == ("off", "on")
+        assert (s.time_since_levodopa_min, s.more_affected_side) == (90, "left")
         assert s.notes == "re-rated after the video review"
