@@ -17,7 +17,7 @@ router = APIRouter(prefix="/trials/{trial_id}/revisions", tags=["results"])
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=RevisionCreated,
-    responses=errors(*AUTH, 404, 409),
+    responses=errors(*AUTH, 400, 404, 409, 413),
     summary="Correct a trial's result (a new revision) or measure it again (a job)",
 )
 def create_revision(
