@@ -27,6 +27,11 @@ CALIBRATION_BODY = multipart_body(
         "square_mm": {"type": "number", "description": "Square side, mm."},
         "marker_mm": {"type": "number", "description": "ChArUco marker side, mm."},
         "dictionary": {"type": "string", "description": "ArUco dictionary, e.g. DICT_4X4_1000."},
+        "legacy": {
+            "type": "boolean",
+            "description": "ChArUco: a board printed with OpenCV before 4.6 (its layout with an"
+            " even number of rows).",
+        },
         "valid_from": {
             "type": "string",
             "format": "date-time",
@@ -36,7 +41,7 @@ CALIBRATION_BODY = multipart_body(
     },
     [],
     "Either rig_json, or left_video + right_video + board, cols, rows, square_mm"
-    " [, marker_mm, dictionary].",
+    " [, marker_mm, dictionary, legacy].",
 )
 
 

@@ -44,7 +44,7 @@ from core.camera import StereoRig, rig_from_dict, rig_to_dict
 
 CALIBRATION_FILE_FIELDS = {"rig_json": ".json", "left_video": ".video", "right_video": ".video"}
 CALIBRATION_TEXT_FIELDS = frozenset(
-    {"board", "cols", "rows", "square_mm", "marker_mm", "dictionary", "valid_from"}
+    {"board", "cols", "rows", "square_mm", "marker_mm", "dictionary", "legacy", "valid_from"}
 )
 BOARDS = ("chessboard", "charuco")
 DEFAULT_DICTIONARY = "DICT_4X4_1000"
@@ -169,6 +169,11 @@ def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
         if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
             raise InvalidUpload(f"dictionary {dictionary[:40]!r} is not an ArUco dictionary name.")
         fields["dictionary"] = dictionary
+        legacy = (upload.fields.get("legacy") or "").strip().lower()
+        if legacy not in ("", "0", "false", "off", "no", "1", "true", "on", "yes"):
+            raise InvalidUpload(f"legacy must be true or false, not {legacy[:20]!r}.")
+        if legacy in ("1", "true", "on", "yes"):
+            fields["legacy"] = True  # a board printed with OpenCV before 4.6
     try:  # the measurement library's own rules for a board, too
         BoardSpec(
             kind="charuco" if board == "charuco" else "chessboard",
@@ -177,6 +182,7 @@ def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
             square_mm=fields["square_mm"],
             marker_mm=fields.get("marker_mm"),
             dictionary=fields.get("dictionary"),
+            legacy=bool(fields.get("legacy", False)),
         )
     except ValueError as exc:
         raise InvalidUpload(f"The board description is invalid: {exc}.") from exc

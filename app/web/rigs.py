@@ -91,6 +91,23 @@ def _quality_items(quality: dict[str, Any] | None) -> list[tuple[str, str]]:
     items.sort(
         key=lambda kv: next((i for i, (lab, _) in enumerate(order) if lab == kv[0]), len(order))
     )
+    sync = (quality or {}).get("sync")
+    if isinstance(sync, dict) and sync.get("method") in ("estimated", "synchronous"):
+        offset_s, frames = sync.get("offset_s"), sync.get("offset_frames")
+        if sync["method"] == "synchronous":
+            text = "none: the two videos are synchronous"
+        elif isinstance(offset_s, int | float) and isinstance(frames, int | float):
+            when = "after" if offset_s >= 0 else "before"
+            text = (
+                f"the right video starts {abs(offset_s):.3f} s ({abs(frames):.2f} frames) {when}"
+                " the left; found from the board's motion"
+            )
+        else:
+            text = "found from the board's motion"
+        items.append(("Time offset between the cameras", text))
+    for warning in (quality or {}).get("warnings") or []:
+        if isinstance(warning, str):
+            items.append(("Warning", warning))
     return items
 
 
@@ -235,6 +252,7 @@ CALIBRATION_FORM_LABELS = {
     "right_video": "Board video, right camera",
     "board": "Board",
     "dictionary": "ArUco dictionary",
+    "legacy": "Printed with OpenCV before 4.6",
     "cols": "Columns",
     "rows": "Rows",
     "square_mm": "Square size (mm)",

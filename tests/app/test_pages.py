@@ -596,6 +596,59 @@ def test_safe_next_stays_on_site(target):
     assert safe_next("/trials/3?compare=4") == "/trials/3?compare=4"
 
 
+def test_legacy_charuco_board_is_stored_with_the_calibration(
+    client, seeded, tiny_videos, db_sessionmaker
+):
+    """The form's "printed with OpenCV before 4.6" box reaches the board the worker reads."""
+    from core.boards import BoardSpec
+
+    token = login(client)
+    left, right = tiny_videos
+    r = client.post(
+        f"/rigs/{seeded['rig_id']}/calibrations",
+        data={
+            "csrf_token": token,
+            "board": "charuco",
+            "cols": "8",
+            "rows": "6",
+            "square_mm": "30",
+            "marker_mm": "22",
+            "legacy": "on",
+        },
+        files={
+            "left_video": ("board-left.mkv", left.read_bytes(), "video/x-matroska"),
+            "right_video": ("board-right.mkv", right.read_bytes(), "video/x-matroska"),
+        },
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text
+    with db_sessionmaker() as db:
+        cal = db.scalars(select(Calibration).order_by(Calibration.id.desc())).first()
+        assert cal is not None and cal.board is not None
+        assert BoardSpec.from_dict(dict(cal.board)).legacy is True
+
+
+def test_calibration_quality_shows_the_time_offset_and_warnings():
+    """Free-running board videos: the rig page says how far apart the cameras started."""
+    from app.web.rigs import _quality_items
+
+    quality = {
+        "rms_px": 0.05,
+        "sync": {"method": "estimated", "offset_s": 0.29985, "offset_frames": 4.498},
+        "warnings": ["the left video has 50 frames and the right 45; the frames past ..."],
+    }
+    items = dict(_quality_items(quality))
+    assert items["Time offset between the cameras"] == (
+        "the right video starts 0.300 s (4.50 frames) after the left; found from the board's motion"
+    )
+    assert items["Warning"].startswith("the left video has 50 frames")
+    lab = dict(_quality_items({"sync": {"method": "synchronous", "offset_s": 0.0}}))
+    assert lab["Time offset between the cameras"] == "none: the two videos are synchronous"
+    assert "Time offset between the cameras" not in dict(
+        _quality_items({"sync": {"method": "images"}})
+    )
+
+
 def test_upload_to_a_rig_without_calibration_is_refused_early(
     client, seeded, tiny_videos, db_sessionmaker
 ):
