@@ -48,6 +48,7 @@ from app.audit import ANONYMOUS, audit, audit_failure
 from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
 from app.models import ApiClient, BrowserSession, User, utcnow
 from app.passwords import DUMMY_HASH, hash_password, needs_rehash, verify_password
+from app.settings import Settings
 
 SESSION_COOKIE = "bradyscope_session"
 CSRF_HEADER = "X-CSRF-Token"
@@ -84,8 +85,9 @@ def _client_ip(request: Request) -> str | None:
     return request.client.host[:45] if request.client else None
 
 
-def _settings(request: Request) -> Any:
-    return request.app.state.settings
+def _settings(request: Request) -> Settings:
+    settings: Settings = request.app.state.settings
+    return settings
 
 
 # --------------------------------------------------------------------------- API keys
@@ -312,7 +314,7 @@ RigWriter = Annotated[Actor, Depends(require_scope("rigs:write"))]
 
 
 def _check_password(
-    db: Session, settings: Any, *, email: str, password: str, ip: str | None
+    db: Session, settings: Settings, *, email: str, password: str, ip: str | None
 ) -> User:
     """The active user whose password this is (throttled); audits and raises otherwise."""
     try:
@@ -333,7 +335,7 @@ def _check_password(
 
 
 def reauthenticate(
-    db: Session, settings: Any, actor: Actor, password: str, *, ip: str | None = None
+    db: Session, settings: Settings, actor: Actor, password: str, *, ip: str | None = None
 ) -> User:
     """Check the logged-in user's password again (e.g. before signing a report).
 
@@ -382,7 +384,7 @@ class LoginResult:
 def login_user(
     db: Session,
     *,
-    settings: Any,
+    settings: Settings,
     email: str,
     password: str,
     ip: str | None = None,
@@ -446,7 +448,7 @@ def login_user(
     return LoginResult(token=token, csrf_token=csrf_token, user=user, actor=actor)
 
 
-def set_session_cookie(response: Response, token: str, *, settings: Any) -> None:
+def set_session_cookie(response: Response, token: str, *, settings: Settings) -> None:
     """Give the browser its session cookie (HttpOnly, SameSite=Lax, Secure behind HTTPS)."""
     response.set_cookie(
         SESSION_COOKIE,
@@ -459,7 +461,7 @@ def set_session_cookie(response: Response, token: str, *, settings: Any) -> None
     )
 
 
-def logout_user(db: Session, response: Response, *, token: str | None, settings: Any) -> None:
+def logout_user(db: Session, response: Response, *, token: str | None, settings: Settings) -> None:
     """End the browser session of ``token`` (if any), clear the cookie; commits."""
     if token:
         row = db.get(BrowserSession, _sha256(token))

@@ -288,9 +288,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     _install_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware)
-    app.add_middleware(
-        SecurityHeadersMiddleware, hsts=bool(getattr(settings, "secure_cookies", False))
-    )
+    app.add_middleware(SecurityHeadersMiddleware, hsts=settings.secure_cookies)
     if settings.trusted_proxy_list:
         # Outermost: the client address every layer sees (throttle, audit) is the one the
         # trusted proxy forwarded. From any other peer, X-Forwarded-* headers are ignored.

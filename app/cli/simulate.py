@@ -10,8 +10,13 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from core.errors import InputError
+
+if TYPE_CHECKING:  # the sub-command imports the simulator only when it runs
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -102,6 +107,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("-o", "--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same output)")
+    _tapping_arguments(p)
+    _imaging_arguments(p)
+    _timing_arguments(p)
+    p.set_defaults(func=run)
+
+
+def _tapping_arguments(p: argparse.ArgumentParser) -> None:
+    """How the simulated patient taps."""
     g = p.add_argument_group("tapping")
     g.add_argument("--duration", type=float, default=10.0, metavar="S", help="length (s)")
     g.add_argument("--fps", type=float, default=100.0, help="frame rate (Hz)")
@@ -163,6 +176,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="turn the hand so that the closed markers overlap in that camera, their centres"
         " MM apart (default 3; the marker diameter makes them touch)",
     )
+
+
+def _imaging_arguments(p: argparse.ArgumentParser) -> None:
+    """How the two cameras see it."""
     g = p.add_argument_group("imaging")
     g.add_argument(
         "--size", type=_size, default=(1280, 1024), metavar="WxH", help="image size, e.g. 1280x1024"
@@ -220,6 +237,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default="lossless",
         help="lossless FFV1 (.mkv, default), MPEG-4 or H.264/HEVC (.mp4), VP9/VP8 (.webm)",
     )
+
+
+def _timing_arguments(p: argparse.ArgumentParser) -> None:
+    """Free-running cameras: their clocks and lost frames."""
     g = p.add_argument_group("free-running cameras (docs/sync.md)")
     g.add_argument("--right-fps", type=float, default=None, metavar="HZ",
                    help="the right camera's frame rate (default: --fps)")  # fmt: skip
@@ -242,64 +263,78 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="also write calibration recordings of the same rig into DIR/calibration",
     )
-    p.set_defaults(func=run)
+
+
+def _tapping(args: argparse.Namespace) -> TappingScenario:
+    from core.simulation.kinematics import TappingScenario
+
+    return TappingScenario(
+        duration_s=args.duration,
+        fps=args.fps,
+        amplitude_mm=args.amplitude,
+        frequency_hz=args.frequency,
+        decrement_mm_per_tap=args.decrement,
+        rhythm_jitter=args.jitter,
+        amplitude_jitter=args.amplitude_jitter,
+        hesitations=args.hesitation_taps,
+        hesitation_s=args.hesitation_s,
+        halts=args.halts,
+        drift_mm=args.drift,
+        hand=args.hand,
+        hand_marker=args.hand_marker,
+        turns=tuple(args.turn),
+    )
+
+
+def _imaging(args: argparse.Namespace) -> ImagingScenario:
+    from core.camera import ImageSize
+    from core.simulation.session import ImagingScenario
+    from core.simulation.timing import CameraTiming
+
+    return ImagingScenario(
+        image_size=ImageSize(*args.size),
+        marker_diameter_mm=args.marker_mm,
+        noise_sigma=args.noise,
+        exposure_s=args.exposure_ms / 1000.0,
+        distractors_static=args.distractors_static,
+        distractors_moving=args.distractors_moving,
+        occlusions=tuple(args.occlusion),
+        offset_frames=args.offset,
+        codec=args.codec,
+        skin_level=args.skin,
+        left_timing=CameraTiming(
+            drop_after=tuple(f for c, f in args.drop if c == "left"),
+            jitter_s=args.time_jitter_ms / 1000.0,
+            vfr=args.vfr,
+            readout_ms=args.rolling_shutter_ms,
+        ),
+        right_timing=CameraTiming(
+            fps=args.right_fps,
+            start_s=args.offset_s,
+            drift_ppm=args.drift_ppm,
+            drop_after=tuple(f for c, f in args.drop if c == "right"),
+            jitter_s=args.time_jitter_ms / 1000.0,
+            vfr=args.vfr,
+            readout_ms=args.rolling_shutter_ms,
+            image_size=None if args.right_size is None else ImageSize(*args.right_size),
+        ),
+        nail_glint_peak=args.nail_glints,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from app.cli.progress import progress_bar
-    from core.camera import ImageSize, StereoRig
+    from core.camera import StereoRig
+    from core.simulation.boards import write_board_recordings
     from core.simulation.hand import overlap_orientation_deg
-    from core.simulation.kinematics import TappingScenario, simulate_tapping
+    from core.simulation.kinematics import simulate_tapping
     from core.simulation.rig import default_rig
-    from core.simulation.session import ImagingScenario, simulate_session
+    from core.simulation.session import simulate_session
     from core.simulation.timing import CameraTiming
 
     try:
-        tapping = TappingScenario(
-            duration_s=args.duration,
-            fps=args.fps,
-            amplitude_mm=args.amplitude,
-            frequency_hz=args.frequency,
-            decrement_mm_per_tap=args.decrement,
-            rhythm_jitter=args.jitter,
-            amplitude_jitter=args.amplitude_jitter,
-            hesitations=args.hesitation_taps,
-            hesitation_s=args.hesitation_s,
-            halts=args.halts,
-            drift_mm=args.drift,
-            hand=args.hand,
-            hand_marker=args.hand_marker,
-            turns=tuple(args.turn),
-        )
-        imaging = ImagingScenario(
-            image_size=ImageSize(*args.size),
-            marker_diameter_mm=args.marker_mm,
-            noise_sigma=args.noise,
-            exposure_s=args.exposure_ms / 1000.0,
-            distractors_static=args.distractors_static,
-            distractors_moving=args.distractors_moving,
-            occlusions=tuple(args.occlusion),
-            offset_frames=args.offset,
-            codec=args.codec,
-            skin_level=args.skin,
-            left_timing=CameraTiming(
-                drop_after=tuple(f for c, f in args.drop if c == "left"),
-                jitter_s=args.time_jitter_ms / 1000.0,
-                vfr=args.vfr,
-                readout_ms=args.rolling_shutter_ms,
-            ),
-            right_timing=CameraTiming(
-                fps=args.right_fps,
-                start_s=args.offset_s,
-                drift_ppm=args.drift_ppm,
-                drop_after=tuple(f for c, f in args.drop if c == "right"),
-                jitter_s=args.time_jitter_ms / 1000.0,
-                vfr=args.vfr,
-                readout_ms=args.rolling_shutter_ms,
-                image_size=None if args.right_size is None else ImageSize(*args.right_size),
-            ),
-            nail_glint_peak=args.nail_glints,
-        )
+        tapping = _tapping(args)
+        imaging = _imaging(args)
         # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
         simulate_tapping(tapping, seed=args.seed)
         for _, marker, _, _ in imaging.occlusions:
@@ -331,13 +366,6 @@ def run(args: argparse.Namespace) -> int:
             args.out, seed=args.seed, tapping=tapping, imaging=imaging, rig=rig, progress=progress
         )
     if args.boards:
-        try:
-            from core.simulation.boards import write_board_recordings
-        except ImportError as exc:
-            raise InputError(
-                "calibration-board recordings are not available in this version of bradyscope"
-                f" ({exc}); run without --boards."
-            ) from exc
         # The board is filmed by the same free-running cameras (their start and clock;
         # lost frames and rolling shutter belong to the tapping recording).
         free = args.offset_s != 0 or args.drift_ppm != 0

@@ -49,7 +49,7 @@ def _login_form(
         path="/login",
         httponly=True,
         samesite="strict",
-        secure=bool(getattr(settings_of(request), "secure_cookies", False)),
+        secure=settings_of(request).secure_cookies,
     )
     return response
 

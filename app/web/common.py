@@ -23,6 +23,7 @@ from sqlalchemy.orm import Session
 from app.actors import Actor
 from app.auth import CSRF_HEADER, SessionDep, get_optional_user
 from app.errors import AppError, PermissionDeniedError
+from app.settings import Settings
 from app.templating import templates
 from app.uploads import ParsedUpload, run_upload
 from core.errors import BradyscopeError
@@ -34,8 +35,9 @@ T = TypeVar("T")
 CSRF_MESSAGE = "The form's security token was missing or out of date; reload the page and retry."
 
 
-def settings_of(request: Request) -> Any:
-    return request.app.state.settings
+def settings_of(request: Request) -> Settings:
+    settings: Settings = request.app.state.settings
+    return settings
 
 
 def open_db(request: Request) -> Session:
