@@ -57,12 +57,12 @@ deps-build:
 
 ## deps-run: the libraries the PDF reports need (when missing)
 deps-run:
-	@need=$$(for p in $(RUN_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo " $$p"; done); \
+	@need=$$(for p in $(RUN_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || printf ' %s' $$p; done); \
 	$(APT_INSTALL)
 
 ## deps-test: what the tests need besides (when missing)
 deps-test:
-	@need=$$(for p in $(TEST_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo " $$p"; done); \
+	@need=$$(for p in $(TEST_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || printf ' %s' $$p; done); \
 	$(APT_INSTALL)
 
 system-deps: deps-build deps-run deps-test
