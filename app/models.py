@@ -24,7 +24,7 @@ Conventions that every caller must keep
 - Every schema change goes through an Alembic migration in ``migrations/``;
   ``tests/app/test_migrations.py`` fails on any drift.
 
-One module on purpose (about 530 lines): the schema is read as a whole, and
+One module on purpose (more than 500 lines): the schema is read as a whole, and
 its relationships refer to each other. Queries live in the services
 (``app.services``); the one here,
 :func:`next_calibration_version`, guards a UNIQUE constraint of these tables.
