@@ -480,10 +480,22 @@ class Video(Base):
     proxy_path: Mapped[str | None] = mapped_column(String(500))
     """A browser-playable H.264 copy (``core.video.write_proxy``), relative to the data
     directory; made at the trial's first analysis. The original is never changed."""
+    times_path: Mapped[str | None] = mapped_column(String(500), unique=True)
+    """The timestamps file uploaded with the video (``frame,time_s`` CSV, each frame's
+    capture time on that camera's clock), relative to the data directory; NULL: none."""
+    times_sha256: Mapped[str | None] = mapped_column(String(64))
+    duration_s: Mapped[float | None] = mapped_column(Float)
+    """Length of the recording (s): from its capture times when a timestamps file came
+    with it (then ``fps`` is the measured rate too), else ``frame_count / fps``."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     trial: Mapped[Trial | None] = relationship(back_populates="videos")
     calibration: Mapped[Calibration | None] = relationship(back_populates="videos")
+
+    @property
+    def has_times(self) -> bool:
+        """Whether a timestamps file is stored with the video."""
+        return self.times_path is not None
 
 
 # --------------------------------------------------------------------------- jobs, results

@@ -265,6 +265,29 @@ class VideoRead(_Out):
     width: int = Field(description="Pixels.")
     height: int = Field(description="Pixels.")
     codec: str | None
+    duration_s: float | None = Field(
+        default=None,
+        description="Seconds, from the capture times when a timestamps file came with the"
+        " video (fps is then the measured rate), else frame_count / fps.",
+    )
+    has_times: bool = Field(
+        default=False, description="A timestamps file (frame,time_s) is stored with the video."
+    )
+
+
+class TakeRead(BaseModel):
+    """The quick check of one camera's recording, known before the analysis."""
+
+    frame_count: int
+    duration_s: float = Field(description="Seconds.")
+    fps: float = Field(description="Frame rate reached (Hz): from the capture times if given.")
+    dropped_frames: int | None = Field(
+        description="Frames lost (gaps in the capture times); null when the video's"
+        " timestamps cannot tell."
+    )
+    time_source: Literal["file", "container", "fps"] = Field(
+        description="Where the frame times come from: the timestamps file, or i / fps."
+    )
 
 
 class TrialCreated(BaseModel):
@@ -273,6 +296,9 @@ class TrialCreated(BaseModel):
     id: int
     job_id: int
     warnings: list[str] = Field(default_factory=list, description="About the recording, if any.")
+    take: dict[Literal["left", "right"], TakeRead] = Field(
+        default_factory=dict, description="The quick check of each camera's recording."
+    )
 
 
 class TrialRead(_Out):

@@ -37,7 +37,8 @@ from app.errors import (
 )
 from app.storage import IncomingFile, Storage, StoredFile
 from core.camera import StereoRig, rig_from_dict
-from core.errors import BradyscopeError
+from core.errors import BradyscopeError, InputError
+from core.timing import FrameTimes, read_times_csv
 from core.video import VideoInfo, check_stereo_videos, decodes_frame, probe_video
 
 T = TypeVar("T")
@@ -273,6 +274,8 @@ def _label(field_name: str) -> str:
         "left_video": "the left video",
         "right_video": "the right video",
         "rig_json": "the rig file",
+        "left_times": "the left timestamps file",
+        "right_times": "the right timestamps file",
     }.get(field_name, f"the file {field_name!r}")
 
 
@@ -467,6 +470,52 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> VideoInfo:
             " last frames cannot be decoded; upload the complete recording again."
         )
     return info
+
+
+MAX_TIMES_BYTES = 16 * 1024 * 1024
+"""A timestamps file's size limit: ~30 bytes a frame, so an hour at 120 fps fits."""
+
+
+def validate_times(path: Path, *, label: str, n_frames: int) -> FrameTimes:
+    """Read an uploaded timestamps file (``frame,time_s``) for a video of ``n_frames`` frames.
+
+    Parameters
+    ----------
+    path : Path
+        The received file.
+    label : str
+        How the file is named in messages ("the left timestamps file").
+    n_frames : int
+        The number of frames of its video (decoded count); the file must give
+        the time of each (``core.timing.read_times_csv``'s two frames of slack).
+
+    Returns
+    -------
+    core.timing.FrameTimes
+        The capture times (``source="file"``) and the measured frame rate.
+
+    Raises
+    ------
+    InvalidUpload
+        Empty or too large, not a ``frame,time_s`` CSV, times that do not
+        increase, or a frame count that does not fit the video.
+    """
+    size = path.stat().st_size
+    if size == 0:
+        raise InvalidUpload(f"{_capital(label)} is empty; upload the one recorded with the video.")
+    if size > MAX_TIMES_BYTES:
+        raise InvalidUpload(
+            f"{_capital(label)} is larger than {MAX_TIMES_BYTES // 1024 // 1024} MB; a"
+            " timestamps file holds one short line per frame (frame,time_s)."
+        )
+    try:
+        return read_times_csv(path, n_frames=n_frames)
+    except InputError as exc:
+        raise InvalidUpload(_capital(_sentence(exc).replace(path.name, label))) from exc
+
+
+def _capital(text: str) -> str:
+    return text[:1].upper() + text[1:]
 
 
 def validate_stereo_pair(

@@ -211,7 +211,7 @@ def _require_files(ctx: JobContext, paths: Iterable[Path], *, what: str) -> None
     missing = [p for p in paths if not p.is_file()]
     if missing:
         raise RetryableJobError(
-            f"the video files of {what} are missing from the data directory "
+            f"the recorded files of {what} are missing from the data directory "
             f"{ctx.storage.data_dir} on worker {default_worker_name()}; every worker must use "
             "the same data directory (BRADYSCOPE_DATA_DIR)."
         )
@@ -277,10 +277,19 @@ def analyze_trial(ctx: JobContext) -> None:
             ctx.job.trial_id,
             offset_frames=float(offset) if offset is not None else None,
         )
-    _require_files(ctx, (inputs.left, inputs.right), what=f"trial {inputs.trial_id}")
+    _require_files(ctx, inputs.files, what=f"trial {inputs.trial_id}")
     left, right = (inputs.right, inputs.left) if swap else (inputs.left, inputs.right)
+    left_times, right_times = (
+        (inputs.right_times, inputs.left_times) if swap else (inputs.left_times, inputs.right_times)
+    )
     analysis = analyze_recording(
-        inputs.rig, left, right, offset_frames=inputs.offset_frames, progress=ctx.progress
+        inputs.rig,
+        left,
+        right,
+        offset_frames=inputs.offset_frames,
+        progress=ctx.progress,
+        left_times=left_times,
+        right_times=right_times,
     )
     document = dict(analysis.result_document())
     document.setdefault("calibration", inputs.calibration.document())

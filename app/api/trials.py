@@ -31,6 +31,13 @@ TRIAL_BODY = multipart_body(
             "description": "Known offset: right frame j was taken with left frame j + K."
             " Omit it to estimate the offset from the marker motion.",
         },
+        "left_times": {
+            **BINARY,
+            "description": "Optional timestamps file of the left video: CSV with the header"
+            " frame,time_s and one row per frame (its capture time in seconds on that"
+            " camera's clock). The analysis then uses these times.",
+        },
+        "right_times": {**BINARY, "description": "Likewise for the right video."},
     },
     ["hand", "left_video", "right_video"],
     "One finger-tapping recording of one hand by the two cameras of the session's rig.",
@@ -50,7 +57,9 @@ async def create_trial(
 ) -> TrialCreated:
     def use_case(upload: ParsedUpload) -> TrialCreated:
         out = service.create_trial(db, actor, session_id, upload)
-        return TrialCreated(id=out.trial.id, job_id=out.job_id, warnings=out.warnings)
+        return TrialCreated.model_validate(
+            {"id": out.trial.id, "job_id": out.job_id, "warnings": out.warnings, "take": out.take}
+        )
 
     return await run_api_upload(
         request,

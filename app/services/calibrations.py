@@ -251,7 +251,7 @@ def _from_board_videos(
     db: Session, actor: Actor, rig: Rig, upload: ParsedUpload, valid_from: datetime
 ) -> tuple[Calibration, int]:
     board = _board_fields(upload)
-    left, right, _warnings = check_video_pair(upload)
+    pair = check_video_pair(upload)
     cal = Calibration(
         rig_id=rig.id,
         version=next_calibration_version(db, rig.id),
@@ -264,7 +264,7 @@ def _from_board_videos(
     queued: list[Job] = []
 
     def videos_and_job() -> None:
-        add_videos(db, upload, left, right, calibration_id=cal.id)
+        add_videos(db, upload, pair, calibration_id=cal.id)
         queued.append(
             jobs.enqueue(db, "calibrate", calibration_id=cal.id, payload={"board": board})
         )

@@ -32,17 +32,25 @@ from app.storage import Storage
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig, rig_from_dict
 
-TRIAL_FILE_FIELDS = {"left_video": ".video", "right_video": ".video"}
+TRIAL_FILE_FIELDS = {
+    "left_video": ".video",
+    "right_video": ".video",
+    "left_times": ".csv",
+    "right_times": ".csv",
+}
 TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames"})
 
 
 @dataclass(frozen=True)
 class TrialOut:
-    """A new trial, the id of the job measuring it and the upload's warnings."""
+    """A new trial, the id of the job measuring it, the upload's warnings and its quick check."""
 
     trial: Trial
     job_id: int
     warnings: list[str] = field(default_factory=list)
+    take: dict[str, dict[str, object]] = field(default_factory=dict)
+    """Per side (``left``, ``right``): frames, length, rate reached, frames lost
+    (:meth:`app.services.videos.CheckedVideo.take`), known before the analysis."""
 
 
 def check_trial_target(db: Session, actor: Actor, session_id: int) -> None:
@@ -77,17 +85,19 @@ def _parse_offset(upload: ParsedUpload) -> float | None:
 
 
 def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUpload) -> TrialOut:
-    """Accept a trial upload: check both videos by decoding, store them, queue the analysis."""
+    """Accept a trial upload: check both videos by decoding (and their timestamps files,
+    if any), store them, queue the analysis."""
     hand = _parse_hand(upload)
     offset = _parse_offset(upload)
     session = load_session(db, actor, session_id, "create")
     rig = rig_to_check_against(db, session)
-    left, right, warnings = check_video_pair(upload, rig=rig)
+    pair = check_video_pair(upload, rig=rig)
+    warnings = pair.warnings
     try:
         trial = Trial(session_id=session.id, hand=hand, status="queued", offset_frames=offset)
         db.add(trial)
         db.flush()
-        add_videos(db, upload, left, right, trial_id=trial.id)
+        add_videos(db, upload, pair, trial_id=trial.id)
         payload: dict[str, Any] = {"warnings": warnings}
         if offset is not None:
             payload["offset_frames"] = offset
@@ -98,7 +108,8 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
         db.rollback()
         upload.discard()
         raise
-    return TrialOut(trial=trial, job_id=job.id, warnings=warnings)
+    take = {side: pair.side(side).take() for side in ("left", "right")}
+    return TrialOut(trial=trial, job_id=job.id, warnings=warnings, take=take)
 
 
 def trial_view(db: Session, trial: Trial) -> dict[str, Any]:
@@ -291,6 +302,8 @@ class TrialInputs:
         The rig of that calibration.
     proxies_needed : dict of str to Path
         The stored videos (by side) that have no browser proxy yet.
+    left_times, right_times : Path or None
+        The stored timestamps files of the videos, if they came with them.
     """
 
     trial_id: int
@@ -300,6 +313,14 @@ class TrialInputs:
     calibration: CalibrationUsed
     rig: StereoRig
     proxies_needed: dict[str, Path] = field(default_factory=dict)
+    left_times: Path | None = None
+    right_times: Path | None = None
+
+    @property
+    def files(self) -> tuple[Path, ...]:
+        """Every stored file the analysis reads."""
+        times = (p for p in (self.left_times, self.right_times) if p is not None)
+        return (self.left, self.right, *times)
 
 
 def analysis_inputs(
@@ -350,7 +371,13 @@ def analysis_inputs(
             for side, v in videos.items()
             if not v.proxy_path or not storage.exists(v.proxy_path)
         },
+        left_times=_times_file(storage, videos["left"]),
+        right_times=_times_file(storage, videos["right"]),
     )
+
+
+def _times_file(storage: Storage, video: Video) -> Path | None:
+    return storage.absolute(video.times_path) if video.times_path else None
 
 
 def store_proxies(db: Session, trial_id: int, proxies: dict[str, str]) -> None:

@@ -1,25 +1,110 @@
 """The two videos of an upload (a trial, or a calibration's board recordings).
 
 Checked by decoding (:mod:`app.uploads`), then published into storage and
-recorded as :class:`app.models.Video` rows in the use case's transaction.
+recorded as :class:`app.models.Video` rows in the use case's transaction. A
+trial's video may come with a timestamps file (``left_times`` /
+``right_times``: ``frame,time_s``, each frame's capture time on that camera's
+clock, as the capture page writes them): it is checked against its video's
+frames, stored beside it and referenced by the video's row.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
+import numpy as np
 from sqlalchemy.orm import Session
 
 from app.models import Video
-from app.uploads import InvalidUpload, ParsedUpload, validate_stereo_pair, validate_video
+from app.uploads import (
+    InvalidUpload,
+    ParsedUpload,
+    validate_stereo_pair,
+    validate_times,
+    validate_video,
+)
 from core.camera import StereoRig
+from core.timing import FrameTimes, uniform_times
 from core.video import VideoInfo
 
+SIDES = ("left", "right")
+TIMES_FIELDS = {"left": "left_times", "right": "right_times"}
 
-def check_video_pair(
-    upload: ParsedUpload, *, rig: StereoRig | None = None
-) -> tuple[VideoInfo, VideoInfo, list[str]]:
-    """Decode ``left_video`` and ``right_video``; ``(left, right, warnings)`` if they fit together.
+
+@dataclass(frozen=True)
+class CheckedVideo:
+    """One decoded video of an upload and, if one came with it, its capture times.
+
+    Attributes
+    ----------
+    info : core.video.VideoInfo
+        What the file says about itself; with a timestamps file, ``fps`` is
+        the rate measured from the capture times.
+    times : core.timing.FrameTimes or None
+        From the uploaded timestamps file.
+    """
+
+    info: VideoInfo
+    times: FrameTimes | None = None
+
+    @property
+    def frame_times(self) -> FrameTimes:
+        """The capture times if known, else ``i / fps``."""
+        if self.times is not None:
+            return self.times
+        return uniform_times(self.info.frame_count, self.info.fps)
+
+    @property
+    def duration_s(self) -> float:
+        """From the first frame to the end of the last one (s)."""
+        t = self.frame_times
+        return float(t.t_s[-1] - t.t_s[0]) + t.interval_s if len(t) else 0.0
+
+    def take(self) -> dict[str, object]:
+        """The quick check of this recording: frames, length, rate reached, frames lost."""
+        t = self.frame_times
+        return {
+            "frame_count": len(t),
+            "duration_s": round(self.duration_s, 3),
+            "fps": round(t.fps, 2),
+            "dropped_frames": len(t.dropped_after) if t.variable else None,
+            "time_source": t.source,
+        }
+
+
+@dataclass(frozen=True)
+class VideoPair:
+    """The checked left and right videos of an upload and the warnings about them."""
+
+    left: CheckedVideo
+    right: CheckedVideo
+    warnings: list[str]
+
+    def side(self, side: str) -> CheckedVideo:
+        return self.left if side == "left" else self.right
+
+
+def _checked(upload: ParsedUpload, side: str, info: VideoInfo) -> CheckedVideo:
+    name = TIMES_FIELDS[side]
+    staged = upload.files.get(name)
+    if staged is None:
+        return CheckedVideo(info)
+    times = validate_times(
+        staged.path, label=f"the {side} timestamps file", n_frames=info.frame_count
+    )
+    return CheckedVideo(replace(info, fps=times.fps), times)
+
+
+def check_video_pair(upload: ParsedUpload, *, rig: StereoRig | None = None) -> VideoPair:
+    """Decode ``left_video`` and ``right_video`` (and read their timestamps files, if any).
 
     ``rig`` (when known) is the rig that will measure them: their image size must fit it.
+
+    Raises
+    ------
+    app.uploads.UnsupportedUpload, app.uploads.InvalidUpload
+        A file is not a usable video, a timestamps file does not fit its
+        video, or the two do not form one recording (of the rig).
     """
     left_file = upload.require_file("left_video")
     right_file = upload.require_file("right_video")
@@ -29,14 +114,17 @@ def check_video_pair(
         )
     left = validate_video(left_file.path, label="The left video", filename=left_file.filename)
     right = validate_video(right_file.path, label="The right video", filename=right_file.filename)
-    warnings = validate_stereo_pair(left, right, rig=rig)
-    return left, right, warnings
+    pair = (_checked(upload, "left", left), _checked(upload, "right", right))
+    warnings = validate_stereo_pair(pair[0].info, pair[1].info, rig=rig)
+    return VideoPair(pair[0], pair[1], warnings)
 
 
-def _video_row(upload: ParsedUpload, name: str, info: VideoInfo, side: str) -> Video:
+def _video_row(upload: ParsedUpload, side: str, checked: CheckedVideo) -> Video:
+    name = f"{side}_video"
     stored = upload.publish(name)
     staged = upload.files[name]
-    return Video(
+    info = checked.info
+    video = Video(
         side=side,
         path=stored.path,
         original_filename=(staged.filename or None) and staged.filename[:255],
@@ -47,21 +135,26 @@ def _video_row(upload: ParsedUpload, name: str, info: VideoInfo, side: str) -> V
         width=int(info.image_size.width),
         height=int(info.image_size.height),
         codec=(info.fourcc or None) and str(info.fourcc)[:16],
+        duration_s=float(np.round(checked.duration_s, 6)),
     )
+    if checked.times is not None:
+        times = upload.publish(TIMES_FIELDS[side])
+        video.times_path = times.path
+        video.times_sha256 = times.sha256
+    return video
 
 
 def add_videos(
     db: Session,
     upload: ParsedUpload,
-    left: VideoInfo,
-    right: VideoInfo,
+    pair: VideoPair,
     *,
     trial_id: int | None = None,
     calibration_id: int | None = None,
 ) -> None:
-    """Publish the two checked videos and add their rows (of a trial or a calibration)."""
-    for name, info, side in (("left_video", left, "left"), ("right_video", right, "right")):
-        video = _video_row(upload, name, info, side)
+    """Publish the two checked videos (and timestamps files) and add their rows."""
+    for side in SIDES:
+        video = _video_row(upload, side, pair.side(side))
         video.trial_id = trial_id
         video.calibration_id = calibration_id
         db.add(video)

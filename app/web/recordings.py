@@ -149,6 +149,7 @@ def _create_trial(
                 "job_id": out.job_id,
                 "job_url": job_url,
                 "warnings": out.warnings,
+                "take": out.take,
             },
             status_code=201,
         )
