@@ -585,6 +585,41 @@ class Result(Base):
     calibration: Mapped[Calibration | None] = relationship()
 
 
+class Signature(Base):
+    """A clinician's signature of a visit report: who, when, and the signed PDF's SHA-256.
+
+    A visit is the patient's sessions on one day (``visit_date``, in the clinic's
+    time zone); signatures are numbered 1, 2... per visit, a later one amending
+    the one before. ``pdf_path`` holds the signed bytes, served unchanged;
+    ``trial_revisions`` maps each signed trial (id as text) to its result
+    revision. The database refuses any UPDATE of a signature (migration 0008);
+    rows go only with the erasure of the patient.
+    """
+
+    __tablename__ = "signatures"
+    __table_args__ = (
+        UniqueConstraint("patient_id", "visit_date", "number", name="uq_signatures_visit_number"),
+        Index("ix_signatures_session_id", "session_id"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    patient_id: Mapped[int] = mapped_column(ForeignKey("patients.id"))
+    session_id: Mapped[int] = mapped_column(ForeignKey("sessions.id"))
+    """The session the visit was signed through (any session of that day)."""
+    visit_date: Mapped[str] = mapped_column(String(10))
+    """ISO date of the visit in the clinic's time zone."""
+    number: Mapped[int] = mapped_column(Integer)
+    amends_number: Mapped[int | None] = mapped_column(Integer)
+    signed_by: Mapped[str] = mapped_column(String(320))
+    signed_by_user_id: Mapped[int] = mapped_column(ForeignKey("users.id"))
+    signed_at: Mapped[datetime]
+    sha256: Mapped[str] = mapped_column(String(64))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    pdf_path: Mapped[str] = mapped_column(String(500), unique=True)
+    """The signed PDF, relative to the data directory."""
+    trial_revisions: Mapped[dict[str, Any]] = mapped_column(JSON)
+
+
 # --------------------------------------------------------------------------- audit
 
 
@@ -662,6 +697,7 @@ __all__ = [
     "RecordingSession",
     "Result",
     "Rig",
+    "Signature",
     "Trial",
     "UTCDateTime",
     "User",

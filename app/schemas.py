@@ -409,6 +409,32 @@ class RevisionRead(BaseModel):
     current: bool
 
 
+# --------------------------------------------------------------------------- signatures
+
+
+class SignRequest(_In):
+    """The signing clinician's password, asked again."""
+
+    password: Annotated[str, StringConstraints(min_length=1, max_length=1024)]
+
+
+class SignatureRead(_Out):
+    number: int = Field(description="1, 2... per visit; a later one amends the one before.")
+    amends_number: int | None
+    signed_by: str
+    signed_at: datetime
+    sha256: str = Field(description="SHA-256 (hex) of the signed PDF's bytes.")
+    size_bytes: int
+    visit_date: str
+    trial_revisions: dict[str, int] = Field(description="Result revision of each signed trial.")
+
+
+class VisitSignaturesRead(BaseModel):
+    status: Literal["unsigned", "signed", "amendment_pending"]
+    changes: list[str] = Field(description="What changed since the newest signature.")
+    signatures: list[SignatureRead]
+
+
 # --------------------------------------------------------------------------- auth
 
 

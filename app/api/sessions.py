@@ -8,12 +8,21 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import HTMLResponse
 
 from app.api.responses import AUTH, IdPath, Limit, Offset, errors, json_errors, page
+from app.auth import CurrentActor, ResultReader, SessionDep
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Writer
-from app.auth import ResultReader, SessionDep
-from app.schemas import MAX_ID, Page, SessionCreate, SessionRead, SessionUpdate
+from app.schemas import (
+    MAX_ID,
+    Page,
+    SessionCreate,
+    SessionRead,
+    SessionUpdate,
+    SignatureRead,
+    SignRequest,
+    VisitSignaturesRead,
+)
 from app.services import sessions as service
-from app.services import visits
+from app.services import signatures, visits
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 
@@ -115,14 +124,74 @@ def get_visit_report_html(
     summary="The visit report (every trial of the session's day) as PDF",
 )
 def get_visit_report_pdf(
-    session_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+    session_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    signed: Annotated[
+        bool, Query(description="The signed report, byte for byte, instead of a fresh one.")
+    ] = False,
+    signature: Annotated[
+        int | None,
+        Query(ge=1, le=100_000, description="With signed=true: this signature (default newest)."),
+    ] = None,
 ) -> Response:
     settings = request.app.state.settings
-    pdf = visits.visit_report_pdf(
-        db, actor, session_id, request.app.state.storage, timezone=settings.timezone
-    )
+    storage = request.app.state.storage
+    if signed:
+        row, pdf = signatures.signed_report(
+            db, actor, session_id, storage, timezone=settings.timezone, number=signature
+        )
+        name = f"visit-{session_id}-signed-{row.number}.pdf"
+        headers = {
+            "Content-Disposition": f'attachment; filename="{name}"',
+            "X-Content-SHA256": row.sha256,
+        }
+        return Response(pdf, media_type="application/pdf", headers=headers)
+    pdf = visits.visit_report_pdf(db, actor, session_id, storage, timezone=settings.timezone)
     return Response(
         pdf,
         media_type="application/pdf",
         headers={"Content-Disposition": f'attachment; filename="visit-{session_id}-report.pdf"'},
+    )
+
+
+@router.post(
+    "/{session_id}/sign",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SignatureRead,
+    responses=errors(*AUTH, 404, 409, 429),
+    summary="Sign the visit report (a clinician, with the password again); kept unchanged",
+)
+def sign_visit(
+    session_id: IdPath, data: SignRequest, actor: CurrentActor, db: SessionDep, request: Request
+) -> SignatureRead:
+    row = signatures.sign_visit(
+        db,
+        actor,
+        session_id,
+        data.password,
+        request.app.state.storage,
+        settings=request.app.state.settings,
+        ip=request.client.host[:45] if request.client else None,
+    )
+    return SignatureRead.model_validate(row)
+
+
+@router.get(
+    "/{session_id}/signatures",
+    response_model=VisitSignaturesRead,
+    responses=errors(*AUTH, 404),
+    summary="The visit's signatures and whether an amendment is pending",
+)
+def list_signatures(
+    session_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> VisitSignaturesRead:
+    state = signatures.signing_state(
+        db, actor, session_id, timezone=request.app.state.settings.timezone
+    )
+    return VisitSignaturesRead(
+        status=state.status,
+        changes=state.changes,
+        signatures=[SignatureRead.model_validate(s) for s in state.signatures],
     )

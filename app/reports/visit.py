@@ -17,7 +17,7 @@ and reproduced.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, date, datetime
 
 from app.reports.data import ReportData, summary_column
@@ -53,6 +53,21 @@ class SessionFacts:
 
 
 @dataclass(frozen=True)
+class SignatureLine:
+    """The signature a signed visit report carries (filled in when it is signed).
+
+    ``revisions`` are ``(trial id, result revision)`` pairs of what was signed;
+    ``amends`` the number of the signature this one amends, if any.
+    """
+
+    signed_by: str
+    signed_at: datetime
+    number: int
+    amends: int | None = None
+    revisions: tuple[tuple[int, int], ...] = ()
+
+
+@dataclass(frozen=True)
 class VisitData:
     """Everything the visit report shows.
 
@@ -73,6 +88,8 @@ class VisitData:
     software_version : str
         The software that rendered the report (each trial names what measured it).
     generated_at : datetime (UTC)
+    signature : SignatureLine or None
+        Who signed this report, when, and which revisions (None: not signed).
     """
 
     patient_code: str
@@ -83,6 +100,11 @@ class VisitData:
     trials: tuple[ReportData, ...]
     software_version: str
     generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
+    signature: SignatureLine | None = None
+
+    def signed(self, line: SignatureLine) -> VisitData:
+        """This visit as signed by ``line`` (the report's signature box filled in)."""
+        return replace(self, signature=line, generated_at=line.signed_at)
 
 
 @dataclass(frozen=True)

@@ -9,10 +9,10 @@ REST API for hospital systems).
 
 from fastapi import APIRouter
 
-from app.web import auth_pages, patients, record, recordings, results, review, rigs
+from app.web import auth_pages, patients, record, recordings, results, review, rigs, signing
 
 router = APIRouter(include_in_schema=False)
-for _module in (auth_pages, patients, record, recordings, results, review, rigs):
+for _module in (auth_pages, patients, record, recordings, results, review, rigs, signing):
     router.include_router(_module.router)
 
 __all__ = ["router"]

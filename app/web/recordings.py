@@ -24,7 +24,7 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Job, Trial
-from app.services import sessions, trials, visits
+from app.services import sessions, signatures, trials, visits
 from app.uploads import ParsedUpload
 from app.web.common import (
     PageUser,
@@ -86,6 +86,7 @@ def _session_response(
             for row in overview.trials
         ],
         hidden_trials=overview.hidden,
+        signing=signatures.visit_signing(db, session, str(settings_of(request).timezone)),
         calibration=overview.calibration,
         calibration_problem=overview.calibration_problem,
         hands=("left", "right"),

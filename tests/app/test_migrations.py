@@ -243,3 +243,43 @@ def test_results_become_revision_1_on_upgrade_and_revisions_can_follow(tmp_path,
         assert conn.exec_driver_sql("SELECT id FROM results").all() == [(2,)]
     engine.dispose()
     dispose_engines()
+
+
+def test_signatures_table_on_upgrade_refuses_updates(tmp_path, make_settings):
+    """Revision 0008 on a database made by 0007 (with a result): the signatures table
+    takes a signature of that visit and refuses to change it; a downgrade removes it."""
+    settings = make_settings(tmp_path / "data")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.effective_database_url
+    command.upgrade(alembic_config(url), "0007")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        sql = conn.exec_driver_sql
+        sql(
+            "INSERT INTO users (id, email, password_hash, role, is_active, created_at)"
+            " VALUES (7, 'dr@example.org', 'x', 'clinician', 1, '2026-01-01')"
+        )
+        sql("INSERT INTO rigs (id, name, created_at) VALUES (1, 'r', '2026-01-01')")
+        sql("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
+        sql(
+            "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
+            " dbs_state, created_at) VALUES (1, 1, 1, '2026-01-01', 'off', 'none', '2026-01-01')"
+        )
+    engine.dispose()
+    command.upgrade(alembic_config(url), "head")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO signatures (id, patient_id, session_id, visit_date, number, signed_by,"
+            " signed_by_user_id, signed_at, sha256, size_bytes, pdf_path, trial_revisions)"
+            " VALUES (1, 1, 1, '2026-01-01', 1, 'dr', 7, '2026-01-02', ?, 10, 'files/s.pdf', '{}')",
+            ("a" * 64,),
+        )
+    with pytest.raises(sa.exc.DBAPIError, match="signatures cannot be changed"):
+        with engine.begin() as conn:
+            conn.exec_driver_sql("UPDATE signatures SET sha256 = 'b' WHERE id = 1")
+    engine.dispose()
+    dispose_engines()
+    command.downgrade(alembic_config(url), "0007")
+    assert "signatures" not in _tables(url)
+    dispose_engines()

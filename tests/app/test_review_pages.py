@@ -116,3 +116,39 @@ def test_hide_restore_and_edit_from_the_session_page(client, seeded, db_sessionm
         assert (s.medication_state, s.dbs_state) == ("off", "on")
         assert (s.time_since_levodopa_min, s.more_affected_side) == (90, "left")
         assert s.notes == "re-rated after the video review"
+
+
+def test_sign_from_the_session_page_then_an_amendment_is_pending(client, seeded, db_sessionmaker):  # noqa: F811
+    import hashlib
+
+    from test_pages import PASSWORD
+
+    from app.models import Signature
+
+    csrf = login(client)
+    t = seeded["trials"][(1, "right")]
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, t).session_id
+    page = client.get(f"/sessions/{session_id}").text
+    assert 'data-signing="unsigned"' in page and f'action="/sessions/{session_id}/sign"' in page
+    wrong = client.post(f"/sessions/{session_id}/sign", data={"csrf_token": csrf, "password": "x"})
+    assert wrong.status_code == 401
+    r = client.post(
+        f"/sessions/{session_id}/sign",
+        data={"csrf_token": csrf, "password": PASSWORD},
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text[:300]
+    page = client.get(f"/sessions/{session_id}").text
+    assert 'data-signing="signed"' in page and "Sign the visit report" not in page
+    pdf = client.get(f"/sessions/{session_id}/signed/1.pdf")
+    with db_sessionmaker() as db:
+        sha = db.scalar(select(Signature.sha256))
+    assert pdf.status_code == 200 and hashlib.sha256(pdf.content).hexdigest() == sha
+    client.post(
+        f"/trials/{t}/revisions",
+        data={"csrf_token": csrf, "kind": "correct", "exclude_taps": ["0"], "reason": "a cough"},
+    )
+    page = client.get(f"/sessions/{session_id}").text
+    assert 'data-signing="amendment_pending"' in page and "revision 2 (signed: 1)" in page
+    assert client.get(f"/sessions/{session_id}/signed/1.pdf").content == pdf.content

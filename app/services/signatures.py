@@ -1,0 +1,245 @@
+"""Signed visit reports: a clinician signs a visit; the signed PDF is kept unchanged.
+
+A visit is the patient's sessions on one day (:func:`app.services.common.visit_sessions`).
+Signing it (:func:`sign_visit`) needs the clinician's password again
+(:func:`app.auth.reauthenticate`); it renders the visit report of every trial
+in its current result revision, with the signature line filled in, stores the
+PDF bytes as they are, and records who, when, the bytes' SHA-256 and which
+revision of each trial was signed (:class:`app.models.Signature`). A signature
+row is never changed (the database refuses it) and its PDF is served byte for
+byte (``GET /sessions/{id}/report.pdf?signed=true``).
+
+A correction or re-analysis after signing, or a trial added to or hidden from
+the visit, makes an **amendment pending signature**: the signed report stays
+retrievable, and signing again stores a second signed report that says which
+one it amends. Every signature and every download of a signed report is one
+audit event.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from datetime import date
+from typing import Any, Literal
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.actors import Actor
+from app.audit import audit, audit_failure
+from app.auth import reauthenticate
+from app.errors import ConflictError, NotFoundError, PermissionDeniedError
+from app.models import RecordingSession, Signature, utcnow
+from app.reports.rendering import render_visit_pdf
+from app.reports.visit import SignatureLine
+from app.services.common import load_session, visit_trials
+from app.services.revisions import actor_label
+from app.services.visits import load_visit
+from app.storage import Storage
+from app.timezones import local_date
+
+VisitStatus = Literal["unsigned", "signed", "amendment_pending"]
+
+
+@dataclass(frozen=True)
+class VisitSigning:
+    """Where a visit stands: its signatures (oldest first) and what changed since the newest.
+
+    ``changes`` lists, in words, each difference between the visit now and the
+    newest signature (a trial's newer revision, a trial added or hidden).
+    """
+
+    session: RecordingSession
+    visit_date: date
+    signatures: list[Signature]
+    current: dict[str, int]
+    changes: list[str]
+
+    @property
+    def status(self) -> VisitStatus:
+        if not self.signatures:
+            return "unsigned"
+        return "amendment_pending" if self.changes else "signed"
+
+    @property
+    def newest(self) -> Signature | None:
+        return self.signatures[-1] if self.signatures else None
+
+
+def _visit_key(session: RecordingSession, timezone: str) -> tuple[int, date]:
+    return session.patient_id, local_date(session.recorded_at, timezone)
+
+
+def _signatures(db: Session, patient_id: int, day: date) -> list[Signature]:
+    return list(
+        db.scalars(
+            select(Signature)
+            .where(Signature.patient_id == patient_id, Signature.visit_date == day.isoformat())
+            .order_by(Signature.number)
+        )
+    )
+
+
+def _changes(signed: dict[str, int], now: dict[str, int]) -> list[str]:
+    out = []
+    for trial_id, revision in sorted(now.items(), key=lambda kv: int(kv[0])):
+        before = signed.get(trial_id)
+        if before is None:
+            out.append(f"trial {trial_id} was added (revision {revision})")
+        elif before != revision:
+            out.append(f"trial {trial_id} is now at revision {revision} (signed: {before})")
+    for trial_id in sorted(set(signed) - set(now), key=int):
+        out.append(f"trial {trial_id} was hidden or lost its result")
+    return out
+
+
+def visit_signing(db: Session, session: RecordingSession, timezone: str) -> VisitSigning:
+    """The signing state of ``session``'s visit (no audit: the caller's use case audits)."""
+    patient_id, day = _visit_key(session, timezone)
+    signatures = _signatures(db, patient_id, day)
+    current = {str(t.id): t.result.revision for t in visit_trials(session, timezone) if t.result}
+    changes = _changes(dict(signatures[-1].trial_revisions), current) if signatures else []
+    return VisitSigning(session, day, signatures, current, changes)
+
+
+def sign_visit(
+    db: Session,
+    actor: Actor,
+    session_id: int,
+    password: str,
+    storage: Storage,
+    *,
+    settings: Any,
+    ip: str | None = None,
+) -> Signature:
+    """Sign the visit of ``session_id``: re-authenticate, render, store the PDF, record.
+
+    Raises
+    ------
+    PermissionDeniedError
+        Not a clinician (an admin or an API key cannot sign; audited as denied).
+    AuthenticationError, RateLimitedError
+        The password is wrong, or too many wrong passwords (from ``reauthenticate``).
+    ConflictError
+        Nothing to sign (no measured trial), or nothing changed since the newest signature.
+    """
+    if actor.type != "user" or actor.role != "clinician":
+        audit_failure(db, actor, "sign", "visit", session_id, outcome="denied")
+        raise PermissionDeniedError(
+            "Only a clinician signs a visit report; log in with a clinician's account."
+        )
+    reauthenticate(db, settings, actor, password, ip=ip)  # audited and committed there
+    timezone = str(settings.timezone)
+    session = load_session(db, actor, session_id, "sign")
+    state = visit_signing(db, session, timezone)
+    if not state.current:
+        raise ConflictError("No trial of this visit has a result yet; there is nothing to sign.")
+    if state.status == "signed":
+        newest = state.newest
+        assert newest is not None
+        raise ConflictError(
+            f"This visit was signed (signature {newest.number}) and nothing changed since;"
+            " the signed report stays as it is."
+        )
+    number = (state.newest.number if state.newest else 0) + 1
+    signed_at = utcnow()
+    by = actor_label(db, actor)
+    visit = load_visit(db, session, storage, timezone=timezone)
+    line = SignatureLine(
+        signed_by=by,
+        signed_at=signed_at,
+        number=number,
+        amends=state.newest.number if state.newest else None,
+        revisions=tuple(sorted((int(k), v) for k, v in state.current.items())),
+    )
+    pdf = render_visit_pdf(visit.signed(line))
+    digest = hashlib.sha256(pdf).hexdigest()
+    stored = storage.write_bytes("signed", ".pdf", pdf)
+    try:
+        row = Signature(
+            patient_id=session.patient_id,
+            session_id=session.id,
+            visit_date=state.visit_date.isoformat(),
+            number=number,
+            amends_number=line.amends,
+            signed_by=by,
+            signed_by_user_id=actor.id,
+            signed_at=signed_at,
+            sha256=digest,
+            size_bytes=len(pdf),
+            pdf_path=stored.path,
+            trial_revisions=dict(state.current),
+        )
+        db.add(row)
+        audit(db, actor, "sign", "visit", session.id, session.patient_id)
+        db.commit()
+    except BaseException:
+        db.rollback()
+        storage.delete(stored.path)
+        raise
+    return row
+
+
+def signing_state(db: Session, actor: Actor, session_id: int, *, timezone: str) -> VisitSigning:
+    """The signatures of a visit and whether an amendment is pending (audited ``read``)."""
+    session = load_session(db, actor, session_id, "read")
+    state = visit_signing(db, session, timezone)
+    audit(db, actor, "read", "signature", session.id, session.patient_id)
+    db.commit()
+    return state
+
+
+def signed_report(
+    db: Session,
+    actor: Actor,
+    session_id: int,
+    storage: Storage,
+    *,
+    timezone: str,
+    number: int | None = None,
+) -> tuple[Signature, bytes]:
+    """The signed PDF of the visit, byte for byte (the newest, or signature ``number``).
+
+    Raises
+    ------
+    NotFoundError
+        The visit has no (such) signature.
+    ConflictError
+        The stored bytes no longer match their SHA-256 (the file was damaged).
+    """
+    session = load_session(db, actor, session_id, "export")
+    signatures = visit_signing(db, session, timezone).signatures
+    row = (
+        signatures[-1]
+        if number is None and signatures
+        else next((s for s in signatures if s.number == number), None)
+    )
+    if row is None:
+        audit(db, actor, "export", "signed_report", session.id, session.patient_id, "not_found")
+        db.commit()
+        raise NotFoundError(
+            "This visit has no signed report yet; a clinician signs it from the session page."
+            if not signatures
+            else f"This visit has no signature {number}; it has 1 to {signatures[-1].number}."
+        )
+    body = storage.absolute(row.pdf_path).read_bytes()
+    if hashlib.sha256(body).hexdigest() != row.sha256:
+        audit(db, actor, "export", "signed_report", session.id, session.patient_id, "error")
+        db.commit()
+        raise ConflictError(
+            f"The stored signed report {row.number} does not match its SHA-256; restore the data"
+            " directory from a backup and tell the administrator."
+        )
+    audit(db, actor, "export", "signed_report", session.id, session.patient_id)
+    db.commit()
+    return row, body
+
+
+__all__ = [
+    "VisitSigning",
+    "sign_visit",
+    "signed_report",
+    "signing_state",
+    "visit_signing",
+]
