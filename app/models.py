@@ -592,7 +592,7 @@ class Signature(Base):
     time zone); signatures are numbered 1, 2... per visit, a later one amending
     the one before. ``pdf_path`` holds the signed bytes, served unchanged;
     ``trial_revisions`` maps each signed trial (id as text) to its result
-    revision. The database refuses any UPDATE of a signature (migration 0008);
+    revision. The database refuses any UPDATE of a signature (migration 0009);
     rows go only with the erasure of the patient.
     """
 

@@ -246,12 +246,12 @@ def test_results_become_revision_1_on_upgrade_and_revisions_can_follow(tmp_path,
 
 
 def test_signatures_table_on_upgrade_refuses_updates(tmp_path, make_settings):
-    """Revision 0008 on a database made by 0007 (with a result): the signatures table
+    """Revision 0009 on a database made by 0008 (with a result): the signatures table
     takes a signature of that visit and refuses to change it; a downgrade removes it."""
     settings = make_settings(tmp_path / "data")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     url = settings.effective_database_url
-    command.upgrade(alembic_config(url), "0007")
+    command.upgrade(alembic_config(url), "0008")
     engine = sa.create_engine(url)
     with engine.begin() as conn:
         sql = conn.exec_driver_sql
@@ -280,6 +280,6 @@ def test_signatures_table_on_upgrade_refuses_updates(tmp_path, make_settings):
             conn.exec_driver_sql("UPDATE signatures SET sha256 = 'b' WHERE id = 1")
     engine.dispose()
     dispose_engines()
-    command.downgrade(alembic_config(url), "0007")
+    command.downgrade(alembic_config(url), "0008")
     assert "signatures" not in _tables(url)
     dispose_engines()
