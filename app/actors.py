@@ -9,12 +9,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from app.apikeys import SCOPES
+from app.apikeys import DATA_SCOPES, SCOPES
 
 ADMIN_SCOPE = "admin"
-# Scopes of browser users by role (API clients have their own list).
+# Scopes of browser users by role (API clients have their own list). Only admins read
+# the audit trail.
 ROLE_SCOPES: dict[str, frozenset[str]] = {
-    "clinician": frozenset(SCOPES),
+    "clinician": frozenset(DATA_SCOPES),
     "admin": frozenset((*SCOPES, ADMIN_SCOPE)),
 }
 

@@ -30,8 +30,11 @@ KEY_PREFIX = "bsk"
 _KEY_RE = re.compile(r"^bsk_([0-9a-f]{12})_([A-Za-z0-9_-]{43})$")
 
 # Scopes an API client may hold. The REST API decides which route needs which.
-SCOPES = ("patients:read", "patients:write", "recordings:write", "results:read", "rigs:write")
-DEFAULT_SCOPES = SCOPES
+DATA_SCOPES = ("patients:read", "patients:write", "recordings:write", "results:read", "rigs:write")
+AUDIT_READ = "audit:read"
+"""Reading the audit trail (``GET /audit``): never given by default."""
+SCOPES = (*DATA_SCOPES, AUDIT_READ)
+DEFAULT_SCOPES = DATA_SCOPES
 
 
 def generate_api_key() -> tuple[str, str]:

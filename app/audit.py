@@ -9,7 +9,9 @@ back and commits the event alone.
 Audit rows hold identifiers and verbs only, never clinical values (no
 metrics, notes, ratings, names); ``app.models.AuditEvent`` has no foreign keys
 so that the trail outlives what it describes. The table is append-only: no
-code path updates or deletes its rows.
+code path updates or deletes its rows, and every event is numbered and sealed
+into a keyed hash chain (:mod:`app.chain`) that ``bradyscope admin
+verify-audit`` checks.
 """
 
 from __future__ import annotations
@@ -20,8 +22,9 @@ from typing import Any, Literal
 
 from sqlalchemy.orm import Session
 
+from app import chain
 from app.actors import Actor
-from app.models import ACTOR_ANONYMOUS, AuditEvent
+from app.models import ACTOR_ANONYMOUS, AuditEvent, utcnow
 
 # Set per request by ``app.main.SecurityHeadersMiddleware``.
 request_id_var: ContextVar[str | None] = ContextVar("request_id", default=None)
@@ -68,6 +71,7 @@ def _event(
     else:
         actor_type, actor_id = actor.type, str(actor.id)
     return AuditEvent(
+        at=utcnow(),
         actor_type=actor_type,
         actor_id=actor_id,
         action=action,
@@ -115,8 +119,7 @@ def audit(
         The pending row.
     """
     event = _event(actor, action, resource_type, resource_id, patient_id, outcome)
-    db.add(event)
-    return event
+    return chain.append(db, event)
 
 
 def audit_failure(
@@ -136,5 +139,5 @@ def audit_failure(
     use case wrote anything of its own.
     """
     db.rollback()
-    db.add(_event(actor, action, resource_type, resource_id, patient_id, outcome))
+    chain.append(db, _event(actor, action, resource_type, resource_id, patient_id, outcome))
     db.commit()

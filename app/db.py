@@ -28,6 +28,7 @@ from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.chain import register_key_file
 from app.errors import ServiceUnavailableError
 from app.settings import Settings
 
@@ -61,6 +62,8 @@ def make_engine(settings: Settings, **kwargs: Any) -> Engine:
     SQLite: the data directory is created; the pysqlite driver keeps its
     default transaction handling (BEGIN just before the first write), so a
     read-then-write unit of work waits on ``busy_timeout`` instead of failing.
+    The audit chain's key file (``settings.audit_key_path``) is registered for
+    the engine (read or created at the first audit event).
     """
     url = settings.effective_database_url
     if url.startswith("sqlite"):
@@ -71,8 +74,11 @@ def make_engine(settings: Settings, **kwargs: Any) -> Engine:
         }
         engine = create_engine(url, connect_args=connect_args, **kwargs)
         event.listen(engine, "connect", _sqlite_pragmas(settings.sqlite_busy_timeout_ms))
-        return engine
-    return create_engine(url, pool_pre_ping=True, **kwargs)
+    else:
+        engine = create_engine(url, pool_pre_ping=True, **kwargs)
+    # The audit trail of this database is sealed with the key kept beside its files.
+    register_key_file(engine, settings.audit_key_path)
+    return engine
 
 
 def get_engine(settings: Settings) -> Engine:

@@ -22,6 +22,7 @@ from urllib.parse import quote
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse, Response
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.staticfiles import StaticFiles
@@ -32,6 +33,7 @@ from app import db as app_db
 from app.api import api_router
 from app.audit import client_ip_var, request_id_var
 from app.errors import AppError, PayloadTooLargeError, RateLimitedError
+from app.faults import check_health, storage_fault
 from app.settings import Settings, get_settings
 from app.storage import Storage
 from app.web import router as web_router
@@ -236,6 +238,23 @@ def _install_error_handlers(app: FastAPI) -> None:
             response.headers[name] = value
         return response
 
+    @app.exception_handler(RecursionError)
+    async def too_deep(request: Request, exc: RecursionError) -> JSONResponse:
+        # Python's JSON parser recurses once per nesting level: 50,000 '[' end here.
+        return _error(
+            400, "The request body is nested too deeply to be read; send a flat JSON document."
+        )
+
+    async def storage_or_unexpected(request: Request, exc: Exception) -> Response:
+        fault = storage_fault(exc)
+        if fault is None:
+            return await unexpected(request, exc)
+        log.error("request %s failed on storage: %s", request_id_var.get(), exc)
+        return await app_error(request, fault)
+
+    app.add_exception_handler(OSError, storage_or_unexpected)
+    app.add_exception_handler(DBAPIError, storage_or_unexpected)
+
     @app.exception_handler(Exception)
     async def unexpected(request: Request, exc: Exception) -> JSONResponse:
         # Runs in Starlette's outermost middleware, after ours: read the id from the scope.
@@ -296,9 +315,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(api_router, prefix=API_PREFIX)
 
-    @app.get("/health", tags=["service"], summary="Liveness check (no authentication)")
-    def health() -> dict[str, str]:
-        return {"status": "ok"}
+    @app.get(
+        "/health",
+        tags=["service"],
+        summary="The database answers and the data directory takes a file (no authentication)",
+        responses={503: {"description": "A check failed; `detail` says which and why."}},
+    )
+    def health() -> JSONResponse:
+        result = check_health(engine, settings.data_dir)
+        return JSONResponse(result.as_document(), status_code=200 if result.ok else 503)
 
     @app.get("/favicon.ico", include_in_schema=False)
     def favicon() -> Response:

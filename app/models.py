@@ -246,6 +246,9 @@ class Patient(Base):
     notes: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     deleted_at: Mapped[datetime | None]
+    erased_at: Mapped[datetime | None]
+    """When the patient's data was erased (``app.services.erasure``): the row is then a
+    tombstone whose ``code`` is a keyed hash of the real one, kept for the audit trail."""
 
     sessions: Mapped[list[RecordingSession]] = relationship(
         back_populates="patient", order_by="RecordingSession.recorded_at"
@@ -650,6 +653,21 @@ class AuditEvent(Base):
     """``success``, ``denied``, ``not_found``, ``error``..."""
     ip: Mapped[str | None] = mapped_column(String(45))
     request_id: Mapped[str | None] = mapped_column(String(64))
+    seq: Mapped[int | None] = mapped_column(BigInteger, unique=True, index=True)
+    """The event's number in the hash chain (``app.chain``); NULL for events older than it."""
+    hash: Mapped[str | None] = mapped_column(String(64))
+    """HMAC-SHA256 of the previous event's hash and this event's fields."""
+
+
+class AuditHead(Base):
+    """The newest number and hash of the audit chain: one row, updated with every event."""
+
+    __tablename__ = "audit_head"
+    __table_args__ = (CheckConstraint("id = 1", name="one_row"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    seq: Mapped[int] = mapped_column(BigInteger)
+    hash: Mapped[str] = mapped_column(String(64))
 
 
 # --------------------------------------------------------------------------- services
@@ -688,6 +706,7 @@ __all__ = [
     "TRIAL_STATUSES",
     "ApiClient",
     "AuditEvent",
+    "AuditHead",
     "Base",
     "BrowserSession",
     "Calibration",

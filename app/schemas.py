@@ -454,3 +454,24 @@ class LoginResponse(BaseModel):
     email: str
     role: str
     csrf_token: str
+
+
+# --------------------------------------------------------------------------- audit
+
+
+class AuditEventRead(_Out):
+    """One audit event: who did what to which patient's data, when, with what outcome."""
+
+    id: int
+    seq: int | None = Field(description="Number in the hash chain (null before the chain).")
+    at: datetime
+    actor_type: str = Field(description="user, api_client, system or anonymous.")
+    actor_id: str | None
+    action: str
+    resource_type: str
+    resource_id: str | None
+    patient_id: int | None
+    outcome: str
+    ip: str | None
+    request_id: str | None
+    hash: str | None = Field(description="HMAC-SHA256 seal chaining it to the event before.")

@@ -243,6 +243,11 @@ class IncomingFile:
         self._sha.update(chunk)
         self._fh.write(chunk)
 
+    @property
+    def sha256(self) -> str:
+        """SHA-256 (hex) of the bytes received so far (the whole file once it is complete)."""
+        return self._sha.copy().hexdigest()
+
     def flush(self) -> None:
         """Make the bytes written so far readable at ``temp_path`` (no-op once closed).
 
@@ -263,11 +268,15 @@ class IncomingFile:
         return self._committed
 
     def abort(self) -> None:
-        """Discard the temporary file (idempotent)."""
-        if not self._fh.closed:
-            self._fh.close()
-        with contextlib.suppress(FileNotFoundError):
-            self.temp_path.unlink()
+        """Discard the temporary file (idempotent), also when the disk is full or failing."""
+        try:
+            if not self._fh.closed:
+                self._fh.close()  # flushes: raises again on a full disk, after closing
+        except OSError:
+            pass  # the bytes are being thrown away; what matters is that the file goes
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                self.temp_path.unlink()
 
 
 def file_sha256(path: Path, *, chunk_bytes: int = 1024 * 1024) -> str:

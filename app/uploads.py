@@ -34,6 +34,7 @@ from app.errors import (
     InvalidRequestError,
     PayloadTooLargeError,
     UnsupportedMediaError,
+    http_status_for,
 )
 from app.storage import IncomingFile, Storage, StoredFile
 from core.camera import StereoRig, rig_from_dict
@@ -45,6 +46,7 @@ T = TypeVar("T")
 
 MAX_FIELD_BYTES = 64 * 1024  # a plain form field (hand, board, ...), not a file
 MAX_PARTS = 16
+_AUDITED_BY_USE_CASE = frozenset({401, 403, 404})
 # After a body was refused for its size, keep reading (and dropping) at most
 # this much so that the client can still read the 413 answer.
 _DRAIN_LIMIT_BYTES = 256 * 1024 * 1024
@@ -379,6 +381,7 @@ async def run_upload(
     text_fields: frozenset[str],
     use_case: Callable[[ParsedUpload], T],
     accept: Callable[[ParsedUpload], None] | None = None,
+    on_rejected: Callable[[BaseException], None] | None = None,
 ) -> T:
     """The one way an upload is run, for the API and the pages alike.
 
@@ -388,27 +391,36 @@ async def run_upload(
     files and commits their rows). Whatever fails, every file of the upload is
     removed again; the temporary files are always cleaned up.
 
+    ``on_rejected(exc)`` (run in the thread pool) records an upload refused for
+    its content (a malformed body, too large, not a video, an invalid form...);
+    refusals the use case has audited itself (401, 403, 404) do not reach it.
+
     Raises
     ------
     AppError, core.errors.BradyscopeError
         From receiving, ``accept`` or the use case; the caller answers them.
     """
-    upload = await receive_multipart(
-        request,
-        storage=storage,
-        file_fields=file_fields,
-        text_fields=text_fields,
-        max_file_bytes=max_file_bytes,
-    )
     try:
-        if accept is not None:
-            accept(upload)
-        return await run_in_threadpool(use_case, upload)
-    except BaseException:
-        upload.discard()
+        upload = await receive_multipart(
+            request,
+            storage=storage,
+            file_fields=file_fields,
+            text_fields=text_fields,
+            max_file_bytes=max_file_bytes,
+        )
+        try:
+            if accept is not None:
+                accept(upload)
+            return await run_in_threadpool(use_case, upload)
+        except BaseException:
+            upload.discard()
+            raise
+        finally:
+            upload.close()
+    except (AppError, BradyscopeError) as exc:
+        if on_rejected is not None and http_status_for(exc) not in _AUDITED_BY_USE_CASE:
+            await run_in_threadpool(on_rejected, exc)
         raise
-    finally:
-        upload.close()
 
 
 async def _drain(stream: Any) -> None:
@@ -541,6 +553,11 @@ def validate_rig_file(path: Path) -> StereoRig:
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InvalidUpload(
             "The rig file is not valid JSON; upload the rig.json written by bradyscope calibrate."
+        ) from exc
+    except RecursionError as exc:
+        raise InvalidUpload(
+            "The rig file is nested too deeply to be a rig file; upload the rig.json written by"
+            " bradyscope calibrate."
         ) from exc
     try:
         return rig_from_dict(doc, source="the uploaded rig file")

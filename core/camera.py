@@ -18,6 +18,7 @@ strong distortion.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -410,8 +411,74 @@ def rig_to_dict(rig: StereoRig) -> dict[str, Any]:
     return doc
 
 
+# Physical bounds of a rig file (checked by :func:`rig_from_dict`).
+MAX_IMAGE_SIDE_PX = 100_000
+MAX_FOCAL_IMAGE_RATIO = 50.0
+"""A focal length of at most 50 image sides: a field of view of about 1 degree."""
+MIN_BASELINE_MM = 1.0
+"""Below 1 mm two cameras cannot triangulate a hand at clinical distances."""
+MAX_BASELINE_MM = 10_000.0
+MAX_TRANSLATION_MM = 100_000.0
+
+
+def _json_numbers(value: Any, shape: tuple[int, ...], what: str) -> FloatArray:
+    """A nested list of JSON numbers of ``shape`` (``-1``: any length) as float64.
+
+    Raises ``ValueError`` naming the entry that is text, true/false, null or not finite.
+    """
+
+    def walk(item: Any, depth: int, where: str) -> Any:
+        if depth == len(shape):
+            if isinstance(item, bool) or not isinstance(item, int | float):
+                kind = "the text " + repr(item)[:20] if isinstance(item, str) else repr(item)[:20]
+                raise ValueError(f"{where} is {kind}; it must be a JSON number")
+            if not math.isfinite(float(item)):
+                raise ValueError(f"{where} is {item}; it must be a finite number")
+            return float(item)
+        if not isinstance(item, list):
+            raise ValueError(f"{where} must be a list, not {type(item).__name__}")
+        if shape[depth] != -1 and len(item) != shape[depth]:
+            raise ValueError(f"{where} must have {shape[depth]} entries, not {len(item)}")
+        return [walk(x, depth + 1, f"{where}[{i}]") for i, x in enumerate(item)]
+
+    return np.asarray(walk(value, 0, what), dtype=np.float64)
+
+
+def _image_size(value: Any) -> ImageSize:
+    sides = _json_numbers(value, (2,), "image_size")
+    if not all(float(v).is_integer() and 1 <= v <= MAX_IMAGE_SIDE_PX for v in sides):
+        raise ValueError(
+            f"image_size must be two whole numbers of pixels between 1 and {MAX_IMAGE_SIDE_PX}"
+            f" ([width, height]), got {sides.tolist()}"
+        )
+    return ImageSize(int(sides[0]), int(sides[1]))
+
+
+def _check_intrinsics(K: FloatArray, size: ImageSize) -> None:
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    longest = max(size.width, size.height)
+    for name, f in (("fx", fx), ("fy", fy)):
+        if not 0 < f <= MAX_FOCAL_IMAGE_RATIO * longest:
+            raise ValueError(
+                f"the focal length {name}={f:g} px is impossible for a {size.width}x{size.height}"
+                f" image (it must be above 0 and at most {MAX_FOCAL_IMAGE_RATIO:g} x {longest} px)"
+            )
+    if not (-0.5 <= cx <= size.width - 0.5 and -0.5 <= cy <= size.height - 0.5):
+        raise ValueError(
+            f"the principal point ({cx:g}, {cy:g}) px lies outside the {size.width}x{size.height}"
+            " image"
+        )
+
+
 def rig_from_dict(doc: Any, *, source: str = "the rig file") -> StereoRig:
-    """Parse a ``bradyscope.rig/1`` document; raise :class:`RigFileError` if malformed."""
+    """Parse a ``bradyscope.rig/1`` document; raise :class:`RigFileError` if it is unusable.
+
+    Besides the format, the rig must be physically possible: every parameter a
+    JSON number (not text such as ``"640"``, not ``true``), finite focal
+    lengths above 0 and at most :data:`MAX_FOCAL_IMAGE_RATIO` image sides, the
+    principal point inside the image, rotations that are rotation matrices, and
+    a baseline between :data:`MIN_BASELINE_MM` and :data:`MAX_BASELINE_MM`.
+    """
     from core.errors import RigFileError
 
     if not isinstance(doc, dict):
@@ -444,15 +511,24 @@ def rig_from_dict(doc: Any, *, source: str = "the rig file") -> StereoRig:
         if name != expected:
             raise RigFileError(f"camera {i} in {source} is named {name!r}; expected {expected!r}.")
         try:
+            size = _image_size(cam["image_size"])
+            K = _json_numbers(cam["K"], (3, 3), "K")
+            _check_intrinsics(K, size)
+            t = _json_numbers(cam["t"], (3,), "t")
+            if float(np.linalg.norm(t)) > MAX_TRANSLATION_MM:
+                raise ValueError(f"t is {float(np.linalg.norm(t)):g} mm long; that is no rig")
+            readout = cam.get("readout_ms")
             parsed.append(
                 Camera(
                     name=name,
-                    image_size=ImageSize(*[int(v) for v in cam["image_size"]]),
-                    K=np.asarray(cam["K"], dtype=np.float64),
-                    dist=np.asarray(cam["dist"], dtype=np.float64),
-                    R_cam_from_world=np.asarray(cam["R"], dtype=np.float64),
-                    t_cam_from_world_mm=np.asarray(cam["t"], dtype=np.float64),
-                    readout_ms=float(cam.get("readout_ms") or 0.0),
+                    image_size=size,
+                    K=K,
+                    dist=_json_numbers(cam["dist"], (-1,), "dist"),
+                    R_cam_from_world=_json_numbers(cam["R"], (3, 3), "R"),
+                    t_cam_from_world_mm=t,
+                    readout_ms=0.0
+                    if readout is None
+                    else float(_json_numbers([readout], (1,), "readout_ms")[0]),
                 )
             )
         except (TypeError, ValueError) as exc:
@@ -461,9 +537,16 @@ def rig_from_dict(doc: Any, *, source: str = "the rig file") -> StereoRig:
     if not isinstance(quality, dict):
         raise RigFileError(f"'quality' in {source} must be a JSON object.")
     try:
-        return StereoRig(parsed[0], parsed[1], quality)
+        rig = StereoRig(parsed[0], parsed[1], quality)
     except ValueError as exc:
         raise RigFileError(f"{source} is invalid: {exc}.") from exc
+    if not MIN_BASELINE_MM <= rig.baseline_mm <= MAX_BASELINE_MM:
+        raise RigFileError(
+            f"{source} puts the two cameras {rig.baseline_mm:g} mm apart; a stereo rig needs a"
+            f" baseline between {MIN_BASELINE_MM:g} and {MAX_BASELINE_MM:g} mm (check the right"
+            " camera's t)."
+        )
+    return rig
 
 
 def write_rig(rig: StereoRig, path: str | Any) -> None:
@@ -495,5 +578,9 @@ def read_rig(path: str | Any) -> StereoRig:
     except json.JSONDecodeError as exc:
         raise RigFileError(
             f"{p.name} is not valid JSON (line {exc.lineno}, column {exc.colno}); expected a rig file."
+        ) from exc
+    except RecursionError as exc:
+        raise RigFileError(
+            f"{p.name} is nested too deeply to be a rig file; expected a bradyscope rig JSON file."
         ) from exc
     return rig_from_dict(doc, source=p.name)

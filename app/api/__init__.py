@@ -7,6 +7,7 @@ and shapes the answer. Every status a route can answer is listed in its
 
 from fastapi import APIRouter
 
+from app.api.audit import router as audit_router
 from app.api.auth import router as auth_router
 from app.api.patients import router as patients_router
 from app.api.results import router as results_router
@@ -24,6 +25,7 @@ for _router in (
     trials_router,
     results_router,
     revisions_router,
+    audit_router,
 ):
     api_router.include_router(_router)
 

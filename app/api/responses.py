@@ -23,7 +23,8 @@ _TEXT = {
     415: "The upload is not multipart/form-data, or a file is not a readable video.",
     422: "The request is well-formed but its content is invalid.",
     429: "Too many attempts; wait and retry.",
-    503: "The database is not reachable right now; retry later.",
+    503: "The database is not reachable, or the server's storage refuses writes; retry later.",
+    507: "The server's storage is full; nothing was saved.",
 }
 
 

@@ -94,6 +94,7 @@ async def create_calibration(
         text_fields=calibrations.CALIBRATION_TEXT_FIELDS,
         check=lambda: service.get_rig(db, actor, rig_id),  # 404 before the body
         use_case=use_case,
+        on_rejected=lambda exc: calibrations.audit_rejected_upload(db, actor, rig_id),
     )
 
 

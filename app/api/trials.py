@@ -67,6 +67,7 @@ async def create_trial(
         text_fields=service.TRIAL_TEXT_FIELDS,
         check=lambda: service.check_trial_target(db, actor, session_id),
         use_case=use_case,
+        on_rejected=lambda exc: service.audit_rejected_upload(db, actor, session_id),
     )
 
 

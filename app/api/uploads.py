@@ -40,9 +40,11 @@ async def run_api_upload(
     text_fields: frozenset[str],
     check: Callable[[], object],
     use_case: Callable[[ParsedUpload], T],
+    on_rejected: Callable[[BaseException], None] | None = None,
 ) -> T:
     """Run ``check()`` (e.g. the target exists: a 404 before the body is read), then the
-    upload (:func:`app.uploads.run_upload`); errors go to the app's exception handler."""
+    upload (:func:`app.uploads.run_upload`); errors go to the app's exception handler,
+    after ``on_rejected(exc)`` audited a refused upload."""
     await run_in_threadpool(check)
     return await run_upload(
         request,
@@ -51,4 +53,5 @@ async def run_api_upload(
         file_fields=file_fields,
         text_fields=text_fields,
         use_case=use_case,
+        on_rejected=on_rejected,
     )

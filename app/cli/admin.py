@@ -16,6 +16,12 @@ start-up lock), so it works on a fresh data directory.
 - ``revoke-api-key NAME``, ``list-api-keys`` (owner, expiry, last use), ``migrate``.
 - ``check-migrations``: exit 2 if ``app/models.py`` and ``migrations/`` disagree
   (``alembic check`` against the migrated database).
+- ``export-audit [--since ISO]``: the audit trail as JSON lines on stdout;
+  ``verify-audit``: recompute its hash chain (exit 2 when it was tampered with).
+- ``erase-patient CODE``, ``apply-retention [--dry-run]``: erase a patient's
+  data (``app.services.erasure``).
+- ``backup DIR``, ``restore DIR [--force]``: ``app.backup``. ``restore`` does not
+  migrate first (the backup brings its own schema); it migrates afterwards.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import getpass
 import os
 import re
 import sys
-from datetime import timedelta
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -45,7 +51,7 @@ PASSWORD_ENV = "BRADYSCOPE_PASSWORD"
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    from app.apikeys import SCOPES
+    from app.apikeys import DEFAULT_SCOPES, SCOPES
     from app.models import ROLES
 
     p = sub.add_parser("admin", help="create users and API keys; migrate the database")
@@ -98,9 +104,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--scopes",
         nargs="+",
         choices=SCOPES,
-        default=list(SCOPES),
+        default=list(DEFAULT_SCOPES),
         metavar="SCOPE",
-        help=f"granted scopes (default: all of {', '.join(SCOPES)})",
+        help=f"granted scopes among {', '.join(SCOPES)} (default: {', '.join(DEFAULT_SCOPES)})",
     )
     k.set_defaults(admin_func=create_api_key)
 
@@ -119,6 +125,41 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     c.set_defaults(admin_func=check_migrations)
 
+    ea = asub.add_parser("export-audit", help="write the audit trail as JSON lines to stdout")
+    ea.add_argument(
+        "--since", default=None, metavar="ISO", help="only events at or after this time (UTC)"
+    )
+    ea.set_defaults(admin_func=export_audit)
+
+    va = asub.add_parser("verify-audit", help="check the audit trail's hash chain")
+    va.set_defaults(admin_func=verify_audit)
+
+    ep = asub.add_parser(
+        "erase-patient", help="erase a patient's videos, results and records (audit kept)"
+    )
+    ep.add_argument("code")
+    ep.set_defaults(admin_func=erase_patient)
+
+    ar = asub.add_parser(
+        "apply-retention",
+        help="erase every patient past BRADYSCOPE_RETENTION_DAYS since their last recording",
+    )
+    ar.add_argument("--dry-run", action="store_true", help="only list who would be erased")
+    ar.set_defaults(admin_func=apply_retention)
+
+    bk = asub.add_parser("backup", help="back up the database and the stored files into DIR")
+    bk.add_argument("directory", type=Path, metavar="DIR")
+    bk.set_defaults(admin_func=backup)
+
+    rs = asub.add_parser("restore", help="restore a backup made with 'admin backup'")
+    rs.add_argument("directory", type=Path, metavar="DIR")
+    rs.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a database and data directory that already hold data",
+    )
+    rs.set_defaults(admin_func=restore, migrate_first=False)
+
     p.set_defaults(func=run)
 
 
@@ -126,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
     from app.db import migrate
 
     settings = settings_with(data_dir=args.data_dir)
-    migrate(settings)
+    if getattr(args, "migrate_first", True):
+        migrate(settings)
     return int(args.admin_func(settings, args) or 0)
 
 
@@ -415,4 +457,135 @@ def check_migrations(settings: Settings, args: argparse.Namespace) -> int:
             f"the models differ from the migrations ({exc}); write a migration for the change."
         ) from exc
     print("models and migrations agree", file=sys.stderr)
+    return 0
+
+
+def _iso(text: str, option: str) -> datetime:
+    from datetime import UTC
+
+    try:
+        value = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise InvalidRequestError(
+            f"{option} must be an ISO 8601 time such as 2026-01-31T08:00:00Z, not {text!r}."
+        ) from None
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+def export_audit(settings: Settings, args: argparse.Namespace) -> int:
+    import json
+
+    from app.audit import audit
+    from app.db import session_scope
+    from app.services import audit_log
+
+    since = _iso(args.since, "--since") if args.since else None
+    f = audit_log.make_filter(since=since)
+    count = 0
+    with session_scope(settings) as db:
+        for event in audit_log.iter_events(db, f):
+            sys.stdout.write(json.dumps(audit_log.as_document(event), ensure_ascii=False) + "\n")
+            count += 1
+        audit(db, cli_actor(), "export", "audit")
+    sys.stdout.flush()
+    print(f"{count} audit events exported", file=sys.stderr)
+    return 0
+
+
+def verify_audit(settings: Settings, args: argparse.Namespace) -> int:
+    from app.chain import verify_chain
+    from app.db import session_scope
+    from app.errors import AppError
+
+    with session_scope(settings) as db:
+        report = verify_chain(db)
+    if report.unchained_before:
+        print(
+            f"{report.unchained_before} events from before the chain began are not sealed.",
+            file=sys.stderr,
+        )
+    if not report.ok:
+        for problem in report.problems:
+            print(f"  {problem}", file=sys.stderr)
+        raise AppError(
+            f"the audit trail was tampered with: {len(report.problems)} problem(s) above;"
+            " restore the database from a backup and investigate."
+        )
+    print(
+        f"audit trail intact: {report.chained} chained events; head {report.head_seq}"
+        f" {report.head_hash} (note it elsewhere to detect a truncation later)"
+    )
+    return 0
+
+
+def erase_patient(settings: Settings, args: argparse.Namespace) -> int:
+    from app.db import session_scope
+    from app.services.erasure import erase_patient as erase
+    from app.storage import Storage
+
+    with session_scope(settings) as db:
+        report = erase(db, Storage.from_settings(settings), cli_actor(), args.code.strip())
+    rows = ", ".join(f"{n} {table}" for table, n in sorted(report.rows.items())) or "no rows"
+    print(
+        f"patient {args.code.strip()} erased (id {report.patient_id}): {rows};"
+        f" {report.files_removed} files removed"
+        + (f", {report.files_missing} already missing" if report.files_missing else ""),
+        file=sys.stderr,
+    )
+    return 0
+
+
+def apply_retention(settings: Settings, args: argparse.Namespace) -> int:
+    from app.db import session_scope
+    from app.services.erasure import apply_retention as retention
+    from app.storage import Storage
+
+    if settings.retention_days is None:
+        raise InvalidRequestError(
+            "no retention period is set; set BRADYSCOPE_RETENTION_DAYS (e.g. 3650) first."
+        )
+    with session_scope(settings) as db:
+        done = retention(
+            db,
+            Storage.from_settings(settings),
+            cli_actor(),
+            settings.retention_days,
+            dry_run=args.dry_run,
+        )
+    verb = "would be erased" if args.dry_run else "erased"
+    print(
+        f"{len(done)} patient(s) {verb} (retention {settings.retention_days} days)", file=sys.stderr
+    )
+    return 0
+
+
+def backup(settings: Settings, args: argparse.Namespace) -> int:
+    from app.audit import audit
+    from app.backup import backup as make_backup
+    from app.db import session_scope
+
+    summary = make_backup(settings, args.directory)
+    with session_scope(settings) as db:
+        audit(db, cli_actor(), "backup", "database")
+    print(
+        f"backup of the {summary.database} database (revision {summary.revision}) and"
+        f" {summary.files - 1} files, {summary.size_bytes / 1e6:.1f} MB, in {summary.directory}",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def restore(settings: Settings, args: argparse.Namespace) -> int:
+    from app.audit import audit
+    from app.backup import restore as put_back
+    from app.db import session_scope
+
+    summary = put_back(settings, args.directory, force=args.force)
+    with session_scope(settings) as db:
+        audit(db, cli_actor(), "restore", "database")
+    print(
+        f"restored {summary.files} files ({summary.size_bytes / 1e6:.1f} MB) into"
+        f" {settings.data_dir}; database at revision {summary.revision}",
+        file=sys.stderr,
+    )
     return 0

@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session
 
 from app import jobs
 from app.actors import Actor
-from app.audit import audit
+from app.audit import audit, audit_failure
 from app.errors import CalibrationMissingError, ConflictError, InvalidRequestError, NotFoundError
 from app.models import (
     Calibration,
@@ -187,6 +187,11 @@ def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
     except ValueError as exc:
         raise InvalidUpload(f"The board description is invalid: {exc}.") from exc
     return fields
+
+
+def audit_rejected_upload(db: Session, actor: Actor, rig_id: int) -> None:
+    """Record a calibration upload refused for its content (outcome ``invalid``); commits."""
+    audit_failure(db, actor, "create", "calibration", None, None, outcome="invalid")
 
 
 def _concurrent_calibration(rig_id: int) -> ConflictError:

@@ -25,16 +25,25 @@ from app.reports.catalogue import TREND_METRICS
 from app.reports.result import read_result
 from app.schemas import PatientCreate, PatientUpdate
 from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
+from app.services.erasure import tombstone_code
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
-    query = select(Patient).where(func.lower(Patient.code) == code.lower())
+    """The patient holding ``code`` (any case), or the erased patient it belonged to."""
+    query = select(Patient).where(
+        func.lower(Patient.code).in_((code.lower(), tombstone_code(db, code).lower()))
+    )
     if exclude_id is not None:
         query = query.where(Patient.id != exclude_id)
     return db.scalars(query.limit(1)).first()
 
 
 def _conflict(existing: Patient) -> ConflictError:
+    if existing.erased_at is not None:
+        return ConflictError(
+            "This code belonged to a patient whose data was erased and stays reserved;"
+            " choose another code."
+        )
     if existing.deleted_at is not None:
         return ConflictError(
             f"The code {existing.code} belonged to a deleted patient and stays reserved;"

@@ -334,6 +334,8 @@ def trial_page(
             comparison = Comparison(
                 trial=other, data=load_report_data(db, other, storage, timezone=timezone)
             )
+            # The compared trial's result is read too: it has its own audit event.
+            audit(db, actor, "read", "result", other.id, patient.id)
     page = TrialPage(
         trial=trial,
         patient=patient,

@@ -26,7 +26,13 @@ from app.errors import InvalidRequestError, NotFoundError, PermissionDeniedError
 from app.models import Job, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import calibration_for, rig_to_check_against
-from app.services.common import cancel_trial_jobs, load_session, load_trial, trial_is_visible
+from app.services.common import (
+    cancel_trial_jobs,
+    load_session,
+    load_trial,
+    trial_is_visible,
+    visible_session,
+)
 from app.services.videos import add_videos, check_video_pair
 from app.storage import Storage
 from app.uploads import InvalidUpload, ParsedUpload
@@ -110,6 +116,13 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
         raise
     take = {side: pair.side(side).take() for side in ("left", "right")}
     return TrialOut(trial=trial, job_id=job.id, warnings=warnings, take=take)
+
+
+def audit_rejected_upload(db: Session, actor: Actor, session_id: int) -> None:
+    """Record a trial upload refused for its content (outcome ``invalid``); commits."""
+    session = visible_session(db, session_id)
+    patient_id = session.patient_id if session is not None else None
+    audit_failure(db, actor, "create", "trial", None, patient_id, outcome="invalid")
 
 
 def trial_view(db: Session, trial: Trial) -> dict[str, Any]:

@@ -9,10 +9,20 @@ REST API for hospital systems).
 
 from fastapi import APIRouter
 
-from app.web import auth_pages, patients, record, recordings, results, review, rigs, signing
+from app.web import (
+    admin,
+    auth_pages,
+    patients,
+    record,
+    recordings,
+    results,
+    review,
+    rigs,
+    signing,
+)
 
 router = APIRouter(include_in_schema=False)
-for _module in (auth_pages, patients, record, recordings, results, review, rigs, signing):
+for _module in (auth_pages, patients, record, recordings, results, review, rigs, signing, admin):
     router.include_router(_module.router)
 
 __all__ = ["router"]

@@ -21,6 +21,7 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from app.actors import Actor
+from app.apikeys import AUDIT_READ
 from app.auth import CSRF_HEADER, SessionDep, get_optional_user
 from app.errors import AppError, PermissionDeniedError
 from app.settings import Settings
@@ -29,6 +30,7 @@ from app.uploads import ParsedUpload, run_upload
 from core.errors import BradyscopeError
 
 NAV = (("patients", "/patients", "Patients"), ("rigs", "/rigs", "Calibration"))
+ADMIN_NAV = (("audit", "/admin/audit", "Audit trail"),)
 
 T = TypeVar("T")
 
@@ -134,7 +136,7 @@ def render(
     base = {
         "user": user,
         "csrf_token": user.csrf_token if user is not None else "",
-        "nav": NAV,
+        "nav": NAV + (ADMIN_NAV if user is not None and user.has_scope(AUDIT_READ) else ()),
         "active": active,
         "clinic_tz": settings_of(request).timezone,
         "error": context.pop("error", None),
@@ -157,6 +159,7 @@ def error_page(
         422: "The input could not be used",
         429: "Too many attempts",
         503: "Temporarily unavailable",
+        507: "Storage full",
     }
     return render(
         request,
@@ -198,6 +201,7 @@ async def run_page_upload(
     fail: Callable[[Session, Actor, int, str], Response],
     use_case: Callable[[Session, Actor, ParsedUpload], Response],
     prepare: Callable[[ParsedUpload], None] | None = None,
+    rejected: Callable[[Session, Actor], None] | None = None,
 ) -> Response:
     """A page's upload: log-in, CSRF and target checks, then :func:`app.uploads.run_upload`.
 
@@ -217,6 +221,9 @@ async def run_page_upload(
         likewise); an ``AppError`` or a core error becomes ``fail``.
     prepare : callable, optional
         Adjusts the parsed form before the use case (e.g. drops unused empty parts).
+    rejected : callable, optional
+        ``rejected(db, user)`` audits an upload refused for its content (with a
+        database session of its own).
     """
 
     if user is None:
@@ -252,6 +259,9 @@ async def run_page_upload(
             text_fields=frozenset(text_fields) | {"csrf_token"},
             use_case=lambda upload: with_own_db(request, use_case, actor, upload),
             accept=accept,
+            on_rejected=None
+            if rejected is None
+            else (lambda exc: with_own_db(request, rejected, actor)),
         )
     except AppError as exc:
         return await failed(status_of(exc), str(exc))

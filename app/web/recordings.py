@@ -172,6 +172,7 @@ async def trial_upload(request: Request, session_id: int) -> Response:
             request, db, actor, session_id, status=status, error=message
         ),
         use_case=lambda db, actor, upload: _create_trial(db, request, actor, session_id, upload),
+        rejected=lambda db, actor: trials.audit_rejected_upload(db, actor, session_id),
     )
 
 

@@ -292,4 +292,5 @@ async def calibration_upload(request: Request, rig_id: int) -> Response:
         ),
         use_case=lambda db, actor, upload: _create(db, request, actor, rig_id, upload),
         prepare=_drop_unused_parts,
+        rejected=lambda db, actor: calibrations.audit_rejected_upload(db, actor, rig_id),
     )

@@ -1,0 +1,388 @@
+"""Backups: the database and every stored file, with a manifest of checksums; and restore.
+
+``bradyscope admin backup DIR`` writes::
+
+    DIR/
+      manifest.json         format, time, database kind and migration revision,
+                            and every file below with its size and SHA-256
+      database.sqlite3      SQLite: a consistent copy made with SQLite's online
+                            backup API (safe while the service runs)
+      database.pgdump       PostgreSQL: pg_dump's custom format (pg_dump must be at
+                            least the server's major version; checked first)
+      files/...             a copy of <data dir>/files
+      audit.key             the audit chain's secret key (keep the backup as safe as
+                            the data directory itself)
+
+The database is copied first, then the files: stored files are only ever added
+(or removed by an erasure), so the copy holds every file the database copy
+refers to, at worst a few more. ``restore DIR`` checks every checksum before
+it changes anything, refuses to overwrite a database or data directory that
+holds data (unless ``force``), puts the database and the files back, and
+brings the database to the newest migration.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import sqlite3
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import inspect, text
+from sqlalchemy.engine import make_url
+
+from app.chain import forget_key
+from app.db import current_revision, dispose_engines, get_engine, migrate
+from app.errors import AppError, ConflictError, InvalidRequestError, ServiceUnavailableError
+from app.models import Base, utcnow
+from app.settings import Settings
+
+MANIFEST = "manifest.json"
+FORMAT = "bradyscope.backup/1"
+SQLITE_FILE = "database.sqlite3"
+PG_FILE = "database.pgdump"
+AUDIT_KEY_FILE = "audit.key"
+_CHUNK = 1024 * 1024
+
+
+class BackupError(AppError):
+    """A backup cannot be made or restored; the sentence says why and what to do."""
+
+    http_status = 500
+
+
+@dataclass(frozen=True)
+class BackupSummary:
+    """What a backup holds (or what a restore put back)."""
+
+    directory: Path
+    database: str
+    revision: str | None
+    files: int
+    size_bytes: int
+
+
+def _sha256(path: Path) -> str:
+    sha = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(_CHUNK):
+            sha.update(block)
+    return sha.hexdigest()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _copy(src: Path, dst: Path) -> tuple[int, str]:
+    """Copy one file (fsynced); returns its size and SHA-256."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    sha = hashlib.sha256()
+    size = 0
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        while block := fin.read(_CHUNK):
+            sha.update(block)
+            fout.write(block)
+            size += len(block)
+        fout.flush()
+        os.fsync(fout.fileno())
+    shutil.copystat(src, dst)
+    return size, sha.hexdigest()
+
+
+def _sqlite_path(settings: Settings) -> Path:
+    database = make_url(settings.effective_database_url).database
+    if not database or database == ":memory:":
+        raise BackupError("an in-memory SQLite database cannot be backed up.")
+    return Path(database)
+
+
+# --------------------------------------------------------------------------- PostgreSQL tools
+
+
+def _pg_env(settings: Settings) -> dict[str, str]:
+    """libpq's environment for the configured database (the password never on a command line)."""
+    url = make_url(settings.effective_database_url)
+    env = dict(os.environ)
+    for name, value in (
+        ("PGHOST", url.host),
+        ("PGPORT", url.port),
+        ("PGUSER", url.username),
+        ("PGPASSWORD", url.password),
+        ("PGDATABASE", url.database),
+    ):
+        if value is not None:
+            env[name] = str(value)
+    sslmode = url.query.get("sslmode")
+    if isinstance(sslmode, str):
+        env["PGSSLMODE"] = sslmode
+    return env
+
+
+def _tool_major(tool: str) -> int:
+    try:
+        out = subprocess.run(
+            [tool, "--version"], capture_output=True, text=True, check=True, timeout=30
+        ).stdout
+    except (OSError, subprocess.SubprocessError) as exc:
+        raise BackupError(
+            f"{tool} is needed to back up or restore PostgreSQL but cannot be run ({exc});"
+            " install the PostgreSQL client tools (Debian: postgresql-client)."
+        ) from exc
+    match = re.search(r"(\d+)(?:\.\d+)?", out)
+    if match is None:
+        raise BackupError(f"cannot read the version of {tool} from {out.strip()!r}.")
+    return int(match.group(1))
+
+
+def _server_major(settings: Settings) -> int:
+    with get_engine(settings).connect() as conn:
+        number = int(conn.execute(text("SHOW server_version_num")).scalar_one())
+    return number // 10000
+
+
+def check_pg_tools(settings: Settings, tool: str) -> tuple[int, int]:
+    """``(client major, server major)``; refuses a client older than the server."""
+    client, server = _tool_major(tool), _server_major(settings)
+    if client < server:
+        raise BackupError(
+            f"{tool} is version {client} but the database server is PostgreSQL {server}; an older"
+            f" {tool} cannot read a newer server. Install postgresql-client-{server}."
+        )
+    return client, server
+
+
+def _run(tool: str, args: list[str], env: dict[str, str]) -> None:
+    proc = subprocess.run([tool, *args], env=env, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        reason = " ".join(proc.stderr.split())[:500] or f"exit status {proc.returncode}"
+        raise BackupError(f"{tool} failed: {reason}")
+
+
+# --------------------------------------------------------------------------- backup
+
+
+def _empty_target(target: Path) -> None:
+    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+        raise ConflictError(
+            f"{target} is not an empty directory; give a new directory for the backup."
+        )
+    target.mkdir(parents=True, exist_ok=True)
+    target.chmod(0o700)  # patient data and the audit key
+
+
+def backup(settings: Settings, target: Path) -> BackupSummary:
+    """Back up the database, the stored files and the audit key into ``target`` (new or empty).
+
+    Raises
+    ------
+    ConflictError
+        ``target`` holds something already.
+    BackupError
+        The database could not be copied (``pg_dump`` missing or too old...).
+    """
+    target = target.expanduser().resolve()
+    if target.is_relative_to(settings.data_dir):
+        raise InvalidRequestError("put the backup outside the data directory it backs up.")
+    _empty_target(target)
+    revision = current_revision(settings)
+    entries: list[dict[str, Any]] = []
+    if settings.is_sqlite:
+        kind, db_file = "sqlite", target / SQLITE_FILE
+        source = sqlite3.connect(_sqlite_path(settings))
+        try:
+            copy = sqlite3.connect(db_file)
+            try:
+                source.backup(copy)  # online: a consistent snapshot while others write
+            finally:
+                copy.close()
+        finally:
+            source.close()
+    else:
+        kind, db_file = "postgresql", target / PG_FILE
+        check_pg_tools(settings, "pg_dump")
+        _run(
+            "pg_dump",
+            ["--format=custom", "--no-owner", "--no-privileges", f"--file={db_file}"],
+            _pg_env(settings),
+        )
+    _fsync(db_file)
+    entries.append(
+        {"path": db_file.name, "size_bytes": db_file.stat().st_size, "sha256": _sha256(db_file)}
+    )
+
+    files_dir = settings.data_dir / "files"
+    if files_dir.is_dir():
+        for src in sorted(p for p in files_dir.rglob("*") if p.is_file()):
+            rel = src.relative_to(settings.data_dir).as_posix()
+            size, digest = _copy(src, target / rel)
+            entries.append({"path": rel, "size_bytes": size, "sha256": digest})
+    key = settings.audit_key_path
+    if key.is_file():
+        size, digest = _copy(key, target / AUDIT_KEY_FILE)
+        (target / AUDIT_KEY_FILE).chmod(0o600)
+        entries.append({"path": AUDIT_KEY_FILE, "size_bytes": size, "sha256": digest})
+
+    manifest = {
+        "format": FORMAT,
+        "created_at": utcnow().isoformat().replace("+00:00", "Z"),
+        "database": {"kind": kind, "file": db_file.name, "revision": revision},
+        "files": entries,
+    }
+    partial = target / (MANIFEST + ".part")
+    partial.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    _fsync(partial)
+    os.replace(partial, target / MANIFEST)  # the manifest last: its presence means complete
+    _fsync(target)
+    return BackupSummary(
+        directory=target,
+        database=kind,
+        revision=revision,
+        files=len(entries),
+        size_bytes=sum(int(e["size_bytes"]) for e in entries),
+    )
+
+
+# --------------------------------------------------------------------------- restore
+
+
+def read_manifest(source: Path) -> dict[str, Any]:
+    """The backup's manifest, after checking that every file it lists is intact."""
+    path = source / MANIFEST
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InvalidRequestError(
+            f"{source} holds no {MANIFEST}; it is not a complete bradyscope backup."
+        ) from None
+    except (OSError, ValueError, RecursionError) as exc:
+        raise InvalidRequestError(f"{path} cannot be read ({exc}).") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise InvalidRequestError(f"{path} is not a {FORMAT} manifest.")
+    for entry in manifest.get("files", []):
+        rel = str(entry.get("path", ""))
+        file = (source / rel).resolve()
+        if not rel or not file.is_relative_to(source.resolve()):
+            raise InvalidRequestError(f"{path} lists a path outside the backup: {rel!r}.")
+        if not file.is_file():
+            raise InvalidRequestError(f"the backup is incomplete: {rel} is missing.")
+        if file.stat().st_size != entry.get("size_bytes") or _sha256(file) != entry.get("sha256"):
+            raise InvalidRequestError(
+                f"the backup is damaged: {rel} differs from its checksum in the manifest;"
+                " restore from another backup."
+            )
+    return manifest
+
+
+def _database_holds_data(settings: Settings) -> bool:
+    engine = get_engine(settings)
+    with engine.connect() as conn:
+        present = set(inspect(conn).get_table_names())
+        for table in Base.metadata.sorted_tables:
+            if (
+                table.name in present
+                and conn.execute(text(f'SELECT 1 FROM "{table.name}" LIMIT 1')).first()
+            ):
+                return True
+    return False
+
+
+def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupSummary:
+    """Put a backup back into the configured database and data directory, then migrate.
+
+    Every checksum is verified before anything changes. Without ``force`` the
+    database and ``<data dir>/files`` must hold no data yet.
+
+    Raises
+    ------
+    InvalidRequestError
+        The backup is incomplete, damaged, or of another database kind.
+    ConflictError
+        The target holds data and ``force`` is not given.
+    """
+    source = source.expanduser().resolve()
+    manifest = read_manifest(source)
+    database = manifest.get("database") or {}
+    kind = "sqlite" if settings.is_sqlite else "postgresql"
+    if database.get("kind") != kind:
+        raise InvalidRequestError(
+            f"this backup holds a {database.get('kind')} database but bradyscope is configured"
+            f" for {kind}; set BRADYSCOPE_DATABASE_URL accordingly."
+        )
+    files_dir = settings.data_dir / "files"
+    has_files = files_dir.is_dir() and any(p.is_file() for p in files_dir.rglob("*"))
+    if not force and (has_files or _database_holds_data(settings)):
+        raise ConflictError(
+            "the database or the data directory already holds data; restore into an empty"
+            " one, or pass --force to replace it (stop the service first)."
+        )
+    db_file = source / str(database.get("file"))
+    if kind == "sqlite":
+        dispose_engines()
+        path = _sqlite_path(settings)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        copy = sqlite3.connect(db_file)
+        try:
+            live = sqlite3.connect(path)
+            try:
+                copy.backup(live)  # page by page, in one transaction of the live file
+            finally:
+                live.close()
+        finally:
+            copy.close()
+    else:
+        check_pg_tools(settings, "pg_restore")
+        dispose_engines()
+        _run(
+            "pg_restore",
+            [
+                "--clean",
+                "--if-exists",
+                "--no-owner",
+                "--no-privileges",
+                "--single-transaction",
+                "--exit-on-error",
+                f"--dbname={make_url(settings.effective_database_url).database}",
+                str(db_file),
+            ],
+            _pg_env(settings),
+        )
+    if force and files_dir.is_dir():
+        shutil.rmtree(files_dir)
+    count, total = 1, int(db_file.stat().st_size)
+    for entry in manifest.get("files", []):
+        rel = str(entry["path"])
+        if rel == db_file.name:
+            continue
+        dst = settings.audit_key_path if rel == AUDIT_KEY_FILE else settings.data_dir / rel
+        if rel == AUDIT_KEY_FILE and dst.exists() and not force:
+            if _sha256(dst) != entry["sha256"]:
+                raise ConflictError(f"{dst} holds another audit key; move it away or pass --force.")
+            continue
+        size, digest = _copy(source / rel, dst)
+        if digest != entry["sha256"]:
+            raise BackupError(f"{rel} changed while it was restored; check the disk and retry.")
+        if rel == AUDIT_KEY_FILE:
+            dst.chmod(0o600)
+            forget_key(dst)
+        count += 1
+        total += size
+    (settings.data_dir / "tmp").mkdir(parents=True, exist_ok=True)
+    migrate(settings)  # a backup of an older version is brought forward
+    try:
+        revision = current_revision(settings)
+    except Exception as exc:  # pragma: no cover - the migration just succeeded
+        raise ServiceUnavailableError(f"the restored database cannot be read ({exc}).") from exc
+    return BackupSummary(
+        directory=source, database=kind, revision=revision, files=count, size_bytes=total
+    )

@@ -1,0 +1,184 @@
+"""Storage faults in plain words, and the health check that looks for them.
+
+A full disk or a read-only data directory used to surface as a bare 500.
+:func:`storage_fault` recognises the operating system's and the databases'
+ways of saying so and turns them into the service's errors:
+
+- disk full (``ENOSPC``, ``EDQUOT``, SQLite ``SQLITE_FULL``, PostgreSQL
+  ``53100 disk_full``) -> :class:`InsufficientStorageError` (507);
+- read-only (``EROFS``, SQLite ``SQLITE_READONLY``, PostgreSQL ``25006``),
+  a storage I/O error, or an unreachable database -> 503.
+
+Nothing is half-written when they happen: an upload's files are removed
+(``app.uploads.run_upload``) and the request's transaction is rolled back, so
+no row points at a missing file. Reads fail too while the database cannot be
+written, because every read writes its audit event: failing closed is right,
+and the answer says why.
+
+:func:`check_health` is what ``GET /health`` answers: the database answers a
+query, and a file can be written, fsynced and removed in the data directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import text
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import DBAPIError
+
+from app.errors import (
+    AppError,
+    InsufficientStorageError,
+    ServiceUnavailableError,
+    StorageReadOnlyError,
+)
+
+FULL = (
+    "The server's storage is full, so nothing was saved; ask the administrator to free disk"
+    " space, then retry."
+)
+READ_ONLY = (
+    "The server's storage refuses writes (read-only), so nothing was saved; ask the"
+    " administrator to check the data directory's disk, then retry."
+)
+IO_ERROR = (
+    "The server's storage reported an input/output error, so nothing was saved; ask the"
+    " administrator to check the disk, then retry."
+)
+DATABASE_DOWN = (
+    "The database cannot be reached right now, so nothing was done; retry in a moment or ask"
+    " the administrator."
+)
+
+_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+_READ_ONLY_ERRNOS = frozenset({errno.EROFS})
+_IO_ERRNOS = frozenset({errno.EIO})
+
+
+def _sqlite_fault(orig: Any) -> AppError | None:
+    name = str(getattr(orig, "sqlite_errorname", "") or "")
+    message = str(orig).lower()
+    if name == "SQLITE_FULL" or "database or disk is full" in message:
+        return InsufficientStorageError(FULL)
+    if name.startswith("SQLITE_READONLY") or "readonly database" in message:
+        return StorageReadOnlyError(READ_ONLY)
+    if name.startswith(("SQLITE_IOERR", "SQLITE_CANTOPEN")) or "disk i/o error" in message:
+        return StorageReadOnlyError(IO_ERROR)
+    return None
+
+
+def _postgres_fault(orig: Any) -> AppError | None:
+    sqlstate = str(getattr(orig, "sqlstate", "") or "")
+    if sqlstate == "53100":  # disk_full
+        return InsufficientStorageError(FULL)
+    if (
+        sqlstate == "25006"
+    ):  # read_only_sql_transaction (a standby, or default_transaction_read_only)
+        return StorageReadOnlyError(READ_ONLY)
+    if sqlstate.startswith("08") or sqlstate in ("57P01", "57P02", "57P03"):
+        return ServiceUnavailableError(DATABASE_DOWN)
+    return None
+
+
+def storage_fault(exc: BaseException) -> AppError | None:
+    """The service error for a storage or database fault, or None if ``exc`` is something else."""
+    if isinstance(exc, DBAPIError):
+        orig = exc.orig
+        fault = _sqlite_fault(orig) or _postgres_fault(orig)
+        if fault is None and exc.connection_invalidated:
+            fault = ServiceUnavailableError(DATABASE_DOWN)
+        return fault
+    if isinstance(exc, OSError):
+        if exc.errno in _FULL_ERRNOS:
+            return InsufficientStorageError(FULL)
+        if exc.errno in _READ_ONLY_ERRNOS:
+            return StorageReadOnlyError(READ_ONLY)
+        if exc.errno in _IO_ERRNOS:
+            return StorageReadOnlyError(IO_ERROR)
+    cause = exc.__cause__ or exc.__context__
+    if cause is not None and cause is not exc and isinstance(cause, OSError | DBAPIError):
+        return storage_fault(cause)
+    return None
+
+
+# --------------------------------------------------------------------------- health
+
+
+@dataclass
+class Health:
+    """The answer of ``GET /health``: ``ok`` and each check's verdict."""
+
+    checks: dict[str, str] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+    free_bytes: int | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def as_document(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {"status": "ok" if self.ok else "unavailable", **self.checks}
+        if self.free_bytes is not None:
+            doc["data_dir_free_bytes"] = self.free_bytes
+        if self.problems:
+            doc["detail"] = " ".join(self.problems)
+        return doc
+
+
+def _check_database(engine: Engine) -> str | None:
+    try:
+        with engine.connect() as conn:
+            conn.execute(text("SELECT 1")).scalar_one()
+    except Exception as exc:  # any failure is the answer: the database does not answer
+        fault = storage_fault(exc)
+        reason = str(fault) if fault is not None else DATABASE_DOWN
+        return f"Database: {reason}"
+    return None
+
+
+def _check_writable(data_dir: Path) -> str | None:
+    probe = data_dir / "tmp" / f".health-{uuid.uuid4().hex}"
+    try:
+        probe.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, b"bradyscope health check\n" * 64)  # 1.5 KB: a page must be found
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        fault = storage_fault(exc)
+        return (
+            f"Data directory: {fault}"
+            if fault is not None
+            else (f"Data directory: {data_dir} cannot be written ({exc.strerror}).")
+        )
+    finally:
+        with contextlib.suppress(OSError):  # absent when it could not be made
+            probe.unlink()
+    return None
+
+
+def check_health(engine: Engine, data_dir: Path) -> Health:
+    """Whether the database answers and the data directory takes a file."""
+    health = Health()
+    for name, problem in (
+        ("database", _check_database(engine)),
+        ("storage", _check_writable(data_dir)),
+    ):
+        health.checks[name] = "ok" if problem is None else "failed"
+        if problem is not None:
+            health.problems.append(problem)
+    try:
+        stat = os.statvfs(data_dir)
+        health.free_bytes = int(stat.f_bavail * stat.f_frsize)
+    except OSError:
+        health.free_bytes = None
+    return health
