@@ -11,9 +11,10 @@ STAMP  := $(VENV)/.installed-stamp
 # - to build .venv (deps-build): the venv module, Python's headers and a C compiler
 #   (core/_blobs.pyx is compiled with Cython), each only if $(PYTHON) lacks it;
 # - to serve (deps-run): Pango, HarfBuzz, fontconfig and a font for the PDF reports (WeasyPrint);
-# - to test (deps-test): Chromium (browser tests), poppler-utils (reading the PDF reports).
+# - to test (deps-test): Chromium (browser tests), poppler-utils (reading the PDF reports),
+#   postgresql-client (pg_dump/pg_restore for the PostgreSQL backup round trip).
 RUN_PACKAGES  := libpango-1.0-0 libpangoft2-1.0-0 libharfbuzz0b libharfbuzz-subset0 libfontconfig1 libglib2.0-0 fonts-dejavu-core
-TEST_PACKAGES := chromium poppler-utils
+TEST_PACKAGES := chromium poppler-utils postgresql-client
 
 # Installs the packages listed in the shell variable $$need (a no-op when it is empty).
 APT_INSTALL = if [ -n "$$need" ]; then \
