@@ -47,7 +47,8 @@ from app.apikeys import SCOPES, parse_api_key, verify_api_key
 from app.audit import ANONYMOUS, audit, audit_failure
 from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
 from app.models import ApiClient, BrowserSession, User, utcnow
-from app.passwords import DUMMY_HASH, hash_password, needs_rehash, verify_password
+from app.oidc import Identity
+from app.passwords import DUMMY_HASH, NO_PASSWORD, hash_password, needs_rehash, verify_password
 from app.settings import Settings
 
 SESSION_COOKIE = "bradyscope_session"
@@ -412,12 +413,100 @@ def login_user(
     AuthenticationError
         Wrong e-mail or password, or an inactive account (401).
     """
+    if not settings.local_login:
+        raise AuthenticationError(
+            "Log in through the hospital's single sign-on; passwords are switched off here."
+        )
     user = _check_password(db, settings, email=email, password=password, ip=ip)
+    return open_session(
+        db,
+        settings,
+        user,
+        ip=ip,
+        user_agent=user_agent,
+        replace_token=replace_token,
+        password=password,
+    )
+
+
+def login_sso(
+    db: Session,
+    settings: Any,
+    identity: Identity,
+    *,
+    ip: str | None = None,
+    user_agent: str | None = None,
+    replace_token: str | None = None,
+) -> LoginResult:
+    """Open a session for the person the identity provider vouched for (``app.oidc``); commits.
+
+    The account is the one bound to the token's subject, else the one with its
+    e-mail address (then bound to the subject). Without such an account the
+    login is refused, unless ``settings.oidc_create_users``.
+
+    Raises
+    ------
+    AuthenticationError
+        No account, a deactivated one, or one bound to another identity (401, audited).
+    """
+
+    def refuse(user_id: int | None, message: str) -> AuthenticationError:
+        audit_failure(db, ANONYMOUS, "login", "user", user_id, outcome="denied")
+        return AuthenticationError(message)
+
+    user = db.scalar(select(User).where(User.oidc_subject == identity.subject))
+    if user is None:
+        user = db.scalar(select(User).where(User.email == normalise_email(identity.email)))
+        if user is not None and user.oidc_subject not in (None, identity.subject):
+            raise refuse(
+                user.id,
+                f"The account {identity.email} is bound to another identity at the provider;"
+                " ask an administrator.",
+            )
+        if user is None:
+            if not settings.oidc_create_users:
+                raise refuse(
+                    None,
+                    f"There is no bradyscope account for {identity.email}; ask an administrator"
+                    " to create one.",
+                )
+            user = User(
+                email=normalise_email(identity.email),
+                password_hash=NO_PASSWORD,
+                role="clinician",
+                display_name=identity.name,
+            )
+            db.add(user)
+            db.flush()
+            audit(db, None, "create", "user", user.id)
+        user.oidc_subject = identity.subject
+    if not user.is_active:
+        raise refuse(user.id, "This account was deactivated; ask an administrator.")
+    return open_session(
+        db, settings, user, ip=ip, user_agent=user_agent, replace_token=replace_token
+    )
+
+
+def open_session(
+    db: Session,
+    settings: Any,
+    user: User,
+    *,
+    ip: str | None = None,
+    user_agent: str | None = None,
+    replace_token: str | None = None,
+    password: str | None = None,
+) -> LoginResult:
+    """Open a browser session for ``user`` (authenticated by the caller), audit it; commits.
+
+    ``replace_token``: the browser's previous session, ended (no session fixation).
+    ``password``: given after a password login, to re-hash an old-parameter hash.
+    """
     if replace_token:
         old = db.get(BrowserSession, _sha256(replace_token))
         if old is not None:
             db.delete(old)
-    if needs_rehash(user.password_hash):
+    if password is not None and needs_rehash(user.password_hash):
         user.password_hash = hash_password(password)
     token = secrets.token_urlsafe(32)
     csrf_token = secrets.token_urlsafe(32)

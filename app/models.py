@@ -165,6 +165,8 @@ class User(Base):
     is_active: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     last_login_at: Mapped[datetime | None]
+    oidc_subject: Mapped[str | None] = mapped_column(String(255), unique=True, index=True)
+    """The identity provider's ``sub`` (single sign-on), bound at the first such login."""
 
 
 class ApiClient(Base):

@@ -94,6 +94,28 @@ class Settings(BaseSettings):
         description="Erase a patient this many days after their last recording "
         "('admin apply-retention'); unset: keep until erased by hand.",
     )
+    local_login: bool = Field(
+        default=True,
+        description="Allow e-mail + password logins (false: single sign-on only).",
+    )
+    oidc_issuer: str | None = Field(
+        default=None,
+        description="OpenID Connect issuer URL of the hospital's identity provider; unset: no SSO.",
+    )
+    oidc_client_id: str | None = Field(default=None, description="bradyscope's client id there.")
+    oidc_client_secret: str | None = Field(default=None, description="Its client secret.")
+    oidc_scopes: str = Field(default="openid email profile")
+    oidc_email_claim: str = Field(
+        default="email", description="The ID-token claim holding the account's e-mail address."
+    )
+    oidc_create_users: bool = Field(
+        default=False,
+        description="Create a clinician account at a person's first SSO login "
+        "(default: only accounts an administrator created may log in).",
+    )
+    oidc_display_name: str = Field(
+        default="the hospital's single sign-on", description="The login button's words."
+    )
     audit_key_file: Path | None = Field(
         default=None,
         description="Secret key of the audit hash chain; default <data_dir>/audit.key.",

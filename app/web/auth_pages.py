@@ -10,10 +10,20 @@ import hmac
 import secrets
 from typing import Annotated
 
-from fastapi import APIRouter, Form, Request
+from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
-from app.auth import SessionDep, login_from_request, logout_from_request
+from app import oidc
+from app.audit import ANONYMOUS, audit_failure
+from app.auth import (
+    SESSION_COOKIE,
+    SessionDep,
+    login_from_request,
+    login_sso,
+    logout_from_request,
+    set_session_cookie,
+)
+from app.chain import load_key
 from app.errors import AppError
 from app.web.common import csrf_ok, page_user, render, safe_next, settings_of, status_of
 
@@ -41,6 +51,10 @@ def _login_form(
         next_url=next_url,
         email=email,
         error=error,
+        sso_label=settings_of(request).oidc_display_name
+        if oidc.enabled(settings_of(request))
+        else None,
+        local_login=bool(settings_of(request).local_login),
     )
     response.set_cookie(
         LOGIN_CSRF_COOKIE,
@@ -92,6 +106,88 @@ def login_submit(
         )
     response.delete_cookie(LOGIN_CSRF_COOKIE, path="/login")
     return response
+
+
+@router.get("/login/oidc")
+def oidc_start(request: Request, next: str | None = None) -> Response:
+    """Send the browser to the hospital's identity provider (single sign-on)."""
+    settings = settings_of(request)
+    if not oidc.enabled(settings):
+        return RedirectResponse("/login?msg=Single+sign-on+is+not+set+up+here.", status_code=303)
+    try:
+        begun = oidc.start(
+            settings, _instance_key(request), _callback_url(request), safe_next(next)
+        )
+    except AppError as exc:
+        return _login_form(
+            request, next_url=safe_next(next), status_code=status_of(exc), error=str(exc)
+        )
+    response = RedirectResponse(begun.url, status_code=303)
+    response.set_cookie(
+        oidc.STATE_COOKIE,
+        begun.cookie,
+        max_age=oidc.STATE_MAX_AGE_S,
+        path=oidc.CALLBACK_PATH,
+        httponly=True,
+        samesite="lax",  # the provider sends the browser back with a top-level GET
+        secure=bool(settings.secure_cookies),
+    )
+    return response
+
+
+@router.get(oidc.CALLBACK_PATH)
+def oidc_callback(
+    request: Request,
+    db: SessionDep,
+    code: Annotated[str, Query(max_length=4096)] = "",
+    state: Annotated[str, Query(max_length=512)] = "",
+    error: Annotated[str, Query(max_length=200)] = "",
+) -> Response:
+    """The provider's answer: validate it, open the session, go where the user was heading."""
+    settings = settings_of(request)
+    try:
+        if not oidc.enabled(settings):
+            raise oidc.OidcError("Single sign-on is not set up here; log in with your password.")
+        if error or not code:
+            raise oidc.OidcError(
+                f"The identity provider did not log you in ({error or 'no code'}); try again."
+            )
+        identity = oidc.finish(
+            settings,
+            _instance_key(request),
+            cookie=request.cookies.get(oidc.STATE_COOKIE),
+            code=code,
+            state=state,
+            redirect_uri=_callback_url(request),
+        )
+        response = RedirectResponse(safe_next(identity.next_url), status_code=303)
+        result = login_sso(
+            db,
+            settings,
+            identity,
+            ip=request.client.host[:45] if request.client else None,
+            user_agent=request.headers.get("user-agent"),
+            replace_token=request.cookies.get(SESSION_COOKIE),
+        )
+    except AppError as exc:
+        if isinstance(exc, oidc.OidcError):
+            audit_failure(db, ANONYMOUS, "login", "user", None, outcome="denied")
+        failed = _login_form(
+            request, next_url="/patients", status_code=status_of(exc), error=str(exc)
+        )
+        failed.delete_cookie(oidc.STATE_COOKIE, path=oidc.CALLBACK_PATH)
+        return failed
+    set_session_cookie(response, result.token, settings=settings)
+    response.delete_cookie(oidc.STATE_COOKIE, path=oidc.CALLBACK_PATH)
+    return response
+
+
+def _callback_url(request: Request) -> str:
+    return str(request.url_for("oidc_callback"))
+
+
+def _instance_key(request: Request) -> bytes:
+    return load_key(settings_of(request).audit_key_path)
 
 
 @router.post("/logout")

@@ -1,7 +1,7 @@
-"""The audit trail becomes a keyed hash chain; patients can be erased.
+"""The audit trail becomes a keyed hash chain; patients can be erased; single sign-on.
 
-Revision ID: 0006
-Revises: 0005
+Revision ID: 0007
+Revises: 0006
 Create Date: 2026-11-24
 
 ``audit_events`` gains ``seq`` (the event's number in the chain, UNIQUE) and
@@ -15,6 +15,9 @@ index is done in place on SQLite too, so the append-only triggers of revision
 
 ``patients.erased_at``: when the patient's data was erased (its row stays as a
 pseudonymised tombstone for the audit trail).
+
+``users.oidc_subject``: the identity provider's ``sub`` of an account that
+logged in through single sign-on (UNIQUE), bound at its first such login.
 """
 
 from collections.abc import Sequence
@@ -23,8 +26,8 @@ import sqlalchemy as sa
 from alembic import op
 
 # revision identifiers, used by Alembic.
-revision: str = "0006"
-down_revision: str | Sequence[str] | None = "0005"
+revision: str = "0007"
+down_revision: str | Sequence[str] | None = "0006"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
@@ -47,9 +50,15 @@ def upgrade() -> None:
     op.bulk_insert(head, [{"id": 1, "seq": 0, "hash": GENESIS}])
     with op.batch_alter_table("patients", recreate="never") as batch_op:
         batch_op.add_column(sa.Column("erased_at", sa.DateTime(timezone=True), nullable=True))
+    with op.batch_alter_table("users", recreate="never") as batch_op:
+        batch_op.add_column(sa.Column("oidc_subject", sa.String(length=255), nullable=True))
+        batch_op.create_index(batch_op.f("ix_users_oidc_subject"), ["oidc_subject"], unique=True)
 
 
 def downgrade() -> None:
+    with op.batch_alter_table("users") as batch_op:
+        batch_op.drop_index(batch_op.f("ix_users_oidc_subject"))
+        batch_op.drop_column("oidc_subject")
     with op.batch_alter_table("patients") as batch_op:
         batch_op.drop_column("erased_at")
     op.drop_table("audit_head")
