@@ -42,6 +42,8 @@ from app.db import current_revision, dispose_engines, get_engine, migrate
 from app.errors import AppError, ConflictError, InvalidRequestError, ServiceUnavailableError
 from app.models import Base, utcnow
 from app.settings import Settings
+from app.storage import file_sha256 as _sha256
+from app.storage import fsync_path as _fsync
 
 MANIFEST = "manifest.json"
 FORMAT = "bradyscope.backup/1"
@@ -66,22 +68,6 @@ class BackupSummary:
     revision: str | None
     files: int
     size_bytes: int
-
-
-def _sha256(path: Path) -> str:
-    sha = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(_CHUNK):
-            sha.update(block)
-    return sha.hexdigest()
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _copy(src: Path, dst: Path) -> tuple[int, str]:

@@ -36,14 +36,6 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import httpx
-from authlib.common.security import generate_token
-from authlib.common.urls import add_params_to_uri
-from authlib.oauth2.rfc7636 import create_s256_code_challenge
-from joserfc import jwt
-from joserfc.errors import JoseError
-from joserfc.jwk import KeySet
-
 from app.errors import AuthenticationError, ServiceUnavailableError
 from app.settings import Settings
 
@@ -52,6 +44,8 @@ CALLBACK_PATH = "/auth/oidc/callback"
 STATE_MAX_AGE_S = 600
 ID_TOKEN_ALGORITHMS = ["RS256", "RS384", "RS512", "PS256", "PS384", "PS512", "ES256", "ES384"]
 _TIMEOUT_S = 10.0
+# Authlib, joserfc and httpx are imported where they are used: a site without single
+# sign-on does not pay for them at start-up.
 
 
 class OidcError(AuthenticationError):
@@ -78,6 +72,8 @@ _DISCOVERY_TTL_S = 3600.0
 
 
 def _get_json(url: str) -> dict[str, Any]:
+    import httpx
+
     try:
         response = httpx.get(url, timeout=_TIMEOUT_S, follow_redirects=False)
         response.raise_for_status()
@@ -151,6 +147,10 @@ class Start:
 
 def start(settings: Settings, key: bytes, redirect_uri: str, next_url: str) -> Start:
     """Begin a login at the provider: the authorization URL (PKCE S256) and the state cookie."""
+    from authlib.common.security import generate_token
+    from authlib.common.urls import add_params_to_uri
+    from authlib.oauth2.rfc7636 import create_s256_code_challenge
+
     found = provider(settings)
     state, nonce, verifier = generate_token(32), generate_token(32), generate_token(64)
     url = add_params_to_uri(
@@ -195,6 +195,11 @@ def finish(
     ServiceUnavailableError
         The provider cannot be reached (503).
     """
+    import httpx
+    from joserfc import jwt
+    from joserfc.errors import JoseError
+    from joserfc.jwk import KeySet
+
     if not cookie:
         raise OidcError("The single sign-on attempt was not started here; start the login again.")
     remembered = _unseal(key, cookie)

@@ -60,7 +60,8 @@ class StoredFile:
     sha256: str
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_path(path: Path) -> None:
+    """fsync a file or a directory (a directory: so that a rename in it is durable)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -137,7 +138,7 @@ class Storage:
         if final.exists():
             raise StorageError(f"stored file {path} already exists; refusing to overwrite it.")
         os.replace(temp, final)
-        _fsync_dir(final.parent)
+        fsync_path(final.parent)
 
     def write_bytes(self, category: str, suffix: str, data: bytes) -> StoredFile:
         """Store ``data`` atomically under a new path."""

@@ -31,7 +31,7 @@ import getpass
 import os
 import re
 import sys
-from datetime import datetime, timedelta
+from datetime import timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -460,18 +460,6 @@ def check_migrations(settings: Settings, args: argparse.Namespace) -> int:
     return 0
 
 
-def _iso(text: str, option: str) -> datetime:
-    from datetime import UTC
-
-    try:
-        value = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
-    except ValueError:
-        raise InvalidRequestError(
-            f"{option} must be an ISO 8601 time such as 2026-01-31T08:00:00Z, not {text!r}."
-        ) from None
-    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
-
-
 def export_audit(settings: Settings, args: argparse.Namespace) -> int:
     import json
 
@@ -479,7 +467,7 @@ def export_audit(settings: Settings, args: argparse.Namespace) -> int:
     from app.db import session_scope
     from app.services import audit_log
 
-    since = _iso(args.since, "--since") if args.since else None
+    since = audit_log.parse_time(args.since, "--since") if args.since else None
     f = audit_log.make_filter(since=since)
     count = 0
     with session_scope(settings) as db:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import Select, select
@@ -45,6 +45,18 @@ def parse_actor(text: str | None) -> tuple[str | None, str | None]:
             " (e.g. user:3, api_client:2, system:cli:root)."
         )
     return match.group(1), match.group(2)
+
+
+def parse_time(text: str, name: str) -> datetime:
+    """An ISO 8601 date or time from a user (UTC when it has no zone)."""
+    try:
+        value = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise InvalidRequestError(
+            f"{name} must be an ISO 8601 date or time such as 2026-01-31 or"
+            f" 2026-01-31T08:00:00Z, not {text[:40]!r}."
+        ) from None
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
 
 
 def make_filter(

@@ -6,7 +6,7 @@ the refusal is audited like an API refusal. Reading the page is audited too.
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
@@ -15,7 +15,7 @@ from fastapi.responses import HTMLResponse
 from app.apikeys import AUDIT_READ
 from app.audit import audit_failure
 from app.auth import SessionDep
-from app.errors import AppError, InvalidRequestError
+from app.errors import AppError
 from app.services import audit_log
 from app.web.common import PageUser, error_page, render, status_of
 
@@ -25,15 +25,7 @@ PAGE_SIZE = 50
 
 
 def _time(text: str | None, name: str) -> datetime | None:
-    if not text:
-        return None
-    try:
-        value = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
-    except ValueError:
-        raise InvalidRequestError(
-            f"{name} must be a date or time such as 2026-01-31 or 2026-01-31T08:00."
-        ) from None
-    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+    return audit_log.parse_time(text, name) if text else None
 
 
 @router.get("/admin/audit", response_class=HTMLResponse)

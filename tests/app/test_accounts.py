@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import math
 import socket
 import threading
 import time
@@ -157,19 +156,19 @@ def test_delays_grow_then_the_account_locks(app_settings: Settings, db_sessionma
             db.execute(update(LoginThrottle).values(blocked_until=utcnow() - timedelta(seconds=1)))
             db.commit()
 
-    def blocked_s() -> float:
+    def blocked_s() -> float:  # the delay set by the last attempt, from the row's own times
         with db_sessionmaker() as db:
             rows = db.scalars(select(LoginThrottle).where(LoginThrottle.ip == "10.0.0.1")).all()
-            until = rows[0].blocked_until
-            return 0.0 if until is None else (until - utcnow()).total_seconds()
+            until, at = rows[0].blocked_until, rows[0].last_attempt_at
+            return 0.0 if until is None else (until - at).total_seconds()
 
     delays = []
     for _ in range(9):
         with pytest.raises(AuthenticationError):
             attempt()
-        delays.append(math.ceil(blocked_s()))
+        delays.append(round(blocked_s(), 6))
         wait_out()
-    # 5 free attempts, then 30 s doubling (s, rounded up: the test takes a moment)
+    # 5 free attempts, then 30 s doubling (s)
     assert delays == [0, 0, 0, 0, 30, 60, 120, 240, 480]
     with pytest.raises(AuthenticationError):
         attempt()  # the 10th consecutive failure

@@ -27,6 +27,8 @@ NOT_PATIENT_DATA = {
     ("GET", "/api/v1/calibrations/{calibration_id}"),
     ("GET", "/api/v1/calibrations/{calibration_id}/rig.json"),
     ("GET", "/api/v1/jobs/{job_id}"),
+    # the audit trail itself (scope audit:read; its reads are audited, see test_audit_trail.py)
+    ("GET", "/api/v1/audit"),
 }
 # Audited like the others, but only an administrator may call them (the key here is not
 # one): tests/app/test_revisions.py::test_hide_and_restore_follow_the_roles counts their events.
