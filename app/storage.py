@@ -244,11 +244,6 @@ class IncomingFile:
         self._sha.update(chunk)
         self._fh.write(chunk)
 
-    @property
-    def sha256(self) -> str:
-        """SHA-256 (hex) of the bytes received so far (the whole file once it is complete)."""
-        return self._sha.copy().hexdigest()
-
     def flush(self) -> None:
         """Make the bytes written so far readable at ``temp_path`` (no-op once closed).
 
