@@ -324,9 +324,11 @@ def _check_password(
         audit_failure(db, ANONYMOUS, "login", "user", None, outcome="throttled")
         raise
     user = db.scalar(select(User).where(User.email == normalise_email(email)))
-    # Verify against a dummy hash for unknown users: same time, no account enumeration.
-    ok = verify_password(user.password_hash if user else DUMMY_HASH, password)
-    if not ok or user is None or not user.is_active:
+    # Verify against a dummy hash for unknown users and accounts without a local password
+    # (single sign-on only): same time, no account enumeration.
+    local = user is not None and user.password_hash != NO_PASSWORD
+    ok = verify_password(user.password_hash if user and local else DUMMY_HASH, password)
+    if not ok or not local or user is None or not user.is_active:
         audit(db, ANONYMOUS, "login", "user", user.id if user else None, outcome="denied")
         db.commit()
         raise AuthenticationError("The e-mail address or the password is wrong.")
