@@ -433,7 +433,7 @@ def login_user(
 
 def login_sso(
     db: Session,
-    settings: Any,
+    settings: Settings,
     identity: Identity,
     *,
     ip: str | None = None,
@@ -491,7 +491,7 @@ def login_sso(
 
 def open_session(
     db: Session,
-    settings: Any,
+    settings: Settings,
     user: User,
     *,
     ip: str | None = None,

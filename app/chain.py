@@ -16,7 +16,7 @@ Removing rows from the end *and* moving ``audit_head`` back is the one change
 the chain alone cannot see; record the head that ``verify-audit`` prints
 elsewhere now and then to catch that too.
 
-Events written before the chain existed (revision 0007) have no number and
+Events written before the chain existed (revision 0010) have no number and
 are reported as not chained.
 """
 
@@ -210,7 +210,7 @@ def verify_chain(db: Session, *, max_problems: int = 20) -> ChainReport:
         return len(report.problems) >= max_problems
 
     previous_hash = GENESIS
-    expected_seq = 1  # the head starts at 0 (revision 0007)
+    expected_seq = 1  # the head starts at 0 (revision 0010)
     last_seq = 0
     for event in _events(db):
         seq = int(event.seq or 0)

@@ -415,7 +415,7 @@ def test_the_chain_starts_on_a_database_of_the_previous_revision(tmp_path, make_
     from app.db import dispose_engines, migrate
 
     settings = make_settings(tmp_path / "data")
-    migrate(settings, revision="0006")
+    migrate(settings, revision="0009")
     engine = get_sessionmaker(settings).kw["bind"]
     with engine.begin() as conn:  # two events written by the previous version
         for i in (1, 2):
