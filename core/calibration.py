@@ -371,8 +371,9 @@ def collect_views(
         if same_rate and (not np.isfinite(sync.correlation) or whole_frame):
             sync = dataclasses.replace(sync, offset_s=0.0, method=board_sync.SYNCHRONOUS)
         elif not np.isfinite(sync.correlation) or sync.correlation < board_sync.MIN_CORRELATION:
-            # Cameras at different rates, and no motion to time them by.
-            sync = dataclasses.replace(sync, offset_s=0.0, method=board_sync.SYNCHRONOUS)
+            # Cameras at different rates and no motion to time them by: pair in time from
+            # their starts (frame numbers differ), the still views at least.
+            sync = dataclasses.replace(sync, offset_s=0.0)
     views = pair_views(track_l, track_r, board, sync)
     return ViewCollection(
         views,

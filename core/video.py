@@ -486,13 +486,18 @@ def _decode_loop(
                 frame = frame[:height]
             elif frame.ndim == 3:
                 frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-        while not halt.is_set():
-            try:
-                out.put(frame, timeout=0.1)
-                break
-            except queue.Full:
-                continue
+        _hand_over(out, halt, frame)
         index += 1
+
+
+def _hand_over(out: queue.Queue[Any], halt: threading.Event, item: Any) -> None:
+    """Queue ``item`` for the consumer, waiting while the queue is full, unless halted."""
+    while not halt.is_set():
+        try:
+            out.put(item, timeout=0.1)
+            return
+        except queue.Full:
+            continue
 
 
 def _decode_loop_av(
@@ -524,12 +529,7 @@ def _decode_loop_av(
                     image = np.asarray(_upright(image, frame), dtype=np.uint8)
                     if times is not None:
                         times.append(float(frame.time) if frame.time is not None else np.nan)
-                    while not halt.is_set():
-                        try:
-                            out.put(image, timeout=0.1)
-                            break
-                        except queue.Full:
-                            continue
+                    _hand_over(out, halt, image)
                 index += 1
         except av.FFmpegError:
             pass  # a damaged stream ends here, as with OpenCV; expected_count tells

@@ -563,3 +563,30 @@ def test_videos_of_different_sessions_are_refused(tmp_path):
         calibrate_stereo_from_paths(
             tmp_path / "5" / "chessboard_left.mkv", tmp_path / "6" / "chessboard_right.mkv", board
         )
+
+
+def test_free_running_cameras_at_different_frame_rates(tmp_path):
+    """A 15-fps and a 30-fps camera, the faster starting 0.25 s later: paired in time."""
+    from core.simulation.timing import CameraTiming
+
+    rig = example_rig(image_size=ImageSize(640, 512))
+    write_board_recordings(
+        rig,
+        tmp_path,
+        seed=7,
+        board="chessboard",
+        duration_s=5.0,
+        fps=15.0,
+        pose_interval_s=0.6,
+        supersample=2,
+        timing=(CameraTiming(), CameraTiming(fps=30.0, start_s=0.25)),
+    )
+    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
+    result = calibrate_stereo_from_paths(
+        tmp_path / "chessboard_left.mkv", tmp_path / "chessboard_right.mkv", board
+    )
+    sync = result.quality["sync"]
+    assert sync["method"] == "estimated" and sync["fps_right"] == 30.0
+    assert abs(sync["offset_s"] - 0.25) < 0.003  # s (0.0002 measured)
+    assert abs(result.rig.baseline_mm - rig.baseline_mm) < 0.5  # mm, 8 views at 640x512 (0.05)
+    assert result.quality["warnings"] == []
