@@ -23,8 +23,10 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -33,12 +35,12 @@ from app import jobs
 from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, InvalidRequestError, NotFoundError
-from app.models import Result, Trial, User, utcnow
+from app.models import Job, Result, Trial, User, utcnow
 from app.schemas import RevisionCreate
 from app.services.common import load_trial
 from app.storage import Storage
 from core.corrections import Corrections, correct_metrics, revised_document, swap_thumb_index
-from core.markers_csv import read_markers_csv, write_markers_csv
+from core.markers_csv import MarkerTable, read_markers_csv, write_markers_csv
 from core.overlay import swap_overlay_labels
 
 CORRECTION_FIELDS = ("exclude_taps", "dismiss_pauses", "window_s", "swap_labels")
@@ -398,13 +400,11 @@ class ReviewPage:
     data: dict[str, Any]
     videos: tuple[str, ...]
     corrections: Corrections
-    job: Any = None
+    job: Job | None = None
 
 
-def _aperture(table: Any) -> list[float | None]:
+def _aperture(table: MarkerTable) -> list[float | None]:
     """Raw thumb–index distance per left frame (mm, 0.01 mm), None where unknown."""
-    import numpy as np
-
     labels = list(table.labels)
     if "thumb" not in labels or "index" not in labels:
         return []
@@ -478,7 +478,7 @@ def review_page(
     return page
 
 
-def proxy_file(db: Session, actor: Actor, trial_id: int, side: str, storage: Storage) -> Any:
+def proxy_file(db: Session, actor: Actor, trial_id: int, side: str, storage: Storage) -> Path:
     """The browser proxy of one video of a trial, for the review view's player.
 
     Not audited on its own: the player fetches it in many range requests, all
