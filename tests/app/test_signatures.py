@@ -160,3 +160,70 @@ def test_a_stored_signed_report_that_was_damaged_is_refused(api: Api, video_pair
     stored.write_bytes(stored.read_bytes() + b"%")
     damaged = client.get(f"/api/v1/sessions/{session_id}/report.pdf?signed=true")
     assert damaged.status_code == 409 and "SHA-256" in damaged.json()["detail"]
+
+
+def test_revisions_and_signatures_survive_backup_and_restore(
+    api: Api, video_pair, tmp_path, monkeypatch, capsys
+) -> None:
+    from test_backup import _cli
+
+    from app.db import dispose_engines
+
+    trial_id = _trial(api, video_pair)
+    session_id = _session_of(api, trial_id)
+    make_user(api.sessions, "dr.sign@example.org", PASSWORD)
+    client = TestClient(api.app)
+    user = _login(client, "dr.sign@example.org")
+    sign = f"/api/v1/sessions/{session_id}/sign"
+    assert client.post(sign, json={"password": PASSWORD}, headers=user).status_code == 201
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"exclude_taps": [3], "reason": "tap 4 was a sneeze"},
+        headers=api.headers,
+    )
+    assert r.status_code == 201
+    assert client.post(sign, json={"password": PASSWORD}, headers=user).status_code == 201
+    pdf_url = f"/api/v1/sessions/{session_id}/report.pdf?signed=true&signature="
+    signed = {n: api.client.get(f"{pdf_url}{n}", headers=api.headers).content for n in (1, 2)}
+    results = {
+        n: api.client.get(
+            f"/api/v1/trials/{trial_id}/result?revision={n}", headers=api.headers
+        ).json()
+        for n in (1, 2)
+    }
+    assert _cli(api.settings, monkeypatch, "backup", str(tmp_path / "backup")) == 0
+    dispose_engines()
+    shutil.rmtree(api.settings.data_dir)
+    assert _cli(api.settings, monkeypatch, "restore", str(tmp_path / "backup")) == 0
+    with TestClient(create_app(api.settings)) as fresh:
+        for n, body in signed.items():
+            r = fresh.get(f"{pdf_url}{n}", headers=api.headers)
+            assert r.status_code == 200 and r.content == body  # byte for byte
+        for n, doc in results.items():
+            r = fresh.get(f"/api/v1/trials/{trial_id}/result?revision={n}", headers=api.headers)
+            assert r.json() == doc
+        state = fresh.get(f"/api/v1/sessions/{session_id}/signatures", headers=api.headers).json()
+        assert state["status"] == "signed" and [s["number"] for s in state["signatures"]] == [1, 2]
+    dispose_engines()
+
+
+def test_erasing_the_patient_removes_the_signed_reports(api: Api, video_pair) -> None:
+    """A signature is never changed, but the patient's erasure (issue 18) removes it and its PDF."""
+    from app.services.erasure import erase_patient
+    from app.storage import Storage
+
+    trial_id = _trial(api, video_pair)
+    session_id = _session_of(api, trial_id)
+    make_user(api.sessions, "dr.sign@example.org", PASSWORD)
+    client = TestClient(api.app)
+    user = _login(client, "dr.sign@example.org")
+    sign = f"/api/v1/sessions/{session_id}/sign"
+    assert client.post(sign, json={"password": PASSWORD}, headers=user).status_code == 201
+    storage = Storage.from_settings(api.settings)
+    with api.sessions() as db:
+        path = db.scalar(select(Signature.pdf_path))
+        code = db.get(RecordingSession, session_id).patient.code
+        erase_patient(db, storage, None, code)
+    with api.sessions() as db:
+        assert db.scalar(select(Signature)) is None
+    assert not storage.absolute(path).exists()
