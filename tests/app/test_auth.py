@@ -23,9 +23,11 @@ from app.models import ApiClient, AuditEvent, BrowserSession, User, utcnow
 
 PASSWORD = "correct horse battery"
 # Routes that must answer without credentials: the login page and its form,
-# static files, the OpenAPI document and the health check.
+# static files, the OpenAPI document, the health check and the empty favicon
+# (so the standalone report pages raise no console 404).
 ALLOW_LIST = {
     ("GET", "/health"),
+    ("GET", "/favicon.ico"),
     ("GET", "/openapi.json"),
     ("GET", "/login"),
     ("POST", "/login"),
