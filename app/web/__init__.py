@@ -12,6 +12,7 @@ from fastapi import APIRouter
 from app.web import (
     admin,
     auth_pages,
+    capture,
     patients,
     record,
     recordings,
@@ -22,7 +23,18 @@ from app.web import (
 )
 
 router = APIRouter(include_in_schema=False)
-for _module in (auth_pages, patients, record, recordings, results, review, rigs, signing, admin):
+for _module in (
+    auth_pages,
+    capture,
+    patients,
+    record,
+    recordings,
+    results,
+    review,
+    rigs,
+    signing,
+    admin,
+):
     router.include_router(_module.router)
 
 __all__ = ["router"]

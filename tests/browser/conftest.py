@@ -13,57 +13,23 @@ temporary directory (printed at the end of the run).
 from __future__ import annotations
 
 import os
-import shutil
-import socket
 import subprocess
-import sys
 import time
 import urllib.request
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
-EMAIL = "browser.clinician@example.org"
-PASSWORD = "browser-test-password-1"
-
-
-@dataclass(frozen=True)
-class Served:
-    url: str
-    data_dir: Path
-    log: Path
-    email: str = EMAIL
-    password: str = PASSWORD
-
-
-@dataclass(frozen=True)
-class Recording:
-    left: Path
-    right: Path
-    rig: Path
-    truth: dict
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _bradyscope() -> list[str]:
-    exe = shutil.which("bradyscope", path=str(Path(sys.executable).parent))
-    return [exe] if exe else [sys.executable, "-m", "app.cli"]
+from browser_support import (
+    CHROMIUM,
+    EMAIL,
+    Recording,
+    Served,
+    bradyscope_command,
+    free_port,
+    launch_chromium,
+    served_env,
+)
 
 
 @pytest.fixture(scope="session")
@@ -91,16 +57,10 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
 @pytest.fixture(scope="session")
 def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     data_dir = tmp_path_factory.mktemp("served-data")
-    # A private SQLite database in the temporary data directory, whatever the caller's setup.
-    env = {k: v for k, v in os.environ.items() if k != "BRADYSCOPE_DATABASE_URL"}
-    env |= {
-        "BRADYSCOPE_DATA_DIR": str(data_dir),
-        "BRADYSCOPE_PASSWORD": PASSWORD,
-        "BRADYSCOPE_WORKER_POLL_S": "0.2",
-    }
+    env = served_env(data_dir)
     subprocess.run(
         [
-            *_bradyscope(),
+            *bradyscope_command(),
             "admin",
             "create-user",
             EMAIL,
@@ -114,11 +74,11 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
         capture_output=True,
         timeout=120,
     )
-    port = _free_port()
+    port = free_port()
     log = data_dir / "serve.log"
     with open(log, "wb") as fh:
         proc = subprocess.Popen(
-            [*_bradyscope(), "serve", "--host", "127.0.0.1", "--port", str(port)],
+            [*bradyscope_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
             env=env,
             stdout=fh,
             stderr=subprocess.STDOUT,
@@ -147,7 +107,8 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
 
 
 @pytest.fixture(scope="session")
-def browser() -> Iterator[object]:
+def playwright() -> Iterator[object]:
+    """One Playwright driver per test process (its sync API runs once per thread)."""
     if not Path(CHROMIUM).is_file():
         if os.environ.get("CI"):
             pytest.fail(f"{CHROMIUM} is missing in CI; install Debian's chromium package")
@@ -155,11 +116,16 @@ def browser() -> Iterator[object]:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield b
-        finally:
-            b.close()
+        yield pw
+
+
+@pytest.fixture(scope="session")
+def browser(playwright: object) -> Iterator[object]:
+    b = launch_chromium(playwright)
+    try:
+        yield b
+    finally:
+        b.close()
 
 
 @pytest.fixture(scope="session")

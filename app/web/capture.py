@@ -1,0 +1,103 @@
+"""The capture station: record a trial (or a rig's board videos) with two cameras.
+
+``/sessions/{id}/capture`` records a trial of the session; ``/rigs/{id}/capture``
+records a board video pair and starts the rig's calibration. Both render
+``templates/capture.html``; the work happens in the browser
+(``app/static/capture.js`` and ``capture_gate.js``: camera choice and set-up,
+the live quality gate, recording, per-frame capture times, upload), which
+posts to the ordinary upload routes (``POST /sessions/{id}/trials``,
+``POST /rigs/{id}/calibrations``). docs/capture.md describes the page.
+
+Only these pages may use the cameras: their ``Permissions-Policy`` allows the
+camera to this origin, every other page keeps ``camera=()``.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+from fastapi.responses import HTMLResponse, Response
+
+from app.auth import SessionDep
+from app.errors import NotFoundError
+from app.services import capture
+from app.web.common import PageUser, error_page, render
+
+router = APIRouter()
+
+CAMERA_PERMISSION = "camera=(self), microphone=(), geolocation=()"
+MARKERS_PER_VIEW = 2  # finger tapping: thumb and index markers, seen by both cameras
+COUNTDOWN_S = 3
+DEFAULT_DURATION_S = 15
+CALIBRATION_SIZES = ((640, 480), (640, 512), (1280, 720), (1280, 1024), (1920, 1080))
+"""Resolutions offered for a board recording when the rig has no calibration yet (px)."""
+
+
+def _allow_camera(response: Response) -> Response:
+    response.headers["permissions-policy"] = CAMERA_PERMISSION
+    return response
+
+
+def _size_text(size: tuple[int, int] | None) -> str:
+    return f"{size[0]}x{size[1]}" if size is not None else ""
+
+
+@router.get("/sessions/{session_id}/capture", response_class=HTMLResponse)
+def session_capture_page(
+    request: Request, db: SessionDep, user: PageUser, session_id: int
+) -> Response:
+    try:
+        target = capture.session_capture(db, user, session_id)
+    except NotFoundError as exc:
+        return error_page(request, user, status_code=404, message=str(exc))
+    session = target.session
+    assert session is not None
+    return _allow_camera(
+        render(
+            request,
+            "capture.html",
+            user,
+            active="patients",
+            title=f"Record — {session.patient.code}",
+            mode="trial",
+            target=target,
+            session=session,
+            patient=session.patient,
+            rig=target.rig,
+            left_size=_size_text(target.left_size),
+            right_size=_size_text(target.right_size),
+            upload_url=f"/sessions/{session.id}/trials",
+            markers=MARKERS_PER_VIEW,
+            countdown_s=COUNTDOWN_S,
+            duration_s=DEFAULT_DURATION_S,
+            sizes=(),
+        )
+    )
+
+
+@router.get("/rigs/{rig_id}/capture", response_class=HTMLResponse)
+def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: int) -> Response:
+    try:
+        target = capture.rig_capture(db, user, rig_id)
+    except NotFoundError as exc:
+        return error_page(request, user, status_code=404, message=str(exc))
+    return _allow_camera(
+        render(
+            request,
+            "capture.html",
+            user,
+            active="rigs",
+            title=f"Record the calibration board — {target.rig.name}",
+            mode="calibration",
+            target=target,
+            session=None,
+            patient=None,
+            rig=target.rig,
+            left_size=_size_text(target.left_size),
+            right_size=_size_text(target.right_size),
+            upload_url=f"/rigs/{target.rig.id}/calibrations",
+            markers=0,
+            countdown_s=COUNTDOWN_S,
+            duration_s=30,
+            sizes=[f"{w}x{h}" for w, h in CALIBRATION_SIZES],
+        )
+    )

@@ -1,0 +1,97 @@
+# ruff: noqa: F811  (pytest fixtures imported from test_pages are parameters here)
+"""The capture pages as served: login, what the cameras must deliver, camera permission.
+
+The recording itself runs in the browser and is tested in tests/browser/test_capture.py.
+"""
+
+from __future__ import annotations
+
+import re
+
+from sqlalchemy import select
+from test_pages import client, login, seeded  # noqa: F401 - fixtures
+
+from app.models import AuditEvent, RecordingSession, Rig
+
+
+def test_the_capture_pages_need_a_login(client, seeded) -> None:
+    for path in ("/sessions/1/capture", f"/rigs/{seeded['rig_id']}/capture"):
+        r = client.get(path, follow_redirects=False)
+        assert r.status_code == 303, path
+        assert r.headers["location"].startswith("/login?next="), path
+
+
+def test_the_session_capture_page_asks_for_the_rigs_resolution(
+    client, seeded, db_sessionmaker
+) -> None:
+    login(client)
+    session_page = client.get("/sessions/1")
+    assert 'href="/sessions/1/capture"' in session_page.text  # "Record"
+    assert "camera=()" in session_page.headers["permissions-policy"]
+    reads_before = _session_reads(db_sessionmaker)
+    r = client.get("/sessions/1/capture")
+    assert r.status_code == 200
+    html = r.text
+    # The calibrated size of each camera (640 x 512 px, the seeded rig) goes to the script.
+    assert 'data-left-size="640x512"' in html and 'data-right-size="640x512"' in html
+    assert 'data-upload-url="/sessions/1/trials"' in html
+    assert re.search(r'<label for="camera-left">Left camera</label>', html)
+    assert re.search(r'<label for="camera-right">Right camera</label>', html)
+    assert ">Start recording</button>" in html and ">Stop recording</button>" in html
+    assert '<script src="/static/capture.js" defer></script>' in html
+    assert "<script>" not in html  # no inline script (the CSP forbids them)
+    # Only the capture pages may use the camera.
+    assert r.headers["permissions-policy"].startswith("camera=(self)")
+    assert _session_reads(db_sessionmaker) == reads_before + 1  # it names the patient: audited
+
+
+def _session_reads(db_sessionmaker) -> int:
+    with db_sessionmaker() as db:
+        return len(
+            db.scalars(
+                select(AuditEvent).where(
+                    AuditEvent.action == "read",
+                    AuditEvent.resource_type == "session",
+                    AuditEvent.resource_id == "1",
+                )
+            ).all()
+        )
+
+
+def test_a_missing_session_has_no_capture_page(client, seeded) -> None:
+    login(client)
+    r = client.get("/sessions/999/capture")
+    assert r.status_code == 404
+    assert "permissions-policy" in r.headers and "camera=()" in r.headers["permissions-policy"]
+
+
+def test_a_session_whose_rig_has_no_calibration_says_so(client, seeded, db_sessionmaker) -> None:
+    login(client)
+    with db_sessionmaker() as db:
+        rig = Rig(name="uncalibrated")
+        db.add(rig)
+        db.flush()
+        session = db.get(RecordingSession, 1)
+        assert session is not None
+        session.rig_id = rig.id
+        db.commit()
+    html = client.get("/sessions/1/capture").text
+    assert 'data-left-size=""' in html
+    assert re.search(r'<p class="alert" role="alert">rig \d+ has no ready calibration', html)
+
+
+def test_the_rig_capture_page_records_a_board_pair(client, seeded) -> None:
+    login(client)
+    rig_page = client.get(f"/rigs/{seeded['rig_id']}").text
+    assert f'href="/rigs/{seeded["rig_id"]}/capture"' in rig_page
+    r = client.get(f"/rigs/{seeded['rig_id']}/capture")
+    assert r.status_code == 200
+    html = r.text
+    assert 'data-mode="calibration"' in html
+    assert f'data-upload-url="/rigs/{seeded["rig_id"]}/calibrations"' in html
+    # The current calibration's resolution comes first in the resolution choice.
+    first = re.search(r'<select id="capture-size"[^>]*>\s*<option value="([^"]+)"', html)
+    assert first and first.group(1) == "640x512"
+    for label in ("Board", "Columns", "Rows", "Square size (mm)", "Left camera", "Right camera"):
+        assert f">{label}" in html, label
+    assert r.headers["permissions-policy"].startswith("camera=(self)")

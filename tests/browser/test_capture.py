@@ -1,0 +1,506 @@
+"""The capture station in Debian's Chromium with fake cameras, against a real ``bradyscope serve``.
+
+Two kinds of fake cameras:
+
+- **the simulated recording**: ``bradyscope simulate``'s left and right views (640 x 512 px,
+  30 fps, the demo rig's size) side by side in one Y4M file played by
+  ``--use-file-for-fake-video-capture``. Chromium offers exactly one camera for a file,
+  whatever ``--use-fake-device-for-media-stream=device-count=N`` says, so
+  ``two_cameras_from_one.js`` (injected before the page) lists two cameras and crops each
+  one's half of the file's frames, keeping their capture timestamps;
+- **Chromium's test pattern**: ``--use-fake-device-for-media-stream=device-count=2,fps=30``,
+  two cameras drawing a moving pie or digits (640 x 480 px), no marker.
+
+The acceptance path records 5 s of the simulated markers, uploads it, and finds a trial
+with two ~5-s videos and both timestamps files whose job ends; the error paths (camera
+permission denied, the same camera twice, a resolution other than the rig's, a camera
+unplugged while recording, an upload interrupted) each give a clear message and store
+nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from browser_support import Served, create_api_key, launch_chromium
+
+pytestmark = pytest.mark.browser
+
+HERE = Path(__file__).resolve().parent
+TWO_CAMERAS = HERE / "two_cameras_from_one.js"
+FPS = 30  # Hz: the fake cameras' rate
+RECORD_S = 5  # s
+JOB_TIMEOUT_MS = 300_000  # 2 shared cores
+VIEWPORTS = {"desktop": {"width": 1280, "height": 900}, "tablet": {"width": 768, "height": 1024}}
+
+UNLABELLED_JS = """() => Array.from(document.querySelectorAll(
+    'input:not([type=hidden]), select, textarea'))
+  .filter(el => !(el.labels && el.labels.length) && !el.getAttribute('aria-label'))
+  .map(el => el.name || el.id || el.outerHTML.slice(0, 60))"""
+
+MARKERS_SEEN_JS = """(want) => ['left', 'right'].every(side => {
+  const dd = document.querySelector(`[data-view=${side}] [data-fact=markers]`);
+  return dd && dd.textContent.trim() === want;
+})"""
+
+
+# --------------------------------------------------------------------------- set-up
+
+
+@dataclass(frozen=True)
+class Target:
+    session_id: int
+    rig_id: int
+
+
+class Api:
+    """The REST API of the served app, with a key of its own."""
+
+    def __init__(self, served: Served) -> None:
+        key = create_api_key(served, "capture-tests")
+        self.client = httpx.Client(
+            base_url=served.url, headers={"Authorization": f"Bearer {key}"}, timeout=60
+        )
+        self.data_dir = served.data_dir
+        self._patients = 0
+
+    def target(self, rig_document: dict, name: str) -> Target:
+        """A patient, a rig calibrated with ``rig_document`` and a session."""
+        self._patients += 1
+        patient = self.client.post("/api/v1/patients", json={"code": f"CAP-{self._patients}"})
+        rig = self.client.post("/api/v1/rigs", json={"name": name})
+        assert patient.status_code == 201 and rig.status_code == 201, (patient.text, rig.text)
+        cal = self.client.post(
+            f"/api/v1/rigs/{rig.json()['id']}/calibrations",
+            files={"rig_json": ("rig.json", json.dumps(rig_document).encode(), "application/json")},
+        )
+        assert cal.status_code == 201, cal.text
+        session = self.client.post(
+            "/api/v1/sessions",
+            json={
+                "patient_id": patient.json()["id"],
+                "rig_id": rig.json()["id"],
+                "recorded_at": "2026-03-01T09:30:00Z",
+                "medication_state": "off",
+            },
+        )
+        assert session.status_code == 201, session.text
+        return Target(session.json()["id"], rig.json()["id"])
+
+    def trials(self, session_id: int) -> list[dict]:
+        r = self.client.get(f"/api/v1/sessions/{session_id}/trials")
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    def stored_files(self) -> list[Path]:
+        """Every file of the recordings and calibrations (stored or being received)."""
+        roots = [self.data_dir / "files" / "videos", self.data_dir / "tmp"]
+        return sorted(p for root in roots if root.is_dir() for p in root.rglob("*") if p.is_file())
+
+
+def _rig_document(width: int, height: int) -> dict:
+    from core.camera import Camera, ImageSize, StereoRig, rig_to_dict
+
+    size = ImageSize(width, height)
+    K = np.array([[600.0, 0, width / 2], [0, 600.0, height / 2], [0, 0, 1]])
+    left = Camera("left", size, K)
+    right = Camera("right", size, K, t_cam_from_world_mm=np.array([-100.0, 0.0, 0.0]))
+    return rig_to_dict(StereoRig(left, right, {"rms_px": 0.2}))
+
+
+@pytest.fixture(scope="module")
+def api(served: Served) -> Api:
+    return Api(served)
+
+
+@dataclass(frozen=True)
+class SideBySide:
+    y4m: Path
+    rig_document: dict
+
+
+@pytest.fixture(scope="module")
+def side_by_side(tmp_path_factory: pytest.TempPathFactory) -> SideBySide:
+    """A 3-s simulated recording (640 x 512 px, 30 fps) as one Y4M file: left | right."""
+    from core.camera import ImageSize
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario, simulate_session
+    from core.video import iter_frames
+
+    out = tmp_path_factory.mktemp("capture-recording")
+    sim = simulate_session(
+        out,
+        seed=5,
+        tapping=TappingScenario(duration_s=3.0, fps=float(FPS), frequency_hz=2.5),
+        imaging=ImagingScenario(image_size=ImageSize(640, 512)),
+    )
+    y4m = out / "left_right.y4m"
+    pairs = zip(
+        iter_frames(sim.left_video, gray=True), iter_frames(sim.right_video, gray=True), strict=True
+    )
+    with open(y4m, "wb") as fh:
+        fh.write(f"YUV4MPEG2 W1280 H512 F{FPS}:1 Ip A1:1 C420jpeg\n".encode())
+        grey_chroma = np.full(2 * 256 * 640, 128, np.uint8).tobytes()  # two 640 x 256 planes
+        for left, right in pairs:
+            fh.write(b"FRAME\n" + np.hstack([left, right]).tobytes() + grey_chroma)
+    return SideBySide(y4m, json.loads(sim.rig_path.read_text()))
+
+
+@pytest.fixture(scope="module")
+def file_cameras(playwright, side_by_side: SideBySide) -> Iterator[object]:
+    b = launch_chromium(
+        playwright,
+        "--use-fake-ui-for-media-stream",
+        "--use-fake-device-for-media-stream",
+        f"--use-file-for-fake-video-capture={side_by_side.y4m}",
+    )
+    try:
+        yield b
+    finally:
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def pattern_cameras(playwright) -> Iterator[object]:
+    b = launch_chromium(
+        playwright,
+        "--use-fake-ui-for-media-stream",
+        f"--use-fake-device-for-media-stream=device-count=2,fps={FPS}",
+    )
+    try:
+        yield b
+    finally:
+        b.close()
+
+
+class Page:
+    """A logged-in page that collects console errors and CSP violations."""
+
+    def __init__(self, browser, served: Served, *, two_from_one: bool = False) -> None:
+        self.context = browser.new_context(viewport=VIEWPORTS["desktop"])
+        if two_from_one:
+            self.context.add_init_script(path=str(TWO_CAMERAS))
+        self.page = self.context.new_page()
+        self.page.set_default_timeout(30_000)
+        self.problems: list[str] = []
+        self.expected_failures: list[str] = []
+        self.page.on("console", self._console)
+        self.page.on("pageerror", lambda e: self.problems.append(f"page error: {e}"))
+        self.served = served
+        page = self.page
+        page.goto(f"{served.url}/login")
+        page.fill("#email", served.email)
+        page.fill("#password", served.password)
+        page.keyboard.press("Enter")
+        page.wait_for_url(re.compile(r"/patients$"))
+
+    def _console(self, message) -> None:
+        if message.type != "error":
+            return
+        if any(words in message.text for words in self.expected_failures):
+            return
+        self.problems.append(f"console: {message.text}")
+
+    def open_capture(self, target: Target) -> None:
+        page = self.page
+        page.goto(f"{self.served.url}/sessions/{target.session_id}")
+        page.get_by_role("link", name="Record", exact=True).click()
+        page.wait_for_url(re.compile(rf"/sessions/{target.session_id}/capture$"))
+        page.wait_for_selector(
+            "#camera-left option:nth-child(3)", state="attached"
+        )  # the cameras are listed
+
+    def choose(self, left: str, right: str) -> None:
+        self.page.get_by_label("Left camera").select_option(label=left)
+        self.page.get_by_label("Right camera").select_option(label=right)
+
+    def gate(self) -> str:
+        return self.page.locator("[data-gate]").inner_text()
+
+    def error(self) -> str:
+        box = self.page.locator("[data-capture-error]")
+        box.wait_for(state="visible")
+        return box.inner_text()
+
+    def check(self, what: str) -> None:
+        assert self.page.evaluate(UNLABELLED_JS) == [], f"{what}: form fields without a label"
+        assert not self.problems, (what, self.problems)
+
+    def close(self) -> None:
+        self.context.close()
+
+
+def _no_overflow(page, what: str) -> None:
+    for label, size in VIEWPORTS.items():
+        page.set_viewport_size(size)
+        overflow = page.evaluate("() => document.documentElement.scrollWidth - window.innerWidth")
+        assert overflow <= 1, f"{what} at {label}: the page is {overflow} px wider than the screen"
+    page.set_viewport_size(VIEWPORTS["desktop"])
+
+
+def _tab_to(page, selector: str, max_tabs: int = 60) -> bool:
+    target = page.locator(selector)
+    for _ in range(max_tabs):
+        page.keyboard.press("Tab")
+        if target.evaluate("el => el === document.activeElement"):
+            return True
+    return False
+
+
+def _record(page, seconds: int) -> None:
+    """Set the length and start a recording with the keyboard."""
+    page.fill("#capture-duration", str(seconds))
+    start = page.get_by_role("button", name="Start recording")
+    start.wait_for(state="visible")
+    page.wait_for_function("() => !document.querySelector('[data-start]').disabled")
+    page.locator("#capture-duration").focus()
+    assert _tab_to(page, "[data-start]"), "Start recording cannot be reached with Tab"
+    page.keyboard.press("Enter")
+
+
+def _wait_recording(page) -> None:
+    page.wait_for_function(
+        "() => /s of \\d+ s/.test(document.querySelector('[data-timer]').textContent)",
+        timeout=20_000,
+    )
+
+
+# --------------------------------------------------------------------------- acceptance
+
+
+def test_record_a_trial_with_two_cameras_upload_and_measure(
+    file_cameras, served, api, side_by_side
+) -> None:
+    target = api.target(side_by_side.rig_document, "capture-rig")
+    p = Page(file_cameras, served, two_from_one=True)
+    page = p.page
+    p.open_capture(target)
+    p.check("capture page")
+    _no_overflow(page, "capture page")
+    p.choose(
+        "Simulated camera (left half of the file)", "Simulated camera (right half of the file)"
+    )
+    # The gate finds both simulated markers in both views, at the rig's resolution.
+    page.wait_for_function(MARKERS_SEEN_JS, arg="2", timeout=30_000)
+    for side in ("left", "right"):
+        view = page.locator(f"[data-view={side}]")
+        assert view.locator("[data-fact=size]").inner_text() == "640 × 512 px"
+        assert view.locator("[data-fact=clipped]").inner_text() == "0"
+    assert "sees" not in p.gate(), p.gate()  # no view lacks a marker
+
+    _record(page, RECORD_S)
+    _wait_recording(page)
+    page.wait_for_selector("[data-take]:not([hidden])", timeout=60_000)
+    # Upload with a progress bar, then the quick check from the server and the analysis.
+    page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    assert page.locator("[data-upload-progress]").get_attribute("value") == "100"
+    rows = page.locator("[data-take-rows] tr")
+    assert rows.count() == 2
+    assert "(Checked by the server.)" in page.locator("[data-take-verdict]").inner_text()
+    page.wait_for_function(
+        "() => ['succeeded', 'failed'].includes("
+        "document.querySelector('[data-job]').getAttribute('data-status'))",
+        timeout=JOB_TIMEOUT_MS,
+    )
+    status = page.locator("[data-job]").get_attribute("data-status")
+    assert status == "succeeded", page.locator("[data-job-error]").inner_text()
+    assert page.locator("[data-result-link]").is_visible()
+    p.check("capture page after the take")
+
+    # The stored trial: two videos of about 5 s, each with its timestamps file.
+    trials = api.trials(target.session_id)
+    assert len(trials) == 1 and trials[0]["status"] == "succeeded", trials
+    videos = {v["side"]: v for v in trials[0]["videos"]}
+    for side in ("left", "right"):
+        video = videos[side]
+        assert video["has_times"], video
+        assert video["codec"] in ("VP90", "VP80", "avc1", "h264"), video
+        assert RECORD_S - 1.0 <= video["duration_s"] <= RECORD_S + 0.6, video  # s
+        assert video["fps"] == pytest.approx(FPS, rel=0.1), video  # Hz, measured
+    result = api.client.get(f"/api/v1/trials/{trials[0]['id']}/result").json()
+    assert result["sync"]["time_source"] == ["file", "file"], result["sync"]
+
+    # Retake is one click and keeps what was stored; the camera choice is remembered.
+    page.get_by_role("button", name="Retake").click()
+    assert page.locator("[data-take]").is_hidden()
+    page.wait_for_function("() => !document.querySelector('[data-start]').disabled")
+    assert len(api.trials(target.session_id)) == 1
+    page.reload()
+    page.wait_for_function(MARKERS_SEEN_JS, arg="2", timeout=30_000)
+    assert (
+        page.locator("#camera-left option:checked")
+        .inner_text()
+        .startswith("Simulated camera (left")
+    )
+    p.check("capture page, reloaded")
+    p.close()
+
+
+def test_the_gate_finds_no_marker_in_chromiums_test_pattern(pattern_cameras, served, api) -> None:
+    target = api.target(_rig_document(640, 480), "pattern-rig")
+    p = Page(pattern_cameras, served)
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_1")
+    p.page.wait_for_function(MARKERS_SEEN_JS, arg="0", timeout=30_000)
+    gate = p.gate()
+    assert gate.startswith("Not ready:") and "sees 0 markers of 2" in gate, gate
+    # Not a hard refusal: a clinician may still record (the analysis will say what failed).
+    assert p.page.get_by_role("button", name="Start recording").is_enabled()
+    p.check("capture page with the test pattern")
+    p.close()
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def test_camera_permission_denied_says_how_to_allow_it(playwright, served, api) -> None:
+    target = api.target(_rig_document(640, 480), "denied-rig")
+    denied = launch_chromium(
+        playwright, "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream=deny"
+    )
+    try:
+        p = Page(denied, served)
+        page = p.page
+        page.goto(f"{served.url}/sessions/{target.session_id}/capture")
+        message = p.error()
+        assert "not allowed to use the cameras" in message and "Retry camera access" in message
+        assert page.get_by_role("button", name="Retry camera access").is_visible()
+        assert page.get_by_role("button", name="Start recording").is_disabled()
+        assert not p.problems, p.problems
+        p.close()
+    finally:
+        denied.close()
+
+
+def test_the_same_camera_for_both_sides_is_refused(pattern_cameras, served, api) -> None:
+    target = api.target(_rig_document(640, 480), "same-camera-rig")
+    p = Page(pattern_cameras, served)
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_0")
+    p.page.wait_for_function(
+        "() => /same camera/.test(document.querySelector('[data-gate]').textContent)"
+    )
+    assert "choose two different cameras" in p.gate()
+    assert p.page.get_by_role("button", name="Start recording").is_disabled()
+    # Choosing another camera clears the refusal.
+    p.page.get_by_label("Right camera").select_option(label="fake_device_1")
+    p.page.wait_for_function("() => !document.querySelector('[data-start]').disabled")
+    p.check("capture page, same camera")
+    p.close()
+
+
+def test_a_resolution_other_than_the_rigs_is_refused_naming_the_needed_one(
+    pattern_cameras, served, api
+) -> None:
+    target = api.target(_rig_document(640, 512), "other-size-rig")  # the fakes give 640 x 480
+    p = Page(pattern_cameras, served)
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_1")
+    p.page.wait_for_function(
+        "() => /calibrated at/.test(document.querySelector('[data-gate]').textContent)"
+    )
+    gate = p.gate()
+    assert "delivers 640 × 480 px, but the rig was calibrated at 640 × 512 px" in gate, gate
+    assert p.page.get_by_role("button", name="Start recording").is_disabled()
+    p.check("capture page, resolution mismatch")
+    p.close()
+
+
+def test_a_camera_unplugged_while_recording_discards_the_take(pattern_cameras, served, api) -> None:
+    target = api.target(_rig_document(640, 480), "unplug-rig")
+    before = api.stored_files()
+    p = Page(pattern_cameras, served)
+    page = p.page
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_1")
+    _record(page, 10)
+    _wait_recording(page)
+    # The right camera goes away (its track ends, as when it is unplugged).
+    page.evaluate(
+        "() => document.querySelector('[data-video=right]').srcObject.getVideoTracks()[0].stop()"
+    )
+    message = p.error()
+    assert "right camera stopped during the recording" in message, message
+    assert "nothing was stored" in message
+    assert page.get_by_role("button", name="Start recording").is_disabled()  # choose it again
+    assert page.locator("[data-upload-block]").is_hidden()
+    assert api.trials(target.session_id) == []
+    assert api.stored_files() == before
+    assert not p.problems, p.problems
+    p.close()
+
+
+def test_an_interrupted_upload_stores_nothing_and_can_be_sent_again(
+    pattern_cameras, served, api
+) -> None:
+    target = api.target(_rig_document(640, 480), "interrupted-rig")
+    before = api.stored_files()
+    p = Page(pattern_cameras, served)
+    page = p.page
+    p.expected_failures.append("net::ERR_CONNECTION_RESET")  # the interruption itself
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_1")
+    upload = f"**/sessions/{target.session_id}/trials"
+    page.route(upload, lambda route: route.abort("connectionreset"))
+    _record(page, 2)
+    message = p.error()
+    assert "connection was lost during the upload" in message, message
+    assert "nothing of this take was stored" in message
+    assert api.trials(target.session_id) == []
+    assert api.stored_files() == before
+    # The take is kept in the page: "Upload again" sends it once the connection is back.
+    page.unroute(upload)
+    page.get_by_role("button", name="Upload again").click()
+    page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    trials = api.trials(target.session_id)
+    assert len(trials) == 1 and all(v["has_times"] for v in trials[0]["videos"]), trials
+    # No marker in the test pattern: the analysis ends with a sentence that says so.
+    page.wait_for_function(
+        "() => document.querySelector('[data-job]').getAttribute('data-status') === 'failed'",
+        timeout=JOB_TIMEOUT_MS,
+    )
+    assert "markers were found in only" in page.locator("[data-job-error]").inner_text()
+    assert not p.problems, p.problems
+    p.close()
+
+
+def test_calibration_mode_records_a_board_pair_and_starts_the_calibration(
+    pattern_cameras, served, api
+) -> None:
+    target = api.target(_rig_document(640, 480), "board-rig")
+    p = Page(pattern_cameras, served)
+    page = p.page
+    page.goto(f"{served.url}/rigs/{target.rig_id}")
+    page.get_by_role("link", name="Record the board with the two cameras in the browser").click()
+    page.wait_for_url(re.compile(rf"/rigs/{target.rig_id}/capture$"))
+    page.wait_for_selector("#camera-left option:nth-child(3)", state="attached")
+    p.check("calibration capture page")
+    _no_overflow(page, "calibration capture page")
+    assert page.locator("#capture-size").input_value() == "640x480"  # the rig's calibration
+    page.select_option("#capture-board", "chessboard")
+    page.fill("#capture-cols", "9")
+    page.fill("#capture-rows", "6")
+    page.fill("#capture-square", "25")
+    p.choose("fake_device_0", "fake_device_1")
+    _record(page, 2)
+    page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    cals = api.client.get(f"/api/v1/rigs/{target.rig_id}/calibrations").json()
+    board_cal = [c for c in cals if c["source"] == "board_videos"]
+    assert len(board_cal) == 1 and board_cal[0]["board"]["cols"] == 9, cals
+    # No board in the test pattern: the calibration job ends with a sentence that says so.
+    page.wait_for_function(
+        "() => ['succeeded', 'failed'].includes("
+        "document.querySelector('[data-job]').getAttribute('data-status'))",
+        timeout=JOB_TIMEOUT_MS,
+    )
+    error = page.locator("[data-job-error]").inner_text()
+    assert "board" in error.lower(), error
+    assert not p.problems, p.problems
+    p.close()
