@@ -141,13 +141,76 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
     return cap
 
 
+def _stated_duration_s(container: Any, stream: Any) -> float | None:
+    """The video stream's duration as the container states it (s), or None.
+
+    Read from the stream's own duration (MP4, MOV), else its ``DURATION`` tag
+    (what FFmpeg's Matroska muxer writes per track), else the container's
+    duration when the video is its only stream (an audio track may be longer).
+    A file written live, as a browser's MediaRecorder writes WebM, states none.
+    """
+    if stream.duration and stream.time_base:
+        return float(stream.duration * stream.time_base)
+    tag = stream.metadata.get("DURATION") or stream.metadata.get("duration")
+    if tag:
+        try:
+            hours, minutes, seconds = tag.split(":")
+            return int(hours) * 3600.0 + int(minutes) * 60.0 + float(seconds)
+        except ValueError:
+            pass  # an unreadable tag states nothing
+    if container.duration and len(container.streams) == 1:
+        return float(container.duration) / 1e6  # AV_TIME_BASE: microseconds
+    return None
+
+
+def _count_packets(
+    container: Any, stream: Any, *, fps: float | None
+) -> tuple[int, bool, float | None]:
+    """Demux every packet of ``stream`` (no decoding).
+
+    Returns the number of packets holding a frame, whether any carries a
+    presentation timestamp, and the time they cover (s): from the first
+    timestamp to the end of the last frame (its packet duration, or one
+    frame period when the packet states none); None without timestamps.
+    A damaged file counts what demuxed before the damage.
+    """
+    import av
+
+    counted = 0
+    first: int | None = None
+    end: int | None = None
+    tb = stream.time_base
+    one_frame = round(1.0 / (fps * tb)) if fps and tb else 0
+    try:
+        for packet in container.demux(stream):
+            if packet.size == 0:  # the flush packet at the end
+                continue
+            counted += 1
+            if packet.pts is None:
+                continue
+            first = packet.pts if first is None else min(first, packet.pts)
+            stop = packet.pts + (packet.duration or one_frame)
+            end = stop if end is None else max(end, stop)
+    except (av.FFmpegError, OSError):
+        pass  # damaged part-way: decoding tells the rest
+    covered = float((end - first) * tb) if first is not None and end is not None and tb else None
+    return counted, first is not None, covered
+
+
 def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
     """What the container says, read by PyAV without decoding.
 
-    Returns the number of video frames (counted packet by packet when the
-    container states none, as Matroska and WebM do), whether the packets carry
-    presentation timestamps, and the stated frame rate (None if none); all
-    None/True when PyAV cannot open the file (OpenCV's answer then stands).
+    Returns the number of video frames, whether the packets carry presentation
+    timestamps, and the stated frame rate (None if none); all None/True when
+    PyAV cannot open the file (OpenCV's answer then stands).
+
+    A container that states no frame count (Matroska, WebM) has its packets
+    counted. If it states a duration that its packets fall short of by more
+    than :data:`_FRAME_COUNT_SLACK` frames, the file was cut off (its header
+    was written whole, its frames were not): the frame count returned is the
+    one the duration announces, so that the missing end is found by
+    :func:`iter_frames` and by decoding the last frames. A file that states
+    no duration (a browser's live WebM) is taken as its packets are.
     """
     import av
 
@@ -162,22 +225,22 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
         stream = container.streams.video[0]
         rate = stream.average_rate or stream.base_rate
         fps = float(rate) if rate else None
-        count = int(stream.frames) if stream.frames else None
-        has_pts = False
-        counted = 0
-        try:
-            for packet in container.demux(stream):
-                if packet.size == 0:  # the flush packet at the end
-                    continue
-                counted += 1
-                has_pts = has_pts or packet.pts is not None
-                if count is not None and counted >= 8:
-                    break
-        except (av.FFmpegError, OSError):
-            # A damaged file: what demuxed so far counts; decoding will tell the rest.
-            pass
-        if count is None:
-            count = counted
+        if stream.frames:
+            has_pts = False
+            try:
+                for n, packet in enumerate(container.demux(stream)):
+                    has_pts = has_pts or packet.pts is not None
+                    if has_pts or n >= 8:
+                        break
+            except (av.FFmpegError, OSError):
+                pass  # damaged: decoding tells the rest
+            return int(stream.frames), has_pts, fps
+        stated_s = _stated_duration_s(container, stream)
+        count, has_pts, covered_s = _count_packets(container, stream, fps=fps)
+        if stated_s is not None and covered_s is not None and fps:
+            missing = round((stated_s - covered_s) * fps)
+            if missing > _FRAME_COUNT_SLACK:
+                count += missing
         return count, has_pts, fps
     finally:
         container.close()

@@ -179,3 +179,77 @@ def test_frames_found_by_seeking_and_a_codec_named_when_it_cannot_be_read(tmp_pa
         assert decodes_frame(path, N - 1) and not decodes_frame(path, N + 5)
     message = _undecodable_message(tmp_path / "seek-av1.webm")
     assert "AV1" in message and "H.264" in message
+
+
+def _write_webm(path, frames, *, live: bool) -> None:
+    """VP9 WebM written by PyAV; ``live`` as a browser's MediaRecorder writes it (no
+    duration, no frame count: the muxer never seeks back to the header)."""
+    import fractions
+
+    import av
+
+    with av.open(str(path), "w", format="webm", options={"live": "1"} if live else {}) as c:
+        s = c.add_stream("libvpx-vp9", rate=int(FPS))
+        s.width, s.height, s.pix_fmt = SIZE.width, SIZE.height, "yuv420p"
+        s.time_base = s.codec_context.time_base = fractions.Fraction(1, 1000)
+        for i, f in enumerate(frames):
+            frame = av.VideoFrame.from_ndarray(f, format="gray")
+            frame.pts, frame.time_base = round(i * 1000 / FPS), s.time_base
+            for packet in s.encode(frame):
+                c.mux(packet)
+        for packet in s.encode():
+            c.mux(packet)
+
+
+@pytest.mark.parametrize("codec", ["lossless", "vp9"])
+def test_a_cut_off_matroska_is_found_by_its_stated_duration(tmp_path, codec):
+    """Matroska/WebM states no frame count: the packets are counted. A file whose header
+    states a duration its packets fall short of by more than two frames was cut off
+    (an interrupted copy or upload): its frame count is the one the duration announces,
+    so reading it ends early and says so. Cut within the slack, it is taken as it is."""
+    import av
+
+    from core.errors import InputError
+
+    rng = np.random.default_rng(5)
+    frames = [rng.integers(0, 200, (SIZE.height, SIZE.width), dtype=np.uint8) for _ in range(N)]
+    whole = tmp_path / ("whole.mkv" if codec == "lossless" else "whole.webm")
+    if codec == "lossless":
+        with VideoWriter(whole, fps=FPS, image_size=SIZE, codec=codec) as w:
+            for f in frames:
+                w.write(f)
+    else:
+        _write_webm(whole, frames, live=False)
+    assert probe_video(whole).frame_count == N
+    data = whole.read_bytes()
+    with av.open(str(whole)) as c:  # where each frame's block starts in the file
+        starts = [p.pos for p in c.demux(video=0) if p.size]
+    assert len(starts) == N
+    for kept in (N - 3, N - 2):  # cut where frame `kept` starts: 3 (beyond slack), 2 lost
+        cut = tmp_path / f"cut{kept}{whole.suffix}"
+        cut.write_bytes(data[: starts[kept]])
+        info = probe_video(cut)
+        if kept == N - 3:
+            assert info.frame_count == N  # announced by the stated duration
+            with pytest.raises(InputError, match="truncated"):
+                list(iter_frames(cut, expected_count=info.frame_count))
+        else:
+            assert info.frame_count == kept
+            assert len(list(iter_frames(cut, expected_count=info.frame_count))) == kept
+
+
+def test_a_browser_webm_without_duration_is_read_as_its_packets(tmp_path):
+    """A WebM recorded live (MediaRecorder) states neither frame count nor duration: its
+    frames are counted from the packets and read whole, not taken for a cut-off file."""
+    import av
+
+    frames = _frames()
+    path = tmp_path / "browser.webm"
+    _write_webm(path, frames, live=True)
+    with av.open(str(path)) as c:  # what makes it a browser's file
+        assert c.duration is None and not c.streams.video[0].frames
+    info = probe_video(path)
+    assert info.frame_count == N and info.fps == pytest.approx(FPS)
+    got = list(iter_frames(path, expected_count=info.frame_count))
+    assert len(got) == N
+    np.testing.assert_allclose(_square_centre(got[-1]), _square_centre(frames[-1]), atol=0.5)
