@@ -7,10 +7,9 @@ An upload goes through three steps, and a rejected one leaves nothing behind:
    temporary files of the storage (``data_dir/tmp``, the same file system as
    the stored files, so publishing is an atomic rename), computing each file's
    SHA-256 on the fly and stopping at the size limit (HTTP 413).
-2. :func:`validate_video` / :func:`validate_stereo_pair` decide whether a file
-   really is a usable video by decoding it (``core.video.probe_video`` plus
-   its first and last frames), never by its name or declared content type;
-   :func:`validate_rig_file` parses a rig file with ``core.camera.rig_from_dict``.
+2. :mod:`app.upload_checks` decides whether a file really is a usable video
+   by decoding it, never by its name or declared content type, and reads
+   timestamps and rig files.
 3. The use case publishes the accepted files (:meth:`ParsedUpload.publish`)
    and commits the rows that reference them; if anything fails it calls
    :meth:`ParsedUpload.discard`, and :meth:`ParsedUpload.close` always.
@@ -18,7 +17,6 @@ An upload goes through three steps, and a rejected one leaves nothing behind:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,10 +35,7 @@ from app.errors import (
     http_status_for,
 )
 from app.storage import IncomingFile, Storage, StoredFile
-from core.camera import StereoRig, rig_from_dict
-from core.errors import BradyscopeError, InputError
-from core.timing import FrameTimes, read_times_csv
-from core.video import VideoInfo, check_stereo_videos, decodes_frame, probe_video
+from core.errors import BradyscopeError
 
 T = TypeVar("T")
 
@@ -433,138 +428,3 @@ async def _drain(stream: Any) -> None:
                 break
     except (ClientDisconnect, RuntimeError):
         pass  # the client went away or the stream was already consumed: nothing to drain
-
-
-# -- content checks ---------------------------------------------------------
-
-
-def validate_video(path: Path, *, label: str, filename: str = "") -> VideoInfo:
-    """Decide whether ``path`` is a usable video by decoding it.
-
-    Parameters
-    ----------
-    path : Path
-        The received file.
-    label : str
-        How the file is named in messages ("The left video").
-    filename : str
-        The client's file name, shown instead of the temporary file's name.
-
-    Returns
-    -------
-    core.video.VideoInfo
-        fps, frame count, image size and codec of the video.
-
-    Raises
-    ------
-    UnsupportedUpload
-        If the file is empty, not a video, has no frames, or its first or last
-        frames cannot be decoded (a truncated or corrupt file). A container may
-        announce up to two frames more than it holds (``core.video``'s slack);
-        such a file is accepted.
-    """
-
-    def why(exc: BaseException) -> str:
-        return _sentence(exc).replace(path.name, filename or "the file")
-
-    if path.stat().st_size == 0:
-        raise UnsupportedUpload(f"{label} is empty (0 bytes); upload the recorded video file.")
-    try:
-        info = probe_video(path)  # opens the file and decodes its first frame
-    except BradyscopeError as exc:
-        raise UnsupportedUpload(f"{label} is not a usable video: {why(exc)}") from exc
-    # The last frame must decode too: a truncated file fails here even when its
-    # header looks fine. Up to two frames of slack, as in core.video.
-    last = info.frame_count - 1
-    if not any(decodes_frame(path, index) for index in range(last, max(-1, last - 3), -1)):
-        raise UnsupportedUpload(
-            f"{label} is damaged or incomplete: it announces {info.frame_count} frames but its"
-            " last frames cannot be decoded; upload the complete recording again."
-        )
-    return info
-
-
-MAX_TIMES_BYTES = 16 * 1024 * 1024
-"""A timestamps file's size limit: ~30 bytes a frame, so an hour at 120 fps fits."""
-
-
-def validate_times(path: Path, *, label: str, n_frames: int) -> FrameTimes:
-    """Read an uploaded timestamps file (``frame,time_s``) for a video of ``n_frames`` frames.
-
-    Parameters
-    ----------
-    path : Path
-        The received file.
-    label : str
-        How the file is named in messages ("the left timestamps file").
-    n_frames : int
-        The number of frames of its video (decoded count); the file must give
-        the time of each (``core.timing.read_times_csv``'s two frames of slack).
-
-    Returns
-    -------
-    core.timing.FrameTimes
-        The capture times (``source="file"``) and the measured frame rate.
-
-    Raises
-    ------
-    InvalidUpload
-        Empty or too large, not a ``frame,time_s`` CSV, times that do not
-        increase, or a frame count that does not fit the video.
-    """
-    size = path.stat().st_size
-    if size == 0:
-        raise InvalidUpload(f"{_capital(label)} is empty; upload the one recorded with the video.")
-    if size > MAX_TIMES_BYTES:
-        raise InvalidUpload(
-            f"{_capital(label)} is larger than {MAX_TIMES_BYTES // 1024 // 1024} MB; a"
-            " timestamps file holds one short line per frame (frame,time_s)."
-        )
-    try:
-        return read_times_csv(path, n_frames=n_frames)
-    except InputError as exc:
-        raise InvalidUpload(_capital(_sentence(exc).replace(path.name, label))) from exc
-
-
-def _capital(text: str) -> str:
-    return text[:1].upper() + text[1:]
-
-
-def validate_stereo_pair(
-    left: VideoInfo, right: VideoInfo, *, rig: StereoRig | None = None
-) -> list[str]:
-    """Check that two decoded videos form one stereo recording (same fps and size, rig fit).
-
-    Returns the warnings of ``core.video.check_stereo_videos``; raises
-    :class:`InvalidUpload` when the pair cannot be measured.
-    """
-    try:
-        return list(check_stereo_videos(left, right, rig=rig))
-    except BradyscopeError as exc:
-        raise InvalidUpload(_sentence(exc)) from exc
-
-
-def validate_rig_file(path: Path) -> StereoRig:
-    """Parse an uploaded rig file; return the ``StereoRig`` or raise :class:`InvalidUpload`."""
-    if path.stat().st_size == 0:
-        raise InvalidUpload("The rig file is empty; upload the rig.json written by calibrate.")
-    try:
-        doc = json.loads(path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InvalidUpload(
-            "The rig file is not valid JSON; upload the rig.json written by bradyscope calibrate."
-        ) from exc
-    except RecursionError as exc:
-        raise InvalidUpload(
-            "The rig file is nested too deeply to be a rig file; upload the rig.json written by"
-            " bradyscope calibrate."
-        ) from exc
-    try:
-        return rig_from_dict(doc, source="the uploaded rig file")
-    except BradyscopeError as exc:
-        raise InvalidUpload(_sentence(exc)) from exc
-
-
-def _sentence(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return text if text.endswith((".", "!", "?")) else text + "."

@@ -26,7 +26,7 @@ def main() -> None:
     from app.db import get_sessionmaker, migrate
     from app.main import create_app
     from app.settings import Settings
-    from app.uploads import validate_video
+    from app.upload_checks import validate_video
     from core.camera import ImageSize
     from core.simulation.kinematics import TappingScenario
     from core.simulation.session import ImagingScenario, simulate_session

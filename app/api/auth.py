@@ -9,7 +9,8 @@ from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
 
 from app.api.responses import AUTH, errors
-from app.auth import CurrentActor, CurrentUser, SessionDep, login_from_request, logout_from_request
+from app.auth import CurrentActor, CurrentUser, SessionDep
+from app.login import login_from_request, logout_from_request
 from app.schemas import LoginRequest, LoginResponse
 
 router = APIRouter(prefix="/auth", tags=["auth"])

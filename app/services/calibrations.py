@@ -37,7 +37,8 @@ from app.models import (
 from app.services.common import load_rig
 from app.services.videos import add_videos, check_video_pair
 from app.storage import Storage
-from app.uploads import InvalidUpload, ParsedUpload, validate_rig_file
+from app.upload_checks import validate_rig_file
+from app.uploads import InvalidUpload, ParsedUpload
 from core.boards import BoardSpec
 from core.calibration import CalibrationResult
 from core.camera import StereoRig, rig_from_dict, rig_to_dict

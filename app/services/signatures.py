@@ -2,7 +2,7 @@
 
 A visit is the patient's sessions on one day (:func:`app.services.common.visit_sessions`).
 Signing it (:func:`sign_visit`) needs the clinician's password again
-(:func:`app.auth.reauthenticate`); it renders the visit report of every trial
+(:func:`app.login.reauthenticate`); it renders the visit report of every trial
 in its current result revision, with the signature line filled in, stores the
 PDF bytes as they are, and records who, when, the bytes' SHA-256 and which
 revision of each trial was signed (:class:`app.models.Signature`). A signature
@@ -28,8 +28,8 @@ from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.audit import audit, audit_failure
-from app.auth import reauthenticate
 from app.errors import ConflictError, NotFoundError, PermissionDeniedError
+from app.login import reauthenticate
 from app.models import RecordingSession, Signature, utcnow
 from app.reports.rendering import render_visit_pdf
 from app.reports.visit import SignatureLine

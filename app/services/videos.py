@@ -16,13 +16,8 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from app.models import Video
-from app.uploads import (
-    InvalidUpload,
-    ParsedUpload,
-    validate_stereo_pair,
-    validate_times,
-    validate_video,
-)
+from app.upload_checks import validate_stereo_pair, validate_times, validate_video
+from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig
 from core.timing import FrameTimes, uniform_times
 from core.video import VideoInfo

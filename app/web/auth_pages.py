@@ -15,16 +15,10 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from app import oidc
 from app.audit import ANONYMOUS, audit_failure
-from app.auth import (
-    SESSION_COOKIE,
-    SessionDep,
-    login_from_request,
-    login_sso,
-    logout_from_request,
-    set_session_cookie,
-)
+from app.auth import SESSION_COOKIE, SessionDep
 from app.chain import load_key
 from app.errors import AppError
+from app.login import login_from_request, login_sso, logout_from_request, set_session_cookie
 from app.web.common import csrf_ok, page_user, render, safe_next, settings_of, status_of
 
 router = APIRouter()

@@ -26,12 +26,12 @@ from api_support import Api, api, make_api_key, make_user  # noqa: F401
 from fastapi.testclient import TestClient
 from sqlalchemy import select, update
 
-from app import auth, throttle
+from app import login, throttle
 from app.actors import Actor
-from app.auth import login_user, reauthenticate
 from app.cli import main
 from app.db import get_sessionmaker
 from app.errors import AuthenticationError, InvalidRequestError, RateLimitedError
+from app.login import login_user, reauthenticate
 from app.main import create_app
 from app.models import ApiClient, AuditEvent, BrowserSession, LoginThrottle, User, utcnow
 from app.passwords import check_password_strength
@@ -63,14 +63,14 @@ def _concurrent_wrong_logins(settings: Settings, monkeypatch: pytest.MonkeyPatch
     make_user(sessions, "doc@example.org", PASSWORD)
     checks = Counter[str]()
     lock = threading.Lock()
-    real_verify = auth.verify_password
+    real_verify = login.verify_password
 
     def counting_verify(password_hash: str, password: str) -> bool:
         with lock:
             checks["password checked"] += 1
         return real_verify(password_hash, password)
 
-    monkeypatch.setattr(auth, "verify_password", counting_verify)
+    monkeypatch.setattr(login, "verify_password", counting_verify)
     barrier = threading.Barrier(20)
 
     def attempt(_: int) -> str:

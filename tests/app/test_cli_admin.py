@@ -132,7 +132,8 @@ def test_set_password_replaces_hash(fresh_dir, monkeypatch):
 
 
 def test_set_password_logs_the_user_out_of_every_browser(fresh_dir, monkeypatch):
-    from app.auth import authenticate_session_cookie, login_user
+    from app.auth import authenticate_session_cookie
+    from app.login import login_user
 
     monkeypatch.setenv("BRADYSCOPE_PASSWORD", "first copper lantern")
     main(["admin", "create-user", "a@b.org", "--role", "clinician"])
