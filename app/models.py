@@ -59,6 +59,7 @@ from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.types import TypeDecorator
 
 from core.calibration import quality_verdict
+from core.tasks import TASKS
 
 # Allowed values of the enumerated string columns.
 ROLES = ("clinician", "admin")
@@ -66,6 +67,7 @@ SEXES = ("female", "male", "other", "unknown")
 MEDICATION_STATES = ("on", "off", "unknown")
 DBS_STATES = ("on", "off", "none", "unknown")
 HANDS = ("left", "right")
+"""The side of a trial: the hand, or the foot for toe tapping."""
 MORE_AFFECTED_SIDES = ("left", "right", "equal")
 DOMINANT_HANDS = ("left", "right", "both")
 CLINICIAN_RATINGS = (0, 1, 2, 3, 4)
@@ -405,11 +407,13 @@ class RecordingSession(Base):
 
 
 class Trial(Base):
-    """One finger-tapping recording of one hand: two videos, one analysis job, one result."""
+    """One recording of one task (finger tapping by default) on one side: two videos, one
+    analysis job, one result."""
 
     __tablename__ = "trials"
     __table_args__ = (
         CheckConstraint(_in("hand", HANDS), name="hand"),
+        CheckConstraint(_in("task", TASKS), name="task"),
         CheckConstraint(_in("status", TRIAL_STATUSES), name="status"),
         CheckConstraint(
             "clinician_rating IS NULL OR (clinician_rating >= 0 AND clinician_rating <= 4)",
@@ -420,12 +424,18 @@ class Trial(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     session_id: Mapped[int] = mapped_column(ForeignKey("sessions.id"), index=True)
     hand: Mapped[str] = mapped_column(String(8))
+    """The side: left or right hand (or foot, for toe tapping)."""
+    task: Mapped[str] = mapped_column(
+        String(32), default="finger_tapping", server_default="finger_tapping"
+    )
+    """The MDS-UPDRS item recorded (``core.tasks.Task``): finger_tapping, hand_movements,
+    pronation_supination or toe_tapping."""
     status: Mapped[str] = mapped_column(String(16), default="queued")
     """Mirrors the analysis job: queued, running, succeeded, failed."""
     offset_frames: Mapped[float | None] = mapped_column(Float)
     """Known camera offset (right frame j ~ left frame j + K); NULL = estimate it."""
     clinician_rating: Mapped[int | None] = mapped_column(Integer)
-    """The clinician's own MDS-UPDRS rating of this hand's item (3.4 for finger tapping), 0–4."""
+    """The clinician's own MDS-UPDRS rating of this side's item (3.4–3.7 by the task), 0–4."""
     rating_comment: Mapped[str | None] = mapped_column(Text)
     rated_at: Mapped[datetime | None]
     rated_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))

@@ -15,6 +15,7 @@ from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoes
 from starlette.templating import Jinja2Templates
 
 from app.timezones import to_zone
+from core.tasks import parse_task
 
 TEMPLATES_DIR = Path(__file__).resolve().parents[1] / "templates"
 
@@ -51,6 +52,21 @@ def _minutes_ago(value: int | None) -> str:
     return f"{hours} h {minutes:02d} min before"
 
 
+def _task_heading(value: str | None) -> str:
+    """``"Hand movements (MDS-UPDRS 3.5)"`` for a task value (finger tapping when None)."""
+    return parse_task(value).heading
+
+
+def _task_item(value: str | None) -> str:
+    """The MDS-UPDRS item of a task value: ``"3.5"``."""
+    return parse_task(value).updrs_item
+
+
+def _limb(value: str | None) -> str:
+    """``"foot"`` for toe tapping, else ``"hand"``."""
+    return parse_task(value).limb
+
+
 def _make_env() -> Environment:
     env = Environment(
         loader=FileSystemLoader(str(TEMPLATES_DIR)),
@@ -63,6 +79,9 @@ def _make_env() -> Environment:
     env.filters["date"] = _date
     env.filters["percent"] = _percent
     env.filters["minutes_ago"] = _minutes_ago
+    env.filters["task_heading"] = _task_heading
+    env.filters["task_item"] = _task_item
+    env.filters["limb"] = _limb
     return env
 
 

@@ -290,6 +290,7 @@ def analyze_trial(ctx: JobContext) -> None:
         progress=ctx.progress,
         left_times=left_times,
         right_times=right_times,
+        task=inputs.task,
     )
     document = dict(analysis.result_document())
     document.setdefault("calibration", inputs.calibration.document())

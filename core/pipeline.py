@@ -67,6 +67,7 @@ from core.matching import concatenate_frames, frame_pairs_epipolar_px
 from core.metrics import TappingMetrics, compute_metrics
 from core.overlay import CameraOverlay, camera_overlay
 from core.progress import ProgressCallback, report
+from core.tasks import Task, parse_task
 from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
@@ -123,6 +124,8 @@ class Analysis:
         right frame ``j`` is left frame ``j + K`` for a whole-frame offset).
     right_fps : float, optional
         Frame rate of the right video (Hz).
+    task : str
+        The examination task (:class:`core.tasks.Task` value), ``"finger_tapping"`` by default.
     """
 
     fps: float
@@ -139,6 +142,7 @@ class Analysis:
     detections_px: tuple[list[FloatArray], list[FloatArray]] | None = None
     right_left_frame: FloatArray | None = None
     right_fps: float | None = None
+    task: str = Task.FINGER_TAPPING.value
 
     @property
     def time_s(self) -> FloatArray:
@@ -196,6 +200,7 @@ class Analysis:
         quality["warnings"] = list(self.warnings)
         doc: dict[str, Any] = {
             "format": RESULT_FORMAT,
+            "task": str(self.task),
             "fps": float(self.fps),
             "sync": dict(self.sync),
             "metrics": _json_clean(metrics),
@@ -375,6 +380,7 @@ def analyze_recording(
     progress: ProgressCallback | None = None,
     left_times: str | Path | None = None,
     right_times: str | Path | None = None,
+    task: str | Task = Task.FINGER_TAPPING,
 ) -> Analysis:
     """Measure thumb and index trajectories (and tapping metrics) from a stereo recording.
 
@@ -403,6 +409,9 @@ def analyze_recording(
     left_times, right_times : str or Path, optional
         Timestamps files (``frame,time_s`` CSV) with each frame's capture
         time; otherwise the container's timestamps or ``i / fps`` (:mod:`core.timing`).
+    task : Task or str
+        The examination task (``--task``): its marker protocol labels the
+        tracks and its cycle signal gives the metrics (``docs/protocols.md``).
 
     Returns
     -------
@@ -419,6 +428,9 @@ def analyze_recording(
 
     if max_gap_s < 0:
         raise ValueError(f"max_gap_s must be >= 0, got {max_gap_s}")
+    task = parse_task(task)
+    if task is not Task.FINGER_TAPPING:
+        raise InputError(f"measuring {task.label.lower()} is not available in this version yet.")
     left_info = probe_video(left_video)
     right_info = probe_video(right_video)
     warnings = list(check_stereo_videos(left_info, right_info, rig=rig))
@@ -546,6 +558,7 @@ def analyze_recording(
         detections_px=detections,
         right_left_frame=right_left_frame,
         right_fps=times[1].fps,
+        task=task.value,
     )
 
 

@@ -17,13 +17,25 @@ from app.auth import RecordingWriter as Uploader
 from app.schemas import JobRead, TrialCreated, TrialRatingUpdate, TrialRead
 from app.services import trials as service
 from app.uploads import ParsedUpload
+from core.tasks import TASKS
 
 router = APIRouter(tags=["trials"])
 Admin = Annotated[Actor, Depends(require_scope(ADMIN_SCOPE))]
 
 TRIAL_BODY = multipart_body(
     {
-        "hand": {"type": "string", "enum": ["left", "right"]},
+        "hand": {
+            "type": "string",
+            "enum": ["left", "right"],
+            "description": "The side: the hand, or the foot for toe tapping.",
+        },
+        "task": {
+            "type": "string",
+            "enum": list(TASKS),
+            "default": "finger_tapping",
+            "description": "The MDS-UPDRS item recorded: finger_tapping (3.4, the default),"
+            " hand_movements (3.5), pronation_supination (3.6) or toe_tapping (3.7).",
+        },
         "left_video": {**BINARY, "description": "Video of the left camera."},
         "right_video": {**BINARY, "description": "Video of the right camera."},
         "offset_frames": {
@@ -40,7 +52,7 @@ TRIAL_BODY = multipart_body(
         "right_times": {**BINARY, "description": "Likewise for the right video."},
     },
     ["hand", "left_video", "right_video"],
-    "One finger-tapping recording of one hand by the two cameras of the session's rig.",
+    "One recording of one task on one side by the two cameras of the session's rig.",
 )
 
 

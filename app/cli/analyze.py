@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from core.tasks import TASKS
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -46,6 +48,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="capture time of each right frame (frame,time_s)",
     )
     p.add_argument(
+        "--task",
+        choices=TASKS,
+        default=TASKS[0],
+        help="the examination task recorded (MDS-UPDRS 3.4-3.7; default finger_tapping):"
+        " its marker protocol and cycle metrics (docs/protocols.md)",
+    )
+    p.add_argument(
         "--swap-labels",
         action="store_true",
         help="exchange the automatic thumb/index labels",
@@ -80,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
             progress=progress,
             left_times=args.left_times,
             right_times=args.right_times,
+            task=args.task,
         )
     try:
         write_analysis(analysis, args.output)

@@ -108,7 +108,7 @@ def trial_column(trial: Trial, result: Result | None = None) -> SummaryColumn:
         raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
     return SummaryColumn(
         trial_id=trial.id,
-        task="finger_tapping",
+        task=trial.task,
         hand=trial.hand,
         medication_state=trial.session.medication_state,
         result=read_result(served_document(result)),
@@ -155,6 +155,7 @@ def load_report_data(
         patient_id=session.patient_id,
         session_id=session.id,
         hand=trial.hand,
+        task=trial.task,
         recorded_at=session.recorded_at,
         medication_state=session.medication_state,
         dbs_state=session.dbs_state,

@@ -37,6 +37,7 @@ from app.services.videos import add_videos, check_video_pair
 from app.storage import Storage
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig, rig_from_dict
+from core.tasks import DEFAULT_TASK, TASKS
 
 TRIAL_FILE_FIELDS = {
     "left_video": ".video",
@@ -44,7 +45,7 @@ TRIAL_FILE_FIELDS = {
     "left_times": ".csv",
     "right_times": ".csv",
 }
-TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames"})
+TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task"})
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,16 @@ def _parse_hand(upload: ParsedUpload) -> str:
     return hand
 
 
+def _parse_task(upload: ParsedUpload) -> str:
+    """The upload's ``task`` (finger tapping when absent or empty)."""
+    raw = (upload.fields.get("task") or "").strip().lower()
+    if not raw:
+        return DEFAULT_TASK.value
+    if raw not in TASKS:
+        raise InvalidUpload(f"task must be one of {', '.join(TASKS)}, not {raw[:40]!r}.")
+    return raw
+
+
 def _parse_offset(upload: ParsedUpload) -> float | None:
     raw = (upload.fields.get("offset_frames") or "").strip()
     if not raw:
@@ -94,13 +105,16 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
     """Accept a trial upload: check both videos by decoding (and their timestamps files,
     if any), store them, queue the analysis."""
     hand = _parse_hand(upload)
+    task = _parse_task(upload)
     offset = _parse_offset(upload)
     session = load_session(db, actor, session_id, "create")
     rig = rig_to_check_against(db, session)
     pair = check_video_pair(upload, rig=rig)
     warnings = pair.warnings
     try:
-        trial = Trial(session_id=session.id, hand=hand, status="queued", offset_frames=offset)
+        trial = Trial(
+            session_id=session.id, hand=hand, task=task, status="queued", offset_frames=offset
+        )
         db.add(trial)
         db.flush()
         add_videos(db, upload, pair, trial_id=trial.id)
@@ -132,6 +146,7 @@ def trial_view(db: Session, trial: Trial) -> dict[str, Any]:
         "id": trial.id,
         "session_id": trial.session_id,
         "hand": trial.hand,
+        "task": trial.task,
         "status": trial.status,
         "offset_frames": trial.offset_frames,
         "created_at": trial.created_at,
@@ -317,6 +332,8 @@ class TrialInputs:
         The stored videos (by side) that have no browser proxy yet.
     left_times, right_times : Path or None
         The stored timestamps files of the videos, if they came with them.
+    task : str
+        The task recorded (``core.tasks.Task`` value).
     """
 
     trial_id: int
@@ -328,6 +345,7 @@ class TrialInputs:
     proxies_needed: dict[str, Path] = field(default_factory=dict)
     left_times: Path | None = None
     right_times: Path | None = None
+    task: str = DEFAULT_TASK.value
 
     @property
     def files(self) -> tuple[Path, ...]:
@@ -386,6 +404,7 @@ def analysis_inputs(
         },
         left_times=_times_file(storage, videos["left"]),
         right_times=_times_file(storage, videos["right"]),
+        task=trial.task,
     )
 
 

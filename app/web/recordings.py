@@ -38,12 +38,14 @@ from app.web.common import (
     wants_json,
     with_own_db,
 )
+from core.tasks import Task
 
 router = APIRouter()
 
 
 def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
-    """(right, left) trial ids with results, newest of each hand, for a left/right comparison."""
+    """(right, left) trial ids with results, newest of each side, for a right/left comparison
+    (trials of one task)."""
     newest: dict[str, Trial] = {}
     for t in trials:
         if t.result is not None and (t.hand not in newest or t.id > newest[t.hand].id):
@@ -51,6 +53,20 @@ def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
     if "right" in newest and "left" in newest:
         return newest["right"].id, newest["left"].id
     return None
+
+
+def _task_grid(trials: list[Trial]) -> list[dict[str, Any]]:
+    """One row per task (MDS-UPDRS 3.4–3.7): the newest trial of each side, and the
+    right–left comparison of the task when both sides have a result."""
+    rows = []
+    for task in Task:
+        of_task = [t for t in trials if t.task == task.value]
+        sides: dict[str, Trial | None] = {}
+        for side in ("right", "left"):
+            mine = [t for t in of_task if t.hand == side]
+            sides[side] = max(mine, key=lambda t: t.id) if mine else None
+        rows.append({"title": task.heading, "sides": sides, "pair": _hand_pair(of_task)})
+    return rows
 
 
 def _session_response(
@@ -91,7 +107,9 @@ def _session_response(
         calibration_problem=overview.calibration_problem,
         hands=("left", "right"),
         done_hands={t.hand for t in trials if t.status != "failed"},
-        hand_pair=_hand_pair(trials),
+        task_grid=_task_grid(trials),
+        task_labels={task.value: task.label for task in Task},
+        task_choices=[(task.value, task.heading) for task in Task],
     )
 
 

@@ -40,6 +40,7 @@ def test_analyze_writes_outputs_and_finds_the_offset(
     assert code == 0
     doc = json.loads((out / "result.json").read_text(encoding="utf-8"))
     assert doc["format"] == "bradyscope.result/1"
+    assert doc["task"] == "finger_tapping"  # the default --task
     assert doc["sync"]["offset_frames"] == float(OFFSET) and doc["sync"]["method"] == "auto"
     with open(out / "markers.csv", newline="", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
@@ -99,3 +100,6 @@ def test_bad_input_is_one_sentence(
     with pytest.raises(SystemExit):
         main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
               "--offset-frames", "1", "--auto-sync"])  # fmt: skip
+    with pytest.raises(SystemExit):  # leg agility (3.8) is not measured
+        main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
+              "--task", "leg_agility"])  # fmt: skip

@@ -1,0 +1,92 @@
+"""The examination tasks a trial can record (MDS-UPDRS part III items 3.4–3.7).
+
+A trial records one task on one side. Finger tapping (3.4) is the default, as
+before tasks existed; hand movements (3.5), pronation–supination (3.6) and toe
+tapping (3.7) have their own marker protocols (``docs/protocols.md``) and cycle
+signals, and share the cycle metrics (``docs/metrics.md``). The values are the
+strings of the command line (``--task``), the REST API (``task``) and
+result.json (``task``), docs/interfaces.md.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from core.errors import InputError
+
+
+class Task(StrEnum):
+    """One MDS-UPDRS bradykinesia item measured by a trial."""
+
+    FINGER_TAPPING = "finger_tapping"
+    HAND_MOVEMENTS = "hand_movements"
+    PRONATION_SUPINATION = "pronation_supination"
+    TOE_TAPPING = "toe_tapping"
+
+    @property
+    def updrs_item(self) -> str:
+        """The MDS-UPDRS item number, ``"3.4"`` … ``"3.7"``."""
+        return _ITEMS[self]
+
+    @property
+    def heading(self) -> str:
+        """``"Hand movements (MDS-UPDRS 3.5)"``."""
+        return f"{_NAMES[self]} (MDS-UPDRS {self.updrs_item})"
+
+    @property
+    def label(self) -> str:
+        """``"Hand movements"``."""
+        return _NAMES[self]
+
+    @property
+    def amplitude_unit(self) -> str:
+        """Unit of the cycle amplitude: ``"deg"`` for pronation–supination, else ``"mm"``."""
+        return "deg" if self is Task.PRONATION_SUPINATION else "mm"
+
+    @property
+    def limb(self) -> str:
+        """``"foot"`` for toe tapping, else ``"hand"``."""
+        return "foot" if self is Task.TOE_TAPPING else "hand"
+
+
+_ITEMS = {
+    Task.FINGER_TAPPING: "3.4",
+    Task.HAND_MOVEMENTS: "3.5",
+    Task.PRONATION_SUPINATION: "3.6",
+    Task.TOE_TAPPING: "3.7",
+}
+_NAMES = {
+    Task.FINGER_TAPPING: "Finger tapping",
+    Task.HAND_MOVEMENTS: "Hand movements",
+    Task.PRONATION_SUPINATION: "Pronation–supination",
+    Task.TOE_TAPPING: "Toe tapping",
+}
+
+TASKS: tuple[str, ...] = tuple(t.value for t in Task)
+"""Every task value, in the order of the MDS-UPDRS items."""
+
+DEFAULT_TASK = Task.FINGER_TAPPING
+
+
+def parse_task(value: str | Task | None) -> Task:
+    """The :class:`Task` named by ``value`` (None or empty: finger tapping).
+
+    Raises
+    ------
+    InputError
+        ``value`` names no task; the message lists the ones there are.
+    """
+    if value is None or value == "":
+        return DEFAULT_TASK
+    if isinstance(value, Task):
+        return value
+    text = str(value).strip().lower().replace("-", "_")
+    try:
+        return Task(text)
+    except ValueError:
+        raise InputError(
+            f"unknown task {str(value)[:40]!r}; choose one of {', '.join(TASKS)}."
+        ) from None
+
+
+__all__ = ["DEFAULT_TASK", "TASKS", "Task", "parse_task"]
