@@ -283,36 +283,8 @@ def _database_holds_data(settings: Settings) -> bool:
     return False
 
 
-def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupSummary:
-    """Put a backup back into the configured database and data directory, then migrate.
-
-    Every checksum is verified before anything changes. Without ``force`` the
-    database and ``<data dir>/files`` must hold no data yet.
-
-    Raises
-    ------
-    InvalidRequestError
-        The backup is incomplete, damaged, or of another database kind.
-    ConflictError
-        The target holds data and ``force`` is not given.
-    """
-    source = source.expanduser().resolve()
-    manifest = read_manifest(source)
-    database = manifest.get("database") or {}
-    kind = "sqlite" if settings.is_sqlite else "postgresql"
-    if database.get("kind") != kind:
-        raise InvalidRequestError(
-            f"this backup holds a {database.get('kind')} database but bradyscope is configured"
-            f" for {kind}; set BRADYSCOPE_DATABASE_URL accordingly."
-        )
-    files_dir = settings.data_dir / "files"
-    has_files = files_dir.is_dir() and any(p.is_file() for p in files_dir.rglob("*"))
-    if not force and (has_files or _database_holds_data(settings)):
-        raise ConflictError(
-            "the database or the data directory already holds data; restore into an empty"
-            " one, or pass --force to replace it (stop the service first)."
-        )
-    db_file = source / str(database.get("file"))
+def _restore_database(settings: Settings, kind: str, db_file: Path) -> None:
+    """Replace the configured database with the backup's copy ``db_file``."""
     if kind == "sqlite":
         dispose_engines()
         path = _sqlite_path(settings)
@@ -343,12 +315,16 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
             ],
             _pg_env(settings),
         )
-    if force and files_dir.is_dir():
-        shutil.rmtree(files_dir)
-    count, total = 1, int(db_file.stat().st_size)
+
+
+def _restore_files(
+    settings: Settings, source: Path, manifest: dict[str, Any], *, skip: str, force: bool
+) -> tuple[int, int]:
+    """Copy the backup's files (all but ``skip``) back, each checked; (count, bytes) copied."""
+    count, total = 0, 0
     for entry in manifest.get("files", []):
         rel = str(entry["path"])
-        if rel == db_file.name:
+        if rel == skip:
             continue
         dst = settings.audit_key_path if rel == AUDIT_KEY_FILE else settings.data_dir / rel
         if rel == AUDIT_KEY_FILE and dst.exists() and not force:
@@ -363,6 +339,44 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
             forget_key(dst)
         count += 1
         total += size
+    return count, total
+
+
+def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupSummary:
+    """Put a backup back into the configured database and data directory, then migrate.
+
+    Every checksum is verified before anything changes. Without ``force`` the
+    database and ``<data dir>/files`` must hold no data yet.
+
+    Raises
+    ------
+    InvalidRequestError
+        The backup is incomplete, damaged, or of another database kind.
+    ConflictError
+        The target holds data and ``force`` is not given.
+    """
+    source = source.expanduser().resolve()
+    manifest = read_manifest(source)
+    database = manifest.get("database") or {}
+    kind = "sqlite" if settings.is_sqlite else "postgresql"
+    if database.get("kind") != kind:
+        raise InvalidRequestError(
+            f"this backup holds a {database.get('kind')} database but bradyscope is configured"
+            f" for {kind}; set BRADYSCOPE_DATABASE_URL accordingly."
+        )
+    files_dir = settings.data_dir / "files"
+    has_files = files_dir.is_dir() and any(p.is_file() for p in files_dir.rglob("*"))
+    if not force and (has_files or _database_holds_data(settings)):
+        raise ConflictError(
+            "the database or the data directory already holds data; restore into an empty"
+            " one, or pass --force to replace it (stop the service first)."
+        )
+    db_file = source / str(database.get("file"))
+    _restore_database(settings, kind, db_file)
+    if force and files_dir.is_dir():
+        shutil.rmtree(files_dir)
+    count, total = _restore_files(settings, source, manifest, skip=db_file.name, force=force)
+    count, total = count + 1, total + int(db_file.stat().st_size)
     (settings.data_dir / "tmp").mkdir(parents=True, exist_ok=True)
     migrate(settings)  # a backup of an older version is brought forward
     try:

@@ -66,7 +66,8 @@ def start_embedded_workers(
     settings: Settings, count: int, stop_event: threading.Event
 ) -> list[threading.Thread]:
     """Start ``count`` worker threads that run until ``stop_event`` is set."""
-    from app.worker import default_worker_name, run_worker
+    from app.job_context import default_worker_name
+    from app.worker import run_worker
 
     threads = []
     for i in range(count):

@@ -15,7 +15,8 @@ why (a reason is required) and what changed; the newest is current.
   revision (:func:`store_analysis`). Corrections made before it referred to
   the taps of the earlier analysis and do not carry over.
 
-Every revision is one audit event (``create revision``).
+Every revision is one audit event (``create revision``). The review page that
+shows a revision beside the videos is :mod:`app.services.review`.
 """
 
 from __future__ import annotations
@@ -23,10 +24,8 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
-import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -35,7 +34,7 @@ from app import jobs
 from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, InvalidRequestError, NotFoundError
-from app.models import Job, Result, Trial, User, utcnow
+from app.models import Result, Trial, User, utcnow
 from app.schemas import RevisionCreate
 from app.services.common import load_trial
 from app.storage import Storage
@@ -214,6 +213,58 @@ def _queue_reanalysis(
     return RevisionOut(trial_id=trial.id, revision=None, job_id=job.id)
 
 
+def _merged_corrections(current: Result, change: dict[str, Any]) -> Corrections:
+    """The current revision's corrections with the request's ``change`` applied over them."""
+    before = (
+        Corrections.from_dict(current.document.get("corrections"))
+        if current.kind == "correction"
+        else Corrections()
+    )
+    merged = before.to_dict()
+    merged.update({k: (list(v) if isinstance(v, list | tuple) else v) for k, v in change.items()})
+    try:
+        corrections = Corrections.from_dict(merged)
+    except (ValueError, TypeError) as exc:
+        raise InvalidRequestError(f"The correction cannot be used: {exc}") from exc
+    if corrections == before:
+        raise InvalidRequestError(
+            f"Revision {current.revision} already has these corrections; nothing would change."
+        )
+    return corrections
+
+
+def _stored_trajectories(storage: Storage, trial: Trial, base: Result) -> MarkerTable:
+    """The markers.csv of the analysis revision ``base``, read back from storage."""
+    if not base.markers_path or not storage.exists(base.markers_path):
+        raise ConflictError(
+            f"The trajectories of trial {trial.id} are missing from storage; it cannot be"
+            " measured again (ask the administrator to restore the data directory)."
+        )
+    return read_markers_csv(
+        storage.absolute(base.markers_path), fps=float(base.document.get("fps") or 0) or None
+    )
+
+
+def _write_swapped_labels(
+    storage: Storage, base: Result, table: MarkerTable, written: list[str]
+) -> tuple[str | None, str | None]:
+    """markers.csv and the review overlay with thumb and index swapped; their stored paths.
+
+    Each file written is appended to ``written`` at once, so that the caller
+    can remove it if storing the revision fails.
+    """
+    with storage.writing("results", ".csv") as (tmp, markers_path):
+        write_markers_csv(swap_thumb_index(table), tmp)
+    written.append(markers_path)
+    overlay_path = base.overlay_path
+    if base.overlay_path and storage.exists(base.overlay_path):
+        overlay = json.loads(storage.absolute(base.overlay_path).read_text())
+        with storage.writing("overlays", ".json") as (tmp, overlay_path):
+            tmp.write_text(json.dumps(swap_overlay_labels(overlay)))
+        written.append(overlay_path)
+    return markers_path, overlay_path
+
+
 def _correct(
     db: Session,
     actor: Actor,
@@ -231,29 +282,8 @@ def _correct(
     task = base.document.get("task", "finger_tapping")
     if task != "finger_tapping":
         raise InvalidRequestError(f"Corrections of taps apply to finger tapping, not to {task}.")
-    before = (
-        Corrections.from_dict(current.document.get("corrections"))
-        if current.kind == "correction"
-        else Corrections()
-    )
-    merged = before.to_dict()
-    merged.update({k: (list(v) if isinstance(v, list | tuple) else v) for k, v in change.items()})
-    try:
-        corrections = Corrections.from_dict(merged)
-    except (ValueError, TypeError) as exc:
-        raise InvalidRequestError(f"The correction cannot be used: {exc}") from exc
-    if corrections == before:
-        raise InvalidRequestError(
-            f"Revision {current.revision} already has these corrections; nothing would change."
-        )
-    if not base.markers_path or not storage.exists(base.markers_path):
-        raise ConflictError(
-            f"The trajectories of trial {trial.id} are missing from storage; it cannot be"
-            " measured again (ask the administrator to restore the data directory)."
-        )
-    table = read_markers_csv(
-        storage.absolute(base.markers_path), fps=float(base.document.get("fps") or 0) or None
-    )
+    corrections = _merged_corrections(current, change)
+    table = _stored_trajectories(storage, trial, base)
     try:
         corrected = correct_metrics(table, corrections)
     except ValueError as exc:
@@ -271,14 +301,7 @@ def _correct(
     markers_path, overlay_path = base.markers_path, base.overlay_path
     try:
         if corrections.swap_labels:
-            with storage.writing("results", ".csv") as (tmp, markers_path):
-                write_markers_csv(swap_thumb_index(table), tmp)
-            written.append(markers_path)
-            if base.overlay_path and storage.exists(base.overlay_path):
-                overlay = json.loads(storage.absolute(base.overlay_path).read_text())
-                with storage.writing("overlays", ".json") as (tmp, overlay_path):
-                    tmp.write_text(json.dumps(swap_overlay_labels(overlay)))
-                written.append(overlay_path)
+            markers_path, overlay_path = _write_swapped_labels(storage, base, table, written)
         db.add(
             Result(
                 trial_id=trial.id,
@@ -369,127 +392,3 @@ def store_analysis(
         )
     )
     return number
-
-
-def read_overlay(result: Result, storage: Storage) -> dict[str, Any] | None:
-    """The overlay document of a revision, None when it has none (older results)."""
-    if not result.overlay_path or not storage.exists(result.overlay_path):
-        return None
-    doc = json.loads(storage.absolute(result.overlay_path).read_text(encoding="utf-8"))
-    if not isinstance(doc, dict):
-        raise ValueError(f"the overlay {result.overlay_path} is not a JSON object")
-    return doc
-
-
-# --------------------------------------------------------------------------- the review view
-
-
-@dataclass(frozen=True)
-class ReviewPage:
-    """The review view of one revision of a trial's result.
-
-    ``data`` is what the player script draws (embedded in the page, so the one
-    audited view covers it): the aperture per left frame, the taps, pauses and
-    the overlay of each video. ``videos`` are the sides that have a browser
-    proxy; ``job`` the newest analysis job (a re-analysis in progress or failed).
-    """
-
-    trial: Trial
-    result: Result
-    revisions: list[RevisionInfo]
-    data: dict[str, Any]
-    videos: tuple[str, ...]
-    corrections: Corrections
-    job: Job | None = None
-
-
-def _aperture(table: MarkerTable) -> list[float | None]:
-    """Raw thumb–index distance per left frame (mm, 0.01 mm), None where unknown."""
-    labels = list(table.labels)
-    if "thumb" not in labels or "index" not in labels:
-        return []
-    d = np.linalg.norm(
-        table.positions_mm[:, labels.index("thumb")] - table.positions_mm[:, labels.index("index")],
-        axis=1,
-    )
-    return [round(float(v), 2) if np.isfinite(v) else None for v in d]
-
-
-def review_page(
-    db: Session, actor: Actor, trial_id: int, storage: Storage, *, revision: int | None = None
-) -> ReviewPage:
-    """The review view (one ``read review`` audit event per view).
-
-    Raises
-    ------
-    NotFoundError
-        No such trial or revision (audited).
-    ConflictError
-        The trial has no result yet.
-    """
-    trial = load_trial(db, actor, trial_id, "read")
-    if trial.result is None:
-        raise ConflictError(
-            f"The trial {trial.id} has no result to review yet; wait for its analysis."
-        )
-    result = trial.result if revision is None else trial.revision(revision)
-    if result is None:
-        audit(db, actor, "read", "review", trial.id, trial.session.patient_id, "not_found")
-        db.commit()
-        raise NotFoundError(
-            f"The trial {trial.id} has no revision {revision};"
-            f" its revisions are 1 to {trial.result.revision}."
-        )
-    doc = served_document(result)
-    aperture: list[float | None] = []
-    if result.markers_path and storage.exists(result.markers_path):
-        table = read_markers_csv(
-            storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
-        )
-        aperture = _aperture(table)
-    videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
-    corrections = Corrections.from_dict(doc.get("corrections"))
-    data = {
-        "trial_id": trial.id,
-        "revision": result.revision,
-        "current": result.id == trial.result.id,
-        "fps": doc.get("fps"),
-        "aperture_mm": aperture,
-        "taps": doc.get("taps") or [],
-        "excluded_taps": doc.get("excluded_taps") or [],
-        "outside_window_taps": doc.get("outside_window_taps") or [],
-        "events": doc.get("events") or [],
-        "dismissed_events": doc.get("dismissed_events") or [],
-        "window_s": corrections.to_dict()["window_s"],
-        "overlay": read_overlay(result, storage),
-        "videos": {side: f"/trials/{trial.id}/video/{side}" for side in videos},
-    }
-    page = ReviewPage(
-        trial=trial,
-        result=result,
-        revisions=history(trial),
-        data=data,
-        videos=videos,
-        corrections=corrections,
-        job=jobs.latest_job(db, trial_id=trial.id),
-    )
-    audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
-    db.commit()
-    return page
-
-
-def proxy_file(db: Session, actor: Actor, trial_id: int, side: str, storage: Storage) -> Path:
-    """The browser proxy of one video of a trial, for the review view's player.
-
-    Not audited on its own: the player fetches it in many range requests, all
-    part of the one audited view of the review page (``read review``).
-    """
-    trial = load_trial(db, actor, trial_id, "read")
-    video = next((v for v in trial.videos if v.side == side), None)
-    db.rollback()
-    if video is None or not video.proxy_path or not storage.exists(video.proxy_path):
-        raise NotFoundError(
-            f"The {side} video of trial {trial_id} has no browser copy; ask for a re-analysis"
-            " to make one."
-        )
-    return storage.absolute(video.proxy_path)

@@ -19,7 +19,7 @@ from pydantic import ValidationError
 from app.auth import SessionDep
 from app.errors import AppError
 from app.schemas import RevisionCreate
-from app.services import revisions
+from app.services import review, revisions
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
@@ -40,9 +40,7 @@ def review_page(
     request: Request, db: SessionDep, user: PageUser, trial_id: int, revision: int | None = None
 ) -> Response:
     try:
-        page = revisions.review_page(
-            db, user, trial_id, request.app.state.storage, revision=revision
-        )
+        page = review.review_page(db, user, trial_id, request.app.state.storage, revision=revision)
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
@@ -70,7 +68,7 @@ def trial_video(
     if side not in ("left", "right"):
         return error_page(request, user, status_code=404, message=f"There is no {side!r} video.")
     try:
-        path = revisions.proxy_file(db, user, trial_id, side, request.app.state.storage)
+        path = review.proxy_file(db, user, trial_id, side, request.app.state.storage)
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))

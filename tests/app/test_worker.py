@@ -11,9 +11,10 @@ from sqlalchemy import select
 
 from app import jobs
 from app.errors import InvalidRequestError
+from app.job_context import JobContext
 from app.jobs import LeaseLostError
 from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
-from app.worker import JobContext, run_job, run_worker
+from app.worker import run_job, run_worker
 from core.errors import DetectionError
 
 
@@ -59,11 +60,11 @@ def test_success_stores_effect_and_marks_trial(app_settings, db_sessionmaker):
 
 
 def test_progress_spans_known_stages(app_settings, db_sessionmaker, monkeypatch):
-    from app import worker
+    from app import handlers
 
     sm = db_sessionmaker
     _, job_id = _enqueue_trial_job(sm)
-    monkeypatch.setitem(worker.STAGES, "analyze_trial", (("detection", 0.5), ("tracking", 0.5)))
+    monkeypatch.setitem(handlers.STAGES, "analyze_trial", (("detection", 0.5), ("tracking", 0.5)))
     fractions = []
 
     def handler(ctx: JobContext) -> None:

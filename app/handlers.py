@@ -1,0 +1,200 @@
+"""What each kind of job does: measure a trial, calibrate a rig.
+
+The real handlers of the worker (:mod:`app.worker` runs them, each with a
+:class:`app.job_context.JobContext`):
+
+- :func:`analyze_trial`: ``core.pipeline.analyze_recording`` on the trial's
+  two videos → markers.csv, the review overlay, browser proxies and the next
+  ``Result`` revision;
+- :func:`calibrate`: ``core.calibration.calibrate_stereo_from_paths`` on a
+  rig's two board recordings → a ready ``Calibration``.
+
+What crosses to ``core`` and back is typed:
+:class:`app.services.trials.TrialInputs` and ``core.pipeline.Analysis``,
+:class:`app.services.calibrations.CalibrationInputs` and
+``core.calibration.CalibrationResult``; the services read and store the rows.
+:data:`STAGES` weighs each job kind's stages for its progress fraction.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy.orm import Session
+
+from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
+from app.services import calibrations, revisions, trials
+from core.calibration import calibrate_stereo_from_paths
+from core.errors import InputError
+from core.overlay import overlay_document
+from core.pipeline import analyze_recording, write_markers_csv
+from core.video import probe_video, write_proxy
+
+log = logging.getLogger(__name__)
+
+
+def _require_files(ctx: JobContext, paths: Iterable[Path], *, what: str) -> None:
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise RetryableJobError(
+            f"the recorded files of {what} are missing from the data directory "
+            f"{ctx.storage.data_dir} on worker {default_worker_name()}; every worker must use "
+            "the same data directory (BRADYSCOPE_DATA_DIR)."
+        )
+
+
+def _upload_warnings(ctx: JobContext, document: dict[str, Any]) -> dict[str, Any]:
+    """``document`` with the upload's warnings (kept in the job) added to its quality warnings."""
+    upload_warnings = [str(w) for w in ctx.job.payload.get("warnings", ()) if w]
+    if not upload_warnings:
+        return document
+    quality = dict(document.get("quality") or {})
+    known = list(quality.get("warnings") or [])
+    quality["warnings"] = known + [w for w in upload_warnings if w not in known]
+    return {**document, "quality": quality}
+
+
+def _make_proxies(ctx: JobContext, needed: dict[str, Path]) -> tuple[dict[str, str], list[str]]:
+    """Browser proxies (``core.video.write_proxy``) of the videos that have none yet.
+
+    Returns the stored paths by side, and a warning per video whose proxy could
+    not be made (the measurement stands without it; the review view says so).
+    """
+    made: dict[str, str] = {}
+    warnings: list[str] = []
+    total = sum(max(1, probe_video(p).frame_count) for p in needed.values())
+    done = 0
+    for side, source in sorted(needed.items()):
+        try:
+            base = done
+
+            def step(n: int, base: int = base) -> None:
+                ctx.progress("proxy", base + n, total)
+
+            with ctx.storage.writing("proxies", ".mp4") as (tmp, path):
+                write_proxy(source, tmp, progress=step)
+        except InputError as exc:
+            log.warning("job %d: no proxy of the %s video: %s", ctx.job.id, side, exc)
+            warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
+            continue
+        done += probe_video(source).frame_count
+        made[side] = path
+    return made, warnings
+
+
+def analyze_trial(ctx: JobContext) -> None:
+    """Measure a trial's two videos with the pipeline and store the next result revision.
+
+    The markers CSV and the review overlay are written under ``files/`` before
+    the transaction, and the browser proxies of videos that have none; if the
+    transaction is rejected (lease lost) those files are removed again. A
+    re-analysis (the job's ``offset_frames`` or ``swap_cameras``, asked for
+    through :mod:`app.services.revisions`) adds a revision; none is replaced.
+    With ``swap_cameras`` the video stored as right is measured as the rig's
+    left camera and the other way round.
+    """
+    payload = ctx.job.payload
+    offset = payload.get("offset_frames")
+    swap = bool(payload.get("swap_cameras"))
+    with ctx.sessions() as db:
+        inputs = trials.analysis_inputs(
+            db,
+            ctx.storage,
+            ctx.job.trial_id,
+            offset_frames=float(offset) if offset is not None else None,
+        )
+    _require_files(ctx, inputs.files, what=f"trial {inputs.trial_id}")
+    left, right = (inputs.right, inputs.left) if swap else (inputs.left, inputs.right)
+    left_times, right_times = (
+        (inputs.right_times, inputs.left_times) if swap else (inputs.left_times, inputs.right_times)
+    )
+    analysis = analyze_recording(
+        inputs.rig,
+        left,
+        right,
+        offset_frames=inputs.offset_frames,
+        progress=ctx.progress,
+        left_times=left_times,
+        right_times=right_times,
+        task=inputs.task,
+    )
+    document = dict(analysis.result_document())
+    document.setdefault("calibration", inputs.calibration.document())
+    if swap:
+        document["cameras_swapped"] = True
+    document = _upload_warnings(ctx, document)
+    overlay = overlay_document(analysis.overlays(inputs.rig), fps=analysis.fps)
+    # Which stored video each rig camera's overlay belongs to.
+    for cam in overlay["cameras"]:
+        cam["video"] = {"left": "right", "right": "left"}[cam["camera"]] if swap else cam["camera"]
+
+    written: list[str] = []
+    try:
+        with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
+            write_markers_csv(analysis, tmp_path)
+        written.append(markers_path)
+        with ctx.storage.writing("overlays", ".json") as (tmp_path, overlay_path):
+            tmp_path.write_text(json.dumps(overlay, allow_nan=False), encoding="utf-8")
+        written.append(overlay_path)
+        proxies, proxy_warnings = _make_proxies(ctx, inputs.proxies_needed)
+        written.extend(proxies.values())
+        if proxy_warnings:
+            quality = dict(document.get("quality") or {})
+            quality["warnings"] = [*(quality.get("warnings") or []), *proxy_warnings]
+            document["quality"] = quality
+
+        def write(db: Session) -> None:
+            revisions.store_analysis(
+                db,
+                trial_id=inputs.trial_id,
+                job_id=ctx.job.id,
+                calibration_id=inputs.calibration.id,
+                document=document,
+                markers_path=markers_path,
+                overlay_path=overlay_path,
+                request=payload.get("revision_request"),
+            )
+            trials.store_proxies(db, inputs.trial_id, proxies)
+
+        ctx.finish(write)
+    except BaseException:
+        for path in written:
+            ctx.storage.delete(path)
+        raise
+
+
+def calibrate(ctx: JobContext) -> None:
+    """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
+    with ctx.sessions() as db:
+        inputs = calibrations.calibration_inputs(
+            db, ctx.storage, ctx.job.calibration_id, board=ctx.job.payload.get("board")
+        )
+    _require_files(ctx, (inputs.left, inputs.right), what=f"calibration {inputs.calibration_id}")
+    outcome = calibrate_stereo_from_paths(
+        inputs.left, inputs.right, inputs.board, progress=ctx.progress
+    )
+    ctx.finish(lambda db: calibrations.store_calibration(db, inputs.calibration_id, outcome))
+
+
+HANDLERS: dict[str, Handler] = {"analyze_trial": analyze_trial, "calibrate": calibrate}
+
+
+STAGES: dict[str, tuple[tuple[str, float], ...]] = {
+    # core.pipeline.analyze_recording's stages and their rough share of the run time.
+    "analyze_trial": (
+        ("detection", 0.85),
+        ("synchronisation", 0.04),
+        ("triangulation", 0.04),
+        ("tracking", 0.04),
+        ("metrics", 0.03),
+        ("proxy", 0.15),
+    ),
+    # core.calibration.calibrate_stereo_from_paths's stages.
+    "calibrate": (("detection", 0.7), ("calibration", 0.3)),
+}
+"""Ordered ``(stage, weight)`` per job kind: the job's progress fraction spans all stages.
+Stages not listed report their own fraction."""

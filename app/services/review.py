@@ -1,0 +1,151 @@
+"""The review view of a trial: its videos' browser copies, the aperture, taps and pauses.
+
+One revision of a trial's result as the review page shows it beside the two
+videos (docs/reports.md): :func:`review_page` reads the stored trajectories,
+the review overlay (the tracked markers drawn on each video) and the revision
+history, and is one ``read review`` audit event; :func:`proxy_file` serves the
+browser-playable copy of a video to the page's player. The corrections made
+from this page are :mod:`app.services.revisions`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy.orm import Session
+
+from app import jobs
+from app.actors import Actor
+from app.audit import audit
+from app.errors import ConflictError, NotFoundError
+from app.models import Job, Result, Trial
+from app.services.common import load_trial
+from app.services.revisions import RevisionInfo, history, served_document
+from app.storage import Storage
+from core.corrections import Corrections
+from core.markers_csv import MarkerTable, read_markers_csv
+
+
+def read_overlay(result: Result, storage: Storage) -> dict[str, Any] | None:
+    """The overlay document of a revision, None when it has none (older results)."""
+    if not result.overlay_path or not storage.exists(result.overlay_path):
+        return None
+    doc = json.loads(storage.absolute(result.overlay_path).read_text(encoding="utf-8"))
+    if not isinstance(doc, dict):
+        raise ValueError(f"the overlay {result.overlay_path} is not a JSON object")
+    return doc
+
+
+@dataclass(frozen=True)
+class ReviewPage:
+    """The review view of one revision of a trial's result.
+
+    ``data`` is what the player script draws (embedded in the page, so the one
+    audited view covers it): the aperture per left frame, the taps, pauses and
+    the overlay of each video. ``videos`` are the sides that have a browser
+    proxy; ``job`` the newest analysis job (a re-analysis in progress or failed).
+    """
+
+    trial: Trial
+    result: Result
+    revisions: list[RevisionInfo]
+    data: dict[str, Any]
+    videos: tuple[str, ...]
+    corrections: Corrections
+    job: Job | None = None
+
+
+def _aperture(table: MarkerTable) -> list[float | None]:
+    """Raw thumb–index distance per left frame (mm, 0.01 mm), None where unknown."""
+    labels = list(table.labels)
+    if "thumb" not in labels or "index" not in labels:
+        return []
+    d = np.linalg.norm(
+        table.positions_mm[:, labels.index("thumb")] - table.positions_mm[:, labels.index("index")],
+        axis=1,
+    )
+    return [round(float(v), 2) if np.isfinite(v) else None for v in d]
+
+
+def review_page(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, *, revision: int | None = None
+) -> ReviewPage:
+    """The review view (one ``read review`` audit event per view).
+
+    Raises
+    ------
+    NotFoundError
+        No such trial or revision (audited).
+    ConflictError
+        The trial has no result yet.
+    """
+    trial = load_trial(db, actor, trial_id, "read")
+    if trial.result is None:
+        raise ConflictError(
+            f"The trial {trial.id} has no result to review yet; wait for its analysis."
+        )
+    result = trial.result if revision is None else trial.revision(revision)
+    if result is None:
+        audit(db, actor, "read", "review", trial.id, trial.session.patient_id, "not_found")
+        db.commit()
+        raise NotFoundError(
+            f"The trial {trial.id} has no revision {revision};"
+            f" its revisions are 1 to {trial.result.revision}."
+        )
+    doc = served_document(result)
+    aperture: list[float | None] = []
+    if result.markers_path and storage.exists(result.markers_path):
+        table = read_markers_csv(
+            storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
+        )
+        aperture = _aperture(table)
+    videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
+    corrections = Corrections.from_dict(doc.get("corrections"))
+    data = {
+        "trial_id": trial.id,
+        "revision": result.revision,
+        "current": result.id == trial.result.id,
+        "fps": doc.get("fps"),
+        "aperture_mm": aperture,
+        "taps": doc.get("taps") or [],
+        "excluded_taps": doc.get("excluded_taps") or [],
+        "outside_window_taps": doc.get("outside_window_taps") or [],
+        "events": doc.get("events") or [],
+        "dismissed_events": doc.get("dismissed_events") or [],
+        "window_s": corrections.to_dict()["window_s"],
+        "overlay": read_overlay(result, storage),
+        "videos": {side: f"/trials/{trial.id}/video/{side}" for side in videos},
+    }
+    page = ReviewPage(
+        trial=trial,
+        result=result,
+        revisions=history(trial),
+        data=data,
+        videos=videos,
+        corrections=corrections,
+        job=jobs.latest_job(db, trial_id=trial.id),
+    )
+    audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
+    db.commit()
+    return page
+
+
+def proxy_file(db: Session, actor: Actor, trial_id: int, side: str, storage: Storage) -> Path:
+    """The browser proxy of one video of a trial, for the review view's player.
+
+    Not audited on its own: the player fetches it in many range requests, all
+    part of the one audited view of the review page (``read review``).
+    """
+    trial = load_trial(db, actor, trial_id, "read")
+    video = next((v for v in trial.videos if v.side == side), None)
+    db.rollback()
+    if video is None or not video.proxy_path or not storage.exists(video.proxy_path):
+        raise NotFoundError(
+            f"The {side} video of trial {trial_id} has no browser copy; ask for a re-analysis"
+            " to make one."
+        )
+    return storage.absolute(video.proxy_path)
