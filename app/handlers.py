@@ -30,6 +30,7 @@ from app.job_context import Handler, JobContext, RetryableJobError, default_work
 from app.services import calibrations, revisions, trials
 from core.calibration import calibrate_stereo_from_paths
 from core.errors import InputError
+from core.markers_csv import read_markers_csv
 from core.overlay import overlay_document
 from core.pipeline import analyze_recording, write_markers_csv
 from core.video import probe_video, write_proxy
@@ -89,7 +90,7 @@ def _make_proxies(ctx: JobContext, needed: dict[str, Path]) -> tuple[dict[str, s
 def analyze_trial(ctx: JobContext) -> None:
     """Measure a trial's two videos with the pipeline and store the next result revision.
 
-    The markers CSV and the review overlay are written under ``files/`` before
+    The markers CSV, the review overlay and the plots are written under ``files/`` before
     the transaction, and the browser proxies of videos that have none; if the
     transaction is rejected (lease lost) those files are removed again. A
     re-analysis (the job's ``offset_frames`` or ``swap_cameras``, asked for
@@ -146,6 +147,10 @@ def analyze_trial(ctx: JobContext) -> None:
             quality = dict(document.get("quality") or {})
             quality["warnings"] = [*(quality.get("warnings") or []), *proxy_warnings]
             document["quality"] = quality
+        # Drawn once here, so that the result page and the reports only read them.
+        table = read_markers_csv(ctx.storage.absolute(markers_path), fps=analysis.fps)
+        plots_path = revisions.store_plots(ctx.storage, document, table)
+        written.append(plots_path)
 
         def write(db: Session) -> None:
             revisions.store_analysis(
@@ -157,6 +162,7 @@ def analyze_trial(ctx: JobContext) -> None:
                 markers_path=markers_path,
                 overlay_path=overlay_path,
                 request=payload.get("revision_request"),
+                plots_path=plots_path,
             )
             trials.store_proxies(db, inputs.trial_id, proxies)
 

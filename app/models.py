@@ -588,6 +588,8 @@ class Result(Base):
     """``markers.csv``, relative to the data directory (shared by revisions that keep it)."""
     overlay_path: Mapped[str | None] = mapped_column(String(500))
     """The review view's overlay (``core.overlay``, JSON), relative to the data directory."""
+    plots_path: Mapped[str | None] = mapped_column(String(500))
+    """The revision's plots drawn once (``app.reports.figures.plots_document``, JSON)."""
     created_by: Mapped[str | None] = mapped_column(String(320))
     """Who asked for this revision (user e-mail or API client name); None for the first."""
     created_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))

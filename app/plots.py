@@ -14,6 +14,7 @@ import io
 import itertools
 import math
 import re
+import secrets
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import date, datetime, timedelta
@@ -64,7 +65,10 @@ _RC: Any = {  # matplotlib rc parameters (typed as Any: its stubs want Literal k
     "legend.fontsize": 8.0,
 }
 
-_counter = itertools.count()
+# Element ids: the plot's name and a number unique to this drawing. Plots drawn by other
+# processes (the worker stores a revision's plots) share pages and reports, so the
+# numbers start at a random point per process instead of 0.
+_counter = itertools.count(secrets.randbelow(10**12) * 1000)
 MAX_PATH_POINTS = 400
 
 

@@ -63,7 +63,11 @@ class ReportData:
     result : dict
         ``result.json`` as stored (docs/interfaces.md); :attr:`analysis` reads it, typed.
     markers : MarkerTable or None
-        Trajectories from ``markers.csv`` (None when the file is gone).
+        Trajectories from ``markers.csv`` (None when the file is gone, or not
+        read because ``plots`` were stored and nothing else needs them).
+    plots : dict or None
+        The revision's stored plots (inline SVG by name, ``app.reports.figures``);
+        None: drawn from ``markers`` when needed.
     calibration : CalibrationInfo or None
     generated_at : datetime (UTC)
     revision : int
@@ -99,6 +103,7 @@ class ReportData:
     generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     revision: int = 1
     edits: tuple[dict[str, Any], ...] = ()
+    plots: dict[str, str] | None = None
 
     @property
     def edited(self) -> bool:

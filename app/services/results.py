@@ -23,6 +23,7 @@ from app.exports import fhir_bundle as make_fhir_bundle
 from app.exports import write_c3d, write_trc
 from app.models import Calibration, Job, Patient, Result, Trial, User
 from app.reports.data import CalibrationInfo, ReportData
+from app.reports.figures import read_plots_document
 from app.reports.rendering import render_report_html, render_report_pdf
 from app.reports.result import read_result
 from app.reports.summary import SummaryColumn, neighbours
@@ -81,6 +82,13 @@ def _markers(result: Result, storage: Storage) -> MarkerTable | None:
     return read_markers_csv(path, fps=fps)
 
 
+def _stored_plots(result: Result, storage: Storage) -> dict[str, str] | None:
+    """The revision's plots as the worker stored them; None when it has none (then drawn)."""
+    if not result.plots_path or not storage.exists(result.plots_path):
+        return None
+    return read_plots_document(storage.absolute(result.plots_path).read_text(encoding="utf-8"))
+
+
 def _calibration_info(db: Session, trial: Trial, result: Result) -> CalibrationInfo:
     session = trial.session
     cal = db.get(Calibration, result.calibration_id) if result.calibration_id else None
@@ -124,10 +132,13 @@ def load_report_data(
     result: Result | None = None,
     *,
     timezone: str = "UTC",
+    markers: bool = False,
 ) -> ReportData:
     """What the report of ``trial`` shows: its current result, or the revision ``result``.
 
     ``timezone`` is the clinic's (``Settings.timezone``): the report shows dates in it.
+    The trajectories (``markers.csv``) are read when ``markers`` is true, or when
+    the revision has no stored plots (they are then drawn from them).
 
     Raises
     ------
@@ -149,6 +160,7 @@ def load_report_data(
         user = db.get(User, session.clinician_user_id)
         if user is not None:
             clinician = user.display_name or user.email
+    plots = _stored_plots(result, storage)
     return ReportData(
         trial_id=trial.id,
         patient_code=session.patient.code,
@@ -171,7 +183,8 @@ def load_report_data(
         timezone=timezone,
         beside=beside,
         result=served_document(result),
-        markers=_markers(result, storage),
+        markers=_markers(result, storage) if markers or plots is None else None,
+        plots=plots,
         calibration=_calibration_info(db, trial, result),
         revision=result.revision,
         edits=tuple(e for e in (result.document.get("edits") or []) if isinstance(e, dict)),
@@ -256,7 +269,7 @@ def trajectory_file(
 ) -> bytes:
     """The trial's marker trajectories as a C3D or TRC file (audited as ``c3d_file``/``trc_file``)."""
     trial = load_trial(db, actor, trial_id, "export")
-    data = load_report_data(db, trial, storage)
+    data = load_report_data(db, trial, storage, markers=True)
     if data.markers is None:
         raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
     with tempfile.TemporaryDirectory() as tmp:
@@ -322,7 +335,9 @@ def trial_page(
         audit(db, actor, "read", "trial", trial.id, patient.id)
         db.commit()
         return page
-    data = load_report_data(db, trial, storage, timezone=timezone)
+    # The trajectories are read only to draw the plots of a comparison.
+    with_markers = compare is not None
+    data = load_report_data(db, trial, storage, timezone=timezone, markers=with_markers)
     comparison, compare_error = None, None
     if compare is not None:
         other = visible_trial(db, compare)
@@ -333,7 +348,8 @@ def trial_page(
             )
         else:
             comparison = Comparison(
-                trial=other, data=load_report_data(db, other, storage, timezone=timezone)
+                trial=other,
+                data=load_report_data(db, other, storage, timezone=timezone, markers=True),
             )
             # The compared trial's result is read too: it has its own audit event.
             audit(db, actor, "read", "result", other.id, patient.id)

@@ -35,6 +35,7 @@ from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, InvalidRequestError, NotFoundError
 from app.models import Result, Trial, User, utcnow
+from app.reports.figures import plots_document
 from app.schemas import RevisionCreate
 from app.services.common import load_trial
 from app.storage import Storage
@@ -302,6 +303,9 @@ def _correct(
     try:
         if corrections.swap_labels:
             markers_path, overlay_path = _write_swapped_labels(storage, base, table, written)
+        shown = swap_thumb_index(table) if corrections.swap_labels else table
+        plots_path = store_plots(storage, document, shown)
+        written.append(plots_path)
         db.add(
             Result(
                 trial_id=trial.id,
@@ -313,6 +317,7 @@ def _correct(
                 document=document,
                 markers_path=markers_path,
                 overlay_path=overlay_path,
+                plots_path=plots_path,
                 created_by=by,
                 created_by_user_id=actor.user_id,
                 reason=data.reason,
@@ -342,6 +347,18 @@ def _next_revision(db: Session, trial_id: int) -> int:
     return int(current or 0) + 1
 
 
+def store_plots(storage: Storage, document: dict[str, Any], markers: MarkerTable) -> str:
+    """Draw a revision's plots and store them; returns their stored path (``Result.plots_path``).
+
+    Drawn from ``document`` (its ``result.json``) and ``markers``, its
+    ``markers.csv`` as read back from storage (what a page would draw from).
+    The caller removes the file if its transaction fails.
+    """
+    with storage.writing("plots", ".json") as (tmp, path):
+        tmp.write_text(plots_document(document, markers), encoding="utf-8")
+    return path
+
+
 # --------------------------------------------------------------------------- the worker's side
 
 
@@ -355,11 +372,13 @@ def store_analysis(
     markers_path: str,
     overlay_path: str | None,
     request: dict[str, Any] | None = None,
+    plots_path: str | None = None,
 ) -> int:
     """Store a new analysis revision in the caller's transaction; returns its number.
 
     ``request`` is the job's ``revision_request`` (who asked for a re-analysis,
-    why and what changed), None for the analysis of an upload.
+    why and what changed), None for the analysis of an upload. ``plots_path``:
+    its plots (:func:`store_plots`).
     """
     number = _next_revision(db, trial_id)
     previous = db.scalar(
@@ -385,6 +404,7 @@ def store_analysis(
             document=document,
             markers_path=markers_path,
             overlay_path=overlay_path,
+            plots_path=plots_path,
             created_by=by,
             created_by_user_id=user_id if isinstance(user_id, int) else None,
             reason=reason,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 import shutil
 import subprocess
@@ -14,6 +15,7 @@ from PIL import Image
 from sample_trial import sample_report_data
 
 from app.reports.catalogue import format_metric, metric_rows
+from app.reports.figures import plots_document, read_plots_document
 from app.reports.rendering import render_report_html, render_report_pdf
 
 needs_poppler = pytest.mark.skipif(
@@ -258,3 +260,19 @@ def test_comparison_plots_share_their_scales(data):
     assert ticks(report_plots(smaller)["amplitude"]) != ticks(first["amplitude"])
     ids = re.findall(r'id="([^"]+)"', first["aperture"] + second["aperture"])
     assert len(ids) == len(set(ids))
+
+
+def test_stored_plots_round_trip_and_other_plotting_code_is_drawn_again(data):
+    stored = plots_document(data.result, data.markers)
+    read = read_plots_document(stored)
+    assert read is not None and set(read) == {"aperture", "amplitude", "velocity", "paths"}
+    assert render_report_html(dataclasses.replace(data, plots=read)).count("<svg") >= 4
+    # The report shows the stored drawing, not a new one (ids are unique per drawing).
+    html = render_report_html(dataclasses.replace(data, markers=None, plots=read))
+    assert all(svg in html for svg in read.values())
+    # Plots drawn by other plotting code, or not a plots document: None (drawn again).
+    doc = json.loads(stored)
+    assert read_plots_document(json.dumps({**doc, "style": "other"})) is None
+    assert read_plots_document(json.dumps({**doc, "format": "other/1"})) is None
+    assert read_plots_document(json.dumps({**doc, "plots": {"aperture": "<svg/>"}})) is None
+    assert read_plots_document("not json") is None

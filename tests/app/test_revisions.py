@@ -8,6 +8,7 @@ from api_support import Api, add_result, api, seed_recording_target, trial_files
 from sqlalchemy import select
 
 from app.models import AuditEvent, Job, Result, Trial
+from app.reports.figures import read_plots_document
 from app.storage import Storage
 from core.markers_csv import MEASURED, read_markers_csv
 from core.metrics import compute_metrics, tapping_metrics
@@ -121,6 +122,36 @@ def test_corrections_accumulate_and_reports_state_the_revision(api: Api, video_p
     assert "the patient was talking" in html and "excluded taps 3" in html  # 1-based on reports
     old = api.client.get(f"/api/v1/trials/{trial_id}/report.html?revision=1", headers=h).text
     assert "1 — as measured" in old and "edited after" not in old
+
+
+def test_a_correction_stores_its_plots_and_the_report_reads_them(api: Api, video_pair) -> None:
+    trial_id = _trial(api, video_pair)
+    h = api.headers
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"exclude_taps": [2], "reason": REASON},
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    storage = Storage.from_settings(api.settings)
+    with api.sessions() as db:
+        first, second = db.scalars(
+            select(Result).where(Result.trial_id == trial_id).order_by(Result.revision)
+        ).all()
+        doc = second.document
+        assert first.plots_path is None  # stored without plots (as before the migration)
+        stored = read_plots_document(storage.absolute(second.plots_path).read_text())
+    assert stored is not None
+    # Drawn from the corrected revision: one tap fewer.
+    assert f"Amplitude of {doc['metrics']['tap_count']} taps" in stored["amplitude"]
+    html = api.client.get(f"/api/v1/trials/{trial_id}/report.html", headers=h).text
+    # The stored drawing itself (its element ids are unique to that drawing).
+    for svg in stored.values():
+        assert svg in html
+    # Revision 1 has none stored: drawn on demand, with its own taps.
+    old = api.client.get(f"/api/v1/trials/{trial_id}/report.html?revision=1", headers=h).text
+    assert f"Amplitude of {doc['metrics']['tap_count'] + 1} taps" in old
+    assert stored["amplitude"] not in old
 
 
 @pytest.mark.parametrize(

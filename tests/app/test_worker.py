@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import threading
 from datetime import UTC, datetime
 
@@ -14,8 +15,11 @@ from app.errors import InvalidRequestError
 from app.job_context import JobContext
 from app.jobs import LeaseLostError
 from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
+from app.reports.figures import draw_plots, read_plots_document
+from app.reports.result import read_result
 from app.worker import run_job, run_worker
 from core.errors import DetectionError
+from core.markers_csv import read_markers_csv
 
 
 def _enqueue_trial_job(sm, **kw) -> tuple[int, int]:
@@ -302,6 +306,21 @@ def test_analyze_trial_handler_measures_a_simulated_recording(
     markers = storage.absolute(result.markers_path).read_text().splitlines()
     assert markers[0].startswith("frame,time_s,marker,x_mm,y_mm,z_mm,status,reprojection_px")
     assert len(markers) - 1 == 2 * doc["frame_count"]  # thumb and index per frame
+    # The plots are drawn once, here, from what the pages would draw them from.
+    stored = read_plots_document(storage.absolute(result.plots_path).read_text())
+    assert stored is not None
+    table = read_markers_csv(storage.absolute(result.markers_path), fps=doc["fps"])
+    drawn = draw_plots(read_result(doc), table)
+    assert set(stored) == {"aperture", "amplitude", "velocity", "paths"}
+    assert f"Amplitude of {doc['metrics']['tap_count']} taps" in stored["amplitude"]
+    assert {k: _without_ids(v) for k, v in stored.items()} == {
+        k: _without_ids(v) for k, v in drawn.items()
+    }
+
+
+def _without_ids(svg: str) -> str:
+    """An SVG plot with its per-drawing id numbers removed (``aperture123-`` -> ``aperture-``)."""
+    return re.sub(r"\b(aperture|amplitude|velocity|paths)\d+-", r"\1-", svg)
 
 
 @pytest.mark.slow

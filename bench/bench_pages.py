@@ -1,0 +1,200 @@
+"""Time the pages a clinician opens against a running server (median of 20 requests).
+
+What is timed, over HTTP, as a logged-in clinician:
+
+- the trial (result) page ``/trials/{id}``: its first view, then the median of
+  ``--repeat`` views;
+- the PDF report ``/trials/{id}/download/pdf``: first, then median;
+- the patient page ``/patients/{id}`` (trend plots): first, then median.
+
+Beside each median it prints the server's CPU time per request (read from
+``/proc/<pid>/stat`` before and after, so that it does not count the time the
+server waited for a core on a loaded machine) and the load average.
+
+Without ``--url`` it makes its own server: a fresh data directory (temporary,
+or ``--data-dir``), the demo's rig and patient with ``--trials`` simulated
+recordings measured by the real worker, then ``bradyscope serve
+--workers-in-process 0`` on a free port. With ``--url`` it times a server you
+run (``--email``, ``--password``, ``--trial`` and ``--patient`` needed).
+
+Usage::
+
+    python bench/bench_pages.py [--repeat 20] [--trials 1] [--data-dir DIR]
+    python bench/bench_pages.py --url http://127.0.0.1:8000 --email demo@example.org \\
+        --password ... --trial 1 --patient 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _cpu_s(pid: int | None) -> float:
+    """User + system CPU seconds of process ``pid`` (NaN when unknown)."""
+    if pid is None:
+        return float("nan")
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / ticks
+
+
+def _login(client: httpx.Client, email: str, password: str) -> None:
+    form = client.get("/login")
+    token = re.search(r'name="csrf_token" value="([^"]+)"', form.text)
+    if token is None:
+        raise SystemExit("no login form at /login")
+    r = client.post(
+        "/login", data={"email": email, "password": password, "csrf_token": token.group(1)}
+    )
+    if r.status_code != 303:
+        raise SystemExit(f"login refused ({r.status_code})")
+
+
+def _time(
+    client: httpx.Client, path: str, repeat: int, pid: int | None
+) -> tuple[float, list[float], float]:
+    """(first request s, the next ``repeat`` requests' times s, server CPU s per request)."""
+    t0 = time.perf_counter()
+    r = client.get(path)
+    first = time.perf_counter() - t0
+    if r.status_code != 200:
+        raise SystemExit(f"GET {path}: {r.status_code}")
+    times = []
+    cpu0 = _cpu_s(pid)
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        r = client.get(path)
+        times.append(time.perf_counter() - t0)
+        if r.status_code != 200:
+            raise SystemExit(f"GET {path}: {r.status_code}")
+    return first, times, (_cpu_s(pid) - cpu0) / repeat
+
+
+def _prepare(data_dir: Path, n_trials: int) -> tuple[str, str, int, int]:
+    """A migrated data directory with the demo's first ``n_trials`` measured; (email, password,
+    trial id, patient id)."""
+    from sqlalchemy import select
+
+    from app import demo
+    from app.db import get_sessionmaker, migrate
+    from app.models import Patient, Trial
+    from app.settings import settings_with
+    from app.worker import run_worker
+
+    settings = settings_with(data_dir=data_dir)
+    migrate(settings)
+    t0 = time.perf_counter()
+    text = demo.seed_demo(settings, background=False, max_trials=n_trials)
+    run_worker(settings, once=True)
+    print(f"prepared {n_trials} demo trial(s) in {time.perf_counter() - t0:.1f} s")
+    password = re.search(r"password: (\S+)", text)
+    assert password is not None
+    with get_sessionmaker(settings)() as db:
+        trial = db.scalars(select(Trial).where(Trial.status == "succeeded")).first()
+        patient = db.scalars(select(Patient)).first()
+        if trial is None or patient is None:
+            raise SystemExit("the demo trial was not measured")
+        return demo.DEMO_EMAIL, password.group(1), trial.id, patient.id
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=20)
+    parser.add_argument("--trials", type=int, default=1, help="demo trials to measure first")
+    parser.add_argument("--data-dir", type=Path, default=None)
+    parser.add_argument("--url", default=None, help="time this running server instead")
+    parser.add_argument("--email")
+    parser.add_argument("--password")
+    parser.add_argument("--trial", type=int)
+    parser.add_argument("--patient", type=int)
+    args = parser.parse_args()
+
+    server: subprocess.Popen[bytes] | None = None
+    tmp = None
+    pid: int | None = None
+    try:
+        if args.url:
+            url, email, password = args.url, args.email, args.password
+            trial_id, patient_id = args.trial, args.patient
+            if not (email and password and trial_id and patient_id):
+                parser.error("--url needs --email, --password, --trial and --patient")
+        else:
+            if args.data_dir is None:
+                tmp = tempfile.TemporaryDirectory(prefix="bench-pages-")
+                data_dir = Path(tmp.name)
+            else:
+                data_dir = args.data_dir
+            email, password, trial_id, patient_id = _prepare(data_dir, args.trials)
+            port = _free_port()
+            url = f"http://127.0.0.1:{port}"
+            server = subprocess.Popen(
+                [
+                    str(Path(sys.executable).with_name("bradyscope")),
+                    "serve",
+                    "--data-dir",
+                    str(data_dir),
+                    "--port",
+                    str(port),
+                    "--workers-in-process",
+                    "0",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            pid = server.pid
+            deadline = time.monotonic() + 120
+            while True:
+                try:
+                    if httpx.get(url + "/health", timeout=2).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                if time.monotonic() > deadline or server.poll() is not None:
+                    raise SystemExit("the server did not start")
+                time.sleep(0.2)
+        with httpx.Client(base_url=url, timeout=120) as client:
+            _login(client, email, password)
+            rows = [
+                ("result page", f"/trials/{trial_id}"),
+                ("PDF report", f"/trials/{trial_id}/download/pdf"),
+                ("patient page", f"/patients/{patient_id}"),
+            ]
+            print(
+                f"server {url}; load average {os.getloadavg()[0]:.2f}"
+                f" ({os.cpu_count()} cores); median of {args.repeat} requests"
+            )
+            print(f"  {'':14s} {'first':>8s} {'median':>8s} {'min':>8s} {'server CPU':>11s}")
+            for name, path in rows:
+                first, times, cpu = _time(client, path, args.repeat, pid)
+                print(
+                    f"  {name:14s} {1000 * first:6.0f} ms {1000 * statistics.median(times):5.0f} ms"
+                    f" {1000 * min(times):5.0f} ms {1000 * cpu:8.0f} ms"
+                )
+            print(f"load average after: {os.getloadavg()[0]:.2f}")
+    finally:
+        if server is not None:
+            server.terminate()
+            server.wait(timeout=30)
+        if tmp is not None:
+            tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()
