@@ -33,6 +33,12 @@ from core.markers_csv import MarkerTable
 # Identifier systems of bradyscope's own codes (URNs: valid URIs that need no web server).
 PATIENT_CODE_SYSTEM = "urn:bradyscope:patient-code"
 METRIC_CODE_SYSTEM = "urn:bradyscope:finger-tapping-metric"
+EXAM_CATEGORY = {
+    "system": "http://terminology.hl7.org/CodeSystem/observation-category",
+    "code": "exam",
+    "display": "Exam",
+}
+"""The FHIR Observation category of every measurement and of the clinician's rating."""
 REPORT_CODE_SYSTEM = "urn:bradyscope:report"
 UCUM_SYSTEM = "http://unitsofmeasure.org"
 LOINC_SYSTEM = "http://loinc.org"
@@ -134,17 +140,7 @@ def _observation(
     obs: dict[str, Any] = {
         "resourceType": "Observation",
         "status": "final",
-        "category": [
-            {
-                "coding": [
-                    {
-                        "system": "http://terminology.hl7.org/CodeSystem/observation-category",
-                        "code": "exam",
-                        "display": "Exam",
-                    }
-                ]
-            }
-        ],
+        "category": [{"coding": [dict(EXAM_CATEGORY)]}],
         "code": {
             "coding": [{"system": METRIC_CODE_SYSTEM, "code": key, "display": label}],
             "text": f"{label} ({hand} hand)",
@@ -247,18 +243,7 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
     obs: dict[str, Any] = {
         "resourceType": "Observation",
         "status": "final",
-        "category": [
-            {
-                "coding": [
-                    {
-                        "system": "http://terminology.hl7.org/CodeSystem/observation-category",
-                        "code": "exam",
-                        "display": "Exam",
-                    }
-                ],
-                "text": "Clinician's rating",
-            }
-        ],
+        "category": [{"coding": [dict(EXAM_CATEGORY)], "text": "Clinician's rating"}],
         "code": {
             "coding": [
                 {

@@ -57,6 +57,8 @@ class ReviewPage:
     videos: tuple[str, ...]
     corrections: Corrections
     job: Job | None = None
+    not_carried: tuple[str, ...] = ()
+    """The corrections in force before this re-analysis, in words (1-based taps)."""
 
 
 def _aperture(table: MarkerTable) -> list[float | None]:
@@ -69,6 +71,25 @@ def _aperture(table: MarkerTable) -> list[float | None]:
         axis=1,
     )
     return [round(float(v), 2) if np.isfinite(v) else None for v in d]
+
+
+def describe_corrections(corrections: Corrections) -> tuple[str, ...]:
+    """Each correction in words, as a clinician reads it (taps numbered from 1)."""
+
+    def taps(numbers: tuple[int, ...]) -> str:
+        return ", ".join(str(i + 1) for i in numbers)
+
+    words = []
+    if corrections.exclude_taps:
+        words.append(f"taps {taps(corrections.exclude_taps)} excluded")
+    if corrections.dismiss_pauses:
+        words.append(f"the pauses at taps {taps(corrections.dismiss_pauses)} dismissed")
+    if corrections.window_s is not None:
+        t0, t1 = corrections.window_s
+        words.append(f"analysis window {t0:g}–{t1:g} s")
+    if corrections.swap_labels:
+        words.append("thumb and index labels swapped")
+    return tuple(words)
 
 
 def review_page(
@@ -128,6 +149,7 @@ def review_page(
         videos=videos,
         corrections=corrections,
         job=jobs.latest_job(db, trial_id=trial.id),
+        not_carried=describe_corrections(Corrections.from_dict(doc.get("corrections_not_carried"))),
     )
     audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
     db.commit()

@@ -13,7 +13,8 @@ why (a reason is required) and what changed; the newest is current.
 - A **re-analysis** (a given camera offset, or the two videos swapped) is a
   job; when the worker has measured the videos again it stores the next
   revision (:func:`store_analysis`). Corrections made before it referred to
-  the taps of the earlier analysis and do not carry over.
+  the taps of the earlier analysis and do not carry over; its result.json
+  lists them (``corrections_not_carried``).
 
 Every revision is one audit event (``create revision``). The review page that
 shows a revision beside the videos is :mod:`app.services.review`.
@@ -362,6 +363,19 @@ def store_plots(storage: Storage, document: dict[str, Any], markers: MarkerTable
 # --------------------------------------------------------------------------- the worker's side
 
 
+def _corrections_in_force(result: Result | None) -> dict[str, Any] | None:
+    """The corrections of ``result`` if it is a correction that changed anything, else None.
+
+    A re-analysis finds the taps anew; corrections naming the earlier taps do
+    not apply to it, and its result.json says which were in force before
+    (``corrections_not_carried``), so that nobody takes them as still applied.
+    """
+    if result is None or result.kind != "correction":
+        return None
+    corrections = Corrections.from_dict(result.document.get("corrections"))
+    return None if corrections.is_empty else corrections.to_dict()
+
+
 def store_analysis(
     db: Session,
     *,
@@ -385,6 +399,7 @@ def store_analysis(
         select(Result).where(Result.trial_id == trial_id).order_by(Result.revision.desc())
     )
     edits = list((previous.document.get("edits") if previous is not None else None) or [])
+    dropped = _corrections_in_force(previous)
     by = reason = None
     change: dict[str, Any] | None = None
     user_id = None
@@ -394,6 +409,8 @@ def store_analysis(
         user_id = request.get("by_user_id")
         edits.append(_edit(number, "analysis", by, reason, change))
     document = {**document, "revision": number, "edits": edits}
+    if dropped:
+        document["corrections_not_carried"] = dropped
     db.add(
         Result(
             trial_id=trial_id,

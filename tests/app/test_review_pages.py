@@ -152,3 +152,65 @@ def test_sign_from_the_session_page_then_an_amendment_is_pending(client, seeded,
     page = client.get(f"/sessions/{session_id}").text
     assert 'data-signing="amendment_pending"' in page and "revision 2 (signed: 1)" in page
     assert client.get(f"/sessions/{session_id}/signed/1.pdf").content == pdf.content
+
+
+def test_a_reanalysis_says_which_corrections_it_did_not_carry_over(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+):
+    from app.services import revisions
+
+    csrf = login(client)
+    t = seeded["trials"][(1, "right")]
+    form = {
+        "csrf_token": csrf,
+        "kind": "correct",
+        "exclude_taps": ["1", "4"],
+        "window_start_s": "0.5",
+        "window_end_s": "9",
+        "reason": "taps 2 and 5 were the patient adjusting the marker",
+    }
+    r = client.post(f"/trials/{t}/revisions", data=form, follow_redirects=False)
+    assert r.status_code == 303, r.text[:500]
+    # The worker stores a re-analysis (here: the first analysis's document measured again).
+    with db_sessionmaker() as db, db.begin():
+        first = db.scalars(select(Result).where(Result.trial_id == t, Result.revision == 1)).one()
+        number = revisions.store_analysis(
+            db,
+            trial_id=t,
+            job_id=first.job_id,
+            calibration_id=first.calibration_id,
+            document=dict(first.document),
+            markers_path=first.markers_path,
+            overlay_path=first.overlay_path,
+            request={"by": "dr", "reason": "a 3-frame offset", "change": {"offset_frames": 3}},
+        )
+    assert number == 3
+    with db_sessionmaker() as db:
+        doc = db.scalars(select(Result).where(Result.trial_id == t, Result.revision == 3)).one()
+        assert doc.document["corrections_not_carried"] == {
+            "exclude_taps": [1, 4],
+            "dismiss_pauses": [],
+            "window_s": [0.5, 9.0],
+            "swap_labels": False,
+        }
+        assert "corrections" not in doc.document  # nothing of them is applied
+    page = client.get(f"/trials/{t}/review")
+    notice = re.search(r"<p [^>]*data-not-carried>(.*?)</p>", page.text, re.S)
+    assert notice is not None, page.text[:2000]
+    assert "taps 2, 5 excluded" in notice.group(1)  # 1-based, as the page numbers them
+    assert "analysis window 0.5–9 s" in notice.group(1)
+    # A re-analysis of an analysis (no correction in force) says nothing of the kind.
+    with db_sessionmaker() as db, db.begin():
+        again = revisions.store_analysis(
+            db,
+            trial_id=t,
+            job_id=first.job_id,
+            calibration_id=first.calibration_id,
+            document=dict(first.document),
+            markers_path=first.markers_path,
+            overlay_path=first.overlay_path,
+        )
+    assert again == 4
+    assert "data-not-carried" not in client.get(f"/trials/{t}/review").text
