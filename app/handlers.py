@@ -32,7 +32,7 @@ from core.calibration import calibrate_stereo_from_paths
 from core.errors import InputError
 from core.markers_csv import read_markers_csv
 from core.overlay import overlay_document
-from core.pipeline import analyze_recording, write_markers_csv
+from core.pipeline import Analysis, analyze_recording, write_markers_csv
 from core.video import probe_video, write_proxy
 
 log = logging.getLogger(__name__)
@@ -87,6 +87,35 @@ def _make_proxies(ctx: JobContext, needed: dict[str, Path]) -> tuple[dict[str, s
     return made, warnings
 
 
+def _measure(ctx: JobContext, inputs: trials.TrialInputs, *, swap: bool) -> Analysis:
+    """``core.pipeline.analyze_recording`` on the trial; ``swap``: the stored right video
+    (and its timestamps) measured as the rig's left camera, and the other way round."""
+    left, right = (inputs.right, inputs.left) if swap else (inputs.left, inputs.right)
+    left_times, right_times = (
+        (inputs.right_times, inputs.left_times) if swap else (inputs.left_times, inputs.right_times)
+    )
+    return analyze_recording(
+        inputs.rig,
+        left,
+        right,
+        offset_frames=inputs.offset_frames,
+        progress=ctx.progress,
+        left_times=left_times,
+        right_times=right_times,
+        task=inputs.task,
+    )
+
+
+def _review_overlay(
+    analysis: Analysis, inputs: trials.TrialInputs, *, swap: bool
+) -> dict[str, Any]:
+    """The review view's overlay, each rig camera's part naming the stored video it is drawn on."""
+    overlay = overlay_document(analysis.overlays(inputs.rig), fps=analysis.fps)
+    for cam in overlay["cameras"]:
+        cam["video"] = {"left": "right", "right": "left"}[cam["camera"]] if swap else cam["camera"]
+    return overlay
+
+
 def analyze_trial(ctx: JobContext) -> None:
     """Measure a trial's two videos with the pipeline and store the next result revision.
 
@@ -109,29 +138,13 @@ def analyze_trial(ctx: JobContext) -> None:
             offset_frames=float(offset) if offset is not None else None,
         )
     _require_files(ctx, inputs.files, what=f"trial {inputs.trial_id}")
-    left, right = (inputs.right, inputs.left) if swap else (inputs.left, inputs.right)
-    left_times, right_times = (
-        (inputs.right_times, inputs.left_times) if swap else (inputs.left_times, inputs.right_times)
-    )
-    analysis = analyze_recording(
-        inputs.rig,
-        left,
-        right,
-        offset_frames=inputs.offset_frames,
-        progress=ctx.progress,
-        left_times=left_times,
-        right_times=right_times,
-        task=inputs.task,
-    )
+    analysis = _measure(ctx, inputs, swap=swap)
     document = dict(analysis.result_document())
     document.setdefault("calibration", inputs.calibration.document())
     if swap:
         document["cameras_swapped"] = True
     document = _upload_warnings(ctx, document)
-    overlay = overlay_document(analysis.overlays(inputs.rig), fps=analysis.fps)
-    # Which stored video each rig camera's overlay belongs to.
-    for cam in overlay["cameras"]:
-        cam["video"] = {"left": "right", "right": "left"}[cam["camera"]] if swap else cam["camera"]
+    overlay = _review_overlay(analysis, inputs, swap=swap)
 
     written: list[str] = []
     try:

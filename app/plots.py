@@ -1,4 +1,4 @@
-"""Plots of one trial and of a patient's trends, drawn with matplotlib as inline SVG.
+"""Plots of one trial, drawn with matplotlib as inline SVG.
 
 Every function returns an ``<svg>`` element as a string, ready to be placed in
 an HTML page or in the report (WeasyPrint renders inline SVG in the PDF).
@@ -6,6 +6,8 @@ Text stays text (``svg.fonttype = "none"``) so the PDF's words are searchable,
 and element ids are prefixed per plot so that several plots can share a page.
 
 Lengths are in mm, times in s, velocities in mm/s, as everywhere in bradyscope.
+The set-up shared with a patient's trends (:mod:`app.trends`) is public here:
+:data:`COLOURS`, :data:`RC`, :func:`new_figure`, :func:`draw_empty`, :func:`to_svg`.
 """
 
 from __future__ import annotations
@@ -17,15 +19,12 @@ import re
 import secrets
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import date, datetime, timedelta
 from typing import Any
 
 import matplotlib
-import matplotlib.dates as mdates
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
 from numpy.typing import ArrayLike, NDArray
 
 matplotlib.use("Agg")
@@ -47,7 +46,7 @@ COLOURS = {
     "trend": "#555555",
 }
 
-_RC: Any = {  # matplotlib rc parameters (typed as Any: its stubs want Literal keys)
+RC: Any = {  # matplotlib rc parameters (typed as Any: its stubs want Literal keys)
     "svg.fonttype": "none",
     "svg.hashsalt": "bradyscope",
     "font.family": "DejaVu Sans",
@@ -88,26 +87,8 @@ class PlotEvent:
     t_end_s: float
 
 
-@dataclass(frozen=True)
-class TrendPoint:
-    """One session's value of one metric for one hand, for the trend plots.
-
-    Attributes
-    ----------
-    recorded_at : date or datetime of the session.
-    hand : ``"left"`` or ``"right"``.
-    medication_state : ``"on"``, ``"off"`` or ``"unknown"``.
-    value : float (NaN or None when the trial has no value).
-    """
-
-    recorded_at: date | datetime
-    hand: str
-    medication_state: str
-    value: float | None
-
-
-def _figure(width_in: float, height_in: float) -> Figure:
-    with matplotlib.rc_context(_RC):
+def new_figure(width_in: float, height_in: float) -> Figure:
+    with matplotlib.rc_context(RC):
         fig = Figure(figsize=(width_in, height_in), layout="constrained")
     return fig
 
@@ -121,14 +102,14 @@ def _escape(text: str) -> str:
     )
 
 
-def _to_svg(fig: Figure, *, title: str, name: str, hover: Mapping[str, str] | None = None) -> str:
+def to_svg(fig: Figure, *, title: str, name: str, hover: Mapping[str, str] | None = None) -> str:
     """Serialise ``fig`` as an inline ``<svg>`` with unique ids and an accessible title.
 
     ``hover`` maps an artist's gid to the text a browser shows when the pointer
     rests on it (an SVG ``<title>`` inside that artist's group).
     """
     buf = io.StringIO()
-    with matplotlib.rc_context(_RC):
+    with matplotlib.rc_context(RC):
         fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
     svg = buf.getvalue()
     for gid, text in (hover or {}).items():
@@ -164,7 +145,7 @@ def _value(tap: Mapping[str, Any], key: str) -> float:
     return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else math.nan
 
 
-def _empty(fig: Figure, message: str) -> None:
+def draw_empty(fig: Figure, message: str) -> None:
     ax = fig.add_subplot()
     ax.set_axis_off()
     ax.text(0.5, 0.5, message, ha="center", va="center", color="#52606d", transform=ax.transAxes)
@@ -251,11 +232,11 @@ def aperture_plot(
     a = np.asarray(aperture_mm, dtype=np.float64)
     if t.ndim != 1 or a.shape != t.shape:
         raise ValueError(f"time_s and aperture_mm must be (T,) arrays, got {t.shape}, {a.shape}")
-    fig = _figure(7.2, 2.6)
+    fig = new_figure(7.2, 2.6)
     if t.size == 0 or not np.isfinite(a).any():
-        _empty(fig, "No aperture could be measured in this trial.")
-        return _to_svg(fig, title="Aperture over time: no data", name="aperture")
-    with matplotlib.rc_context(_RC):
+        draw_empty(fig, "No aperture could be measured in this trial.")
+        return to_svg(fig, title="Aperture over time: no data", name="aperture")
+    with matplotlib.rc_context(RC):
         ax = fig.add_subplot()
         for ev in events:
             colour = COLOURS.get(ev.kind, COLOURS["hesitation"])
@@ -279,7 +260,7 @@ def aperture_plot(
     n_h = sum(ev.kind == "hesitation" for ev in events)
     n_halt = sum(ev.kind == "halt" for ev in events)
     title = f"Aperture over time: {len(taps)} taps, {n_h} hesitation(s), {n_halt} halt(s) marked"
-    return _to_svg(fig, title=title, name="aperture")
+    return to_svg(fig, title=title, name="aperture")
 
 
 def tap_amplitude_plot(
@@ -299,13 +280,13 @@ def tap_amplitude_plot(
     top_mm : float, optional
         Upper end of the amplitude axis (mm), to draw two trials on one scale.
     """
-    fig = _figure(3.6, 2.6)
+    fig = new_figure(3.6, 2.6)
     amp = np.array([_value(tp, "amplitude_mm") for tp in taps], dtype=np.float64)
     if amp.size == 0 or not np.isfinite(amp).any():
-        _empty(fig, "No taps were found.")
-        return _to_svg(fig, title="Tap amplitude: no taps", name="amplitude")
+        draw_empty(fig, "No taps were found.")
+        return to_svg(fig, title="Tap amplitude: no taps", name="amplitude")
     n = np.arange(1, amp.size + 1, dtype=np.float64)
-    with matplotlib.rc_context(_RC):
+    with matplotlib.rc_context(RC):
         ax = fig.add_subplot()
         # Unreliable taps (peak or closure on filled-in frames) are drawn pale:
         # the metrics leave them out of amplitude statistics.
@@ -337,7 +318,7 @@ def tap_amplitude_plot(
         ax.set_ylim(0, float(np.nanmax(amp)) * 1.2 if top_mm is None else float(top_mm))
         ax.legend(loc="lower left", facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
-    return _to_svg(
+    return to_svg(
         fig,
         title=f"Amplitude of {amp.size} taps with decrement line {slope:+.2f} mm per tap",
         name="amplitude",
@@ -346,14 +327,14 @@ def tap_amplitude_plot(
 
 def velocity_plot(taps: Sequence[Mapping[str, Any]]) -> str:
     """Peak opening and closing velocity of each tap (mm/s)."""
-    fig = _figure(3.6, 2.6)
+    fig = new_figure(3.6, 2.6)
     if not taps:
-        _empty(fig, "No taps were found.")
-        return _to_svg(fig, title="Opening and closing velocity: no taps", name="velocity")
+        draw_empty(fig, "No taps were found.")
+        return to_svg(fig, title="Opening and closing velocity: no taps", name="velocity")
     n = np.arange(1, len(taps) + 1)
     v_open = np.array([_value(tp, "opening_velocity_mm_s_max") for tp in taps])
     v_close = np.array([_value(tp, "closing_velocity_mm_s_max") for tp in taps])
-    with matplotlib.rc_context(_RC):
+    with matplotlib.rc_context(RC):
         ax = fig.add_subplot()
         ax.plot(n, v_open, "o-", ms=3, lw=1.2, color=COLOURS["opening"], label="opening")
         ax.plot(n, v_close, "s-", ms=3, lw=1.2, color=COLOURS["closing"], label="closing")
@@ -364,7 +345,7 @@ def velocity_plot(taps: Sequence[Mapping[str, Any]]) -> str:
         ax.set_ylim(0, float(finite.max()) * 1.2 if finite.size else 1.0)
         ax.legend(loc="lower left", ncols=2, facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(len(taps) / 10))])
-    return _to_svg(fig, title="Peak opening and closing velocity per tap", name="velocity")
+    return to_svg(fig, title="Peak opening and closing velocity per tap", name="velocity")
 
 
 def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> str:
@@ -381,14 +362,14 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
     p = np.asarray(positions_mm, dtype=np.float64)
     if p.ndim != 3 or p.shape[2] != 3 or p.shape[1] != len(labels):
         raise ValueError(f"positions_mm must be (T, {len(labels)}, 3), got {p.shape}")
-    fig = _figure(7.2, 2.6)
+    fig = new_figure(7.2, 2.6)
     if not np.isfinite(p).any():
-        _empty(fig, "No fingertip positions were measured.")
-        return _to_svg(fig, title="Fingertip paths: no data", name="paths")
+        draw_empty(fig, "No fingertip positions were measured.")
+        return to_svg(fig, title="Fingertip paths: no data", name="paths")
     # At most ~MAX_PATH_POINTS samples per path: the drawing looks the same and
     # the SVG stays light for browsers and the PDF renderer.
     p = p[:: max(1, -(-p.shape[0] // MAX_PATH_POINTS))]
-    with matplotlib.rc_context(_RC):
+    with matplotlib.rc_context(RC):
         ax_front = fig.add_subplot(1, 3, 1)
         ax_side = fig.add_subplot(1, 3, 2)
         ax_3d = fig.add_subplot(1, 3, 3, projection="3d")
@@ -420,99 +401,7 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
         ax_3d.tick_params(labelsize=6)
         ax_3d.set_title("3D", fontsize=8.5)
         ax_front.legend(loc="best")
-    return _to_svg(fig, title="Fingertip paths in front, side and 3D views (mm)", name="paths")
-
-
-#: Sideways spread of the series of one visit, in share of the time axis: hands and
-#: medication states measured an hour apart would otherwise hide each other.
-DODGE_FRACTION = 0.012
-_DODGE_SLOTS = {
-    ("left", "off"): -1.5,
-    ("left", "on"): -0.5,
-    ("right", "off"): 0.5,
-    ("right", "on"): 1.5,
-}
-
-
-def trend_plot(
-    points: Sequence[TrendPoint],
-    *,
-    label: str,
-    unit: str,
-    integer: bool = False,
-) -> str:
-    """One metric over sessions, per hand, with medication on and off drawn apart.
-
-    Left and right hands have their own colour; "on" medication is a solid line
-    with filled dots, "off" a dashed line with open dots, "unknown" grey
-    crosses, so that progression and treatment effect are both visible. Points
-    of one visit are spread slightly sideways (:data:`DODGE_FRACTION` of the
-    axis per series) so that none hides another; resting the pointer on a
-    point shows its date, hand, medication state and value. ``integer`` puts
-    ticks on whole numbers only (counts).
-    """
-    fig = _figure(3.6, 2.3)
-    usable = [p for p in points if p.value is not None and math.isfinite(float(p.value))]
-    if not usable:
-        _empty(fig, f"No {label.lower()} measured yet.")
-        return _to_svg(fig, title=f"{label} over time: no data", name="trend")
-    styles: dict[str, dict[str, Any]] = {
-        "on": {"ls": "-", "marker": "o", "mfc": None},
-        "off": {"ls": "--", "marker": "o", "mfc": "white"},
-        "unknown": {"ls": ":", "marker": "x", "mfc": None},
-    }
-    days = [_as_datetime(p.recorded_at) for p in usable]
-    span = max(max(days) - min(days), timedelta(days=90))
-    hover: dict[str, str] = {}
-    with matplotlib.rc_context(_RC):
-        ax = fig.add_subplot()
-        for hand in ("left", "right"):
-            for med, style in styles.items():
-                series = sorted(
-                    (p for p in usable if p.hand == hand and p.medication_state == med),
-                    key=lambda p: _as_datetime(p.recorded_at),
-                )
-                if not series:
-                    continue
-                shift = span * DODGE_FRACTION * _DODGE_SLOTS.get((hand, med), 0.0)
-                xs: Any = [_as_datetime(p.recorded_at) + shift for p in series]
-                ys = [float(p.value) for p in series]  # type: ignore[arg-type]
-                colour = COLOURS[hand]
-                ax.plot(xs, ys, ls=style["ls"], lw=1.1, color=colour, label=f"{hand}, {med}")
-                for p, x, y in zip(series, xs, ys, strict=True):
-                    (dot,) = ax.plot(
-                        [x], [y], ls="", marker=style["marker"], ms=4.5, color=colour,
-                        mfc=style["mfc"] or colour, alpha=0.85,
-                    )  # fmt: skip
-                    gid = f"pt{len(hover)}"
-                    dot.set_gid(gid)
-                    value = f"{y:.0f}" if integer else f"{y:.3g}"
-                    hover[gid] = (
-                        f"{_as_datetime(p.recorded_at):%Y-%m-%d %H:%M}, {hand} hand,"
-                        f" medication {med}: {value}{' ' + unit if unit and unit != 'count' else ''}"
-                    )
-        ax.set_ylabel(f"{label} ({unit})" if unit else label)
-        ax.legend(loc="best", fontsize=7)
-        if integer:
-            ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-            ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))
-        # matplotlib.dates has no type hints: its three calls are the untyped ones here.
-        locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
-        ax.xaxis.set_major_locator(locator)
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
-        if max(days) - min(days) < timedelta(days=60):
-            centre = min(days) + (max(days) - min(days)) / 2
-            ax.set_xlim(
-                mdates.date2num(centre - timedelta(days=45)),  # type: ignore[no-untyped-call]
-                mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
-            )
-    return _to_svg(fig, title=f"{label} per session over time, per hand", name="trend", hover=hover)
-
-
-def _as_datetime(value: date | datetime) -> datetime:
-    if isinstance(value, datetime):
-        return value.replace(tzinfo=None)
-    return datetime(value.year, value.month, value.day)
+    return to_svg(fig, title="Fingertip paths in front, side and 3D views (mm)", name="paths")
 
 
 def aperture_from_positions(positions_mm: ArrayLike, *, labels: Sequence[str]) -> NDArray[Any]:

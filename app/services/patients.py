@@ -20,12 +20,12 @@ from app.actors import Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, NotFoundError
 from app.models import Patient, RecordingSession, Trial, utcnow
-from app.plots import TrendPoint
 from app.reports.catalogue import TREND_METRICS
 from app.reports.result import read_result
 from app.schemas import PatientCreate, PatientUpdate
 from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
 from app.services.erasure import tombstone_code
+from app.trends import TrendPoint
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:

@@ -20,13 +20,13 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import DBS_STATES, MEDICATION_STATES, Patient, Rig
-from app.plots import TrendPoint, trend_plot
 from app.reports.catalogue import TREND_METRICS, format_metric
 from app.schemas import PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient
 from app.services.rigs import all_rigs
 from app.timezones import from_local, local_date
+from app.trends import TrendPoint, trend_plot
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from sample_trial import CLOSED_MM, synthetic_trial
 
-from app import plots
+from app import plots, trends
 from app.reports.result import result_events
 
 
@@ -79,7 +79,7 @@ def test_empty_inputs_give_a_message_not_an_error():
     assert "No fingertip positions" in plots.fingertip_paths_plot(
         np.full((3, 2, 3), np.nan), labels=["thumb", "index"]
     )
-    assert "No mean amplitude measured yet." in plots.trend_plot(
+    assert "No mean amplitude measured yet." in trends.trend_plot(
         [], label="Mean amplitude", unit="mm"
     )
 
@@ -121,19 +121,21 @@ def test_ids_are_unique_when_plots_share_a_page(trial):
 
 def test_trend_plot_separates_hands_and_medication():
     pts = [
-        plots.TrendPoint(
+        trends.TrendPoint(
             datetime(2024, m, 1, tzinfo=UTC), hand, med, 50.0 - m + (5 if med == "on" else 0)
         )
         for m in (1, 4, 7, 10)
         for hand in ("left", "right")
         for med in ("on", "off")
     ]
-    svg = plots.trend_plot(pts, label="Mean amplitude", unit="mm")
+    svg = trends.trend_plot(pts, label="Mean amplitude", unit="mm")
     for name in ("left, on", "left, off", "right, on", "right, off"):
         assert name in svg
     assert "Mean amplitude (mm)" in svg
     # One series with a single medication state has a single legend entry.
-    only_on = plots.trend_plot([p for p in pts if p.medication_state == "on"], label="A", unit="mm")
+    only_on = trends.trend_plot(
+        [p for p in pts if p.medication_state == "on"], label="A", unit="mm"
+    )
     assert "left, off" not in only_on
 
 
@@ -157,19 +159,19 @@ def _same_day_points(values=(1.0, 2.0, 0.0, 3.0)):
     """Four trials of one visit (both hands, off and on, an hour apart) and one a year before."""
     day = datetime(2025, 3, 1, 9, tzinfo=UTC)
     pts = [
-        plots.TrendPoint(day.replace(hour=9 + 2 * (med == "on")), hand, med, v)
+        trends.TrendPoint(day.replace(hour=9 + 2 * (med == "on")), hand, med, v)
         for (hand, med), v in zip(
             (("left", "off"), ("right", "off"), ("left", "on"), ("right", "on")),
             values,
             strict=True,
         )
     ]
-    return [*pts, plots.TrendPoint(datetime(2024, 3, 1, tzinfo=UTC), "right", "off", 2.0)]
+    return [*pts, trends.TrendPoint(datetime(2024, 3, 1, tzinfo=UTC), "right", "off", 2.0)]
 
 
 def test_trend_points_show_their_values_on_hover():
     pts = _same_day_points()
-    svg = plots.trend_plot(pts, label="Hesitations and halts", unit="count", integer=True)
+    svg = trends.trend_plot(pts, label="Hesitations and halts", unit="count", integer=True)
     titles = re.findall(r"<title>([^<]*)</title>", svg)[1:]  # the first is the plot's own
     assert len(titles) == len(pts)
     assert "2025-03-01 11:00, right hand, medication on: 3" in titles
@@ -180,17 +182,17 @@ def _y_ticks(svg: str) -> list[str]:
 
 
 def test_count_trends_have_whole_number_ticks():
-    svg = plots.trend_plot(_same_day_points(), label="Hesitations", unit="count", integer=True)
+    svg = trends.trend_plot(_same_day_points(), label="Hesitations", unit="count", integer=True)
     ticks = _y_ticks(svg)
     assert ticks and all(float(t).is_integer() for t in ticks), ticks
     # The check can fail: matplotlib's default ticks for 0-3 include halves.
-    plain = plots.trend_plot(_same_day_points(), label="Hesitations", unit="count")
+    plain = trends.trend_plot(_same_day_points(), label="Hesitations", unit="count")
     assert any(not float(t).is_integer() for t in _y_ticks(plain)), _y_ticks(plain)
 
 
 def test_points_of_one_visit_do_not_hide_each_other():
     # Same value everywhere: without the sideways spread the two on/off pairs would coincide.
-    svg = plots.trend_plot(_same_day_points((2.0, 2.0, 2.0, 2.0)), label="A", unit="mm")
+    svg = trends.trend_plot(_same_day_points((2.0, 2.0, 2.0, 2.0)), label="A", unit="mm")
     xs = [
         float(x)
         for x in re.findall(r'<g id="trend\d+-pt\d+">.*?<use [^>]*?x="([\d.]+)"', svg, re.S)
