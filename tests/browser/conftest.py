@@ -85,7 +85,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
         )
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 180  # s: a loaded 2-core machine starts slowly
         while True:
             try:
                 with urllib.request.urlopen(f"{url}/health", timeout=2) as r:

@@ -20,8 +20,11 @@ nothing.
 
 from __future__ import annotations
 
+import base64
 import json
 import re
+import socket
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +38,7 @@ pytestmark = pytest.mark.browser
 
 HERE = Path(__file__).resolve().parent
 TWO_CAMERAS = HERE / "two_cameras_from_one.js"
+CAPTURE_GATE = HERE.parents[1] / "app" / "static" / "capture_gate.js"
 FPS = 30  # Hz: the fake cameras' rate
 RECORD_S = 5  # s
 JOB_TIMEOUT_MS = 300_000  # 2 shared cores
@@ -504,3 +508,141 @@ def test_calibration_mode_records_a_board_pair_and_starts_the_calibration(
     assert "board" in error.lower(), error
     assert not p.problems, p.problems
     p.close()
+
+
+def test_an_upload_cut_off_midway_leaves_no_file_behind(served, api) -> None:
+    """Over a real socket: half of a take's body arrives, then the connection drops."""
+    target = api.target(_rig_document(640, 480), "cut-off-rig")
+    key = create_api_key(served, "cut-off")
+    before = api.stored_files()
+    rng = np.random.default_rng(8)
+    boundary = "capture-take"
+    parts = [(f"{side}_video", f"{side}.webm", rng.bytes(3_000_000)) for side in ("left", "right")]
+    body = (
+        b"".join(
+            f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"; filename="{fn}"\r\n'
+            f"Content-Type: video/webm\r\n\r\n".encode()
+            + data
+            + b"\r\n"
+            for name, fn, data in parts
+        )
+        + f"--{boundary}--\r\n".encode()
+    )
+    host, port = served.url.removeprefix("http://").split(":")
+    head = (
+        f"POST /api/v1/sessions/{target.session_id}/trials HTTP/1.1\r\n"
+        f"Host: {host}\r\nAuthorization: Bearer {key}\r\n"
+        f"Content-Type: multipart/form-data; boundary={boundary}\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode()
+    receiving = served.data_dir / "tmp"
+    with socket.create_connection((host, int(port)), timeout=30) as sock:
+        sock.sendall(head + body[:4_500_000])  # the left video and half of the right one
+        # The server is writing the take into temporary files ...
+        _wait_until(lambda: sum(p.stat().st_size for p in receiving.glob("*")) >= 4_000_000)
+    # ... and removes them when the connection is lost.
+    _wait_until(lambda: api.stored_files() == before)
+    assert api.trials(target.session_id) == []
+
+
+def _wait_until(condition, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.1)  # polling for the server, not timing it
+
+
+# --------------------------------------------------------------------------- timestamps
+
+
+@dataclass(frozen=True)
+class WebmTake:
+    webm: bytes
+    capture_s: np.ndarray  # each recorded frame's capture time, the camera's clock (s)
+    lost_after: tuple[int, ...]
+
+
+@pytest.fixture(scope="module")
+def webm_take(tmp_path_factory: pytest.TempPathFactory) -> WebmTake:
+    """A VP9 WebM file with 1-ms timestamps of irregular, jittered frames, two lost."""
+    from core.camera import ImageSize
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario, simulate_session
+    from core.simulation.timing import CameraTiming
+
+    lost = (20, 41)
+    sim = simulate_session(
+        tmp_path_factory.mktemp("webm-take"),
+        seed=9,
+        tapping=TappingScenario(duration_s=2.0, fps=float(FPS)),
+        imaging=ImagingScenario(
+            image_size=ImageSize(320, 256),
+            codec="vp9",
+            left_timing=CameraTiming(jitter_s=0.002, vfr=True, drop_after=lost),
+        ),
+    )
+    stamps = np.asarray(sim.truth["cameras"]["left"]["timestamps_s"])
+    return WebmTake(sim.left_video.read_bytes(), stamps, lost)
+
+
+def test_the_pages_timestamps_file_holds_each_recorded_frames_capture_time(
+    browser, webm_take: WebmTake
+) -> None:
+    """capture_gate.js on a WebM take: its frames' file times, and their capture times.
+
+    The page logs the capture time of the frames it shows (requestVideoFrameCallback);
+    here that log starts before the first recorded frame and ends after the last one,
+    misses one frame in ten, and holds two frames the recorder did not keep. Every
+    recorded frame must get its own capture time, or, when the page did not show it,
+    its file time moved onto the camera's clock (within 1 ms).
+    """
+    origin_s = 5012.345678  # the camera's clock at the first recorded frame
+    capture = origin_s + webm_take.capture_s
+    rng = np.random.default_rng(2)
+    shown = rng.random(len(capture)) >= 0.1
+    interval = 1.0 / FPS
+    kept_out = [capture[k] + interval for k in webm_take.lost_after]  # shown, not recorded
+    log = np.sort(
+        np.concatenate(
+            [
+                [capture[0] - 2 * interval, capture[0] - interval],
+                capture[shown],
+                kept_out,
+                [capture[-1] + interval],
+            ]
+        )
+    )
+    page = browser.new_page()
+    try:
+        page.add_script_tag(path=str(CAPTURE_GATE))
+        out = page.evaluate(
+            """([b64, log]) => {
+                const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+                const C = window.BradyscopeCapture;
+                const fileMs = C.webmFrameTimesMs(bytes.buffer);
+                const aligned = C.alignFrameTimes(fileMs, log);
+                return {fileMs, times: aligned && Array.from(aligned.times_s),
+                        paired: aligned && aligned.paired,
+                        csv: aligned && C.timesCsv(aligned.times_s),
+                        facts: aligned && C.takeFacts(aligned.times_s)};
+            }""",
+            [base64.b64encode(webm_take.webm).decode(), log.tolist()],
+        )
+    finally:
+        page.close()
+    n = len(capture)
+    # The file's own timestamps: one per recorded frame, in ms from the first.
+    assert out["fileMs"] == np.round(1000 * webm_take.capture_s).tolist()
+    assert out["times"] is not None and len(out["times"]) == n
+    times = np.asarray(out["times"])
+    assert out["paired"] == int(shown.sum())
+    assert np.allclose(times[shown], capture[shown], rtol=0, atol=1e-9)  # s: as logged
+    assert np.max(np.abs(times[~shown] - capture[~shown])) <= 0.001  # s: the file's 1-ms times
+    assert np.all(np.diff(times) > 0)
+    lines = out["csv"].splitlines()
+    assert lines[0] == "frame,time_s" and len(lines) == n + 1
+    assert [line.split(",") for line in lines[1:3]] == [
+        [str(k), f"{t:.6f}"] for k, t in enumerate(times[:2])
+    ]
+    # The quick check counts the two lost frames.
+    assert out["facts"]["frame_count"] == n and out["facts"]["dropped_frames"] == 2
