@@ -43,6 +43,8 @@
       right: parseSize(root.getAttribute("data-right-size")),
     };
     this.form = $(root, "[data-capture-form]");
+    this.taskSelect = $(root, "[data-task-select]");
+    this.limbText = $(root, "[data-limb-text]");
     this.sizeSelect = $(root, "[data-size-select]");
     this.lockBox = $(root, "[data-lock-exposure]");
     this.exposureHint = $(root, "[data-exposure-hint]");
@@ -140,6 +142,10 @@
       this.sizeSelect.addEventListener("change", function () {
         SIDES.forEach(function (side) { if (self.cams[side].deviceId) self.open(side, self.cams[side].deviceId); });
       });
+    }
+    if (this.taskSelect) {
+      this.taskSelect.addEventListener("change", function () { self.chooseTask(); });
+      this.chooseTask();
     }
     this.lockBox.addEventListener("change", function () { self.lockExposure(self.lockBox.checked); });
     this.retryButton.addEventListener("click", function () { self.requestAccess(); });
@@ -241,6 +247,17 @@
       this.open(other.side, other.select.value); // it was refused as a duplicate of this one
     }
     this.open(side, id);
+  };
+
+  /** The task decides how many markers the gate expects in each view (0: not counted). */
+  Station.prototype.chooseTask = function () {
+    var option = this.taskSelect.options[this.taskSelect.selectedIndex];
+    if (!option) return;
+    this.markersExpected = Number(option.getAttribute("data-markers") || 0);
+    if (this.limbText) this.limbText.textContent = option.getAttribute("data-limb") || "hand";
+    var self = this;
+    SIDES.forEach(function (side) { if (self.cams[side].gate) self.showFacts(self.cams[side]); });
+    if (this.phase === "setup") this.updateGate();
   };
 
   Station.prototype.neededSize = function (side) {
@@ -468,7 +485,7 @@
     if (g.seen && this.markersExpected) {
       if (g.seen.markers < this.markersExpected) {
         notes.push(name + " sees " + g.seen.markers + " marker" + (g.seen.markers === 1 ? "" : "s")
-          + " of " + this.markersExpected + " (both finger markers must be in its view, lit by the ring light)");
+          + " of " + this.markersExpected + " (every marker of the task must be in its view, lit by the ring light)");
       } else if (g.seen.markers > this.markersExpected) {
         notes.push(name + " sees " + g.seen.markers + " bright marker-like spots, " + this.markersExpected
           + " expected (remove reflections: rings, watch, shiny objects)");
@@ -514,7 +531,11 @@
     } else {
       var rates = cams.map(function (c) { return c.gate.fps ? c.gate.fps.toFixed(0) : "?"; });
       text = "Ready: "
-        + (this.markersExpected ? "both cameras see the " + this.markersExpected + " markers, " : "both cameras run, ")
+        + (this.markersExpected
+          ? "both cameras see the " + this.markersExpected + " markers, "
+          : this.mode === "trial"
+            ? "both cameras run (the gate does not count this task's markers; the analysis does), "
+            : "both cameras run, ")
         + rates.join(" and ") + " frames per second."
         + (cams.some(function (c) { return c.slow; }) ? " (60 frames per second or more measures fast taps better.)" : "");
       state = "ready";

@@ -21,11 +21,16 @@ from app.auth import SessionDep
 from app.errors import NotFoundError
 from app.services import capture
 from app.web.common import PageUser, error_page, render
+from core.errors import InputError
+from core.tasks import DEFAULT_TASK, Task, parse_task
 
 router = APIRouter()
 
 CAMERA_PERMISSION = "camera=(self), microphone=(), geolocation=()"
-MARKERS_PER_VIEW = 2  # finger tapping: thumb and index markers, seen by both cameras
+MARKERS_PER_VIEW: dict[Task, int] = {Task.FINGER_TAPPING: 2}  # thumb and index, in both views
+"""Markers each camera must see for the gate to call its view ready, per task. A task
+without a number here (its marker protocol is not in core yet) is not counted by the gate:
+the page shows the spots it sees, and the analysis says what it missed."""
 COUNTDOWN_S = 3
 DEFAULT_DURATION_S = 15
 CALIBRATION_SIZES = ((640, 480), (640, 512), (1280, 720), (1280, 1024), (1920, 1080))
@@ -37,18 +42,37 @@ def _allow_camera(response: Response) -> Response:
     return response
 
 
+def _task_choices() -> list[dict[str, object]]:
+    """The tasks the page offers, with what the gate and the page need to know of each."""
+    return [
+        {
+            "value": task.value,
+            "heading": task.heading,
+            "limb": task.limb,
+            "markers": MARKERS_PER_VIEW.get(task, 0),
+        }
+        for task in Task
+    ]
+
+
 def _size_text(size: tuple[int, int] | None) -> str:
     return f"{size[0]}x{size[1]}" if size is not None else ""
 
 
 @router.get("/sessions/{session_id}/capture", response_class=HTMLResponse)
 def session_capture_page(
-    request: Request, db: SessionDep, user: PageUser, session_id: int
+    request: Request, db: SessionDep, user: PageUser, session_id: int, task: str = ""
 ) -> Response:
+    """The capture page of a session; ``?task=`` chooses the task first (default: finger tapping;
+    an unknown value is ignored)."""
     try:
         target = capture.session_capture(db, user, session_id)
     except NotFoundError as exc:
         return error_page(request, user, status_code=404, message=str(exc))
+    try:
+        chosen = parse_task(task)
+    except InputError:
+        chosen = DEFAULT_TASK
     session = target.session
     assert session is not None
     return _allow_camera(
@@ -66,7 +90,9 @@ def session_capture_page(
             left_size=_size_text(target.left_size),
             right_size=_size_text(target.right_size),
             upload_url=f"/sessions/{session.id}/trials",
-            markers=MARKERS_PER_VIEW,
+            markers=MARKERS_PER_VIEW.get(chosen, 0),
+            tasks=_task_choices(),
+            task=chosen.value,
             countdown_s=COUNTDOWN_S,
             duration_s=DEFAULT_DURATION_S,
             sizes=(),
@@ -96,6 +122,8 @@ def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: i
             right_size=_size_text(target.right_size),
             upload_url=f"/rigs/{target.rig.id}/calibrations",
             markers=0,
+            tasks=(),
+            task="",
             countdown_s=COUNTDOWN_S,
             duration_s=30,
             sizes=[f"{w}x{h}" for w, h in CALIBRATION_SIZES],

@@ -38,6 +38,19 @@ def test_the_session_capture_page_asks_for_the_rigs_resolution(
     assert re.search(r'<label for="camera-left">Left camera</label>', html)
     assert re.search(r'<label for="camera-right">Right camera</label>', html)
     assert ">Start recording</button>" in html and ">Stop recording</button>" in html
+    # The task: every task offered, finger tapping first chosen; the gate counts its 2 markers.
+    task_select = re.search(r'<select id="capture-task" name="task"[^>]*>(.*?)</select>', html)
+    assert task_select and '<label for="capture-task">Task</label>' in html
+    options = re.findall(
+        r'<option value="(\w+)" data-markers="(\d+)"[^>]*?( selected)?>', task_select[1]
+    )
+    assert [value for value, _, _ in options] == [
+        "finger_tapping",
+        "hand_movements",
+        "pronation_supination",
+        "toe_tapping",
+    ]
+    assert options[0] == ("finger_tapping", "2", " selected")
     assert '<script src="/static/capture.js" defer></script>' in html
     assert "<script>" not in html  # no inline script (the CSP forbids them)
     # Only the capture pages may use the camera.
@@ -56,6 +69,20 @@ def _session_reads(db_sessionmaker) -> int:
                 )
             ).all()
         )
+
+
+def test_the_task_can_be_chosen_in_the_link(client, seeded) -> None:
+    login(client)
+    html = client.get("/sessions/1/capture?task=toe_tapping").text
+    assert re.search(
+        r'<option value="toe_tapping" data-markers="\d+" data-limb="foot" selected>', html
+    )
+    assert "<span data-limb-text>foot</span>" in html  # the side is the foot's
+    # An unknown task in the link is ignored: finger tapping, as without one.
+    html = client.get("/sessions/1/capture?task=juggling").text
+    assert re.search(
+        r'<option value="finger_tapping" data-markers="2" data-limb="hand" selected>', html
+    )
 
 
 def test_a_missing_session_has_no_capture_page(client, seeded) -> None:
