@@ -713,3 +713,27 @@ def test_job_page_title_says_how_it_ended_and_the_queue_position(client, seeded,
     status = client.get(f"/jobs/{second}/status").json()
     assert status["queue_position"] == 2 and "number 2 in the queue" in status["stage_label"]
     assert status["title"] == f"Analysis {second}: queued"
+
+
+def test_the_session_table_shows_the_first_10_taps_as_the_trends_do(
+    client, seeded, db_sessionmaker
+):
+    """The item is about the first 10 taps: the session list must not show other numbers."""
+    from app.reports.catalogue import format_metric
+
+    login(client)
+    with db_sessionmaker() as db:
+        doc = db.scalar(
+            select(Result.document).where(Result.trial_id == seeded["trials"][(0, "right")])
+        )
+    first10, whole = doc["metrics_first_10"], doc["metrics"]
+    shown = (
+        f"{format_metric('amplitude_mm_mean', first10['amplitude_mm_mean'])} mm,"
+        f" {format_metric('frequency_hz', first10['frequency_hz'])} Hz"
+    )
+    recording = f"{format_metric('amplitude_mm_mean', whole['amplitude_mm_mean'])} mm"
+    assert not shown.startswith(recording)  # the synthetic trial decrements: they differ
+    html = client.get(f"/patients/{seeded['patient_id']}").text
+    cells = re.findall(r"<a [^>]*data-session-values>([^<]*)</a>", html)
+    assert shown in cells, cells
+    assert 'Right hand <span class="unit">(first 10 taps)</span>' in html
