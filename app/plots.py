@@ -187,7 +187,7 @@ def _tap_marks(
             xytext=(0, 3),
             textcoords="offset points",
             ha="center",
-            fontsize=6.5,
+            fontsize=7.0,  # >= 9 CSS px where the page draws the plot smallest (768 px)
             color="#3e4c59",
         )
     starts = [_value(tp, "t_start_s") for tp in taps]
