@@ -175,3 +175,30 @@ def test_bad_corrections_are_refused_in_plain_words():
     )
     with pytest.raises(ValueError, match="thumb and index"):
         correct_metrics(no_thumb, Corrections())
+
+
+def test_a_correction_keeps_every_metric_key_an_analysis_writes():
+    """A corrected result.json holds every ``metrics``/``metrics_first_10`` key that the
+    analysis's own result.json holds, measured again: a key core adds to the analysis
+    (e.g. the common keys of every task) must be recomputed by ``revised_document`` too,
+    never dropped and never copied unchanged from the analysis."""
+    from core.pipeline import Analysis
+
+    table = _table()
+    base = Analysis(
+        fps=FPS,
+        frame_numbers=table.frames,
+        positions_mm=table.positions_mm,
+        status=table.status,
+        reprojection_px=table.reprojection_px,
+        marker_names=table.labels,
+        sync={},
+        metrics=_core(),
+    ).result_document()
+    doc = revised_document(base, correct_metrics(table, Corrections(exclude_taps=(0, 1))))
+    for part in ("metrics", "metrics_first_10"):
+        assert set(doc[part]) == set(base[part]), part
+    assert doc["metrics"]["tap_count"] == base["metrics"]["tap_count"] - 2
+    for part in ("metrics", "metrics_first_10"):  # the common keys, where core writes them
+        if "cycle_count" in doc[part]:
+            assert doc[part]["cycle_count"] == doc[part]["tap_count"], part
