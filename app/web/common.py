@@ -180,6 +180,19 @@ def status_of(exc: BaseException) -> int:
     return int(getattr(exc, "http_status", 400))
 
 
+SESSION_LABELS = {
+    "rig_id": "Camera rig",
+    "recorded_at": "Date and time of the recording",
+    "medication_state": "Medication state",
+    "dbs_state": "Deep brain stimulation",
+    "time_since_levodopa_min": "Time since the last levodopa dose",
+    "more_affected_side": "More affected side",
+    "dominant_hand": "Dominant hand",
+    "notes": "Notes",
+}
+"""The session form's labels, used in the error messages of the new-session and edit forms."""
+
+
 def validation_message(exc: ValidationError, labels: Mapping[str, str] | None = None) -> str:
     """The first problems of a form as one sentence, each named by the form's own label."""
     parts = []

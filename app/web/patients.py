@@ -29,6 +29,7 @@ from app.timezones import from_local, local_date
 from app.trends import TrendPoint, trend_plot
 from app.web.common import (
     CSRF_MESSAGE,
+    SESSION_LABELS,
     PageUser,
     csrf_ok,
     error_page,
@@ -205,19 +206,6 @@ def session_new(request: Request, db: SessionDep, user: PageUser, patient_id: in
     except NotFoundError as exc:
         return not_found_page(request, user, exc)
     return _session_form(request, user, patient, all_rigs(db), {})
-
-
-SESSION_LABELS = {
-    "rig_id": "Camera rig",
-    "recorded_at": "Date and time of the recording",
-    "medication_state": "Medication state",
-    "dbs_state": "Deep brain stimulation",
-    "time_since_levodopa_min": "Time since the last levodopa dose",
-    "more_affected_side": "More affected side",
-    "dominant_hand": "Dominant hand",
-    "notes": "Notes",
-}
-"""The session form's labels, used in its error messages."""
 
 
 def _session_form(

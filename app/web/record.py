@@ -20,6 +20,7 @@ from app.services import sessions, trials
 from app.services.common import visible_trial
 from app.web.common import (
     CSRF_MESSAGE,
+    SESSION_LABELS,
     PageUser,
     csrf_ok,
     error_page,
@@ -61,10 +62,15 @@ def session_edit(
         )
         sessions.update_session(db, user, session_id, data)
     except ValidationError as exc:
-        return error_page(request, user, status_code=422, message=validation_message(exc))
+        return error_page(
+            request, user, status_code=422, message=validation_message(exc, SESSION_LABELS)
+        )
     except ValueError:
         return error_page(
-            request, user, status_code=422, message="The time since levodopa must be minutes."
+            request,
+            user,
+            status_code=422,
+            message="Time since the last levodopa dose: give a whole number of minutes, or nothing.",
         )
     except AppError as exc:
         db.rollback()

@@ -214,3 +214,23 @@ def test_a_reanalysis_says_which_corrections_it_did_not_carry_over(
         )
     assert again == 4
     assert "data-not-carried" not in client.get(f"/trials/{t}/review").text
+
+
+def test_the_session_edit_form_names_its_fields_by_their_labels(client, seeded, db_sessionmaker):  # noqa: F811
+    """Errors of the edit form use the form's labels, as the new-session form does (issue 14)."""
+    csrf = login(client)
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, seeded["trials"][(1, "right")]).session_id
+    too_long = client.post(
+        f"/sessions/{session_id}/edit",
+        data={"csrf_token": csrf, "time_since_levodopa_min": "99999"},
+    )
+    assert too_long.status_code == 422
+    assert "Time since the last levodopa dose" in too_long.text
+    assert "Time since levodopa min" not in too_long.text  # not the field's internal name
+    not_a_number = client.post(
+        f"/sessions/{session_id}/edit",
+        data={"csrf_token": csrf, "time_since_levodopa_min": "an hour"},
+    )
+    assert not_a_number.status_code == 422
+    assert "Time since the last levodopa dose: give a whole number of minutes" in not_a_number.text
