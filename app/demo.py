@@ -10,7 +10,7 @@
   more and hesitates more as the disease progresses, the right hand more than
   the left, and medication ON improves it;
 - one trial per hand and session, made from a real simulated stereo recording
-  (640 x 512 px, 100 fps, 8 s) uploaded through the service's own trial
+  (640 x 512 px, 60 fps, 6 s, MPEG-4) uploaded through the service's own trial
   use case, so the worker measures it like any upload.
 
 The recordings are simulated in a background thread, most useful first (the
@@ -55,7 +55,11 @@ DEMO_PATIENT = "DEMO-0001"
 DEMO_RIG = "demo-rig"
 CREDENTIALS_FILE = "demo-credentials.txt"
 IMAGE_SIZE = (640, 512)  # px, (width, height)
-FPS = 100.0  # Hz
+# Small recordings, so that the whole demo is measured within a couple of minutes: 6 s
+# (10 or more taps at every planned frequency), 60 fps, MPEG-4 Part 2 (about 1 MB a video).
+FPS = 60.0  # Hz
+CLIP_S = 6.0  # s
+CODEC = "mp4v"
 
 _threads: list[threading.Thread] = []
 
@@ -100,7 +104,7 @@ def demo_trials() -> list[DemoTrial]:
     right_off = [
         (48.0, 3.0, -0.3, (), ()),
         (40.0, 2.6, -0.7, (7,), ()),
-        (32.0, 2.2, -1.1, (5, 12), ((9, 0.5),)),
+        (32.0, 2.2, -1.1, (3, 6), ((5, 0.5),)),  # pauses that fit in a 6-s clip
     ]
     left_off = [
         (52.0, 3.2, -0.1, (), ()),
@@ -274,12 +278,39 @@ def _should_stop(stop_event: threading.Event | None) -> bool:
     ) or not threading.main_thread().is_alive()
 
 
+def pauses_that_fit(
+    trial: DemoTrial, clip_s: float
+) -> tuple[tuple[int, ...], tuple[tuple[int, float], ...]]:
+    """The trial's hesitations and halts that leave at least two taps after them in ``clip_s``.
+
+    The taps fit in the clip less its still lead-in and tail (about 0.8 s) and
+    the pauses before them; a 10 % margin covers the simulated rhythm's jitter.
+    """
+    hesitation_s = TappingScenario.hesitation_s
+    period_s = 1.0 / trial.frequency_hz
+    pauses = sorted(
+        [(k, hesitation_s, "hesitation") for k in trial.hesitations]
+        + [(k, d, "halt") for k, d in trial.halts]
+    )
+    lost_s = 0.0
+    hesitations: list[int] = []
+    halts: list[tuple[int, float]] = []
+    for k, duration_s, kind in pauses:
+        taps_that_fit = 0.9 * (clip_s - 0.8 - lost_s - duration_s) / period_s
+        if k >= taps_that_fit - 2:
+            continue
+        lost_s += duration_s
+        if kind == "hesitation":
+            hesitations.append(k)
+        else:
+            halts.append((k, duration_s))
+    return tuple(hesitations), tuple(halts)
+
+
 def _simulate(
     trial: DemoTrial, out_dir: Path, *, clip_s: float, stop_event: threading.Event | None = None
 ) -> tuple[Path, Path]:
-    n_taps = clip_s * trial.frequency_hz
-    hesitations = tuple(k for k in trial.hesitations if k < n_taps - 2)
-    halts = tuple((k, d) for k, d in trial.halts if k < n_taps - 2)
+    hesitations, halts = pauses_that_fit(trial, clip_s)
 
     def progress(stage: str, done: int, total: int) -> None:
         if _should_stop(stop_event):
@@ -300,7 +331,7 @@ def _simulate(
             halts=halts,
             hand=trial.hand,
         ),
-        imaging=ImagingScenario(image_size=ImageSize(*IMAGE_SIZE)),
+        imaging=ImagingScenario(image_size=ImageSize(*IMAGE_SIZE), codec=CODEC),
     )
     return sim.left_video, sim.right_video
 
@@ -353,10 +384,17 @@ def generate_recordings(
     user_id: int,
     todo: list[tuple[DemoTrial, int]],
     *,
-    clip_s: float = 8.0,
+    clip_s: float = CLIP_S,
     stop_event: threading.Event | None = None,
+    start: threading.Event | None = None,
 ) -> int:
-    """Simulate and upload the given demo trials one by one; returns how many were queued."""
+    """Simulate and upload the given demo trials one by one; returns how many were queued.
+
+    With ``start``, waits until it is set (or the server has ended) before the first.
+    """
+    while start is not None and not start.wait(0.2):
+        if _should_stop(stop_event):
+            return 0
     work = Path(settings.data_dir) / "tmp"
     work.mkdir(parents=True, exist_ok=True)
     done = 0
@@ -391,9 +429,10 @@ def seed_demo(
     settings: Settings,
     *,
     background: bool = True,
-    clip_s: float = 8.0,
+    clip_s: float = CLIP_S,
     max_trials: int | None = None,
     now: datetime | None = None,
+    start: threading.Event | None = None,
 ) -> str:
     """Create the demo account, rig, patient and sessions; queue simulated trials.
 
@@ -409,6 +448,10 @@ def seed_demo(
         Length of each simulated recording (s).
     max_trials : int, optional
         Simulate at most this many of the missing trials (tests).
+    start : threading.Event, optional
+        With ``background``: the recordings are simulated once it is set (the
+        server sets it when it answers, so that start-up does not share the
+        processor with the simulation).
     now : datetime, optional
         "Today" of the demo (UTC); default the current time.
 
@@ -428,7 +471,7 @@ def seed_demo(
             thread = threading.Thread(
                 target=generate_recordings,
                 args=(settings, seeded["user_id"], todo),
-                kwargs={"clip_s": clip_s},
+                kwargs={"clip_s": clip_s, "start": start},
                 name="bradyscope-demo-recordings",
                 daemon=False,
             )

@@ -33,7 +33,7 @@ from app.auth import SESSION_COOKIE, client_ip, request_settings, session_key
 from app.errors import AuthenticationError, PermissionDeniedError, RateLimitedError
 from app.models import BrowserSession, User, utcnow
 from app.oidc import Identity
-from app.passwords import DUMMY_HASH, NO_PASSWORD, hash_password, needs_rehash, verify_password
+from app.passwords import NO_PASSWORD, dummy_hash, hash_password, needs_rehash, verify_password
 from app.settings import Settings
 from app.throttle import normalise_email
 
@@ -51,7 +51,7 @@ def _check_password(
     # Verify against a dummy hash for unknown users and accounts without a local password
     # (single sign-on only): same time, no account enumeration.
     local = user is not None and user.password_hash != NO_PASSWORD
-    ok = verify_password(user.password_hash if user and local else DUMMY_HASH, password)
+    ok = verify_password(user.password_hash if user and local else dummy_hash(), password)
     if not ok or not local or user is None or not user.is_active:
         audit(db, ANONYMOUS, "login", "user", user.id if user else None, outcome="denied")
         db.commit()

@@ -58,7 +58,6 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Mapper, mapped_column, relat
 from sqlalchemy.orm import Session as DbSession
 from sqlalchemy.types import TypeDecorator
 
-from core.calibration import quality_verdict
 from core.tasks import TASKS
 
 # Allowed values of the enumerated string columns.
@@ -339,6 +338,8 @@ def calibration_verdict(
     one place the service judges a calibration; the result is stored in
     ``Calibration.verdict`` and ``Calibration.verdict_reasons``.
     """
+    from core.calibration import quality_verdict  # OpenCV and SciPy: not at start-up
+
     figures = dict(quality or {})
     if rms_px is not None:
         figures.setdefault("rms_px", rms_px)

@@ -7,11 +7,11 @@ True
 
 from __future__ import annotations
 
+import functools
 import re
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
-from zxcvbn import zxcvbn
 
 from app.errors import InvalidRequestError
 
@@ -60,6 +60,8 @@ def check_password_strength(
         context += [email, local, *(part for part in re.split(r"[^a-zA-Z0-9]+", local) if part)]
     if email and email.strip().lower() in password.lower():
         raise InvalidRequestError("the password contains the e-mail address; choose another one.")
+    from zxcvbn import zxcvbn  # its frequency lists take ~0.3 s to load: not at start-up
+
     verdict = zxcvbn(password[:_ZXCVBN_MAX_LENGTH], user_inputs=context)
     if float(verdict["guesses_log10"]) < MIN_GUESSES_LOG10:
         warning = str(verdict["feedback"].get("warning") or "").strip()
@@ -96,6 +98,12 @@ NO_PASSWORD = "!no-local-password"
 """Stored instead of a hash for accounts that log in only through single sign-on:
 it is no argon2 hash, so no password ever verifies against it."""
 
-# A hash of a random password: verify against it when the user does not exist, so that
-# a login for an unknown e-mail takes as long as one with a wrong password.
-DUMMY_HASH = _hasher.hash("bradyscope-no-such-user-timing-guard")
+
+@functools.cache
+def dummy_hash() -> str:
+    """A hash of a random password: verify against it when the user does not exist, so that
+    a login for an unknown e-mail takes as long as one with a wrong password.
+
+    Made on first use (an argon2 hash costs a fraction of a second), not at start-up.
+    """
+    return _hasher.hash("bradyscope-no-such-user-timing-guard")

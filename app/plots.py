@@ -18,16 +18,19 @@ import math
 import re
 import secrets
 from collections.abc import Mapping, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import matplotlib
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
-matplotlib.use("Agg")
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+# matplotlib (~0.5 s to import) is imported on the first drawing, not with the web
+# application: the worker draws a result's plots once and the pages read them.
 
 # A calm, colour-blind-safe palette (Okabe–Ito) used by the pages too.
 COLOURS = {
@@ -87,8 +90,23 @@ class PlotEvent:
     t_end_s: float
 
 
+_BACKEND_SET: list[bool] = []
+
+
+def plot_rc() -> AbstractContextManager[None]:
+    """matplotlib's rc context of every plot (:data:`RC`); imports matplotlib (Agg) on first use."""
+    import matplotlib
+
+    if not _BACKEND_SET:
+        matplotlib.use("Agg")
+        _BACKEND_SET.append(True)
+    return matplotlib.rc_context(RC)
+
+
 def new_figure(width_in: float, height_in: float) -> Figure:
-    with matplotlib.rc_context(RC):
+    from matplotlib.figure import Figure
+
+    with plot_rc():
         fig = Figure(figsize=(width_in, height_in), layout="constrained")
     return fig
 
@@ -109,7 +127,7 @@ def to_svg(fig: Figure, *, title: str, name: str, hover: Mapping[str, str] | Non
     rests on it (an SVG ``<title>`` inside that artist's group).
     """
     buf = io.StringIO()
-    with matplotlib.rc_context(RC):
+    with plot_rc():
         fig.savefig(buf, format="svg", metadata={"Date": None, "Creator": None})
     svg = buf.getvalue()
     for gid, text in (hover or {}).items():
@@ -236,7 +254,7 @@ def aperture_plot(
     if t.size == 0 or not np.isfinite(a).any():
         draw_empty(fig, "No aperture could be measured in this trial.")
         return to_svg(fig, title="Aperture over time: no data", name="aperture")
-    with matplotlib.rc_context(RC):
+    with plot_rc():
         ax = fig.add_subplot()
         for ev in events:
             colour = COLOURS.get(ev.kind, COLOURS["hesitation"])
@@ -286,7 +304,7 @@ def tap_amplitude_plot(
         draw_empty(fig, "No taps were found.")
         return to_svg(fig, title="Tap amplitude: no taps", name="amplitude")
     n = np.arange(1, amp.size + 1, dtype=np.float64)
-    with matplotlib.rc_context(RC):
+    with plot_rc():
         ax = fig.add_subplot()
         # Unreliable taps (peak or closure on filled-in frames) are drawn pale:
         # the metrics leave them out of amplitude statistics.
@@ -334,7 +352,7 @@ def velocity_plot(taps: Sequence[Mapping[str, Any]]) -> str:
     n = np.arange(1, len(taps) + 1)
     v_open = np.array([_value(tp, "opening_velocity_mm_s_max") for tp in taps])
     v_close = np.array([_value(tp, "closing_velocity_mm_s_max") for tp in taps])
-    with matplotlib.rc_context(RC):
+    with plot_rc():
         ax = fig.add_subplot()
         ax.plot(n, v_open, "o-", ms=3, lw=1.2, color=COLOURS["opening"], label="opening")
         ax.plot(n, v_close, "s-", ms=3, lw=1.2, color=COLOURS["closing"], label="closing")
@@ -369,7 +387,7 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
     # At most ~MAX_PATH_POINTS samples per path: the drawing looks the same and
     # the SVG stays light for browsers and the PDF renderer.
     p = p[:: max(1, -(-p.shape[0] // MAX_PATH_POINTS))]
-    with matplotlib.rc_context(RC):
+    with plot_rc():
         ax_front = fig.add_subplot(1, 3, 1)
         ax_side = fig.add_subplot(1, 3, 2)
         ax_3d = fig.add_subplot(1, 3, 3, projection="3d")

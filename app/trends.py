@@ -14,11 +14,7 @@ from dataclasses import dataclass
 from datetime import date, datetime, timedelta
 from typing import Any
 
-import matplotlib
-import matplotlib.dates as mdates
-from matplotlib.ticker import MaxNLocator
-
-from app.plots import COLOURS, RC, draw_empty, new_figure, to_svg
+from app.plots import COLOURS, draw_empty, new_figure, plot_rc, to_svg
 
 
 @dataclass(frozen=True)
@@ -80,7 +76,7 @@ def trend_plot(
     days = [_as_datetime(p.recorded_at) for p in usable]
     span = max(max(days) - min(days), timedelta(days=90))
     hover: dict[str, str] = {}
-    with matplotlib.rc_context(RC):
+    with plot_rc():
         ax = fig.add_subplot()
         for hand in ("left", "right"):
             for med, style in styles.items():
@@ -110,9 +106,13 @@ def trend_plot(
         ax.set_ylabel(f"{label} ({unit})" if unit else label)
         ax.legend(loc="best", fontsize=7)
         if integer:
+            from matplotlib.ticker import MaxNLocator
+
             ax.yaxis.set_major_locator(MaxNLocator(integer=True))
             ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))
         # matplotlib.dates has no type hints: its three calls are the untyped ones here.
+        import matplotlib.dates as mdates
+
         locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
         ax.xaxis.set_major_locator(locator)
         ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]

@@ -1,8 +1,10 @@
 """`bradyscope serve`: the web application plus an embedded worker (INTERFACES.md).
 
 Start-up order: bring the database to the newest migration (once, under the
-start-up lock), optionally seed the demo (``--demo``), start the embedded
-worker thread(s), then serve HTTP with uvicorn until SIGINT/SIGTERM. Heavier
+start-up lock), optionally seed the demo's rows (``--demo``), then serve HTTP
+with uvicorn until SIGINT/SIGTERM; once it answers, start the embedded worker
+thread(s) and the demo's simulated recordings (so that the first page does
+not wait for the pipeline's imports and the simulation). Heavier
 sites run ``--workers-in-process 0`` here and separate ``bradyscope worker``
 processes.
 """
@@ -115,24 +117,38 @@ def run(args: argparse.Namespace) -> int:
     logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
     migrate(settings)
 
+    serving = threading.Event()  # set once the server answers
     if args.demo:
         from app.demo import seed_demo
 
-        info = seed_demo(settings)
+        info = seed_demo(settings, start=serving)
         print("bradyscope demo:\n" + format_demo_info(info), flush=True)
 
     from app.main import create_app
 
     app = create_app(settings)
     stop_event = threading.Event()
-    threads = start_embedded_workers(settings, args.workers_in_process, stop_event)
+    threads: list[threading.Thread] = []
     print(
         f"bradyscope serve: http://{args.host}:{args.port}/  (data: {settings.data_dir}, "
-        f"database: {settings.display_database}, {len(threads)} embedded worker(s))",
+        f"database: {settings.display_database}, {args.workers_in_process} embedded worker(s))",
         file=sys.stderr,
         flush=True,
     )
     config = uvicorn_config(app, host=args.host, port=args.port, verbose=args.verbose)
+    server = uvicorn.Server(config)
+
+    def after_start() -> None:
+        while not server.started:
+            if stop_event.wait(0.05):
+                return
+        from app.passwords import dummy_hash
+
+        dummy_hash()  # so that the first refused login takes as long as any other
+        threads.extend(start_embedded_workers(settings, args.workers_in_process, stop_event))
+        serving.set()
+
+    threading.Thread(target=after_start, name="bradyscope-start", daemon=True).start()
 
     # uvicorn handles SIGINT/SIGTERM itself, then re-raises the signal once it has shut
     # down; these handlers receive it so that the embedded workers stop cleanly too.
@@ -142,10 +158,10 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, stop_workers)
     signal.signal(signal.SIGINT, stop_workers)
     try:
-        uvicorn.Server(config).run()
+        server.run()
     finally:
         stop_event.set()
-        for thread in threads:
+        for thread in list(threads):
             thread.join(timeout=10)
     exit_if_threads_linger(0)
     return 0

@@ -20,7 +20,6 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from typing import Any
 
-import matplotlib
 import numpy as np
 
 from app import plots
@@ -73,7 +72,9 @@ def _plots_style() -> str:
 
     A stored plots document drawn by other code (an upgrade) is drawn again.
     """
-    digest = hashlib.sha256(matplotlib.__version__.encode())
+    from importlib.metadata import version
+
+    digest = hashlib.sha256(version("matplotlib").encode())
     for module in (plots, sys.modules[__name__]):
         digest.update(inspect.getsource(module).encode())
     return digest.hexdigest()[:16]

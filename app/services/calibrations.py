@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 from sqlalchemy import select, update
@@ -40,8 +40,10 @@ from app.storage import Storage
 from app.upload_checks import validate_rig_file
 from app.uploads import InvalidUpload, ParsedUpload
 from core.boards import BoardSpec
-from core.calibration import CalibrationResult
 from core.camera import StereoRig, rig_from_dict, rig_to_dict
+
+if TYPE_CHECKING:  # OpenCV and SciPy: imported by the worker that calibrates
+    from core.calibration import CalibrationResult
 
 CALIBRATION_FILE_FIELDS = {"rig_json": ".json", "left_video": ".video", "right_video": ".video"}
 CALIBRATION_TEXT_FIELDS = frozenset(

@@ -19,8 +19,6 @@ from app import jobs
 from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, NotFoundError
-from app.exports import fhir_bundle as make_fhir_bundle
-from app.exports import write_c3d, write_trc
 from app.models import Calibration, Job, Patient, Result, Trial, User
 from app.reports.data import CalibrationInfo, ReportData
 from app.reports.figures import read_plots_document
@@ -260,6 +258,8 @@ def fhir_bundle(
 ) -> dict[str, Any]:
     """A FHIR R4 Bundle (DiagnosticReport + Observations, the PDF attached)."""
     trial, data = _report_data(db, actor, trial_id, storage, None, timezone)
+    from app.exports import fhir_bundle as make_fhir_bundle  # fhir.resources: ~1 s to import
+
     bundle = make_fhir_bundle(data, render_report_pdf(data))
     return _exported(db, actor, trial, "fhir_bundle", bundle)
 
@@ -274,6 +274,8 @@ def trajectory_file(
         raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"trial.{kind}"
+        from app.exports import write_c3d, write_trc  # ezc3d and fhir.resources: not at start-up
+
         (write_c3d if kind == "c3d" else write_trc)(path, data.markers)
         body = path.read_bytes()
     return _exported(db, actor, trial, f"{kind}_file", body)

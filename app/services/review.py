@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy.orm import Session
@@ -26,8 +26,10 @@ from app.models import Job, Result, Trial
 from app.services.common import load_trial
 from app.services.revisions import RevisionInfo, history, served_document
 from app.storage import Storage
-from core.corrections import Corrections
 from core.markers_csv import MarkerTable, read_markers_csv
+
+if TYPE_CHECKING:  # core.corrections imports core.metrics (SciPy): when a page needs it
+    from core.corrections import Corrections
 
 
 def read_overlay(result: Result, storage: Storage) -> dict[str, Any] | None:
@@ -125,6 +127,8 @@ def review_page(
         )
         aperture = _aperture(table)
     videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
+    from core.corrections import Corrections
+
     corrections = Corrections.from_dict(doc.get("corrections"))
     data = {
         "trial_id": trial.id,

@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
@@ -40,9 +40,14 @@ from app.reports.figures import plots_document
 from app.schemas import RevisionCreate
 from app.services.common import load_trial
 from app.storage import Storage
-from core.corrections import Corrections, correct_metrics, revised_document, swap_thumb_index
 from core.markers_csv import MarkerTable, read_markers_csv, write_markers_csv
 from core.overlay import swap_overlay_labels
+
+if TYPE_CHECKING:
+    from core.corrections import Corrections
+
+# core.corrections (core.metrics, scipy: ~1 s) is imported where a revision is made,
+# not when the web application starts.
 
 CORRECTION_FIELDS = ("exclude_taps", "dismiss_pauses", "window_s", "swap_labels")
 REANALYSIS_FIELDS = ("offset_frames", "swap_cameras")
@@ -217,6 +222,8 @@ def _queue_reanalysis(
 
 def _merged_corrections(current: Result, change: dict[str, Any]) -> Corrections:
     """The current revision's corrections with the request's ``change`` applied over them."""
+    from core.corrections import Corrections
+
     before = (
         Corrections.from_dict(current.document.get("corrections"))
         if current.kind == "correction"
@@ -255,6 +262,8 @@ def _write_swapped_labels(
     Each file written is appended to ``written`` at once, so that the caller
     can remove it if storing the revision fails.
     """
+    from core.corrections import swap_thumb_index
+
     with storage.writing("results", ".csv") as (tmp, markers_path):
         write_markers_csv(swap_thumb_index(table), tmp)
     written.append(markers_path)
@@ -284,6 +293,8 @@ def _correct(
     task = base.document.get("task", "finger_tapping")
     if task != "finger_tapping":
         raise InvalidRequestError(f"Corrections of taps apply to finger tapping, not to {task}.")
+    from core.corrections import correct_metrics, revised_document, swap_thumb_index
+
     corrections = _merged_corrections(current, change)
     table = _stored_trajectories(storage, trial, base)
     try:
@@ -372,6 +383,8 @@ def _corrections_in_force(result: Result | None) -> dict[str, Any] | None:
     """
     if result is None or result.kind != "correction":
         return None
+    from core.corrections import Corrections
+
     corrections = Corrections.from_dict(result.document.get("corrections"))
     return None if corrections.is_empty else corrections.to_dict()
 

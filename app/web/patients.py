@@ -7,6 +7,7 @@ session form (``read patient``) and the creations (through the services).
 
 from __future__ import annotations
 
+import functools
 from datetime import UTC, date, datetime
 from typing import Annotated, Any
 from zoneinfo import ZoneInfo
@@ -130,6 +131,13 @@ def _list_with_error(
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _trend_svg(points: tuple[TrendPoint, ...], label: str, unit: str) -> str:
+    """A trend plot, drawn once per set of points (the page is opened far more often
+    than a trial is measured; drawing the plots took most of its time)."""
+    return trend_plot(points, label=label, unit=unit, integer=unit == "count")
+
+
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
 def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
     try:
@@ -147,7 +155,7 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
             {
                 "key": key,
                 "label": label,
-                "svg": trend_plot(points[key], label=label, unit=unit, integer=unit == "count"),
+                "svg": _trend_svg(tuple(points[key]), label, unit),
             }
             for key, label, unit in TREND_METRICS
         ]

@@ -46,6 +46,9 @@ def test_the_planned_progression_is_realistic():
         for o, n in zip(off, pick(hand, "on"), strict=True):
             assert n.amplitude_mm > o.amplitude_mm and n.frequency_hz > o.frequency_hz
             assert len(n.hesitations) + len(n.halts) <= len(o.hesitations) + len(o.halts)
+    # Every planned pause fits in the demo's clips (none is dropped to make them fit).
+    for t in trials:
+        assert demo.pauses_that_fit(t, demo.CLIP_S) == (t.hesitations, t.halts), t
     # The right hand is the more affected one at the last visit.
     assert pick("right", "off")[-1].amplitude_mm < pick("left", "off")[-1].amplitude_mm
     # The right hand OFF medication is simulated first at every visit (trend appears first).
