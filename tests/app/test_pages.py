@@ -737,3 +737,44 @@ def test_the_session_table_shows_the_first_10_taps_as_the_trends_do(
     cells = re.findall(r"<a [^>]*data-session-values>([^<]*)</a>", html)
     assert shown in cells, cells
     assert 'Right hand <span class="unit">(first 10 taps)</span>' in html
+
+
+def _number(text: str) -> tuple[float, float]:
+    """A shown number and half a unit of its last shown digit (its rounding, at most)."""
+    clean = text.replace("−", "-").replace("+", "").replace("%", "").replace(",", "").strip()
+    decimals = len(clean.split(".")[1]) if "." in clean else 0
+    return float(clean), 0.5 * 10.0**-decimals
+
+
+def test_the_compare_table_says_which_minus_which_and_in_percent(client, seeded):
+    """Issue 14, list 5: the difference is labelled (B − A) and given in % of A as well."""
+    login(client)
+    a, b = seeded["trials"][(1, "right")], seeded["trials"][(0, "right")]
+    html = client.get(f"/trials/{a}?compare={b}").text
+    table = re.search(r'<table class="metrics compare-table">(.*?)</table>', html, re.S).group(1)
+    assert "Differences are B minus A" in table
+    assert "Difference B − A" in table and "B − A, % of A" in table
+    checked = 0
+    for row in re.findall(r"<tr><th scope=\"row\">([^<]+)</th>(.*?)</tr>", table, re.S):
+        cells = re.findall(r'<td class="num"[^>]*>([^<]*)</td>', row[1])
+        if len(cells) != 4 or "–" in cells or not all(c.strip() for c in cells):
+            continue
+        (va, ha), (vb, hb), (diff, hd), (pct, hp) = (_number(c) for c in cells)
+        if abs(va) <= ha:
+            continue
+        # Every shown value is rounded: the checks allow exactly that rounding.
+        assert diff == pytest.approx(vb - va, abs=ha + hb + hd), row
+        pct_rounding = 100 * (hb / abs(va) + abs(vb) * ha / (abs(va) - ha) ** 2) + hp
+        assert pct == pytest.approx(100 * (vb - va) / va, abs=pct_rounding), row
+        checked += 1
+    assert checked >= 3, table[:1500]
+
+
+def test_the_aperture_caption_explains_the_closed_offset_and_the_grey_lines(client, seeded):
+    """Issue 14, list 5: why the distance never reaches 0, and what the thin grey lines are."""
+    login(client)
+    html = client.get(f"/trials/{seeded['trials'][(1, 'right')]}").text
+    caption = re.sub(r"\s+", " ", html)
+    assert "does not reach 0 when the fingers touch" in caption
+    assert "measured from that closed position" in caption
+    assert "thin grey vertical lines: the start of each tap" in caption
