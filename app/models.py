@@ -420,10 +420,14 @@ class Trial(Base):
             "clinician_rating IS NULL OR (clinician_rating >= 0 AND clinician_rating <= 4)",
             name="clinician_rating",
         ),
+        Index("ix_trials_session_id_take_id", "session_id", "take_id", unique=True),
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     session_id: Mapped[int] = mapped_column(ForeignKey("sessions.id"), index=True)
+    take_id: Mapped[str | None] = mapped_column(String(64))
+    """The capture page's id of the take (unique in the session): a take sent again after
+    a lost connection is not stored twice. NULL for other uploads."""
     hand: Mapped[str] = mapped_column(String(8))
     """The side: left or right hand (or foot, for toe tapping)."""
     task: Mapped[str] = mapped_column(

@@ -11,18 +11,20 @@ committed rows only.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app import jobs
 from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit, audit_failure
-from app.errors import InvalidRequestError, NotFoundError, PermissionDeniedError
+from app.errors import ConflictError, InvalidRequestError, NotFoundError, PermissionDeniedError
 from app.models import Job, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import calibration_for, rig_to_check_against
@@ -46,6 +48,9 @@ TRIAL_FILE_FIELDS = {
     "right_times": ".csv",
 }
 TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task"})
+PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS | {"take_id"}
+"""The capture page's uploads also carry ``take_id`` (docs/capture.md)."""
+_TAKE_ID = re.compile(r"[A-Za-z0-9_-]{8,64}")
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,8 @@ class TrialOut:
     take: dict[str, dict[str, object]] = field(default_factory=dict)
     """Per side (``left``, ``right``): frames, length, rate reached, frames lost
     (:meth:`app.services.videos.CheckedVideo.take`), known before the analysis."""
+    stored_before: bool = False
+    """The take (``take_id``) was stored before: this is that trial, nothing new was stored."""
 
 
 def check_trial_target(db: Session, actor: Actor, session_id: int) -> None:
@@ -101,22 +108,61 @@ def _parse_offset(upload: ParsedUpload) -> float | None:
     return value
 
 
+def _parse_take_id(upload: ParsedUpload) -> str | None:
+    raw = (upload.fields.get("take_id") or "").strip()
+    if not raw:
+        return None
+    if not _TAKE_ID.fullmatch(raw):
+        raise InvalidUpload("take_id must be 8 to 64 letters, digits, '-' or '_'.")
+    return raw
+
+
+def _stored_take(db: Session, session_id: int, take_id: str | None) -> Trial | None:
+    if take_id is None:
+        return None
+    return db.scalars(
+        select(Trial).where(Trial.session_id == session_id, Trial.take_id == take_id)
+    ).first()
+
+
 def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUpload) -> TrialOut:
     """Accept a trial upload: check both videos by decoding (and their timestamps files,
-    if any), store them, queue the analysis."""
+    if any), store them, queue the analysis.
+
+    A take the capture page sends again (the same ``take_id`` in the session, after a
+    lost connection) stores nothing: the answer is the trial stored first
+    (``stored_before``).
+    """
     hand = _parse_hand(upload)
     task = _parse_task(upload)
     offset = _parse_offset(upload)
+    take_id = _parse_take_id(upload)
     session = load_session(db, actor, session_id, "create")
+    stored = _stored_take(db, session.id, take_id)
+    if stored is not None:
+        job = jobs.latest_job(db, trial_id=stored.id)
+        audit(db, actor, "read", "trial", stored.id, session.patient_id)
+        db.commit()
+        return TrialOut(trial=stored, job_id=job.id if job else 0, stored_before=True)
     rig = rig_to_check_against(db, session)
     pair = check_video_pair(upload, rig=rig)
     warnings = pair.warnings
     try:
         trial = Trial(
-            session_id=session.id, hand=hand, task=task, status="queued", offset_frames=offset
+            session_id=session.id,
+            hand=hand,
+            task=task,
+            status="queued",
+            offset_frames=offset,
+            take_id=take_id,
         )
         db.add(trial)
-        db.flush()
+        try:
+            db.flush()
+        except IntegrityError:
+            raise ConflictError(
+                "This take is being stored by another upload; open the session page to find it."
+            ) from None
         add_videos(db, upload, pair, trial_id=trial.id)
         payload: dict[str, Any] = {"warnings": warnings}
         if offset is not None:

@@ -577,6 +577,14 @@
     step();
   };
 
+  /** A random id of the take: sent again after a lost connection, it is not stored twice. */
+  function newTakeId() {
+    if (window.crypto && window.crypto.randomUUID) return window.crypto.randomUUID();
+    var bytes = new Uint8Array(16);
+    window.crypto.getRandomValues(bytes);
+    return Array.prototype.map.call(bytes, function (b) { return (b + 256).toString(16).slice(1); }).join("");
+  }
+
   function pickMime() {
     for (var i = 0; i < MIME_TYPES.length; i += 1) {
       if (window.MediaRecorder.isTypeSupported(MIME_TYPES[i])) return MIME_TYPES[i];
@@ -588,7 +596,7 @@
     var self = this;
     var mime = pickMime();
     var durationS = Math.max(2, Math.min(120, Number(this.form.elements.duration_s.value) || 15));
-    var take = { mime: mime, durationS: durationS, recorders: {}, chunks: {}, stopped: [] };
+    var take = { id: newTakeId(), mime: mime, durationS: durationS, recorders: {}, chunks: {}, stopped: [] };
     try {
       SIDES.forEach(function (side) {
         var cam = self.cams[side];
@@ -767,6 +775,7 @@
     if (this.mode === "trial") {
       data.append("hand", form.elements.hand.value);
       if (form.elements.task) data.append("task", form.elements.task.value);
+      data.append("take_id", this.take.id);
     } else {
       ["board", "dictionary", "cols", "rows", "square_mm", "marker_mm"].forEach(function (name) {
         var value = form.elements[name].value.trim();
@@ -800,7 +809,11 @@
       self.uploadBar.textContent = pct + " %";
       self.uploadText.textContent = pct + " % sent (" + (e.loaded / 1e6).toFixed(1) + " of " + (e.total / 1e6).toFixed(1) + " MB)";
     });
-    xhr.upload.addEventListener("load", function () { self.uploadText.textContent = "Sent. The server checks the videos…"; });
+    var sent = false; // every byte of the take left the browser
+    xhr.upload.addEventListener("load", function () {
+      sent = true;
+      self.uploadText.textContent = "Sent. The server checks the videos…";
+    });
     var failed = function (message, again) {
       if (self.take !== take) return;
       self.phase = "done";
@@ -824,7 +837,13 @@
       failed(detail + " Nothing of this take was stored.", xhr.status >= 500 || xhr.status === 0);
     });
     var lost = function () {
-      failed("The connection was lost during the upload; nothing of this take was stored. Press “Upload again” to send it again, or “Retake”.", true);
+      if (!sent) { // a body cut off midway is discarded by the server
+        failed("The connection was lost during the upload; nothing of this take was stored. Press “Upload again” to send it again, or “Retake”.", true);
+      } else if (self.mode === "trial") {
+        failed("The connection was lost after the take was sent, while the server checked it: it may have been stored. Press “Upload again”: a take the server stored already is not stored twice.", true);
+      } else {
+        failed("The connection was lost after the board videos were sent, while the server checked them: they may have been stored. Look at the rig page's calibrations before you press “Upload again”.", true);
+      }
     };
     xhr.addEventListener("error", lost);
     xhr.addEventListener("abort", lost);
@@ -835,7 +854,9 @@
     var self = this;
     this.phase = "done";
     this.take.stored = true;
-    this.uploadText.textContent = "Stored. The analysis has started.";
+    this.uploadText.textContent = body.stored_before
+      ? "The server had stored this take already (before the connection was lost); it was not stored twice."
+      : "Stored. The analysis has started.";
     this.uploadBar.value = 100;
     if (body.take && body.take.left) this.showTake(body.take, true);
     var job = $(this.takeBox, "[data-job]");

@@ -169,8 +169,9 @@ def _create_trial(
                 "job_url": job_url,
                 "warnings": out.warnings,
                 "take": out.take,
+                "stored_before": out.stored_before,
             },
-            status_code=201,
+            status_code=200 if out.stored_before else 201,
         )
     return RedirectResponse(job_url, status_code=303)
 
@@ -185,7 +186,7 @@ async def trial_upload(request: Request, session_id: int) -> Response:
         user,
         refusal=refusal,
         file_fields=trials.TRIAL_FILE_FIELDS,
-        text_fields=trials.TRIAL_TEXT_FIELDS,
+        text_fields=trials.PAGE_TRIAL_TEXT_FIELDS,
         fail=lambda db, actor, status, message: _session_response(
             request, db, actor, session_id, status=status, error=message
         ),

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import re
 
-from sqlalchemy import select
-from test_pages import client, login, seeded  # noqa: F401 - fixtures
+from sqlalchemy import func, select
+from test_pages import _new_session, client, login, seeded, tiny_videos  # noqa: F401 - fixtures
 
-from app.models import AuditEvent, RecordingSession, Rig
+from app.models import AuditEvent, Job, RecordingSession, Rig, Trial, Video
 
 
 def test_the_capture_pages_need_a_login(client, seeded) -> None:
@@ -122,3 +122,54 @@ def test_the_rig_capture_page_records_a_board_pair(client, seeded) -> None:
     for label in ("Board", "Columns", "Rows", "Square size (mm)", "Left camera", "Right camera"):
         assert f">{label}" in html, label
     assert r.headers["permissions-policy"].startswith("camera=(self)")
+
+
+def _count(db_sessionmaker, model) -> int:
+    with db_sessionmaker() as db:
+        return int(db.scalar(select(func.count()).select_from(model)) or 0)
+
+
+def _stored(app_settings) -> list:
+    data = app_settings.data_dir
+    return sorted(p for d in ("files", "tmp") for p in (data / d).rglob("*") if p.is_file())
+
+
+def test_a_take_sent_again_is_not_stored_twice(
+    client, seeded, tiny_videos, db_sessionmaker, app_settings
+) -> None:
+    """After a lost connection the page cannot know whether its take was stored; it sends
+    it again with the same take_id, and the server answers with the trial stored first."""
+    token = login(client)
+    session_url = _new_session(client, seeded, token)
+    left, right = tiny_videos
+    files = {
+        "left_video": ("left.webm", left.read_bytes(), "video/webm"),
+        "right_video": ("right.webm", right.read_bytes(), "video/webm"),
+    }
+    headers = {"X-CSRF-Token": token, "Accept": "application/json"}
+    take = {"hand": "right", "task": "finger_tapping", "take_id": "4f1c2b9e-take-0001"}
+    first = client.post(f"{session_url}/trials", data=take, files=files, headers=headers)
+    assert first.status_code == 201, first.text
+    assert first.json()["stored_before"] is False and first.json()["take"]["left"]
+    counts = [_count(db_sessionmaker, m) for m in (Trial, Video, Job)]
+    stored = _stored(app_settings)
+    again = client.post(f"{session_url}/trials", data=take, files=files, headers=headers)
+    assert again.status_code == 200, again.text
+    body = again.json()
+    assert body["stored_before"] is True
+    assert (body["trial_id"], body["job_id"]) == (first.json()["trial_id"], first.json()["job_id"])
+    assert [_count(db_sessionmaker, m) for m in (Trial, Video, Job)] == counts
+    assert _stored(app_settings) == stored  # the second copy's files are gone too
+    # Another take (another id) is another trial; an id that is not one is refused.
+    other = client.post(
+        f"{session_url}/trials",
+        data=take | {"take_id": "4f1c2b9e-take-0002"},
+        files=files,
+        headers=headers,
+    )
+    assert other.status_code == 201 and other.json()["trial_id"] != body["trial_id"]
+    bad = client.post(
+        f"{session_url}/trials", data=take | {"take_id": "../x"}, files=files, headers=headers
+    )
+    assert bad.status_code == 422 and "take_id must be" in bad.json()["detail"], bad.text
+    assert _count(db_sessionmaker, Trial) == counts[0] + 1

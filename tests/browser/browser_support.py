@@ -9,8 +9,10 @@ from __future__ import annotations
 import os
 import shutil
 import socket
+import struct
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,3 +84,71 @@ def create_api_key(served: Served, name: str) -> str:
 def launch_chromium(playwright: object, *extra_args: str) -> object:
     """Debian's Chromium with the tests' arguments and ``extra_args``."""
     return playwright.chromium.launch(executable_path=CHROMIUM, args=[*CHROMIUM_ARGS, *extra_args])
+
+
+class AnswerCuttingProxy:
+    """A TCP proxy in front of the served app that can lose the answer to an upload.
+
+    Everything is relayed both ways, except that once :attr:`cut_after` is set, a
+    connection whose request line starts with it (``b"POST /sessions/1/trials"``) has
+    its request relayed in full to the server and its answer dropped: the client's
+    connection is closed as the answer begins. The server has then done the work; the
+    browser has sent every byte and sees only a lost connection. :attr:`cut` counts
+    the answers dropped.
+    """
+
+    def __init__(self, target_url: str) -> None:
+        host, port = target_url.removeprefix("http://").split(":")
+        self._target = (host, int(port))
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self._listener.getsockname()[1]}"
+        self.cut_after: bytes | None = None
+        self.cut = 0
+        self._stop = threading.Event()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                client, _ = self._listener.accept()
+            except OSError:
+                return
+            threading.Thread(target=self._serve, args=(client,), daemon=True).start()
+
+    def _serve(self, client: socket.socket) -> None:
+        server = socket.create_connection(self._target)
+        doomed = threading.Event()
+
+        def upstream() -> None:  # browser -> app
+            try:
+                while chunk := client.recv(65536):
+                    if self.cut_after is not None and chunk.startswith(self.cut_after):
+                        doomed.set()
+                    server.sendall(chunk)
+            except OSError:
+                pass
+            finally:
+                server.close()
+
+        threading.Thread(target=upstream, daemon=True).start()
+        try:
+            while chunk := server.recv(65536):
+                if doomed.is_set():
+                    self.cut += 1
+                    # The answer is lost: reset the browser's connection (shutdown also
+                    # wakes the relaying thread blocked on it, so the socket really closes).
+                    client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                    break
+                client.sendall(chunk)
+        except OSError:
+            pass
+        finally:
+            try:
+                client.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            client.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._listener.close()

@@ -26,13 +26,13 @@ import re
 import socket
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from browser_support import Served, create_api_key, launch_chromium
+from browser_support import AnswerCuttingProxy, Served, create_api_key, launch_chromium
 
 pytestmark = pytest.mark.browser
 
@@ -454,14 +454,16 @@ def test_a_camera_unplugged_while_recording_discards_the_take(pattern_cameras, s
     p.close()
 
 
-def test_an_interrupted_upload_stores_nothing_and_can_be_sent_again(
+def test_an_interrupted_upload_stores_nothing_twice_and_can_be_sent_again(
     pattern_cameras, served, api
 ) -> None:
     target = api.target(_rig_document(640, 480), "interrupted-rig")
     before = api.stored_files()
-    p = Page(pattern_cameras, served)
+    proxy = AnswerCuttingProxy(served.url)  # the page is served through it
+    p = Page(pattern_cameras, replace(served, url=proxy.url))
     page = p.page
-    p.expected_failures.append("net::ERR_CONNECTION_RESET")  # the interruption itself
+    # The interruptions themselves: a reset, and an answer that never came.
+    p.expected_failures += ["net::ERR_CONNECTION_RESET", "net::ERR_EMPTY_RESPONSE"]
     p.open_capture(target)
     # Another task and side than the defaults: both travel with the take.
     page.get_by_label("Task").select_option(label="Toe tapping (MDS-UPDRS 3.7)")
@@ -475,6 +477,7 @@ def test_an_interrupted_upload_stores_nothing_and_can_be_sent_again(
         sent.append(route.request.post_data_buffer or b"")
         route.abort("connectionreset")
 
+    # 1. The connection is lost before the take has left the browser.
     page.route(upload, cut)
     _record(page, 2)
     message = p.error()
@@ -483,12 +486,26 @@ def test_an_interrupted_upload_stores_nothing_and_can_be_sent_again(
     assert api.trials(target.session_id) == []
     assert api.stored_files() == before
     fields = set(re.findall(rb'name="(\w+)"', sent[0]))
-    assert fields >= {b"task", b"hand", b"left_video", b"right_video"}, sent[0][:500]
+    assert fields >= {b"task", b"hand", b"take_id", b"left_video", b"right_video"}, sent[0][:500]
     assert b'name="task"\r\n\r\ntoe_tapping\r\n' in sent[0]
-    # The take is kept in the page: "Upload again" sends it once the connection is back.
     page.unroute(upload)
+    # 2. "Upload again": the server gets all of it and stores it, but its answer is lost.
+    proxy.cut_after = f"POST /sessions/{target.session_id}/trials ".encode()
+    page.get_by_role("button", name="Upload again").click()
+    page.wait_for_function(
+        "() => /connection was lost after/.test("
+        "document.querySelector('[data-capture-error]').textContent)",
+        timeout=120_000,
+    )
+    message = p.error()
+    assert "it may have been stored" in message and "not stored twice" in message, message
+    # (Chromium may send it once more on its own after a reset: that answer is lost too.)
+    assert proxy.cut >= 1 and len(api.trials(target.session_id)) == 1
+    # 3. Sent again, the same take (its take_id) is the stored trial, not a second one.
+    proxy.cut_after = None
     page.get_by_role("button", name="Upload again").click()
     page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    assert "not stored twice" in page.locator("[data-upload-text]").inner_text()
     trials = api.trials(target.session_id)
     assert len(trials) == 1 and all(v["has_times"] for v in trials[0]["videos"]), trials
     assert (trials[0]["task"], trials[0]["hand"]) == ("toe_tapping", "left"), trials
@@ -502,6 +519,7 @@ def test_an_interrupted_upload_stores_nothing_and_can_be_sent_again(
     assert error.endswith(".") and "unexpected" not in error.lower(), error
     assert not p.problems, p.problems
     p.close()
+    proxy.close()
 
 
 def test_calibration_mode_records_a_board_pair_and_starts_the_calibration(
