@@ -540,8 +540,17 @@ def test_calibration_mode_records_a_board_pair_and_starts_the_calibration(
     page.fill("#capture-rows", "6")
     page.fill("#capture-square", "25")
     p.choose("fake_device_0", "fake_device_1")
-    _record(page, 2)
+    # Stopped with the keyboard before its 20 s: "Stop recording" has the focus once it starts.
+    _record(page, 20)
+    _wait_recording(page)
+    page.wait_for_function(
+        "() => parseFloat(document.querySelector('[data-timer]').textContent) >= 2"
+    )
+    assert page.evaluate("() => document.activeElement.hasAttribute('data-stop')")
+    page.keyboard.press("Enter")
     page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    lengths = page.locator("[data-take-rows] td:nth-child(3)").all_inner_texts()
+    assert len(lengths) == 2 and all(2 <= float(t.split()[0]) < 10 for t in lengths), lengths
     cals = api.client.get(f"/api/v1/rigs/{target.rig_id}/calibrations").json()
     board_cal = [c for c in cals if c["source"] == "board_videos"]
     assert len(board_cal) == 1 and board_cal[0]["board"]["cols"] == 9, cals
