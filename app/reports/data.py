@@ -12,9 +12,17 @@ from datetime import UTC, datetime
 from functools import cached_property
 from typing import Any
 
-from app.reports.result import TrialResult, read_result
+from app.reports.result import SyncSummary, TrialResult, read_result
 from app.reports.summary import SummaryColumn
+from core.clock import LARGE_DRIFT_PPM, LARGE_DROPS, MIN_CONFIDENCE
 from core.markers_csv import MarkerTable
+
+#: How each ``sync.time_source`` reads in the quality panel.
+TIME_SOURCES = {
+    "container": "container timestamps",
+    "fps": "frame rate (frame number / fps)",
+    "file": "timestamps file",
+}
 
 
 @dataclass(frozen=True)
@@ -151,17 +159,72 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
     if q.interpolated_fraction is not None:
         value = q.interpolated_fraction
         rows.append(QualityRow("Frames interpolated", f"{100 * value:.1f} %", value > 0.05))
-    offset = result.sync.offset_frames
-    if offset is not None:
-        text = f"{offset:+.2f} frames"
-        if result.fps:
-            text += f" ({1000 * offset / result.fps:+.1f} ms)"
-        if result.sync.method:
-            text += f", {'estimated' if result.sync.method == 'auto' else 'given'}"
-        rows.append(QualityRow("Camera synchronisation offset", text))
-    if result.fps:
-        rows.append(QualityRow("Frame rate", f"{result.fps:.1f} Hz"))
+    rows.extend(sync_rows(result.sync, result.fps))
     return rows
+
+
+def sync_rows(sync: SyncSummary, fps: float | None) -> list[QualityRow]:
+    """The quality panel's lines on the two cameras' timing (docs/sync.md): the offset in
+    frames and ms, the clocks' drift, the frame rates, where the frame times came from, the
+    frames lost and the rolling shutter compensated; a line is marked when core warns of it.
+    Figures a result does not carry (older results) are left out."""
+    rows: list[QualityRow] = []
+    if sync.offset_frames is not None:
+        text = f"{sync.offset_frames:+.2f} frames"
+        offset_s = sync.offset_s
+        if offset_s is None and fps:
+            offset_s = sync.offset_frames / fps
+        if offset_s is not None:
+            text += f" ({1000 * offset_s:+.1f} ms)"
+        guess = False
+        if sync.method:
+            text += f", {'estimated' if sync.method == 'auto' else 'given'}"
+            if sync.method == "auto" and sync.confidence is not None:
+                text += f" (confidence {sync.confidence:.2f})"
+                guess = sync.confidence < MIN_CONFIDENCE
+        rows.append(QualityRow("Camera synchronisation offset", text, guess))
+    if sync.drift_ppm is not None:
+        rows.append(
+            QualityRow(
+                "Camera clock drift (right against left)",
+                f"{sync.drift_ppm:+.0f} ppm",
+                abs(sync.drift_ppm) > LARGE_DRIFT_PPM,
+            )
+        )
+    if fps:
+        text = f"{fps:.1f} Hz"
+        if sync.fps_right and abs(sync.fps_right - fps) > 1e-3 * fps:
+            text = f"left {fps:.2f} Hz, right {sync.fps_right:.2f} Hz"
+        rows.append(QualityRow("Frame rate", text))
+    if len(sync.time_source) == 2:
+        left, right = (TIME_SOURCES.get(s, s) for s in sync.time_source)
+        text = left if left == right else f"left: {left}; right: {right}"
+        rows.append(QualityRow("Frame times from", text))
+    if sync.offset_s is not None:  # results of the time model report their lost frames
+        lost = [
+            f"{name} {len(frames)}" + (f" (after frame {_frame_list(frames)})" if frames else "")
+            for name, frames in (
+                ("left", sync.dropped_frames_left),
+                ("right", sync.dropped_frames_right),
+            )
+        ]
+        n = len(sync.dropped_frames_left) + len(sync.dropped_frames_right)
+        rows.append(QualityRow("Lost frames found", ", ".join(lost), n > LARGE_DROPS))
+    if len(sync.readout_ms) == 2:
+        left_ms, right_ms = sync.readout_ms
+        rows.append(
+            QualityRow(
+                "Rolling-shutter readout compensated",
+                f"left {left_ms:g} ms, right {right_ms:g} ms",
+            )
+        )
+    return rows
+
+
+def _frame_list(frames: tuple[int, ...], most: int = 8) -> str:
+    """``150, 310, 455`` (the first ``most``, then how many more)."""
+    shown = ", ".join(str(f) for f in frames[:most])
+    return shown + (f" and {len(frames) - most} more" if len(frames) > most else "")
 
 
 def _calibration_rows(cal: CalibrationInfo | None) -> list[QualityRow]:

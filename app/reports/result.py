@@ -53,10 +53,28 @@ def _numbers(value: object) -> dict[str, Number | None]:
 
 @dataclass(frozen=True)
 class SyncSummary:
-    """The ``sync`` object: offset of the right camera in frames, and how it was found."""
+    """The ``sync`` object: offset of the right camera in frames, and how it was found.
+
+    The time model's figures (docs/sync.md) are None, or empty, in results older
+    than the model: ``offset_s`` and ``drift_ppm`` (the right clock on the left
+    one), the frames after which frames were lost in each camera, where each
+    camera's frame times came from (``fps``, ``container`` or ``file``), the
+    rolling-shutter readout compensated (ms, left and right) and the epipolar
+    residual before and after the model (px).
+    """
 
     offset_frames: float | None = None
     method: str | None = None  # "auto" (estimated) or "given"
+    offset_s: float | None = None
+    drift_ppm: float | None = None
+    dropped_frames_left: tuple[int, ...] = ()
+    dropped_frames_right: tuple[int, ...] = ()
+    time_source: tuple[str, ...] = ()
+    readout_ms: tuple[float, ...] = ()
+    confidence: float | None = None
+    epipolar_px_before: float | None = None
+    epipolar_px_after: float | None = None
+    fps_right: float | None = None
 
 
 @dataclass(frozen=True)
@@ -137,6 +155,41 @@ def result_events(result: Mapping[str, Any] | None) -> list[PlotEvent]:
     return events
 
 
+def _float(value: object) -> float | None:
+    number = _number(value)
+    return None if number is None else float(number)
+
+
+def _sync_summary(sync: Mapping[str, Any], offset: Number | None) -> SyncSummary:
+    """The ``sync`` object read (each list only when every entry has its type)."""
+
+    def frames(key: str) -> tuple[int, ...]:
+        values = _list(sync.get(key))
+        ok = all(isinstance(v, int) and not isinstance(v, bool) for v in values)
+        return tuple(int(v) for v in values if isinstance(v, int)) if ok else ()
+
+    readout = _list(sync.get("readout_ms"))
+    sources = _list(sync.get("time_source"))
+    return SyncSummary(
+        offset_frames=None if offset is None else float(offset),
+        method=str(sync["method"]) if sync.get("method") else None,
+        offset_s=_float(sync.get("offset_s")),
+        drift_ppm=_float(sync.get("drift_ppm")),
+        dropped_frames_left=frames("dropped_frames_left"),
+        dropped_frames_right=frames("dropped_frames_right"),
+        time_source=tuple(str(v) for v in sources)
+        if all(isinstance(v, str) for v in sources)
+        else (),
+        readout_ms=tuple(float(v) for v in numbers if v is not None)
+        if None not in (numbers := [_number(v) for v in readout])
+        else (),
+        confidence=_float(sync.get("confidence")),
+        epipolar_px_before=_float(sync.get("epipolar_px_before")),
+        epipolar_px_after=_float(sync.get("epipolar_px_after")),
+        fps_right=_float(sync.get("fps_right")),
+    )
+
+
 def read_result(document: Mapping[str, Any] | None) -> TrialResult:
     """Read a ``result.json`` document (see the module docstring)."""
     doc = document or {}
@@ -155,10 +208,7 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
     cal_id = _number(_mapping(doc.get("calibration")).get("id"))
     return TrialResult(
         fps=float(fps) if fps else None,
-        sync=SyncSummary(
-            offset_frames=None if offset is None else float(offset),
-            method=str(sync["method"]) if sync.get("method") else None,
-        ),
+        sync=_sync_summary(sync, offset),
         metrics=_numbers(doc.get("metrics")),
         metrics_first_10=_numbers(doc.get("metrics_first_10")),
         taps=tuple(tp for tp in _list(taps) if isinstance(tp, Mapping)),

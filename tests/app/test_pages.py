@@ -302,6 +302,36 @@ def test_new_session_form_and_creation(client, seeded, db_sessionmaker):
     assert 'value="soon"' in r.text
 
 
+def test_trial_page_quality_panel_shows_the_camera_timing(client, seeded, db_sessionmaker):
+    """A free-running pair's sync figures and core's warning on the trial page (issue 11)."""
+    import html as html_lib
+
+    from test_sync_panel import FREE_RUNNING
+
+    t = seeded["trials"][(1, "left")]
+    warning = "7 frames were lost during the recording (left after frames [3], right after ...)"
+    with db_sessionmaker() as db, db.begin():
+        result = db.scalars(select(Result).where(Result.trial_id == t)).one()
+        doc = dict(result.document)
+        doc["sync"] = FREE_RUNNING
+        doc["quality"] = {**doc["quality"], "warnings": [warning]}
+        result.document = doc
+    login(client)
+    page = html_lib.unescape(client.get(f"/trials/{t}").text)
+    for text in (
+        "Camera clock drift (right against left)",
+        "+302 ppm",
+        "Frame times from",
+        "left: container timestamps; right: frame rate (frame number / fps)",
+        "Lost frames found",
+        "right 3 (after frame 150, 310, 455)",
+        "Rolling-shutter readout compensated",
+        warning,
+    ):
+        assert text in page, text
+    assert "+14.20 frames (" in page and " ms), estimated (confidence 0.83)" in page
+
+
 def test_session_page_offers_the_left_right_comparison(client, seeded, db_sessionmaker):
     login(client)
     with db_sessionmaker() as db:
