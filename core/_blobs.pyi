@@ -31,3 +31,23 @@ def select(
     point_region: NDArray[np.int32],
     r2: float,
 ) -> NDArray[np.intp]: ...
+
+FIT_COLUMNS: tuple[str, ...]
+
+def fit_discs(
+    image: NDArray[np.uint8],
+    seeds: NDArray[np.float64],
+    others: NDArray[np.float64],
+    max_iter: int,
+    dark_level: float,
+) -> NDArray[np.float64]: ...
+def refine_rows(
+    image: NDArray[np.uint8],
+    rows: NDArray[np.float64],
+    others: NDArray[np.float64],
+    max_iter: int,
+    dark_level: float,
+    pad_px: float,
+    min_roundness: float,
+    noise_sigma: float,
+) -> None: ...

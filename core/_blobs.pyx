@@ -13,18 +13,19 @@ against ground truth and, field by field, against the OpenCV formulation kept
 in ``tests/core/markers_reference.py``.
 """
 
-from libc.math cimport NAN, ceil, floor, sqrt
+from libc.math cimport INFINITY, NAN, ceil, exp, fabs, floor, sqrt
 from libc.stdlib cimport free, malloc, qsort, realloc
 from libc.string cimport memcpy, memset
 
 import numpy as np
 
 # one output row per blob (float64); the Python side reads these columns
-DEF NCOL = 20
+DEF NCOL = 21
 COLUMNS = (
     "x", "y", "diameter", "peak", "roundness", "background", "area", "fill",
     "cxx", "cxy", "cyy", "quality", "flatness",
     "rect_x0", "rect_y0", "rect_x1", "rect_y1", "moment_x", "moment_y", "region",
+    "fit_residual",
 )
 
 DEF MARGIN_PX = 3        # support of the centroid beyond the half-maximum core
@@ -590,6 +591,7 @@ cdef int measure(Frame* f, int sx, int sy, int* has_core) except -1 nogil:
     r[17] = cxm + bx - rx0
     r[18] = cym + by - ry0
     r[19] = f.region
+    r[20] = NAN  # set by core.markers when a disc model is fitted
     if f.want_support:
         buf_reserve(&f.supports, <size_t>rw * rh)
         for y in range(rh):
@@ -954,3 +956,329 @@ def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] p
             kp[n_kept] = i
             n_kept += 1
     return keep[:n_kept]
+
+
+# ------------------------------------------------------------------ disc over a planar background
+
+DEF NPAR = 8   # cx, cy, R, s, A, B0, Bx, By
+DEF FIT_COLS = 12
+FIT_COLUMNS = (
+    "x", "y", "radius", "edge_sigma", "level", "background", "background_dx", "background_dy",
+    "residual_rms", "interior_fill", "pixels", "iterations",
+)
+cdef double SQRT1_2 = 0.7071067811865476
+cdef double INV_SQRT_2PI = 0.3989422804014327
+
+
+cdef double disc_pass(const double* xs, const double* ys, const double* zs, int n,
+                      const double* p, double xc0, double yc0,
+                      double* jtj, double* jtr) noexcept nogil:
+    """Sum of squared residuals of the model at ``p``; with ``jtj`` (NPAR x NPAR, upper
+    triangle) and ``jtr`` (NPAR) accumulated when they are not NULL."""
+    cdef int i, a, b
+    cdef double dx, dy, r, u, Phi, phi, pl, m, res, g, cost = 0.0, ex, ey
+    cdef double J[NPAR]
+    if jtj != NULL:
+        memset(jtj, 0, NPAR * NPAR * sizeof(double))
+        memset(jtr, 0, NPAR * sizeof(double))
+    cdef double inv_s = 1.0 / p[3], e2, t, au
+    cdef int first
+    for i in range(n):
+        dx = xs[i] - p[0]
+        dy = ys[i] - p[1]
+        r = sqrt(dx * dx + dy * dy) + 1e-9
+        u = (p[2] - r) * inv_s
+        au = fabs(u)
+        ex = xs[i] - xc0
+        ey = ys[i] - yc0
+        pl = p[5] + p[6] * ex + p[7] * ey
+        if au < 6.0:
+            # Phi(u) = erfc(-u / sqrt 2) / 2 (Abramowitz & Stegun 7.1.26, error < 1.5e-7),
+            # sharing exp(-u^2 / 2) with the density
+            e2 = exp(-0.5 * u * u)
+            t = 1.0 / (1.0 + 0.3275911 * SQRT1_2 * au)
+            Phi = 0.5 * t * (0.254829592 + t * (-0.284496736 + t * (1.421413741
+                  + t * (-1.453152027 + t * 1.061405429)))) * e2
+            if u > 0:
+                Phi = 1.0 - Phi
+            phi = e2 * INV_SQRT_2PI
+            first = 0
+        else:
+            Phi = 1.0 if u > 0 else 0.0
+            phi = 0.0
+            first = 4  # the centre, radius and edge have no influence here
+        m = pl + (p[4] - pl) * Phi
+        res = zs[i] - m
+        cost += res * res
+        if jtj == NULL:
+            continue
+        g = (p[4] - pl) * phi * inv_s
+        J[0] = g * dx / r
+        J[1] = g * dy / r
+        J[2] = g
+        J[3] = -g * u
+        J[4] = Phi
+        J[5] = 1.0 - Phi
+        J[6] = ex * (1.0 - Phi)
+        J[7] = ey * (1.0 - Phi)
+        for a in range(first, NPAR):
+            jtr[a] += J[a] * res
+            for b in range(a, NPAR):
+                jtj[a * NPAR + b] += J[a] * J[b]
+    return cost
+
+
+cdef int solve_damped(const double* jtj, const double* jtr, double lam, double* delta) noexcept nogil:
+    """``(JtJ + lam diag(JtJ)) delta = Jtr`` by Cholesky; 0 when it is not positive definite."""
+    cdef double L[NPAR * NPAR]
+    cdef double y[NPAR]
+    cdef int a, b, k
+    cdef double s
+    for a in range(NPAR):
+        for b in range(a + 1):
+            s = jtj[b * NPAR + a]
+            if a == b:
+                s += lam * jtj[a * NPAR + a] + 1e-9
+            for k in range(b):
+                s -= L[a * NPAR + k] * L[b * NPAR + k]
+            if a == b:
+                if s <= 0:
+                    return 0
+                L[a * NPAR + a] = sqrt(s)
+            else:
+                L[a * NPAR + b] = s / L[b * NPAR + b]
+    for a in range(NPAR):
+        s = jtr[a]
+        for k in range(a):
+            s -= L[a * NPAR + k] * y[k]
+        y[a] = s / L[a * NPAR + a]
+    for a in range(NPAR - 1, -1, -1):
+        s = y[a]
+        for k in range(a + 1, NPAR):
+            s -= L[k * NPAR + a] * delta[k]
+        delta[a] = s / L[a * NPAR + a]
+    return 1
+
+
+cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, double r0,
+                 double half_size, double bg0, double level0, const double* others, int K,
+                 int max_iter, double dark_level, double* xs, double* ys, double* zs,
+                 double* o) noexcept nogil:
+    """One disc fit (see :func:`fit_discs`); writes ``FIT_COLS`` values to ``o``, which
+    the caller filled with NaN.  ``xs``, ``ys``, ``zs`` hold the window's pixels."""
+    cdef int k, x, y, x0, y0, x1, y1, n, it, hs, tries, n_in, n_bright, a, ok
+    cdef double d_own, dk, cost, cost_new, lam, dx, dy, r, pl
+    cdef double p[NPAR]
+    cdef double q[NPAR]
+    cdef double delta[NPAR]
+    cdef double jtj[NPAR * NPAR]
+    cdef double jtr[NPAR]
+    cdef double jtj_new[NPAR * NPAR]
+    cdef double jtr_new[NPAR]
+    cdef int hist[256]
+    if not (cx == cx and cy == cy):
+        return 0
+    hs = <int>ceil(half_size)
+    x0 = max(0, <int>floor(cx + 0.5) - hs)
+    y0 = max(0, <int>floor(cy + 0.5) - hs)
+    x1 = min(W, <int>floor(cx + 0.5) + hs + 1)
+    y1 = min(H, <int>floor(cy + 0.5) + hs + 1)
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return 0
+    if dark_level >= 0:
+        memset(hist, 0, sizeof(hist))
+        for x in range(x0, x1):
+            hist[img[<size_t>y0 * W + x]] += 1
+            hist[img[<size_t>(y1 - 1) * W + x]] += 1
+        for y in range(y0 + 1, y1 - 1):
+            hist[img[<size_t>y * W + x0]] += 1
+            hist[img[<size_t>y * W + x1 - 1]] += 1
+        n = 2 * (x1 - x0) + 2 * (y1 - y0 - 2)
+        if kth(hist, (9 * n) // 10) <= dark_level:
+            o[11] = 0
+            return 0
+    n = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            d_own = (x - cx) * (x - cx) + (y - cy) * (y - cy)
+            ok = 1
+            for k in range(K):
+                dk = (x - others[2 * k]) * (x - others[2 * k]) + (y - others[2 * k + 1]) * (y - others[2 * k + 1])
+                if dk < d_own and ((others[2 * k] - cx) * (others[2 * k] - cx)
+                                   + (others[2 * k + 1] - cy) * (others[2 * k + 1] - cy)) > 0.25:
+                    ok = 0
+                    break
+            if ok:
+                xs[n] = x
+                ys[n] = y
+                zs[n] = img[<size_t>y * W + x]
+                n += 1
+    if n < 3 * NPAR:
+        return 0
+    p[0] = cx
+    p[1] = cy
+    p[2] = max(r0, 1.0)
+    p[3] = 0.7
+    p[4] = level0
+    p[5] = bg0
+    p[6] = 0.0
+    p[7] = 0.0
+    lam = 1e-3
+    cost = disc_pass(xs, ys, zs, n, p, cx, cy, jtj, jtr)
+    it = 0
+    while it < max_iter:
+        it += 1
+        ok = 0
+        for tries in range(6):
+            if not solve_damped(jtj, jtr, lam, delta):
+                lam *= 10.0
+                continue
+            for a in range(NPAR):
+                q[a] = p[a] + delta[a]
+            q[3] = min(max(q[3], 0.25), 4.0)
+            q[2] = max(q[2], 0.5)
+            cost_new = disc_pass(xs, ys, zs, n, q, cx, cy, jtj_new, jtr_new)
+            if cost_new < cost:
+                memcpy(p, q, NPAR * sizeof(double))
+                memcpy(jtj, jtj_new, NPAR * NPAR * sizeof(double))
+                memcpy(jtr, jtr_new, NPAR * sizeof(double))
+                cost = cost_new
+                lam = max(lam * 0.1, 1e-7)
+                ok = 1
+                break
+            lam *= 10.0
+        if not ok or (fabs(delta[0]) < 1e-3 and fabs(delta[1]) < 1e-3):
+            break
+    n_in = 0
+    n_bright = 0
+    for k in range(n):
+        dx = xs[k] - p[0]
+        dy = ys[k] - p[1]
+        r = sqrt(dx * dx + dy * dy)
+        if r < p[2] - 1.5:
+            n_in += 1
+            pl = p[5] + p[6] * (xs[k] - cx) + p[7] * (ys[k] - cy)
+            n_bright += zs[k] > pl + 0.5 * (p[4] - pl)
+    for a in range(NPAR):
+        o[a] = p[a]
+    o[8] = sqrt(cost / n)
+    o[9] = <double>n_bright / n_in if n_in > 0 else NAN
+    o[10] = n
+    o[11] = it
+    return 1
+
+
+def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
+              const double[:, ::1] others, int max_iter, double dark_level):
+    """Fit an opaque blurred disc over a planar background to each seed's window.
+
+    Model of a pixel at ``(x, y)``: ``P + (A - P) Phi((R - r) / s)`` with ``r``
+    the distance to the centre ``(cx, cy)``, ``Phi`` the normal CDF and ``P =
+    B0 + Bx (x - x0) + By (y - y0)`` the background plane (``(x0, y0)`` the
+    seed): the marker *replaces* what is behind it, so a gradient or an edge
+    of lit skin under it does not pull the centre as it pulls a centroid.
+    Levenberg-Marquardt from the seed, at most ``max_iter`` steps.
+
+    Parameters
+    ----------
+    image : (H, W) uint8
+    seeds : (N, 6) float64
+        ``x, y, radius, half_size, background, level``: starting centre and
+        radius (px), half-size of the square window (px), and starting
+        background and marker levels (gray levels).
+    others : (K, 2) float64
+        Centres of other blobs: window pixels nearer to one of them than to
+        the seed are left out (a seed's own centre, within 0.5 px, is ignored).
+    max_iter : int
+    dark_level : float
+        A window whose border is at most this bright at its 90th percentile
+        (gray levels) lies on the dark background, where the centroid is
+        already exact: it is not fitted (NaN centre, 0 steps).  -1 fits every
+        window.
+
+    Returns
+    -------
+    (N, len(FIT_COLUMNS)) float64
+        ``FIT_COLUMNS``: the fitted parameters, the residual RMS (gray levels),
+        ``interior_fill`` (share of the pixels more than 1.5 px inside the
+        fitted rim that are brighter than half way between background and
+        marker), the number of pixels and of steps; NaN centre when the window
+        is too small or dark, or has too few pixels.
+    """
+    cdef int N = seeds.shape[0], K = others.shape[0], H = image.shape[0], W = image.shape[1]
+    cdef int i, hs, cap = 1
+    if seeds.shape[0] > 0 and seeds.shape[1] != 6:
+        raise ValueError(f"seeds must have shape (N, 6), got {tuple(seeds.shape)}")
+    if others.shape[0] > 0 and others.shape[1] != 2:
+        raise ValueError(f"others must have shape (K, 2), got {tuple(others.shape)}")
+    out = np.full((N, FIT_COLS), np.nan)
+    cdef double[:, ::1] o = out
+    for i in range(N):
+        hs = <int>ceil(seeds[i, 3]) if seeds[i, 3] == seeds[i, 3] else 0
+        cap = max(cap, (2 * hs + 3) * (2 * hs + 3))
+    cdef double* buf = <double*>malloc(3 * cap * sizeof(double))
+    if buf == NULL:
+        raise MemoryError()
+    cdef const double* oth = &others[0, 0] if K > 0 else NULL
+    try:
+        with nogil:
+            for i in range(N):
+                fit_one(&image[0, 0], W, H, seeds[i, 0], seeds[i, 1], seeds[i, 2], seeds[i, 3],
+                        seeds[i, 4], seeds[i, 5], oth, K, max_iter, dark_level,
+                        buf, buf + cap, buf + 2 * cap, &o[i, 0])
+    finally:
+        free(buf)
+    return out
+
+
+def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
+                const double[:, ::1] others, int max_iter, double dark_level, double pad_px,
+                double min_roundness, double noise_sigma):
+    """Move the centres of detection ``rows`` (``COLUMNS``, in place) to the fitted
+    opaque disc (:func:`fit_discs`) and set their ``fit_residual`` (the residual RMS
+    beyond the image noise ``noise_sigma``, over the fitted contrast), for round blobs (``roundness >= min_roundness``) off the
+    dark background; the window reaches ``pad_px`` beyond the blob's half length.  A
+    fit that moved the centre by more than a quarter diameter + 1 px, found no
+    contrast or a radius off by half is not used."""
+    cdef int N = rows.shape[0], K = others.shape[0], H = image.shape[0], W = image.shape[1]
+    cdef int i, hs, cap = 1
+    cdef double o[FIT_COLS]
+    cdef double diam, rnd, half, moved, contrast
+    if N > 0 and rows.shape[1] != NCOL:
+        raise ValueError(f"rows must have {NCOL} columns, got {rows.shape[1]}")
+    if others.shape[0] > 0 and others.shape[1] != 2:
+        raise ValueError(f"others must have shape (K, 2), got {tuple(others.shape)}")
+    for i in range(N):
+        half = 0.5 * rows[i, 2] / max(rows[i, 4], 0.1) + pad_px
+        hs = <int>ceil(half) if half == half else 0
+        cap = max(cap, (2 * hs + 3) * (2 * hs + 3))
+    cdef double* buf = <double*>malloc(3 * cap * sizeof(double))
+    if buf == NULL:
+        raise MemoryError()
+    cdef const double* oth = &others[0, 0] if K > 0 else NULL
+    try:
+        with nogil:
+            for i in range(N):
+                diam = rows[i, 2]
+                rnd = rows[i, 4]
+                if not rnd >= min_roundness:
+                    rows[i, 20] = INFINITY  # not a disc: a streak, or cut or merged discs
+                    continue
+                for hs in range(FIT_COLS):
+                    o[hs] = NAN
+                if not fit_one(&image[0, 0], W, H, rows[i, 0], rows[i, 1], 0.5 * diam,
+                               0.5 * diam / max(rnd, 0.1) + pad_px, rows[i, 5],
+                               rows[i, 5] + rows[i, 3], oth, K, max_iter, dark_level,
+                               buf, buf + cap, buf + 2 * cap, o):
+                    continue
+                moved = sqrt((o[0] - rows[i, 0]) * (o[0] - rows[i, 0])
+                             + (o[1] - rows[i, 1]) * (o[1] - rows[i, 1]))
+                contrast = o[4] - o[5]
+                if not (moved <= 0.25 * diam + 1.0 and contrast > 0
+                        and fabs(o[2] / (0.5 * diam) - 1.0) < 0.5):
+                    continue
+                rows[i, 0] = o[0]
+                rows[i, 1] = o[1]
+                rows[i, 20] = sqrt(max(o[8] * o[8] - noise_sigma * noise_sigma, 0.0)) / contrast
+    finally:
+        free(buf)

@@ -64,7 +64,7 @@ except ImportError as exc:  # pragma: no cover - a source tree that was never in
 
 FloatArray = NDArray[np.float64]
 
-CENTRE_METHODS = ("centroid", "radial", "disc_fit")
+CENTRE_METHODS = ("centroid", "radial", "disc_fit", "opaque_disc")
 
 _POOL = 4  # max-pooling factor of the full-frame candidate mask
 _MARGIN_PX = 3  # support of the centre beyond the half-maximum core (MARGIN_PX in _blobs.pyx)
@@ -94,10 +94,12 @@ class MarkerParams:
     search_radius_px : float
         Default radius (px) of the windowed search around predicted positions.
     centre_method : str
-        Sub-pixel centre estimator: ``"centroid"`` (default: as accurate as
-        the others on clean, noisy and compressed images, the most robust next
-        to distractors, and the cheapest; see ``docs/markers.md``),
-        ``"radial"`` or ``"disc_fit"``.
+        Sub-pixel centre estimator: ``"opaque_disc"`` (default: the
+        background-subtracted centroid on the dark room, where it is exact
+        and the cheapest; a blurred opaque disc over a planar background,
+        fitted, where the marker sits on lit skin or near a finger's edge,
+        which pull a centroid by up to a pixel; see ``docs/markers.md``),
+        ``"centroid"`` everywhere, ``"radial"`` or ``"disc_fit"``.
     reject_border : bool
         Reject blobs whose half-maximum region touches the image border (their
         centre would be biased towards the inside).
@@ -109,7 +111,7 @@ class MarkerParams:
     max_elongation: float = 4.0
     min_fill: float = 0.6
     search_radius_px: float = 25.0
-    centre_method: str = "centroid"
+    centre_method: str = "opaque_disc"
     reject_border: bool = True
 
     def __post_init__(self) -> None:
@@ -209,6 +211,13 @@ class MarkerDetections:
         Score in [0, 1]: ``roundness * min(fill, 1) * min(1, flatness / 0.6)
         * min(1, peak / (3 * min_contrast))``.  Use it to rank candidates, not
         to reject them.
+    fit_residual : ndarray, shape (N,)
+        ``"opaque_disc"`` only: RMS residual of the disc fit beyond the image
+        noise, over the marker's contrast (below 0.04 for a whole marker on
+        skin; more when part of it is hidden or two markers merge, see
+        ``docs/markers.md``); ``inf`` for a blob too elongated to be one disc
+        (a motion streak, or a cut or merged marker); NaN where no disc was
+        fitted (on the dark background, and with the other estimators).
     """
 
     xy_px: FloatArray
@@ -221,6 +230,7 @@ class MarkerDetections:
     shape_cov_px2: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     quality: FloatArray = field(default_factory=lambda: np.zeros(0))
     flatness: FloatArray = field(default_factory=lambda: np.zeros(0))
+    fit_residual: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
         return int(self.xy_px.shape[0])
@@ -232,7 +242,7 @@ class MarkerDetections:
         return cls(xy_px=np.zeros((0, 2)), diameter_px=z, peak=z.copy(), roundness=z.copy(),
                    background=z.copy(), area_px=z.copy(), fill=z.copy(),
                    shape_cov_px2=np.zeros((0, 2, 2)), quality=z.copy(),
-                   flatness=z.copy())  # fmt: skip
+                   flatness=z.copy(), fit_residual=z.copy())  # fmt: skip
 
 
 # --------------------------------------------------------------------------- public
@@ -343,7 +353,7 @@ def _detected_rows(
         thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
     if len(regions) == 0:
         return np.zeros((0, len(_blobs.COLUMNS)))
-    want_support = params.centre_method != "centroid" or background is not None
+    want_support = params.centre_method in ("radial", "disc_fit") or background is not None
     rows, supports = _blobs.search(
         image,
         regions,
@@ -361,7 +371,46 @@ def _detected_rows(
     )
     if supports is not None:
         _recentre(rows, supports, image, params, background)
-    return rows[_blobs.select(rows, pts, point_region, radius_px**2)]
+    kept = rows[_blobs.select(rows, pts, point_region, radius_px**2)]
+    if params.centre_method == "opaque_disc" and len(kept):
+        _fit_opaque_discs(image, kept, rows[:, _X : _Y + 1], thr, sigma)
+    return kept
+
+
+#: Opaque-disc fit: window half-size beyond the blob's half length (px), LM steps.
+_FIT_PAD_PX = 3.0
+_FIT_MAX_STEPS = 10
+#: Blobs less round than this (motion streaks, merged or cut discs) are not discs:
+#: they keep their centroid.
+_FIT_MIN_ROUNDNESS = 0.75
+#: A fitted disc whose RMS residual exceeds this share of its contrast is not one whole
+#: marker (whole markers on skin: 0.027-0.043; a tenth hidden: 0.04-0.06; a quarter:
+#: 0.09-0.13; bench/bench_hands.py): the pipeline sets it aside.
+MAX_FIT_RESIDUAL = 0.05
+
+
+def _fit_opaque_discs(
+    image: NDArray[np.uint8],
+    rows: FloatArray,
+    all_xy: FloatArray,
+    dark_level: float,
+    noise_sigma: float,
+) -> None:
+    """Centres (in place) from an opaque blurred disc over a planar background
+    (``_blobs.refine_rows``) for the round blobs whose surroundings are brighter than
+    ``dark_level`` (the detection threshold: skin, not the dark room, where the
+    centroid is exact and cheaper); the fit residual beyond the image noise, over the
+    marker's contrast, goes to the ``_FIT_RES`` column (NaN where no fit was made)."""
+    _blobs.refine_rows(
+        image,
+        rows,
+        np.ascontiguousarray(all_xy),
+        _FIT_MAX_STEPS,
+        float(dark_level),
+        _FIT_PAD_PX,
+        _FIT_MIN_ROUNDNESS,
+        float(noise_sigma),
+    )
 
 
 def estimate_background(
@@ -441,7 +490,7 @@ def _pooled_regions(pooled: NDArray[np.uint8], h: int, w: int) -> list[tuple[int
 # Seeds and blob measurement are compiled (core/_blobs.pyx, columns in _blobs.COLUMNS).
 
 _X, _Y, _DIAM, _PEAK, _ROUND, _BG, _AREA, _FILL, _CXX, _CXY, _CYY, _QUAL, _FLAT = range(13)
-_RX0, _RY0, _RX1, _RY1, _MX, _MY, _REGION = range(13, 20)
+_RX0, _RY0, _RX1, _RY1, _MX, _MY, _REGION, _FIT_RES = range(13, 21)
 
 
 def _ring_radius(params: MarkerParams) -> int:
@@ -501,6 +550,7 @@ def _to_detections(rows: FloatArray) -> MarkerDetections:
         shape_cov_px2=cov,
         quality=cols[_QUAL],
         flatness=cols[_FLAT],
+        fit_residual=np.ascontiguousarray(rows[:, _FIT_RES]),
     )
 
 
@@ -513,9 +563,9 @@ def _centre(
     """Sub-pixel centre in the coordinates of ``sub`` (background already subtracted)."""
     if method == "radial":
         return _radial_centre(sub, support)
-    if method == "centroid":
-        return _centroid(sub, support, peak)
-    return _disc_fit(sub, support, peak, x0, y0)
+    if method == "disc_fit":
+        return _disc_fit(sub, support, peak, x0, y0)
+    return _centroid(sub, support, peak)  # "opaque_disc" fits its disc after the selection
 
 
 def _centroid(sub: FloatArray, support: NDArray[np.bool_], peak: float) -> tuple[float, float]:
@@ -643,10 +693,15 @@ EXPECTED_COUNT_FULL_SEARCHES = 5
 UNPRODUCTIVE_FALLBACKS_BEFORE_BACKOFF = 2
 #: At most this many detections per frame and camera go to matching (brightest/roundest).
 MAX_DETECTIONS_PER_FRAME = 16
+#: A blob that does not fit a whole disc is set aside only when it moved less than this
+#: many diameters since the previous frame (faster: a motion streak, kept).
+SET_ASIDE_MAX_STEP = 0.2
 
 
 # A detector takes (gray image, predicted xy (K, 2) or None, search radius px or None)
-# and returns (xy_px (N, 2), diameter_px (N,), quality (N,)).
+# and returns (xy_px (N, 2), diameter_px (N,), quality (N,)); a negative quality marks a
+# blob that is not one whole marker (part of it hidden, or two markers merged): it is
+# set aside (counted, never measured).
 Detector = Callable[
     [NDArray[np.uint8], FloatArray | None, float | None], tuple[FloatArray, FloatArray, FloatArray]
 ]
@@ -662,7 +717,9 @@ def _default_detector(params: Any | None) -> Detector:
         # and its MarkerDetections are skipped (~40 us per frame)
         r = float(p.search_radius_px if radius_px is None else radius_px)
         rows = _detected_rows(image, p, search_xy_px, r, None)
-        return rows[:, _X : _Y + 1].copy(), rows[:, _DIAM].copy(), rows[:, _QUAL].copy()
+        quality = rows[:, _QUAL].copy()
+        quality[rows[:, _FIT_RES] > MAX_FIT_RESIDUAL] = -1.0  # not a whole disc: set aside
+        return rows[:, _X : _Y + 1].copy(), rows[:, _DIAM].copy(), quality
 
     return detect
 
@@ -694,6 +751,12 @@ class _CameraDetections:
         self._prev2: FloatArray | None = None
         self._diam = 10.0
         self._unproductive = 0  # fallback full searches in a row that found nothing more
+        self.n_set_aside = 0  # frames with a blob set aside (partly hidden or merged)
+
+    @property
+    def diameter_px(self) -> float:
+        """Running typical diameter of the detections (px)."""
+        return self._diam
 
     def _expected(self) -> int:
         # Markers reliably seen: the median count of the last few full searches
@@ -735,6 +798,25 @@ class _CameraDetections:
             step_max = max(step_max, math.sqrt(bx * bx + by * by))
         return np.array(pred), 1.5 * self._diam + 12.0 + 0.5 * step_max
 
+    def _set_aside(
+        self, xy: FloatArray, diam: FloatArray, q: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Drop the blobs the detector marked as not whole markers (negative quality),
+        unless they moved by more than ``SET_ASIDE_MAX_STEP`` diameters since the last
+        frame: a motion streak is not a disc either, and its fit residual says nothing
+        about a hidden part.  Partly hidden and merged markers are slow: the fingertips
+        touch and turn at closures.  Returns the kept ``xy, diam, quality`` and the
+        positions set aside."""
+        xy, diam, q = np.asarray(xy), np.asarray(diam), np.asarray(q)
+        prev = self._prev if self._prev is not None else np.zeros((0, 2))
+        drop = q < 0
+        for i in np.flatnonzero(drop).tolist():
+            step = float(np.min(np.hypot(*(prev - xy[i]).T))) if len(prev) else math.inf
+            drop[i] = step <= SET_ASIDE_MAX_STEP * float(diam[i])
+        if np.any(drop):
+            self.n_set_aside += 1
+        return xy[~drop], diam[~drop], np.abs(q[~drop]), xy[drop]
+
     def process(self, image: NDArray[np.uint8]) -> None:
         frame = len(self.frames)
         pred, radius = self._predict()
@@ -759,6 +841,9 @@ class _CameraDetections:
                 self._unproductive += 1
             else:
                 self._unproductive = 0
+        aside = np.zeros((0, 2))
+        if len(q) and min(q) < 0:
+            xy, diam, q, aside = self._set_aside(xy, diam, q)
         if len(xy) > MAX_DETECTIONS_PER_FRAME:
             keep = np.argsort(-q, kind="stable")[:MAX_DETECTIONS_PER_FRAME]
             xy, diam = xy[keep], diam[keep]
@@ -766,4 +851,6 @@ class _CameraDetections:
         if len(diam):
             self._diam = 0.9 * self._diam + 0.1 * _median(diam)
         self.frames.append(xy)
-        self._prev2, self._prev = self._prev, xy
+        # set-aside blobs stay in the search windows and in the motion check
+        seen = np.concatenate((xy, aside)) if len(aside) else xy
+        self._prev2, self._prev = self._prev, seen

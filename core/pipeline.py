@@ -244,7 +244,7 @@ def _detect_videos(
     *,
     marker_params: MarkerParams | None = None,
     timestamps: tuple[list[float], list[float]] | None = None,
-) -> tuple[list[FloatArray], list[FloatArray], dict[str, int]]:
+) -> tuple[list[FloatArray], list[FloatArray], dict[str, float]]:
     """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays.
 
     ``detect`` None means ``core.markers.detect_markers`` with ``marker_params``.
@@ -286,7 +286,15 @@ def _detect_videos(
         report(progress, "detection", min(total, sum(len(s.frames) for s in states)), total)
     if errors:
         raise errors[0]
-    info = {"full_searches_left": states[0].n_full, "full_searches_right": states[1].n_full}
+    info = {
+        "full_searches_left": states[0].n_full,
+        "full_searches_right": states[1].n_full,
+        # frames with a marker image set aside: partly hidden or merged (core.markers)
+        "set_aside_frames_left": states[0].n_set_aside,
+        "set_aside_frames_right": states[1].n_set_aside,
+        "marker_diameter_px_left": states[0].diameter_px,
+        "marker_diameter_px_right": states[1].diameter_px,
+    }
     return states[0].frames, states[1].frames, info
 
 
@@ -510,7 +518,18 @@ def analyze_recording(
         )
 
     report(progress, "tracking", 0, 1)
-    tracks = track_markers(rig, obs, fps=fps, max_gap_s=max_gap_s, swap_labels=swap_labels)
+    diameters = (
+        float(det_info.pop("marker_diameter_px_left")),
+        float(det_info.pop("marker_diameter_px_right")),
+    )
+    tracks = track_markers(
+        rig,
+        obs,
+        fps=fps,
+        max_gap_s=max_gap_s,
+        swap_labels=swap_labels,
+        marker_diameter_px=diameters,
+    )
     report(progress, "tracking", 1, 1)
     warnings.extend(tracks.warnings)
     if not np.any(tracks.status == MEASURED):
@@ -540,6 +559,8 @@ def analyze_recording(
         "rejected_candidates": n_rejected,
         "frames_left": n_left,
         "frames_right": n_right,
+        # left frames where the two markers' images touched in a camera (core.tracks)
+        "overlap_frames": tracks.overlap_frames,
         **det_info,
     }
     sync_doc = timed.sync

@@ -297,6 +297,8 @@ def build_tracklets(
     gate_mm: float,
     max_coast_frames: int = 2,
     max_single_view_frames: int = 12,
+    merge_px: tuple[float, float] | None = None,
+    overlap_frames: list[int] | None = None,
 ) -> list[Tracklet]:
     """Link stereo candidates (and single-view detections) frame to frame.
 
@@ -312,6 +314,16 @@ def build_tracklets(
         A track ends after this many frames without any observation.
     max_single_view_frames : int
         A track ends after this many frames without a stereo observation.
+    merge_px : (float, float), optional
+        Per camera (left, right): where the predictions of two established
+        tracks (each seen in stereo within the last frames) project closer
+        than this (px; about a marker diameter), their two images touch or
+        overlap in that camera and neither can be measured there: the
+        detections within this distance of either projection are not used,
+        and the tracks continue on the other camera alone (their frames are
+        then filled as ``interpolated``, never ``measured``).
+    overlap_frames : list of int, optional
+        Receives the frames in which that happened (in one camera or both).
 
     Returns
     -------
@@ -341,6 +353,10 @@ def build_tracklets(
                 gap = frame - tr.last_frame
                 preds.append((tr.x + tr.vx * gap, tr.y + tr.vy * gap, tr.z + tr.vz * gap))
                 gates.append(gate_mm * (1.0 + 0.5 * (gap - 1)))
+            if merge_px is not None and len(active) > 1:
+                if _block_merged_images(active, preds, frame, obs, cams, merge_px, used):
+                    if overlap_frames is not None:
+                        overlap_frames.append(frame)
             assigned = [False] * len(active)
             if n_c:
                 for r, c in _assign(preds, gates, cands):
@@ -383,6 +399,40 @@ def build_tracklets(
     tracklets = [tr.freeze() for tr in done]
     tracklets.sort(key=lambda t: int(t.frames[0]))
     return tracklets
+
+
+def _block_merged_images(
+    active: Sequence[_Track],
+    preds: Sequence[tuple[float, float, float]],
+    frame: int,
+    obs: FrameObservations,
+    cams: Sequence[Camera],
+    merge_px: tuple[float, float],
+    used: tuple[list[bool], list[bool]],
+) -> bool:
+    """Mark used (unavailable) the detections of a camera in which two established
+    tracks' predictions project closer than ``merge_px`` (their images touch);
+    whether any was."""
+    recent = [r for r, tr in enumerate(active) if frame - tr.last_stereo <= 3]
+    blocked = False
+    if len(recent) < 2:
+        return blocked
+    pts = np.array([preds[r] for r in recent])
+    for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
+        limit = float(merge_px[ci])
+        if dets.shape[0] == 0 or not limit > 0:
+            continue
+        proj = cam.project(pts)
+        d = np.linalg.norm(proj[:, None, :] - proj[None, :, :], axis=2)
+        np.fill_diagonal(d, np.inf)
+        close = np.flatnonzero(np.any(d < limit, axis=1))
+        if len(close) == 0:
+            continue
+        near = np.linalg.norm(dets[:, None, :] - proj[None, close, :], axis=2) < limit
+        for j in np.flatnonzero(np.any(near, axis=1)).tolist():
+            used[ci][j] = True
+            blocked = True
+    return blocked
 
 
 def _continue_single_view(
@@ -809,6 +859,9 @@ class Tracks:
         NaN unless measured.
     marker_names : tuple of str
     warnings : list of str
+    overlap_frames : int
+        Frames in which the two markers' images touched in a camera, so that
+        camera did not measure them (``marker_diameter_px`` of :func:`track_markers`).
     """
 
     positions_mm: FloatArray
@@ -816,6 +869,7 @@ class Tracks:
     reprojection_px: FloatArray
     marker_names: tuple[str, ...]
     warnings: list[str]
+    overlap_frames: int = 0
 
 
 def track_markers(
@@ -827,6 +881,7 @@ def track_markers(
     swap_labels: bool = False,
     gate_mm: float | None = None,
     max_reprojection_px: float | None = None,
+    marker_diameter_px: tuple[float, float] | None = None,
 ) -> Tracks:
     """Thumb and index trajectories from per-frame stereo candidates.
 
@@ -848,6 +903,12 @@ def track_markers(
     max_reprojection_px : float, optional
         Measured points with a larger reprojection error become gaps; default
         ``max(1 px, 5 x`` the median of the track).
+    marker_diameter_px : (float, float), optional
+        Typical marker diameter in the left and right images (px).  When
+        given, a camera in which the two markers' images come closer than a
+        diameter + 2 px (touching or overlapping: each centre is pulled by
+        the other) does not measure them; the other camera and the track's
+        path fill those frames as ``interpolated`` (see :func:`build_tracklets`).
 
     Returns
     -------
@@ -863,11 +924,16 @@ def track_markers(
     if gate_mm is None:
         gate_mm = 5.0 + 8e4 * dt * dt
     max_gap_frames = int(np.floor(max_gap_s * fps + 1e-9))
+    overlaps: list[int] = []
     tracklets = build_tracklets(
         rig,
         observations,
         gate_mm=gate_mm,
         max_single_view_frames=max_gap_frames + 2,
+        merge_px=None
+        if marker_diameter_px is None
+        else (marker_diameter_px[0] + 2.0, marker_diameter_px[1] + 2.0),
+        overlap_frames=overlaps,
     )
     chains, warnings = select_markers(tracklets, fps=fps)
     m = len(MARKER_NAMES)
@@ -919,4 +985,5 @@ def track_markers(
         reprojection_px=reproj,
         marker_names=MARKER_NAMES,
         warnings=warnings,
+        overlap_frames=len(overlaps),
     )

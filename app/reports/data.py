@@ -159,6 +159,24 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
     if q.interpolated_fraction is not None:
         value = q.interpolated_fraction
         rows.append(QualityRow("Frames interpolated", f"{100 * value:.1f} %", value > 0.05))
+    if q.set_aside_frames is not None:
+        n = q.set_aside_frames
+        rows.append(
+            QualityRow(
+                "Marker images set aside (partly hidden or merged; camera frames)",
+                str(n),
+                q.frames is not None and n > 0.05 * 2 * q.frames,
+            )
+        )
+    if q.overlap_frames is not None:
+        n = q.overlap_frames
+        rows.append(
+            QualityRow(
+                "Frames with the two markers overlapping in a camera (not measured there)",
+                str(n),
+                q.frames is not None and n > 0.05 * q.frames,
+            )
+        )
     rows.extend(sync_rows(result.sync, result.fps))
     return rows
 

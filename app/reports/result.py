@@ -86,6 +86,11 @@ class ResultQuality:
     reprojection_px_median: float | None = None
     reprojection_px_p95: float | None = None
     warnings: tuple[str, ...] = ()
+    #: camera frames with a marker image set aside as partly hidden or merged, and left
+    #: frames where the two markers' images touched in a camera (not measured there)
+    set_aside_frames: int | None = None
+    overlap_frames: int | None = None
+    frames: int | None = None
 
 
 @dataclass(frozen=True)
@@ -190,6 +195,13 @@ def _sync_summary(sync: Mapping[str, Any], offset: Number | None) -> SyncSummary
     )
 
 
+def _count(quality: Mapping[str, Any], *keys: str) -> int | None:
+    """The sum of integer quality fields; None when none of them is there."""
+    values = [_number(quality.get(k)) for k in keys]
+    present = [int(v) for v in values if v is not None]
+    return sum(present) if present else None
+
+
 def read_result(document: Mapping[str, Any] | None) -> TrialResult:
     """Read a ``result.json`` document (see the module docstring)."""
     doc = document or {}
@@ -222,5 +234,8 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
             reprojection_px_median=fraction("reprojection_px_median"),
             reprojection_px_p95=fraction("reprojection_px_p95"),
             warnings=tuple(str(w) for w in _list(warnings)),
+            set_aside_frames=_count(quality, "set_aside_frames_left", "set_aside_frames_right"),
+            overlap_frames=_count(quality, "overlap_frames"),
+            frames=_count(quality, "frames_left"),
         ),
     )

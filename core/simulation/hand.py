@@ -594,7 +594,8 @@ def closed_marker_separation_mm(
     index_in_front : bool
         Whether the index marker is the nearer one.
     """
-    model = simulate_tapping(replace(scenario, duration_s=1.0, drift_mm=0.0), seed=seed).model
+    lead_in = replace(scenario, duration_s=1.0, drift_mm=0.0, hesitations=(), halts=())
+    model = simulate_tapping(lead_in, seed=seed).model
     pts = model.positions_mm(np.array([0.0]))[0, :2]  # fingers closed during the lead-in
     px = camera.project(pts)
     z = camera.to_camera(pts)[:, 2]
@@ -641,7 +642,9 @@ def overlap_orientation_deg(
             f"separation_mm must be in [0, {scenario.closed_distance_mm}), got {separation_mm}"
         )
     base = replace(scenario, orientation_deg=(0.0, 0.0, 0.0))
-    model = simulate_tapping(replace(base, duration_s=1.0, drift_mm=0.0), seed=0).model
+    model = simulate_tapping(
+        replace(base, duration_s=1.0, drift_mm=0.0, hesitations=(), halts=()), seed=0
+    ).model
     mirror = np.diag([-1.0, 1.0, 1.0]) if scenario.hand == "left" else np.eye(3)
     R0 = model.R_world_from_hand  # of the right hand; a left hand is mirrored in world x
     closed = model.local_positions_mm(np.array([-1e3]))[0]

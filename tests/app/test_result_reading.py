@@ -44,3 +44,36 @@ def test_only_numbers_are_metrics_and_nothing_is_read_twice() -> None:
 def test_an_empty_document_reads_as_an_empty_result() -> None:
     assert read_result(None) == TrialResult()
     assert read_result({"fps": 0, "sync": {"offset_frames": None}}).fps is None
+
+
+def test_marker_images_set_aside_and_overlaps_reach_the_quality_panel() -> None:
+    from app.reports.data import quality_rows
+    from app.reports.result import read_result
+
+    doc = {
+        "fps": 100.0,
+        "quality": {
+            "frames_left": 1000,
+            "set_aside_frames_left": 3,
+            "set_aside_frames_right": 140,
+            "overlap_frames": 12,
+        },
+    }
+    q = read_result(doc).quality
+    assert (q.set_aside_frames, q.overlap_frames, q.frames) == (143, 12, 1000)
+
+    class _Data:  # the two fields quality_rows reads
+        calibration = None
+        analysis = read_result(doc)
+
+    rows = {r.label: r for r in quality_rows(_Data())}  # type: ignore[arg-type]
+    aside = rows["Marker images set aside (partly hidden or merged; camera frames)"]
+    assert aside.value == "143" and aside.warn  # more than 5 % of the 2000 camera frames
+    overlap = rows["Frames with the two markers overlapping in a camera (not measured there)"]
+    assert overlap.value == "12" and not overlap.warn
+    # older results without the fields show no such rows
+    old = {
+        r.label
+        for r in quality_rows(type("D", (), {"calibration": None, "analysis": read_result({})})())
+    }  # type: ignore[arg-type]
+    assert not any("set aside" in label or "overlapping" in label for label in old)
