@@ -42,7 +42,7 @@ instants, so both cameras are measured at the left frame's instant.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -568,7 +568,19 @@ class _Estimator:
         self.left_norm, self.right_norm = left_norm, right_norm
         self.left_times, self.right_times = left_times, right_times
         self.max_step_px = max_step_px
-        self.left_flat = _flatten(left_norm, MAX_POINTS_PER_FRAME)
+        self.found_left_flat = _flatten(left_norm, MAX_POINTS_PER_FRAME)
+        # What the right camera is compared with: the left markers at their frame's instant.
+        # With a rolling shutter each was taken at its row's instant; compared as found, the
+        # estimated offset takes on the left markers' row delays (0.9 ms and 57 ppm of false
+        # drift at 15 ms readout, markers on rows 476 and 616 of 1080: the test's rig).
+        self.left_flat = (
+            _flatten(
+                _undistort(rig.left, _left_at_frame_times(self, left_times.t_s)),
+                MAX_POINTS_PER_FRAME,
+            )
+            if rig.left.readout_ms > 0
+            else self.found_left_flat
+        )
         self.right_flat = _flatten(right_norm, MAX_POINTS_PER_FRAME)
         self.right_links = link_points(right_px, max_step_px=max_step_px)
 
@@ -599,21 +611,44 @@ def estimate_time_model(est: _Estimator, coarse_offset_s: float) -> ClockModel:
     if not est.left_times.variable and not est.right_times.variable:
         # Steps of whole frames between windows: lost frames the timestamps do not show.
         levels = _levels(u, w, h_l, h_r)
+        valid = np.flatnonzero(np.isfinite(u) & (w > 0))
         for k in np.flatnonzero(np.diff(levels) != 0):
             step = int(levels[k + 1] - levels[k])
-            # The model of the windows before the step, in the times corrected so far.
+            # The loss lies between the last window measured at the old level and the first
+            # at the new one (windows without motion between them say nothing), possibly
+            # inside either: a window that holds a loss has a blend of both levels.
+            before_k = valid[valid <= k]
+            k_old = int(before_k[-1]) if len(before_k) else k
+            k_new = int(valid[valid > k][0]) if np.any(valid > k) else k + 1
+            lo, hi = int(windows[k_old][0]), int(windows[k_new][-1]) + 1
+            # The model of the windows before the step (the median of the last three measured
+            # at the old level: one of them may hold the blend), in the times corrected so far.
+            same = before_k[levels[before_k] == levels[k]][-3:]
+            if not len(same):  # no window measured before the step: nothing to place from
+                continue
+            u_old = float(np.median(u[same]))
             before = ClockModel(
-                coarse_offset_s + float(u[k]) - len(dropped_r) * h_r + len(dropped_l) * h_l
-                if np.isfinite(u[k])
-                else coarse_offset_s + levels[k] * (h_r if levels[k] > 0 else h_l)
+                coarse_offset_s + u_old - len(dropped_r) * h_r + len(dropped_l) * h_l
             )
-            lo, hi = int(windows[k][0]), int(windows[k + 1][-1]) + 1
-            found_l, found_r = list(dropped_l), list(dropped_r)
-            for _ in range(abs(step)):
-                camera = "right" if step > 0 else "left"
-                where = _place_drop(est, before, found_l, found_r, lo, hi, camera)
-                (found_r if camera == "right" else found_l).append(where)
-            dropped_l, dropped_r = found_l, found_r
+            camera = "right" if step > 0 else "left"
+            # All the step's losses at one frame first (a burst; placed one by one, the
+            # first loss of a burst cannot be told apart: one frame off or two both cost
+            # the gate), then each placed again with the others kept (separate losses).
+            n = abs(step)
+            where = [_place_drop(est, before, dropped_l, dropped_r, lo, hi, camera, count=n)] * n
+            for _ in range(3 if n > 1 else 0):  # until no loss moves
+                previous = list(where)
+                for i in range(n):
+                    others = where[:i] + where[i + 1 :]
+                    dl = dropped_l + others if camera == "left" else dropped_l
+                    dr = dropped_r + others if camera == "right" else dropped_r
+                    where[i] = _place_drop(est, before, dl, dr, lo, hi, camera)
+                if sorted(where) == sorted(previous):
+                    break
+            if camera == "right":
+                dropped_r = dropped_r + where
+            else:
+                dropped_l = dropped_l + where
         if dropped_l or dropped_r:
             scene = est.scene(dropped_l, dropped_r)
             windows = _windows(scene.left_t)
@@ -634,6 +669,17 @@ def _model_cost(est: _Estimator, model: ClockModel) -> float:
     frames = np.arange(len(scene.left_t))
     costs, n_pts, _ = _frame_costs(scene, frames, model.left_to_right(scene.left_t)[None, :])
     return float(costs.sum() / max(int(n_pts.sum()), 1))
+
+
+def _model_confidence(est: _Estimator, model: ClockModel) -> float:
+    """Confidence of a time model, as of a whole-frame offset: ``1 − cost / second``, where
+    ``second`` is the least cost of the same model moved by two frames either way."""
+    h = est.right_times.interval_s
+    cost = _model_cost(est, model)
+    second = min(
+        _model_cost(est, replace(model, offset_s=model.offset_s + s * 2 * h)) for s in (-1, 1)
+    )
+    return float(np.clip(1 - cost / second, 0, 1)) if second > 0 else 0.0
 
 
 def _better_of(est: _Estimator, model: ClockModel, fallback: ClockModel) -> ClockModel:
@@ -672,9 +718,11 @@ def _place_drop(
     lo: int,
     hi: int,
     camera: str,
+    *,
+    count: int = 1,
 ) -> int:
-    """The frame (of ``camera``) after which one hidden frame was lost, between left frames
-    ``lo .. hi − 1``: the position whose corrected times give the least epipolar cost."""
+    """The frame (of ``camera``) after which ``count`` hidden frames were lost, between left
+    frames ``lo .. hi − 1``: the position whose corrected times give the least epipolar cost."""
     left_t = corrected_times(est.left_times, dropped_l)
     frames = np.arange(lo, hi)
     if camera == "right":
@@ -687,16 +735,19 @@ def _place_drop(
         candidates = list(range(max(0, lo - 1), min(len(left_t) - 2, hi)))
     best, best_cost = candidates[0], np.inf
     for cand in candidates:
-        dl = [*dropped_l, cand] if camera == "left" else dropped_l
-        dr = [*dropped_r, cand] if camera == "right" else dropped_r
+        dl = [*dropped_l, *[cand] * count] if camera == "left" else dropped_l
+        dr = [*dropped_r, *[cand] * count] if camera == "right" else dropped_r
         scene = est.scene(dl, dr)
         q = model.left_to_right(scene.left_t[frames])
-        # The frames in the gap have no right points whatever the candidate; a wrong
-        # candidate shows as interpolation across the true gap.
-        costs, _, _ = _frame_costs(scene, frames, q[None, :], missing_cost=0.0)
-        total = float(costs.sum())
-        if total < best_cost:
-            best, best_cost = cand, total
+        costs, n_pts, _ = _frame_costs(scene, frames, q[None, :], missing_cost=np.nan)
+        # Per detection compared: frames near a candidate's gap have no right points, and
+        # must not make it cheaper (two separate gaps leave out more frames than one); a
+        # wrong candidate shows as the wrong frames paired between it and the true loss,
+        # and as interpolation across the true gap.
+        compared = np.isfinite(costs[0])
+        cost = float(costs[0][compared].sum() / max(int(n_pts[compared].sum()), 1))
+        if cost < best_cost:
+            best, best_cost = cand, cost
     return best
 
 
@@ -803,15 +854,26 @@ def synchronise(
                 max_offset_s,
                 step,
             )
+        model = ClockModel(coarse)
+        if confidence < MIN_CONFIDENCE:
+            # One whole-frame offset may fit badly because frames were lost part-way (the
+            # offset steps by a frame at each loss): the piecewise model is tried, and kept
+            # when it is itself unambiguous.
+            pieces = estimate_time_model(est, coarse)
+            if pieces.dropped_left or pieces.dropped_right:
+                piece_confidence = _model_confidence(est, pieces)
+                if piece_confidence >= MIN_CONFIDENCE:
+                    model = _better_of(est, pieces, model)
+                    if model is pieces:
+                        confidence = piece_confidence
+        else:
+            model = _better_of(est, estimate_time_model(est, coarse), model)
         if confidence < MIN_CONFIDENCE:
             warnings.append(
                 f"the time offset between the cameras could not be estimated reliably (confidence"
                 f" {confidence:.2f}, best guess {coarse:.3f} s = {coarse * fps_r:.1f} frames); give"
                 " it with --offset-frames if the cameras are not synchronised"
             )
-            model = ClockModel(coarse)
-        else:
-            model = _better_of(est, estimate_time_model(est, coarse), ClockModel(coarse))
     scene = est.scene(model.dropped_left, model.dropped_right)
     left_t = scene.left_t
     duration = float(left_t[-1] - left_t[0]) if n_left else 0.0
@@ -914,9 +976,9 @@ def _undistort(cam: Camera, frames: list[FloatArray]) -> list[FloatArray]:
 def _whole_frame_residuals(est: _Estimator, offset: int) -> FloatArray:
     """Epipolar distance (px) of each left detection to the nearest right one of right frame
     ``i − offset`` (the detections as found)."""
-    n_left, n_right = len(est.left_flat[1]), len(est.right_flat[1])
+    n_left, n_right = len(est.found_left_flat[1]), len(est.right_flat[1])
     frames = np.arange(n_left)
-    l_pts, l_frame = _select_frames(est.left_flat, frames)
+    l_pts, l_frame = _select_frames(est.found_left_flat, frames)
     rows = l_frame - offset
     valid = (rows >= 0) & (rows < n_right)
     right = (est.right_flat[0], np.append(est.right_flat[1], 0).astype(np.intp))

@@ -118,7 +118,8 @@ def test_convention_a_late_right_camera_has_a_positive_offset():
 
 
 @pytest.mark.parametrize(
-    ("camera", "drops"), [("right", (100, 181, 290)), ("left", (150,)), ("right", (200, 200))]
+    ("camera", "drops"),
+    [("right", (100, 181, 290)), ("left", (150,)), ("right", (200, 200)), ("right", (200, 212))],
 )
 def test_hidden_lost_frames_are_found_within_one_frame(camera, drops):
     timing = CameraTiming(drop_after=drops)
@@ -171,6 +172,35 @@ def test_rolling_shutter_instants_are_compensated():
     err = _right_at_left_error_px(truth, rig, clocks, res)
     assert np.sqrt(np.mean(err**2)) < 0.1  # px
     assert res.sync["readout_ms"] == [15.0, 15.0]
+
+
+def test_rolling_shutter_offset_is_estimated_on_rows_apart():
+    """Markers on different rows in the two cameras (the right camera pitched 6°), 15 ms
+    readout, offset and drift estimated: the left markers are compared at their frame's
+    instant, so their rows' delays do not bias the offset."""
+    base = default_rig(image_size=SIZE)
+    a = np.deg2rad(6.0)
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    pitched = StereoRig(
+        base.left,
+        replace(
+            base.right,
+            R_cam_from_world=rx @ base.right.R_cam_from_world,
+            t_cam_from_world_mm=rx @ base.right.t_cam_from_world_mm,
+        ),
+    )
+    truth, rig, clocks, det, norm, times = _setup(
+        left=CameraTiming(readout_ms=15),
+        right=CameraTiming(readout_ms=15, start_s=0.02),
+        rig=pitched,
+    )
+    rows = [np.concatenate(det[c])[:, 1].mean() for c in ("left", "right")]
+    assert abs(rows[0] - rows[1]) > 100  # px: the two cameras read the markers at other times
+    res = _run(rig, det, norm, times)
+    assert abs(res.model.offset_s - 0.02) < 0.0002  # s
+    assert abs(res.model.drift_ppm) < 30  # ppm
+    err = _right_at_left_error_px(truth, rig, clocks, res)
+    assert np.sqrt(np.mean(err**2)) < 0.1  # px
 
 
 def test_a_lab_rig_pairs_whole_frames_as_before():

@@ -113,14 +113,7 @@ def _check_metrics(session: SimulatedSession, analysis: Analysis) -> None:
     assert metrics["halt_count"] == len(truth["halts"])
 
 
-NOT_YET = pytest.mark.xfail(
-    strict=True,
-    reason="issue 11 not done: hidden lost frames in the 10-s H.264 recording are not all found"
-    " (3D RMS 0.113 mm), rolling-shutter compensation reaches 0.138 mm (docs/sync.md, Limits)",
-)
-
-
-@pytest.mark.parametrize("name", ["drift", pytest.param("drops", marks=NOT_YET), "vfr", "fps120"])
+@pytest.mark.parametrize("name", ["drift", "drops", "vfr", "fps120"])
 def test_free_running_cameras_measure_to_lab_rig_accuracy(free_running, name):
     session, analysis = free_running["get"](name)
     rms, d_rms, _ = _errors(session, analysis)
@@ -140,7 +133,6 @@ def test_offset_and_drift_are_reported(free_running):
     assert sync["epipolar_px_after"] < sync["epipolar_px_before"]
 
 
-@NOT_YET
 def test_lost_frames_are_found_and_almost_every_frame_is_measured(free_running):
     session, analysis = free_running["get"]("drops")
     found = np.array(analysis.sync["dropped_frames_right"])
@@ -151,7 +143,6 @@ def test_lost_frames_are_found_and_almost_every_frame_is_measured(free_running):
     assert both >= 0.98
 
 
-@NOT_YET
 def test_rolling_shutter_is_compensated_with_readout_ms(free_running, tmp_path: Path):
     session, analysis = free_running["get"]("rolling")
     rms, _, _ = _errors(session, analysis)
