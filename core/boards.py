@@ -383,21 +383,50 @@ def _detect_chessboard(
             return None
         pts = corners.reshape(-1, 2).astype(np.float64)
     elif method == "classic":
-        flags = (
-            cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
-        )
-        ok, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
-        if not ok or corners is None:
+        found = _find_chessboard_reduced(gray, pattern)
+        if found is None:
             return None
-        win = _subpix_window(np.asarray(corners, dtype=np.float64).reshape(-1, 2), pattern)
+        win = _subpix_window(found.reshape(-1, 2).astype(np.float64), pattern)
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-        corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (win, win), (-1, -1), criteria)
-        pts = corners.reshape(-1, 2).astype(np.float64)
+        refined = cv2.cornerSubPix(gray, found, (win, win), (-1, -1), criteria)
+        pts = np.asarray(refined, dtype=np.float64).reshape(-1, 2)
     else:
         raise ValueError(f"method must be 'auto', 'classic' or 'sb', got {method!r}")
     if pts.shape[0] != board.n_corners or not np.all(np.isfinite(pts)):
         return None
     return pts
+
+
+#: Chessboards are searched first on the image reduced to at most this width (px).
+REDUCED_WIDTH_PX = 800
+_CLASSIC_FLAGS = (
+    cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+)
+
+
+def _find_chessboard_reduced(
+    gray: NDArray[np.uint8], pattern: tuple[int, int]
+) -> NDArray[np.float32] | None:
+    """``cv2.findChessboardCorners``' corners (N, 1, 2) of ``gray``, or None.
+
+    A large image is searched reduced (an integer factor, to at most
+    :data:`REDUCED_WIDTH_PX` wide; the corners scaled back, to be refined at
+    full resolution by ``cornerSubPix``). When the board is not found there
+    (too small once reduced), the full image is searched.
+    """
+    h, w = gray.shape
+    factor = -(-w // REDUCED_WIDTH_PX)  # ceil
+    if factor > 1:
+        small = cv2.resize(gray, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+        ok, corners = cv2.findChessboardCorners(small, pattern, flags=_CLASSIC_FLAGS)
+        if ok and corners is not None:
+            # Pixel centres: (x + 0.5) * factor - 0.5 in the full image.
+            full = (np.asarray(corners, dtype=np.float64) + 0.5) * factor - 0.5
+            return np.ascontiguousarray(full, dtype=np.float32)
+    ok, corners = cv2.findChessboardCorners(gray, pattern, flags=_CLASSIC_FLAGS)
+    if not ok or corners is None:
+        return None
+    return np.ascontiguousarray(corners, dtype=np.float32)
 
 
 def _subpix_window(pts: FloatArray, grid: tuple[int, int]) -> int:

@@ -1,0 +1,144 @@
+"""Trials per hour of one worker: a recording uploaded and measured end to end, as in service.
+
+For each recording kind (the sessions ``bench/bench_analyze.py --keep DIR``
+simulated, or ``--dir`` sessions), a fresh data directory gets a rig with that
+session's calibration, a patient and a session; the pair is uploaded
+``--trials`` times through the trial use case (``app.services.trials.create_trial``,
+which checks the videos by decoding them) and one worker (``run_worker``)
+measures the queued trials: analysis, ``markers.csv``, overlay, browser
+proxies, plots, result. Prints per trial the worker's wall time and this
+process's CPU time (all threads), and from them:
+
+- trials per hour for one worker (3600 / wall s per trial) on this machine now;
+- trials per hour per core (3600 / CPU s per trial): what N workers on N
+  otherwise idle cores can reach at best (with PostgreSQL, workers are
+  separate ``bradyscope worker`` processes that share nothing but the
+  database and the data directory).
+
+Usage::
+
+    python bench/bench_analyze.py --kind all --no-memory --repeat 1 --keep /tmp/abench
+    python bench/bench_throughput.py --sessions /tmp/abench [--trials 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+
+def _cpu_s() -> float:
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    return me.ru_utime + me.ru_stime
+
+
+def _upload(settings, actor, session_id: int, left: Path, right: Path) -> None:
+    from app.services.trials import create_trial
+    from app.storage import Storage
+    from app.uploads import ParsedUpload, StagedFile
+
+    storage = Storage.from_settings(settings)
+    upload = ParsedUpload(storage, fields={"hand": "right"})
+    try:
+        for name, path in (("left_video", left), ("right_video", right)):
+            incoming = storage.receive("videos", path.suffix, max_bytes=settings.max_upload_bytes)
+            upload.files[name] = StagedFile(name, path.name, incoming)
+            with open(path, "rb") as fh:
+                while chunk := fh.read(1 << 20):
+                    incoming.write(chunk)
+            incoming.flush()
+        from app.db import get_sessionmaker
+
+        with get_sessionmaker(settings)() as db:
+            create_trial(db, actor, session_id, upload)
+    finally:
+        upload.close()
+
+
+def bench(session_dir: Path, n_trials: int) -> None:
+    from app.actors import ROLE_SCOPES, Actor
+    from app.db import get_sessionmaker, migrate
+    from app.models import Calibration, Patient, RecordingSession, Rig, User
+    from app.settings import settings_with
+    from app.worker import run_worker
+
+    left = next(iter(sorted(session_dir.glob("left.*"))))
+    right = next(iter(sorted(session_dir.glob("right.*"))))
+    with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
+        settings = settings_with(data_dir=Path(tmp))
+        migrate(settings)
+        doc = json.loads((session_dir / "rig.json").read_text())
+        with get_sessionmaker(settings)() as db:
+            user = User(email="bench@example.org", password_hash="!", role="clinician")
+            rig = Rig(name="bench-rig")
+            patient = Patient(code="BENCH-1")
+            db.add_all([user, rig, patient])
+            db.flush()
+            db.add(
+                Calibration(
+                    rig_id=rig.id,
+                    version=1,
+                    valid_from=datetime(2000, 1, 1, tzinfo=UTC),
+                    rig_json=doc,
+                    rms_px=0.0,
+                    quality={"rms_px": 0.0},
+                    source="rig_file",
+                    status="ready",
+                    created_by_user_id=user.id,
+                )
+            )
+            session = RecordingSession(
+                patient_id=patient.id, rig_id=rig.id, recorded_at=datetime.now(UTC)
+            )
+            db.add(session)
+            db.commit()
+            actor = Actor(
+                type="user",
+                id=user.id,
+                name=user.email,
+                scopes=ROLE_SCOPES["clinician"],
+                role="clinician",
+            )
+            session_id = session.id
+        c0, t0 = _cpu_s(), time.perf_counter()
+        for _ in range(n_trials):
+            _upload(settings, actor, session_id, left, right)
+        up_wall, up_cpu = (time.perf_counter() - t0) / n_trials, (_cpu_s() - c0) / n_trials
+        c0, t0 = _cpu_s(), time.perf_counter()
+        done = run_worker(settings, once=True)
+        wall, cpu = (time.perf_counter() - t0) / done, (_cpu_s() - c0) / done
+    total_wall, total_cpu = up_wall + wall, up_cpu + cpu
+    print(
+        f"{session_dir.name}: {done} trials; per trial: upload check {up_wall:.1f} s"
+        f" (CPU {up_cpu:.1f} s), worker {wall:.1f} s (CPU {cpu:.1f} s)"
+    )
+    print(
+        f"  one worker: {3600 / total_wall:.0f} trials/hour here now;"
+        f" per core: {3600 / total_cpu:.0f} trials/hour (3600 / CPU s per trial);"
+        f" load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sessions", type=Path, help="a folder of simulated sessions (session_*)")
+    ap.add_argument("--dir", type=Path, action="append", default=[], help="one session folder")
+    ap.add_argument("--trials", type=int, default=3)
+    args = ap.parse_args()
+    dirs = list(args.dir)
+    if args.sessions is not None:
+        dirs += sorted(d for d in args.sessions.glob("session_*") if (d / "rig.json").is_file())
+    if not dirs:
+        ap.error("give --sessions or --dir")
+    for d in dirs:
+        bench(d, args.trials)
+
+
+if __name__ == "__main__":
+    main()
