@@ -81,6 +81,10 @@ MIN_CONFIDENCE = 0.2
 #: The two videos show the same motion at no offset when fewer than this share
 #: of the moving left detections lie on an epipolar line of the right ones.
 MIN_CONSISTENT = 0.25
+#: ... and when no offset stands out (confidence below MIN_CONFIDENCE) while fewer than this
+#: share agree at the best one: two unrelated recordings of a hand at the same place (their
+#: closures meet the epipolar lines now and then; 34 % in tests/app/test_cli_analyze.py).
+MIN_CONSISTENT_UNSURE = 0.5
 GATE_PX = 3.0
 #: More lost frames than this, or a larger clock difference, gets a warning.
 LARGE_DROPS = 5
@@ -917,6 +921,14 @@ def synchronise(
                 f"the markers of the two videos agree with the rig's geometry at no time offset"
                 f" (at best {100 * share:.0f} % of the left detections); check that the two videos"
                 " are recordings of the same test, not swapped, and that the rig belongs to"
+                " these cameras."
+            )
+        if confidence < MIN_CONFIDENCE and share < MIN_CONSISTENT_UNSURE:
+            raise DetectionError(
+                f"the two videos do not show the same motion: no time offset between them stands"
+                f" out (confidence {confidence:.2f}) and at the best one only {100 * share:.0f} %"
+                " of the left markers agree with the rig's geometry; check that the two videos"
+                " are recordings of the same test, taken together, and that the rig belongs to"
                 " these cameras."
             )
     dropped_l = sorted([*left_times.dropped_after, *model.dropped_left])

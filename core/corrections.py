@@ -38,6 +38,7 @@ import numpy as np
 from core.aperture import aperture_signal
 from core.markers_csv import MEASURED, MarkerTable
 from core.metrics import TappingMetrics, _clean, locate_events, summarise_taps
+from core.resample import uniform_trajectories
 from core.taps import Tap, segment_recording
 
 THUMB, INDEX = "thumb", "index"
@@ -195,7 +196,11 @@ def correct_metrics(
     if corrections.swap_labels:
         table = swap_thumb_index(table)
     positions, measured = _thumb_index(table)
-    aperture = aperture_signal(positions, table.fps, measured=measured, cutoff_hz=cutoff_hz)
+    # At the frames' real times, as the analysis measured them (core.resample).
+    even = uniform_trajectories(positions, measured, table.time_s, table.fps)
+    aperture = aperture_signal(
+        even.positions_mm, even.fps, measured=even.measured, cutoff_hz=cutoff_hz
+    )
     seg = segment_recording(aperture)
     events = locate_events(aperture, seg)
     known = {t.index for t in seg.taps}

@@ -25,7 +25,8 @@ Stages (one module each, see ``docs/architecture.md`` and ``docs/tracking.md``):
    reproject are dropped.
 5. **Tracks** (:mod:`core.tracks`): identities, distractor rejection, gap
    filling, thumb/index labels.
-6. **Metrics** (:mod:`core.metrics`): taps and per-trial measures.
+6. **Metrics** (:mod:`core.metrics`): taps and per-trial measures, at the
+   left frames' real capture times (:mod:`core.resample`).
 
 :func:`write_analysis` writes ``markers.csv`` and ``result.json`` exactly as
 INTERFACES.md defines them.
@@ -67,6 +68,7 @@ from core.matching import concatenate_frames, frame_pairs_epipolar_px
 from core.metrics import TappingMetrics, compute_metrics
 from core.overlay import CameraOverlay, camera_overlay
 from core.progress import ProgressCallback, report
+from core.resample import uniform_trajectories
 from core.tasks import Task, parse_task
 from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
@@ -364,12 +366,19 @@ def _observations(
 
 
 def _compute_metrics(
-    positions_mm: FloatArray, fps: float, status: NDArray[np.str_]
+    positions_mm: FloatArray,
+    fps: float,
+    status: NDArray[np.str_],
+    time_s: FloatArray | None = None,
+    *,
+    max_gap_s: float = 0.1,
 ) -> tuple[TappingMetrics | None, list[str]]:
-    """Tapping metrics (core.metrics); None with a warning when they cannot be computed."""
+    """Tapping metrics (core.metrics) at the frames' real times ``time_s`` (core.resample:
+    an even grid from uneven frame times); None with a warning when they cannot be computed."""
     measured = status == MEASURED  # core.metrics: False where filled in or missing
+    even = uniform_trajectories(positions_mm, measured, time_s, fps, max_gap_s=max_gap_s)
     try:
-        return compute_metrics(positions_mm, fps, measured=measured), []
+        return compute_metrics(even.positions_mm, even.fps, measured=even.measured), []
     except ValueError as exc:
         return None, [f"tapping metrics could not be computed: {exc}"]
 
@@ -545,7 +554,9 @@ def analyze_recording(
         )
 
     report(progress, "metrics", 0, 1)
-    metrics, metric_warnings = _compute_metrics(tracks.positions_mm, fps, tracks.status)
+    metrics, metric_warnings = _compute_metrics(
+        tracks.positions_mm, fps, tracks.status, timed.left_time_s, max_gap_s=max_gap_s
+    )
     warnings.extend(metric_warnings)
     report(progress, "metrics", 1, 1)
 

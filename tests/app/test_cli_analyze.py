@@ -103,3 +103,50 @@ def test_bad_input_is_one_sentence(
     with pytest.raises(SystemExit):  # leg agility (3.8) is not measured
         main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
               "--task", "leg_agility"])  # fmt: skip
+
+
+def _one_sentence(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bradyscope analyze:") and "\n" not in err and "Traceback" not in err
+    return err
+
+
+def _analyze(session: SimulatedSession, out: Path, *extra: str, left=None, right=None) -> int:
+    left = left or session.left_video
+    right = right or session.right_video
+    return main(
+        ["analyze", "--rig", str(session.rig_path), "--left", str(left), "--right", str(right),
+         "-o", str(out), *extra]
+    )  # fmt: skip
+
+
+def test_unrelated_recordings_are_refused_in_one_sentence(
+    session: SimulatedSession, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The right video of another test (another patient's rhythm, the hand at the same place
+    before the same rig). Before, this was measured (exit 0, half the frames tracked, no tap)
+    with a warning."""
+    other = simulate_session(
+        tmp_path / "other",
+        seed=9,
+        tapping=TappingScenario(duration_s=2.5, fps=100.0, frequency_hz=2.0),
+        imaging=ImagingScenario(image_size=ImageSize(640, 512)),
+    )
+    out = tmp_path / "out"
+    assert _analyze(session, out, right=other.right_video) == 2
+    err = _one_sentence(capsys)
+    assert "do not show the same motion" in err and "recordings of the same test" in err
+    assert not (out / "result.json").exists()
+
+
+def test_a_timestamps_file_of_another_video_is_refused(
+    session: SimulatedSession, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    n = len(session.truth["positions_mm"])
+    times = tmp_path / "right_times.csv"
+    times.write_text("frame,time_s\n" + "".join(f"{i},{i / 100:.6f}\n" for i in range(n // 2)))
+    out = tmp_path / "out"
+    assert _analyze(session, out, "--right-times", str(times)) == 2
+    err = _one_sentence(capsys)
+    assert f"right_times.csv gives the times of {n // 2} frames but its video has {n}" in err
+    assert not (out / "result.json").exists()
