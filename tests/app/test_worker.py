@@ -340,6 +340,53 @@ def test_analyze_without_calibration_fails_with_a_sentence(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("pair", ["swapped", "unrelated"])
+def test_a_pair_that_cannot_be_measured_fails_with_its_sentence_and_keeps_the_trial(
+    app_settings, db_sessionmaker, storage, small_recording, simulated_session, pair
+):
+    """Issue 11's bad input in the service: left and right exchanged, or the right video of
+    another test; the job fails at once with core's sentence, and the trial and both stored
+    videos stay (a technician uploads the right pair again, nothing was lost)."""
+    from types import SimpleNamespace
+
+    from core.camera import ImageSize
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario
+
+    if pair == "swapped":
+        left, right = small_recording.right_video, small_recording.left_video
+        expected = "not swapped"
+    else:
+        other = simulated_session(
+            seed=9,
+            tapping=TappingScenario(duration_s=2.5, frequency_hz=2.0),
+            imaging=ImagingScenario(image_size=ImageSize(640, 512)),
+        )
+        left, right = small_recording.left_video, other.right_video
+        expected = "do not show the same motion"
+    recording = SimpleNamespace(
+        left_video=left, right_video=right, rig_path=small_recording.rig_path
+    )
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, recording, calibrated=True)
+    run_worker(app_settings, once=True)
+    job = _job(sm, job_id)
+    assert job.status == "failed" and job.attempts == 1
+    assert expected in job.error and "\n" not in job.error and "Traceback" not in job.error
+    with sm() as db:
+        assert db.get(Trial, trial_id).status == "failed"
+        assert db.scalars(select(Result)).all() == []
+        videos = db.scalars(select(Video).where(Video.trial_id == trial_id)).all()
+        assert sorted(v.side for v in videos) == ["left", "right"]
+        for video in videos:
+            assert (
+                storage.absolute(video.path).read_bytes()
+                == (left if video.side == "left" else right).read_bytes()
+            )
+
+
+@pytest.mark.slow
 def test_missing_video_files_are_retried_with_a_sentence(
     app_settings, db_sessionmaker, storage, small_recording
 ):
