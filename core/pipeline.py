@@ -448,8 +448,11 @@ def analyze_recording(
     task = parse_task(task)
     if task is not Task.FINGER_TAPPING:
         raise InputError(f"measuring {task.label.lower()} is not available in this version yet.")
-    left_info = probe_video(left_video)
-    right_info = probe_video(right_video)
+    # A raw stream states no rate: its timestamps file's (which gives its frame times) stands in.
+    left_info, right_info = (
+        probe_video(video, fps_if_none=None if csv is None else read_times_csv(csv).fps)
+        for video, csv in ((left_video, left_times), (right_video, right_times))
+    )
     warnings = list(check_stereo_videos(left_info, right_info, rig=rig))
     fps = float(left_info.fps)
     stamps: tuple[list[float], list[float]] = ([], [])

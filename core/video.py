@@ -141,6 +141,14 @@ def _open_capture(path: Path) -> cv2.VideoCapture:
     return cap
 
 
+#: FFmpeg's AVFMT_NOTIMESTAMPS: the format stores no timestamps (raw elementary streams).
+_AVFMT_NOTIMESTAMPS = 0x0080
+#: A stretch without frames longer than both of these (s, frame intervals) is a hole that
+#: no measurement crosses: a damaged file (a demuxer skips what it cannot read) or a stop.
+_HOLE_S = 0.5
+_HOLE_FRAMES = 10
+
+
 def _stated_duration_s(container: Any, stream: Any) -> float | None:
     """The video stream's duration as the container states it (s), or None.
 
@@ -165,19 +173,21 @@ def _stated_duration_s(container: Any, stream: Any) -> float | None:
 
 def _count_packets(
     container: Any, stream: Any, *, fps: float | None
-) -> tuple[int, bool, float | None]:
+) -> tuple[int, bool, float | None, tuple[float, float] | None]:
     """Demux every packet of ``stream`` (no decoding).
 
     Returns the number of packets holding a frame, whether any carries a
-    presentation timestamp, and the time they cover (s): from the first
+    presentation timestamp, the time they cover (s): from the first
     timestamp to the end of the last frame (its packet duration, or one
-    frame period when the packet states none); None without timestamps.
-    A damaged file counts what demuxed before the damage.
+    frame period when the packet states none), None without timestamps; and
+    the longest stretch between two consecutive frames (start, end in s from
+    the first frame), None with fewer than two timestamps. A damaged file
+    counts what demuxed before the damage.
     """
     import av
 
     counted = 0
-    first: int | None = None
+    pts: list[int] = []
     end: int | None = None
     tb = stream.time_base
     one_frame = round(1.0 / (fps * tb)) if fps and tb else 0
@@ -188,13 +198,21 @@ def _count_packets(
             counted += 1
             if packet.pts is None:
                 continue
-            first = packet.pts if first is None else min(first, packet.pts)
+            pts.append(packet.pts)
             stop = packet.pts + (packet.duration or one_frame)
             end = stop if end is None else max(end, stop)
     except (av.FFmpegError, OSError):
         pass  # damaged part-way: decoding tells the rest
-    covered = float((end - first) * tb) if first is not None and end is not None and tb else None
-    return counted, first is not None, covered
+    if not pts or end is None or not tb:
+        return counted, bool(pts), None, None
+    first = min(pts)
+    covered = float((end - first) * tb)
+    hole = None
+    if len(pts) > 1:
+        ordered = np.sort(np.asarray(pts, dtype=np.int64))
+        k = int(np.argmax(np.diff(ordered)))
+        hole = (float((ordered[k] - first) * tb), float((ordered[k + 1] - first) * tb))
+    return counted, True, covered, hole
 
 
 def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
@@ -225,6 +243,11 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
         stream = container.streams.video[0]
         rate = stream.average_rate or stream.base_rate
         fps = float(rate) if rate else None
+        if container.format.flags & _AVFMT_NOTIMESTAMPS:
+            # A raw stream (H.264, HEVC, MJPEG, MPEG-4 elementary): the demuxer invents
+            # timestamps from a default rate; they carry no information.
+            count, _, _, _ = _count_packets(container, stream, fps=fps)
+            return count, False, fps
         if stream.frames:
             has_pts = False
             try:
@@ -236,7 +259,13 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
                 pass  # damaged: decoding tells the rest
             return int(stream.frames), has_pts, fps
         stated_s = _stated_duration_s(container, stream)
-        count, has_pts, covered_s = _count_packets(container, stream, fps=fps)
+        count, has_pts, covered_s, hole = _count_packets(container, stream, fps=fps)
+        if hole is not None and fps and hole[1] - hole[0] > max(_HOLE_S, _HOLE_FRAMES / fps):
+            raise InputError(
+                f"{path.name} has no frames between {hole[0]:.2f} s and {hole[1]:.2f} s"
+                f" ({round((hole[1] - hole[0]) * fps) - 1} frames at {fps:g} fps): the file is"
+                " damaged or the camera stopped recording; copy or export the recording again."
+            )
         if stated_s is not None and covered_s is not None and fps:
             missing = round((stated_s - covered_s) * fps)
             if missing > _FRAME_COUNT_SLACK:
@@ -246,14 +275,22 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
         container.close()
 
 
-def probe_video(path: str | Path) -> VideoInfo:
+def probe_video(path: str | Path, *, fps_if_none: float | None = None) -> VideoInfo:
     """Open a video, decode its first frame and return what it says about itself.
+
+    Parameters
+    ----------
+    path : str or Path
+    fps_if_none : float, optional
+        The frame rate to use when the video states neither a frame rate nor
+        frame timestamps (a raw H.264/HEVC/MJPEG stream): the rate of its
+        timestamps file, which then gives each frame's time.
 
     Raises
     ------
     InputError
         The file is missing, is not a video, has no decodable frame, or states
-        neither a frame rate nor frame timestamps.
+        neither a frame rate nor frame timestamps (and no ``fps_if_none``).
     """
     p = Path(path)
     if not p.is_file():
@@ -288,6 +325,8 @@ def probe_video(path: str | Path) -> VideoInfo:
     if not has_pts:
         # A raw stream: FFmpeg invents 25 fps unless the bitstream states a rate.
         fps = stated_fps if stated_fps is not None and stated_fps != 25 else 0.0
+    if not (fps > 0 and np.isfinite(fps)) and fps_if_none is not None and fps_if_none > 0:
+        fps = float(fps_if_none)
     if not (fps > 0 and np.isfinite(fps)):
         raise InputError(
             f"{p.name} has neither frame timestamps nor a frame rate; give its capture times in"

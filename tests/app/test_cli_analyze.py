@@ -150,3 +150,63 @@ def test_a_timestamps_file_of_another_video_is_refused(
     err = _one_sentence(capsys)
     assert f"right_times.csv gives the times of {n // 2} frames but its video has {n}" in err
     assert not (out / "result.json").exists()
+
+
+def _raw_h264(src: Path, dst: Path) -> int:
+    """``src`` re-encoded as a raw H.264 stream (no container: no rate, no timestamps)."""
+    import av
+
+    n = 0
+    with av.open(str(src)) as inp, av.open(str(dst), "w", format="h264") as out:
+        stream = out.add_stream("libx264", rate=100)
+        stream.width, stream.height, stream.pix_fmt = 640, 512, "yuv420p"
+        stream.options = {"crf": "12", "preset": "veryfast"}
+        for frame in inp.decode(video=0):
+            image = av.VideoFrame.from_ndarray(frame.to_ndarray(format="gray"), format="gray")
+            image.pts = n
+            n += 1
+            for packet in stream.encode(image):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    return n
+
+
+def test_free_running_bad_input_is_one_sentence_and_exit_2(
+    session: SimulatedSession, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 11's bad inputs: a video with no timestamps and no frame rate, a stream damaged
+    part-way (two unrelated recordings: above); each one sentence naming the cause, exit 2."""
+
+    def analyze(left: Path, right: Path, *extra: str) -> tuple[int, str]:
+        code = main(
+            ["analyze", "--rig", str(session.rig_path), "--left", str(left),
+             "--right", str(right), "-o", str(tmp_path / "out"), *extra]
+        )  # fmt: skip
+        err = capsys.readouterr().err.strip()
+        if code:
+            assert err.startswith("bradyscope analyze:") and "\n" not in err, err
+            assert "Traceback" not in err
+        return code, err
+
+    raw = tmp_path / "left.h264"
+    n = _raw_h264(session.left_video, raw)
+    code, err = analyze(raw, session.right_video)
+    assert code == 2 and "neither frame timestamps nor a frame rate" in err
+    # As the sentence says: its capture times in a timestamps file make it measurable.
+    times = tmp_path / "left_times.csv"
+    times.write_text("frame,time_s\n" + "".join(f"{i},{i / 100:.6f}\n" for i in range(n)))
+    code, _ = analyze(raw, session.right_video, "--left-times", str(times))
+    assert code == 0
+    doc = json.loads((tmp_path / "out" / "result.json").read_text(encoding="utf-8"))
+    assert doc["sync"]["time_source"] == ["file", "fps"]
+    assert doc["sync"]["offset_frames"] == pytest.approx(OFFSET, abs=0.05)
+
+    # The middle third of the file overwritten: the demuxer skips what it cannot read.
+    data = bytearray(session.left_video.read_bytes())
+    third = len(data) // 3
+    data[third : 2 * third] = np.random.default_rng(0).integers(0, 256, third, np.uint8).tobytes()
+    damaged = tmp_path / f"damaged{session.left_video.suffix}"
+    damaged.write_bytes(bytes(data))
+    code, err = analyze(damaged, session.right_video)
+    assert code == 2 and "has no frames between" in err and "damaged" in err

@@ -253,3 +253,31 @@ def test_a_browser_webm_without_duration_is_read_as_its_packets(tmp_path):
     got = list(iter_frames(path, expected_count=info.frame_count))
     assert len(got) == N
     np.testing.assert_allclose(_square_centre(got[-1]), _square_centre(frames[-1]), atol=0.5)
+
+
+@pytest.mark.parametrize(("fmt", "encoder"), [("h264", "libx264"), ("mjpeg", "mjpeg")])
+def test_a_raw_stream_has_no_frame_rate_unless_its_timestamps_file_gives_one(
+    tmp_path, fmt, encoder
+):
+    """A raw elementary stream (no container) stores no timestamps: FFmpeg's demuxer invents
+    them at 25 fps, which is not taken for the camera's rate."""
+    import av
+
+    from core.errors import InputError
+
+    path = tmp_path / f"raw.{fmt}"
+    with av.open(str(path), "w", format=fmt) as c:
+        s = c.add_stream(encoder, rate=int(FPS))
+        s.width, s.height = SIZE.width, SIZE.height
+        s.pix_fmt = "yuvj420p" if encoder == "mjpeg" else "yuv420p"
+        for i, f in enumerate(_frames()):
+            frame = av.VideoFrame.from_ndarray(f, format="gray")
+            frame.pts = i
+            for packet in s.encode(frame):
+                c.mux(packet)
+        for packet in s.encode():
+            c.mux(packet)
+    with pytest.raises(InputError, match="neither frame timestamps nor a frame rate"):
+        probe_video(path)
+    info = probe_video(path, fps_if_none=FPS)
+    assert info.fps == FPS and info.frame_count == N and not info.has_timestamps
