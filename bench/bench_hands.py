@@ -258,7 +258,9 @@ def score(analysis: Any, truth: dict[str, Any]) -> dict[str, Any]:
                 for a, b in zip(m.taps, taps_true, strict=True)
             ]
             out["amp_worst_pct"] = 100 * max(rel)
-        out["events"] = sorted((e["kind"], e["tap_index"]) for e in m.events)
+        out["events"] = sorted(
+            (e["kind"], e["tap_index"]) for e in m.events if e["kind"] in ("hesitation", "halt")
+        )  # gaps (lost markers) are no pauses of the patient
     out["events_true"] = sorted(
         [("hesitation", h["tap_index"]) for h in truth.get("hesitations", [])]
         + [("halt", h["tap_index"]) for h in truth.get("halts", [])]

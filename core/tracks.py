@@ -152,7 +152,6 @@ class _Track:
         "last_stereo",
         "pos",
         "reproj",
-        "stereo_xyz",
         "sv_px",
         "vx",
         "vy",
@@ -173,22 +172,15 @@ class _Track:
         self.vx = self.vy = self.vz = 0.0
         self.last_frame = frame
         self.last_stereo = frame
-        self.stereo_xyz = (self.x, self.y, self.z)
 
     def add_stereo(self, frame: int, xyz: list[float], reproj: float) -> None:
         x, y, z = xyz
-        if self.last_stereo == self.last_frame:
-            px, py, pz = self.x, self.y, self.z
-            dt = frame - self.last_frame
-        else:  # after single-view points (provisional depth): from the last stereo point
-            px, py, pz = self.stereo_xyz
-            dt = frame - self.last_stereo
+        dt = frame - self.last_frame
         # w * new_v + (1 - w) * v with w = 1 (1.0 * a == a exactly).
-        self.vx = (x - px) / dt + 0.0 * self.vx
-        self.vy = (y - py) / dt + 0.0 * self.vy
-        self.vz = (z - pz) / dt + 0.0 * self.vz
+        self.vx = (x - self.x) / dt + 0.0 * self.vx
+        self.vy = (y - self.y) / dt + 0.0 * self.vy
+        self.vz = (z - self.z) / dt + 0.0 * self.vz
         self.x, self.y, self.z = x, y, z
-        self.stereo_xyz = (x, y, z)
         self.last_frame = self.last_stereo = frame
         self.frames.append(frame)
         self.kind.append(STEREO)
@@ -360,9 +352,7 @@ def build_tracklets(
             for tr in active:
                 gap = frame - tr.last_frame
                 preds.append((tr.x + tr.vx * gap, tr.y + tr.vy * gap, tr.z + tr.vz * gap))
-                # single-view points have a provisional depth: the gate grows from
-                # the last stereo observation
-                gates.append(gate_mm * (1.0 + 0.5 * (frame - tr.last_stereo - 1)))
+                gates.append(gate_mm * (1.0 + 0.5 * (gap - 1)))
             if merge_px is not None and len(active) > 1:
                 if _block_merged_images(active, preds, frame, obs, cams, merge_px, used):
                     if overlap_frames is not None:

@@ -190,18 +190,13 @@ class _RefTrack:
     px: list[tuple[float, float]] = field(default_factory=list)
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     last_stereo: int = -1
-    stereo_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def predict(self, frame: int) -> np.ndarray:
         return self.pos[-1] + self.velocity * (frame - self.frames[-1])
 
     def add(self, frame: int, kind: int, pos: np.ndarray, reproj: float, px: np.ndarray) -> None:
         if self.frames:
-            if kind == STEREO and self.last_stereo != self.frames[-1]:
-                # after single-view points (provisional depth): from the last stereo point
-                new_v = (pos - self.stereo_pos) / (frame - self.last_stereo)
-            else:
-                new_v = (pos - self.pos[-1]) / (frame - self.frames[-1])
+            new_v = (pos - self.pos[-1]) / (frame - self.frames[-1])
             w = 1.0 if kind == STEREO else 0.5
             self.velocity = w * new_v + (1 - w) * self.velocity
         self.frames.append(frame)
@@ -211,7 +206,6 @@ class _RefTrack:
         self.px.append((float(px[0]), float(px[1])))
         if kind == STEREO:
             self.last_stereo = frame
-            self.stereo_pos = pos
 
 
 def reference_build_tracklets(
@@ -233,7 +227,7 @@ def reference_build_tracklets(
         assigned = np.zeros(len(active), bool)
         if active:
             preds = np.array([tr.predict(frame) for tr in active])
-            gaps = np.array([frame - tr.last_stereo for tr in active])  # since stereo
+            gaps = np.array([frame - tr.frames[-1] for tr in active])
             gates = gate_mm * (1.0 + 0.5 * (gaps - 1))
         if active and n_c:
             dist = np.linalg.norm(preds[:, None, :] - obs.candidates_mm[None, :, :], axis=2)
