@@ -867,8 +867,11 @@ class VideoWriter:
 
 
 #: Encoder options of the browser proxy: H.264 (every browser plays it), a key
-#: frame every 10 frames so that stepping and seeking land at once.
-PROXY_OPTIONS = {"crf": "23", "preset": "veryfast", "g": "10", "bf": "0"}
+#: frame every 10 frames so that stepping and seeking land at once. ``ultrafast``:
+#: the proxies were most of a worker's time per trial; on a 10-s 1280x1024 100-fps
+#: MPEG-4 video it takes 6.1 s of CPU instead of 9.9 s with ``veryfast`` (2.5 MB
+#: instead of 3.4 MB; bench/bench_throughput.py, docs/performance.md).
+PROXY_OPTIONS = {"crf": "23", "preset": "ultrafast", "g": "10", "bf": "0"}
 
 
 def write_proxy(
