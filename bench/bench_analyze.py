@@ -6,6 +6,7 @@ Usage::
     python bench/bench_analyze.py --kind lab-mp4v       # 1280x1024 100 fps, MPEG-4 Part 2
     python bench/bench_analyze.py --kind lab-ffv1       # 1280x1024 100 fps, lossless FFV1
     python bench/bench_analyze.py --kind consumer-h264  # 1920x1080 60 fps, H.264
+    python bench/bench_analyze.py --kind free-running-h264  # the same, free-running cameras
     python bench/bench_analyze.py --dir DIR             # an existing session (left.*, right.*, rig.json)
 
 Each kind simulates a 5-s and a 10-s pair (``--keep DIR`` keeps them for the
@@ -57,6 +58,9 @@ KINDS: dict[str, tuple[str, tuple[int, int], float]] = {
     "lab-mp4v": ("mp4v", (1280, 1024), 100.0),
     "lab-ffv1": ("lossless", (1280, 1024), 100.0),
     "consumer-h264": ("h264", (1920, 1080), 60.0),
+    # Free-running cameras (issue 11, docs/sync.md): the right one starts 0.237 s late, runs
+    # 300 ppm fast and loses three frames that its timestamps do not show.
+    "free-running-h264": ("h264", (1920, 1080), 60.0),
 }
 
 
@@ -64,8 +68,14 @@ def simulate(out: Path, seconds: float, kind: str) -> Path:
     from core.camera import ImageSize
     from core.simulation.kinematics import TappingScenario
     from core.simulation.session import ImagingScenario, simulate_session
+    from core.simulation.timing import CameraTiming
 
     codec, size, fps = KINDS[kind]
+    right = CameraTiming()
+    if kind == "free-running-h264":
+        n = round(seconds * fps)
+        drops = (round(0.25 * n), round(0.52 * n), round(0.76 * n))  # 150, 312, 456 in 10 s
+        right = CameraTiming(start_s=0.237, drift_ppm=300.0, drop_after=drops)
     simulate_session(
         out,
         seed=7,
@@ -75,6 +85,7 @@ def simulate(out: Path, seconds: float, kind: str) -> Path:
             image_size=ImageSize(*size),
             distractors_static=2,
             distractors_moving=1,
+            right_timing=right,
         ),
     )
     return out
@@ -218,6 +229,17 @@ def bench(d: Path, repeat: int) -> None:
     acc_peer = accuracy(d, peer_pts)
     if acc_ours is not None:
         print(f"  3D RMS error vs truth: analyze {acc_ours:.4f} mm, peer {acc_peer:.4f} mm")
+    sync = analysis.sync
+    truth_path = d / "truth.json"
+    if "offset_s" in sync and truth_path.exists():
+        truth = json.loads(truth_path.read_text())
+        right = truth["cameras"]["right"]
+        print(
+            f"  time model: offset {sync['offset_s']:.6f} s, drift {sync['drift_ppm']:.1f} ppm,"
+            f" lost frames right {sync['dropped_frames_right']} (simulated"
+            f" {right['dropped_after']}), left {sync['dropped_frames_left']}; confidence"
+            f" {sync['confidence']:.2f}"
+        )
 
 
 def main() -> None:
