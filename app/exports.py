@@ -26,9 +26,10 @@ import numpy as np
 from fhir.resources.R4B.bundle import Bundle
 from numpy.typing import NDArray
 
-from app.reports.catalogue import display_value, metric_spec
+from app.reports.catalogue import ALIAS_KEYS, display_value, metric_spec
 from app.reports.data import ReportData
 from core.markers_csv import MarkerTable
+from core.tasks import Task, parse_task
 
 # Identifier systems of bradyscope's own codes (URNs: valid URIs that need no web server).
 PATIENT_CODE_SYSTEM = "urn:bradyscope:patient-code"
@@ -40,6 +41,24 @@ EXAM_CATEGORY = {
 }
 """The FHIR Observation category of every measurement and of the clinician's rating."""
 REPORT_CODE_SYSTEM = "urn:bradyscope:report"
+
+
+def metric_code_system(task: Task) -> str:
+    """The code system of a task's metrics: ``urn:bradyscope:finger-tapping-metric``,
+    ``urn:bradyscope:hand-movements-metric``..."""
+    return f"urn:bradyscope:{task.value.replace('_', '-')}-metric"
+
+
+def _body_site(task: Task, side: str) -> str:
+    if task is Task.FINGER_TAPPING:
+        return f"{side} hand, thumb and index finger"
+    return f"{side} {task.limb}"
+
+
+def _method(task: Task) -> str:
+    return f"Stereo-video {task.label.lower()} (MDS-UPDRS {task.updrs_item} task), bradyscope"
+
+
 UCUM_SYSTEM = "http://unitsofmeasure.org"
 LOINC_SYSTEM = "http://loinc.org"
 
@@ -134,21 +153,22 @@ def _observation(
     patient_ref: str,
     effective: str,
     hand: str,
+    task: Task = Task.FINGER_TAPPING,
 ) -> dict[str, Any]:
-    spec = metric_spec(key)
+    spec = metric_spec(key, task.value)
     label, ucum, unit = spec.label, spec.ucum, spec.unit
     obs: dict[str, Any] = {
         "resourceType": "Observation",
         "status": "final",
         "category": [{"coding": [dict(EXAM_CATEGORY)]}],
         "code": {
-            "coding": [{"system": METRIC_CODE_SYSTEM, "code": key, "display": label}],
-            "text": f"{label} ({hand} hand)",
+            "coding": [{"system": metric_code_system(task), "code": key, "display": label}],
+            "text": f"{label} ({hand} {task.limb})",
         },
         "subject": {"reference": patient_ref},
         "effectiveDateTime": effective,
-        "bodySite": {"text": f"{hand} hand, thumb and index finger"},
-        "method": {"text": "Stereo-video finger tapping (MDS-UPDRS 3.4 task), bradyscope"},
+        "bodySite": {"text": _body_site(task, hand)},
+        "method": {"text": _method(task)},
     }
     if math.isfinite(value):
         obs["valueQuantity"] = {
@@ -204,7 +224,14 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
             },
         }
     ]
-    entries += _observation_entries(data, patient_url, effective)
+    metric_entries = _observation_entries(data, patient_url, effective)
+    group = {
+        "fullUrl": _urn(),
+        "resource": _task_group(
+            data, patient_url, effective, [e["fullUrl"] for e in metric_entries]
+        ),
+    }
+    entries += [*metric_entries, group]
     measured_urls = [str(e["fullUrl"]) for e in entries[1:]]
     if data.clinician_rating is not None:
         entries.append({"fullUrl": _urn(), "resource": _rating_observation(data, patient_url)})
@@ -228,6 +255,44 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     return doc
 
 
+def _task_group(
+    data: ReportData, patient_ref: str, effective: str, member_urls: list[str]
+) -> dict[str, Any]:
+    """The task's Observation group: a panel whose members are the trial's metric
+    Observations (one group per task; a visit's bundles keep the tasks apart)."""
+    task = parse_task(data.task)
+    return {
+        "resourceType": "Observation",
+        "status": "final",
+        "category": [
+            {
+                "coding": [
+                    {
+                        "system": "http://terminology.hl7.org/CodeSystem/observation-category",
+                        "code": "exam",
+                        "display": "Exam",
+                    }
+                ]
+            }
+        ],
+        "code": {
+            "coding": [
+                {
+                    "system": REPORT_CODE_SYSTEM,
+                    "code": task.value.replace("_", "-"),
+                    "display": f"Instrumented {task.heading[0].lower()}{task.heading[1:]}",
+                }
+            ],
+            "text": f"{task.heading}, {data.hand} {task.limb}: measured",
+        },
+        "subject": {"reference": patient_ref},
+        "effectiveDateTime": effective,
+        "bodySite": {"text": _body_site(task, data.hand)},
+        "method": {"text": _method(task)},
+        "hasMember": [{"reference": u} for u in member_urls],
+    }
+
+
 RATING_CODE_SYSTEM = "urn:bradyscope:clinician-rating"
 
 
@@ -240,6 +305,8 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
     0–4, and the comment as ``note``. The DiagnosticReport (the instrument's
     measurement) does not list it among its results.
     """
+    task = parse_task(data.task)
+    item = task.updrs_item
     obs: dict[str, Any] = {
         "resourceType": "Observation",
         "status": "final",
@@ -248,15 +315,15 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
             "coding": [
                 {
                     "system": RATING_CODE_SYSTEM,
-                    "code": "mds-updrs-3.4",
-                    "display": "MDS-UPDRS 3.4 finger tapping, clinician's rating (0-4)",
+                    "code": f"mds-updrs-{item}",
+                    "display": f"MDS-UPDRS {item} {task.label.lower()}, clinician's rating (0-4)",
                 }
             ],
-            "text": f"Clinician's MDS-UPDRS 3.4 rating ({data.hand} hand)",
+            "text": f"Clinician's MDS-UPDRS {item} rating ({data.hand} {task.limb})",
         },
         "subject": {"reference": patient_ref},
         "effectiveDateTime": _iso(data.recorded_at),
-        "bodySite": {"text": f"{data.hand} hand"},
+        "bodySite": {"text": f"{data.hand} {task.limb}"},
         "method": {"text": "Rated by the clinician on the MDS-UPDRS wording; not measured"},
         "valueInteger": int(data.clinician_rating or 0),
     }
@@ -276,16 +343,26 @@ def _urn() -> str:
 def _observation_entries(
     data: ReportData, patient_url: str, effective: str
 ) -> list[dict[str, Any]]:
-    """One Observation entry per numeric metric of the result (an undefined one: data absent)."""
+    """One Observation entry per numeric metric of the result (an undefined one: data absent);
+    the common keys that repeat one of the task's own metrics are given once, by its name."""
+    task = parse_task(data.task)
+    aliases = ALIAS_KEYS | ({"cycle_count"} if task is Task.FINGER_TAPPING else set())
     entries = []
     for key, value in data.analysis.metrics.items():
+        if key in aliases:
+            continue
         # Tap numbers are counted from 1, as the definition in the note says.
         number = math.nan if value is None else display_value(key, float(value))
         entries.append(
             {
                 "fullUrl": _urn(),
                 "resource": _observation(
-                    key, number, patient_ref=patient_url, effective=effective, hand=data.hand
+                    key,
+                    number,
+                    patient_ref=patient_url,
+                    effective=effective,
+                    hand=data.hand,
+                    task=task,
                 ),
             }
         )
@@ -301,6 +378,7 @@ def _diagnostic_report(
     observation_urls: list[str],
     pdf_bytes: bytes | None,
 ) -> dict[str, Any]:
+    task = parse_task(data.task)
     report: dict[str, Any] = {
         "resourceType": "DiagnosticReport",
         "status": "final",
@@ -320,11 +398,11 @@ def _diagnostic_report(
             "coding": [
                 {
                     "system": REPORT_CODE_SYSTEM,
-                    "code": "finger-tapping",
-                    "display": "Instrumented finger tapping (MDS-UPDRS 3.4)",
+                    "code": task.value.replace("_", "-"),
+                    "display": f"Instrumented {task.heading[0].lower()}{task.heading[1:]}",
                 }
             ],
-            "text": f"Instrumented finger tapping, {data.hand} hand",
+            "text": f"Instrumented {task.label.lower()}, {data.hand} {task.limb}",
         },
         "subject": {"reference": patient_url},
         "effectiveDateTime": effective,
@@ -338,7 +416,7 @@ def _diagnostic_report(
                 "contentType": "application/pdf",
                 "language": "en",
                 "data": base64.b64encode(pdf_bytes).decode("ascii"),
-                "title": f"bradyscope finger-tapping report {data.patient_code}",
+                "title": f"bradyscope {task.label.lower()} report {data.patient_code}",
                 "creation": issued,
             }
         ]
@@ -347,13 +425,17 @@ def _diagnostic_report(
 
 def _conclusion(data: ReportData) -> str:
     m = data.analysis
-    parts = [f"{data.hand.capitalize()} hand, medication {data.medication_state}."]
-    if (taps := m.metric("tap_count")) is not None:
-        parts.append(f"{int(taps)} taps")
+    task = parse_task(data.task)
+    ft = task is Task.FINGER_TAPPING
+    unit, word = task.amplitude_unit, ("tap" if ft else "cycle")
+    parts = [f"{data.hand.capitalize()} {task.limb}, medication {data.medication_state}."]
+    if (taps := m.metric("tap_count" if ft else "cycle_count")) is not None:
+        parts.append(f"{int(taps)} {word}s")
     if (frequency := m.metric("frequency_hz")) is not None:
         parts.append(f"at {frequency:.2f} Hz")
-    if (amplitude := m.metric("amplitude_mm_mean")) is not None:
-        parts.append(f"mean amplitude {amplitude:.1f} mm")
-    if (decrement := m.metric("amplitude_decrement_mm_per_tap")) is not None:
-        parts.append(f"decrement {decrement:+.2f} mm/tap")
+    if (amplitude := m.metric(f"amplitude_{unit}_mean")) is not None:
+        parts.append(f"mean amplitude {amplitude:.1f} {unit}")
+    key = "amplitude_decrement_mm_per_tap" if ft else f"amplitude_decrement_{unit}_per_cycle"
+    if (decrement := m.metric(key)) is not None:
+        parts.append(f"decrement {decrement:+.2f} {unit}/{word}")
     return " ".join(parts[:1]) + " " + ", ".join(parts[1:]) + "." if len(parts) > 1 else parts[0]

@@ -103,6 +103,7 @@ def _measure(ctx: JobContext, inputs: trials.TrialInputs, *, swap: bool) -> Anal
         left_times=left_times,
         right_times=right_times,
         task=inputs.task,
+        side=inputs.side,
     )
 
 

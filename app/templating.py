@@ -15,7 +15,7 @@ from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoes
 from starlette.templating import Jinja2Templates
 
 from app.timezones import to_zone
-from core.tasks import parse_task
+from core.tasks import Task, parse_task
 
 TEMPLATES_DIR = Path(__file__).resolve().parents[1] / "templates"
 
@@ -62,6 +62,16 @@ def _task_item(value: str | None) -> str:
     return parse_task(value).updrs_item
 
 
+def _task_label(value: str | None) -> str:
+    """``"Hand movements"`` for a task value."""
+    return parse_task(value).label
+
+
+def _cycle_word(value: str | None) -> str:
+    """``"tap"`` for finger tapping, ``"cycle"`` for the other tasks."""
+    return "tap" if parse_task(value) is Task.FINGER_TAPPING else "cycle"
+
+
 def _limb(value: str | None) -> str:
     """``"foot"`` for toe tapping, else ``"hand"``."""
     return parse_task(value).limb
@@ -82,6 +92,8 @@ def _make_env() -> Environment:
     env.filters["task_heading"] = _task_heading
     env.filters["task_item"] = _task_item
     env.filters["limb"] = _limb
+    env.filters["task_label"] = _task_label
+    env.filters["cycle_word"] = _cycle_word
     return env
 
 

@@ -198,9 +198,39 @@ def aperture_signal(
         raise ValueError(f"cutoff_hz must lie in (0, fps/2) = (0, {fps / 2}), got {cutoff_hz}")
     if max_fill_s < 0:
         raise ValueError(f"max_fill_s must be >= 0, got {max_fill_s}")
-    n_frames = pos.shape[0]
-
     distance = np.linalg.norm(pos[:, 1, :] - pos[:, 0, :], axis=1)
+    return signal_aperture(
+        distance, fps, measured=measured, cutoff_hz=cutoff_hz, max_fill_s=max_fill_s
+    )
+
+
+def signal_aperture(
+    signal: NDArray[np.floating],
+    fps: float,
+    *,
+    measured: NDArray[np.bool_] | None = None,
+    cutoff_hz: float,
+    max_fill_s: float = DEFAULT_MAX_FILL_S,
+) -> Aperture:
+    """Filter and differentiate a cycle signal as :func:`aperture_signal` does the aperture.
+
+    The other tasks' cycle signals (``core.protocols``: a distance in mm, or
+    a rotation in degrees) go through the same filter, gap policy and noise
+    estimate as the thumb–index aperture, so that :mod:`core.taps` segments
+    them alike.
+
+    Parameters
+    ----------
+    signal : (T,) float
+        The raw signal; NaN where it is missing.
+    fps, cutoff_hz, max_fill_s
+        As for :func:`aperture_signal` (the cut-off already checked).
+    measured : (T, M) or (T,) bool, optional
+        False where a marker position was filled in or is missing (with
+        ``(T, M)``, a frame counts when its first two markers do).
+    """
+    distance = np.asarray(signal, dtype=np.float64)
+    n_frames = distance.shape[0]
     finite = np.isfinite(distance)
     if measured is None:
         meas = finite.copy()

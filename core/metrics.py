@@ -380,6 +380,11 @@ def _onset_tap(x: NDArray[np.float64], y: NDArray[np.float64], taps: Sequence[Ta
     return None if k is None else taps[k].index
 
 
+def json_ready(obj: Any) -> Any:
+    """``obj`` with numpy scalars as Python numbers and NaN/inf as None (JSON has no NaN)."""
+    return _clean(obj)
+
+
 def _clean(obj: Any) -> Any:
     """Recursively turn numpy scalars into Python numbers and NaN/inf into None."""
     if isinstance(obj, dict):
@@ -400,6 +405,7 @@ __all__ = [
     "TappingMetrics",
     "compute_metrics",
     "decrement_onset",
+    "json_ready",
     "locate_events",
     "summarise_taps",
     "tapping_metrics",

@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 
 from core.camera import Camera, StereoRig
 from core.clock import TimeModelResult, corrected_times, synchronise
+from core.cycles import TaskMetrics, common_metrics, compute_task_metrics
 from core.errors import DetectionError, InputError
 from core.markers import EXPECTED_COUNT_FULL_SEARCHES as EXPECTED_COUNT_FULL_SEARCHES
 from core.markers import FULL_SEARCH_EVERY as FULL_SEARCH_EVERY
@@ -128,6 +129,8 @@ class Analysis:
         Frame rate of the right video (Hz).
     task : str
         The examination task (:class:`core.tasks.Task` value), ``"finger_tapping"`` by default.
+    task_metrics : TaskMetrics or None
+        The cycle metrics of another task (``core.cycles``); ``metrics`` is then None.
     """
 
     fps: float
@@ -145,6 +148,7 @@ class Analysis:
     right_left_frame: FloatArray | None = None
     right_fps: float | None = None
     task: str = Task.FINGER_TAPPING.value
+    task_metrics: TaskMetrics | None = None
 
     @property
     def time_s(self) -> FloatArray:
@@ -198,6 +202,16 @@ class Analysis:
             metrics = dict(res.get("metrics", {}))
             taps = list(res.get("taps", []))
             extra = {k: v for k, v in res.items() if k not in ("metrics", "taps")}
+            # The common keys of every task (docs/interfaces.md), beside finger tapping's own.
+            metrics.update(common_metrics(self.metrics.metrics, "mm"))
+            extra["metrics_first_10"] = {
+                **extra.get("metrics_first_10", {}),
+                **common_metrics(self.metrics.metrics_first_10, "mm"),
+            }
+        elif self.task_metrics is not None:
+            res = self.task_metrics.to_result()
+            metrics = dict(res["metrics"])
+            extra = {k: v for k, v in res.items() if k != "metrics"}
         quality = dict(self.quality)
         quality["warnings"] = list(self.warnings)
         doc: dict[str, Any] = {
@@ -383,6 +397,27 @@ def _compute_metrics(
         return None, [f"tapping metrics could not be computed: {exc}"]
 
 
+def _compute_task_metrics(
+    task: Task,
+    positions_mm: FloatArray,
+    fps: float,
+    status: NDArray[np.str_],
+    time_s: FloatArray | None = None,
+    *,
+    side: str,
+    max_gap_s: float = 0.1,
+) -> tuple[TaskMetrics | None, list[str]]:
+    """The metrics of a task other than finger tapping (core.cycles), at the frames' real
+    times as finger tapping's; None with a warning when they cannot be computed."""
+    even = uniform_trajectories(positions_mm, status == MEASURED, time_s, fps, max_gap_s=max_gap_s)
+    try:
+        return compute_task_metrics(
+            task, even.positions_mm, even.fps, measured=even.measured, side=side
+        ), []
+    except ValueError as exc:
+        return None, [f"{task.label.lower()} metrics could not be computed: {exc}"]
+
+
 def analyze_recording(
     rig: StereoRig,
     left_video: str | Path,
@@ -398,6 +433,7 @@ def analyze_recording(
     left_times: str | Path | None = None,
     right_times: str | Path | None = None,
     task: str | Task = Task.FINGER_TAPPING,
+    side: str = "right",
 ) -> Analysis:
     """Measure thumb and index trajectories (and tapping metrics) from a stereo recording.
 
@@ -429,6 +465,9 @@ def analyze_recording(
     task : Task or str
         The examination task (``--task``): its marker protocol labels the
         tracks and its cycle signal gives the metrics (``docs/protocols.md``).
+    side : {"right", "left"}
+        The side examined (the trial's hand or foot): the direction of
+        supination of pronation–supination; the other tasks do not use it.
 
     Returns
     -------
@@ -446,8 +485,8 @@ def analyze_recording(
     if max_gap_s < 0:
         raise ValueError(f"max_gap_s must be >= 0, got {max_gap_s}")
     task = parse_task(task)
-    if task is not Task.FINGER_TAPPING:
-        raise InputError(f"measuring {task.label.lower()} is not available in this version yet.")
+    if side not in ("right", "left"):
+        raise ValueError(f"side must be 'right' or 'left', got {side!r}")
     # A raw stream states no rate: its timestamps file's (which gives its frame times) stands in.
     left_info, right_info = (
         probe_video(video, fps_if_none=None if csv is None else read_times_csv(csv).fps)
@@ -541,6 +580,7 @@ def analyze_recording(
         max_gap_s=max_gap_s,
         swap_labels=swap_labels,
         marker_diameter_px=diameters,
+        task=task,
     )
     report(progress, "tracking", 1, 1)
     warnings.extend(tracks.warnings)
@@ -550,16 +590,37 @@ def analyze_recording(
             " thumb and index markers and that the rig file belongs to these cameras."
         )
     measured_any = tracks.status == MEASURED
-    if np.count_nonzero(np.all(tracks.status == MISSING, axis=0)):
+    lost = np.all(tracks.status == MISSING, axis=0)
+    if np.count_nonzero(lost) and task is Task.FINGER_TAPPING:
         raise DetectionError(
             "only one moving marker was found; the thumb and the index finger both need a marker"
             " visible to both cameras."
         )
+    if np.count_nonzero(lost):
+        names = ", ".join(n for n, gone in zip(tracks.marker_names, lost, strict=True) if gone)
+        raise DetectionError(
+            f"the {names} marker{'s were' if np.count_nonzero(lost) > 1 else ' was'} not found;"
+            f" {task.label.lower()} needs the markers {', '.join(tracks.marker_names)} in view of"
+            " both cameras (docs/protocols.md)."
+        )
 
     report(progress, "metrics", 0, 1)
-    metrics, metric_warnings = _compute_metrics(
-        tracks.positions_mm, fps, tracks.status, timed.left_time_s, max_gap_s=max_gap_s
-    )
+    metrics: TappingMetrics | None = None
+    task_metrics: TaskMetrics | None = None
+    if task is Task.FINGER_TAPPING:
+        metrics, metric_warnings = _compute_metrics(
+            tracks.positions_mm, fps, tracks.status, timed.left_time_s, max_gap_s=max_gap_s
+        )
+    else:
+        task_metrics, metric_warnings = _compute_task_metrics(
+            task,
+            tracks.positions_mm,
+            fps,
+            tracks.status,
+            timed.left_time_s,
+            side=side,
+            max_gap_s=max_gap_s,
+        )
     warnings.extend(metric_warnings)
     report(progress, "metrics", 1, 1)
 
@@ -587,6 +648,7 @@ def analyze_recording(
         marker_names=tracks.marker_names,
         sync=sync_doc,
         metrics=metrics,
+        task_metrics=task_metrics,
         quality=quality,
         warnings=warnings,
         frame_time_s=timed.left_time_s,

@@ -42,6 +42,8 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import linear_sum_assignment
 
 from core.camera import Camera, StereoRig
+from core.protocols import label_chains, protocol_for
+from core.tasks import Task
 
 FloatArray = NDArray[np.float64]
 
@@ -486,6 +488,106 @@ def _stereo_ends(t: Tracklet) -> tuple[int, int, FloatArray, FloatArray]:
     )
 
 
+@dataclass(frozen=True)
+class ChainTrack:
+    """One chain of tracklets (one marker's identity) on the frame axis.
+
+    Attributes
+    ----------
+    tracklets : list of int
+        Indices of its tracklets.
+    track : ndarray, shape (T, 3)
+        Its stereo positions (mm), NaN elsewhere (``T`` = last frame of any chain + 1).
+    ok : ndarray, shape (T,)
+        Where ``track`` is finite.
+    spread_mm : float
+        RMS distance of its points from their mean (mm).
+    speed_mm_s : float
+        75th percentile of its frame-to-frame speed (mm/s).
+    """
+
+    tracklets: list[int]
+    track: FloatArray
+    ok: NDArray[np.bool_]
+    spread_mm: float
+    speed_mm_s: float
+
+
+def link_chains(
+    tracklets: Sequence[Tracklet],
+    *,
+    fps: float,
+    min_stereo_frames: int = 3,
+    link_base_mm: float = 10.0,
+    link_speed_mm_s: float = 600.0,
+    link_max_mm: float = 80.0,
+    max_link_gap_s: float = 2.0,
+) -> list[list[int]]:
+    """Link tracklets into chains (one per marker identity); see :func:`select_markers`.
+
+    Returns
+    -------
+    list of list of int
+        Chains of tracklet indices, longest tracklets first.
+    """
+    usable = [i for i, t in enumerate(tracklets) if t.n_stereo >= min_stereo_frames]
+    usable.sort(key=lambda i: -tracklets[i].n_stereo)
+    chains: list[list[int]] = []
+    spans: list[list[tuple[int, int]]] = []
+    for i in usable:
+        s0, s1, p0, p1 = _stereo_ends(tracklets[i])
+        best: tuple[float, int] | None = None
+        for c, chain in enumerate(chains):
+            if any(not (s1 < a or s0 > b) for a, b in spans[c]):
+                continue  # overlaps in time with the chain
+            costs = []
+            for j in chain:
+                a0, a1, q0, q1 = _stereo_ends(tracklets[j])
+                if a1 < s0:
+                    gap_s = (s0 - a1) / fps
+                    d = float(np.linalg.norm(p0 - q1))
+                elif s1 < a0:
+                    gap_s = (a0 - s1) / fps
+                    d = float(np.linalg.norm(q0 - p1))
+                else:
+                    continue
+                if gap_s > max_link_gap_s:
+                    continue
+                allow = min(link_base_mm + link_speed_mm_s * gap_s, link_max_mm)
+                if d <= allow:
+                    costs.append(d / allow)
+            if costs and (best is None or min(costs) < best[0]):
+                best = (min(costs), c)
+        if best is None:
+            chains.append([i])
+            spans.append([(s0, s1)])
+        else:
+            chains[best[1]].append(i)
+            spans[best[1]].append((s0, s1))
+    return chains
+
+
+def chain_tracks(
+    tracklets: Sequence[Tracklet], chains: Sequence[Sequence[int]], *, fps: float
+) -> list[ChainTrack]:
+    """Each chain's stereo positions on the frame axis, with its spread and speed."""
+    n_frames = 1 + max((int(tracklets[j].frames[-1]) for ch in chains for j in ch), default=-1)
+    out = []
+    for ch in chains:
+        track = np.full((n_frames, 3), np.nan)
+        for j in ch:
+            t = tracklets[j]
+            track[t.frames[t.stereo]] = t.positions_mm[t.stereo]
+        ok = np.all(np.isfinite(track), axis=1)
+        pts = track[ok]
+        spread = float(np.sqrt(np.sum(np.var(pts, axis=0)))) if len(pts) > 1 else 0.0
+        step = np.linalg.norm(np.diff(track, axis=0), axis=1) * fps
+        step = step[np.isfinite(step)]
+        speed = float(np.percentile(step, 75)) if len(step) >= 3 else 0.0
+        out.append(ChainTrack(list(ch), track, ok, spread, speed))
+    return out
+
+
 def select_markers(
     tracklets: Sequence[Tracklet],
     *,
@@ -535,56 +637,18 @@ def select_markers(
     if fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
     warnings: list[str] = []
-    usable = [i for i, t in enumerate(tracklets) if t.n_stereo >= min_stereo_frames]
-    usable.sort(key=lambda i: -tracklets[i].n_stereo)
-    chains: list[list[int]] = []
-    spans: list[list[tuple[int, int]]] = []
-    for i in usable:
-        s0, s1, p0, p1 = _stereo_ends(tracklets[i])
-        best: tuple[float, int] | None = None
-        for c, chain in enumerate(chains):
-            if any(not (s1 < a or s0 > b) for a, b in spans[c]):
-                continue  # overlaps in time with the chain
-            costs = []
-            for j in chain:
-                a0, a1, q0, q1 = _stereo_ends(tracklets[j])
-                if a1 < s0:
-                    gap_s = (s0 - a1) / fps
-                    d = float(np.linalg.norm(p0 - q1))
-                elif s1 < a0:
-                    gap_s = (a0 - s1) / fps
-                    d = float(np.linalg.norm(q0 - p1))
-                else:
-                    continue
-                if gap_s > max_link_gap_s:
-                    continue
-                allow = min(link_base_mm + link_speed_mm_s * gap_s, link_max_mm)
-                if d <= allow:
-                    costs.append(d / allow)
-            if costs and (best is None or min(costs) < best[0]):
-                best = (min(costs), c)
-        if best is None:
-            chains.append([i])
-            spans.append([(s0, s1)])
-        else:
-            chains[best[1]].append(i)
-            spans[best[1]].append((s0, s1))
-
-    # Per chain: stereo positions on the frame axis.
-    n_frames = 1 + max((int(tracklets[j].frames[-1]) for ch in chains for j in ch), default=-1)
-    stats = []
-    for ch in chains:
-        track = np.full((n_frames, 3), np.nan)
-        for j in ch:
-            t = tracklets[j]
-            track[t.frames[t.stereo]] = t.positions_mm[t.stereo]
-        ok = np.all(np.isfinite(track), axis=1)
-        pts = track[ok]
-        spread = float(np.sqrt(np.sum(np.var(pts, axis=0)))) if len(pts) > 1 else 0.0
-        step = np.linalg.norm(np.diff(track, axis=0), axis=1) * fps
-        step = step[np.isfinite(step)]
-        speed = float(np.percentile(step, 75)) if len(step) >= 3 else 0.0
-        stats.append((track, ok, spread, speed))
+    chains = link_chains(
+        tracklets,
+        fps=fps,
+        min_stereo_frames=min_stereo_frames,
+        link_base_mm=link_base_mm,
+        link_speed_mm_s=link_speed_mm_s,
+        link_max_mm=link_max_mm,
+        max_link_gap_s=max_link_gap_s,
+    )
+    stats = [
+        (c.track, c.ok, c.spread_mm, c.speed_mm_s) for c in chain_tracks(tracklets, chains, fps=fps)
+    ]
     moving = [k for k, st in enumerate(stats) if st[2] >= min_spread_mm]
     if not moving:
         warnings.append("no moving marker was found; thumb and index need two")
@@ -882,6 +946,7 @@ def track_markers(
     gate_mm: float | None = None,
     max_reprojection_px: float | None = None,
     marker_diameter_px: tuple[float, float] | None = None,
+    task: Task | str = Task.FINGER_TAPPING,
 ) -> Tracks:
     """Thumb and index trajectories from per-frame stereo candidates.
 
@@ -909,11 +974,15 @@ def track_markers(
         diameter + 2 px (touching or overlapping: each centre is pulled by
         the other) does not measure them; the other camera and the track's
         path fill those frames as ``interpolated`` (see :func:`build_tracklets`).
+    task : Task or str
+        Finger tapping (default) is labelled by :func:`select_markers`; the
+        other tasks by their marker protocol (:func:`core.protocols.label_chains`).
 
     Returns
     -------
     Tracks
-        ``M = 2`` markers: thumb, index.
+        ``M = 2`` markers for finger tapping (thumb, index); the protocol's
+        markers for another task. ``swap_labels`` applies to finger tapping only.
     """
     if fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
@@ -935,8 +1004,16 @@ def track_markers(
         else (marker_diameter_px[0] + 2.0, marker_diameter_px[1] + 2.0),
         overlap_frames=overlaps,
     )
-    chains, warnings = select_markers(tracklets, fps=fps)
-    m = len(MARKER_NAMES)
+    task = Task(task)
+    names: tuple[str, ...] = MARKER_NAMES
+    if task is Task.FINGER_TAPPING:
+        chains, warnings = select_markers(tracklets, fps=fps)
+    else:
+        linked = chain_tracks(tracklets, link_chains(tracklets, fps=fps), fps=fps)
+        picks, warnings = label_chains(task, [c.track for c in linked], fps=fps)
+        chains = [linked[k].tracklets if k is not None else [] for k in picks]
+        names = protocol_for(task).labels
+    m = len(names)
     positions = np.full((n_frames, m, 3), np.nan)
     status = np.full((n_frames, m), MISSING, dtype=object)
     reproj = np.full((n_frames, m), np.nan)
@@ -975,15 +1052,16 @@ def track_markers(
         status[meas, k] = MEASURED
         status[filled & ~meas, k] = INTERPOLATED
         reproj[meas, k] = rep[meas]
-    order = [1, 0] if swap_labels else [0, 1]
-    positions = positions[:, order]
-    status = status[:, order]
-    reproj = reproj[:, order]
+    if task is Task.FINGER_TAPPING:
+        order = [1, 0] if swap_labels else [0, 1]
+        positions = positions[:, order]
+        status = status[:, order]
+        reproj = reproj[:, order]
     return Tracks(
         positions_mm=positions,
         status=status.astype(str),
         reprojection_px=reproj,
-        marker_names=MARKER_NAMES,
+        marker_names=names,
         warnings=warnings,
         overlap_frames=len(overlaps),
     )

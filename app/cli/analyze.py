@@ -55,6 +55,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         " its marker protocol and cycle metrics (docs/protocols.md)",
     )
     p.add_argument(
+        "--side",
+        choices=("right", "left"),
+        default="right",
+        help="the side examined (default right): gives the direction of supination"
+        " (pronation_supination)",
+    )
+    p.add_argument(
         "--swap-labels",
         action="store_true",
         help="exchange the automatic thumb/index labels",
@@ -90,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
             left_times=args.left_times,
             right_times=args.right_times,
             task=args.task,
+            side=args.side,
         )
     try:
         write_analysis(analysis, args.output)

@@ -8,15 +8,18 @@ ChArUco recordings of the same rig). See ``docs/simulator.md``.
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from core.errors import InputError
+from core.tasks import TASKS, Task
 
 if TYPE_CHECKING:  # the sub-command imports the simulator only when it runs
     from core.simulation.kinematics import TappingScenario
     from core.simulation.session import ImagingScenario
+    from core.simulation.tasks import TaskScenario
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -107,6 +110,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("-o", "--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=1, help="random seed (same seed, same output)")
+    p.add_argument(
+        "--task",
+        choices=TASKS,
+        default=TASKS[0],
+        help="the task simulated (default finger_tapping); the others use their marker protocol"
+        " (docs/protocols.md) and the tapping options below with the task's unit",
+    )
     _tapping_arguments(p)
     _imaging_arguments(p)
     _timing_arguments(p)
@@ -119,10 +129,19 @@ def _tapping_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--duration", type=float, default=10.0, metavar="S", help="length (s)")
     g.add_argument("--fps", type=float, default=100.0, help="frame rate (Hz)")
     g.add_argument(
-        "--amplitude", type=float, default=50.0, metavar="MM", help="opening of the first tap (mm)"
+        "--amplitude",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="opening of the first tap (mm, default 50); another task's first cycle in its unit"
+        " (degrees for pronation_supination; default 40 mm, 150 deg, 40 mm)",
     )
     g.add_argument(
-        "--frequency", type=float, default=3.0, metavar="HZ", help="taps per second while moving"
+        "--frequency",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="taps (cycles) per second while moving (default 3; 1.5, 1.2, 2.5 for the other tasks)",
     )
     g.add_argument(
         "--decrement",
@@ -271,8 +290,8 @@ def _tapping(args: argparse.Namespace) -> TappingScenario:
     return TappingScenario(
         duration_s=args.duration,
         fps=args.fps,
-        amplitude_mm=args.amplitude,
-        frequency_hz=args.frequency,
+        amplitude_mm=50.0 if args.amplitude is None else args.amplitude,
+        frequency_hz=3.0 if args.frequency is None else args.frequency,
         decrement_mm_per_tap=args.decrement,
         rhythm_jitter=args.jitter,
         amplitude_jitter=args.amplitude_jitter,
@@ -283,6 +302,34 @@ def _tapping(args: argparse.Namespace) -> TappingScenario:
         hand=args.hand,
         hand_marker=args.hand_marker,
         turns=tuple(args.turn),
+    )
+
+
+def _task(args: argparse.Namespace) -> TaskScenario:
+    from core.simulation.tasks import TaskScenario
+
+    for flag, given in (
+        ("--hand-marker", args.hand_marker),
+        ("--turn", bool(args.turn)),
+        ("--overlap", args.overlap is not None),
+        ("--skin", args.skin > 0),
+    ):
+        if given:
+            raise ValueError(f"{flag} applies to finger tapping only")
+    return TaskScenario(
+        task=Task(args.task),
+        duration_s=args.duration,
+        fps=args.fps,
+        amplitude=math.nan if args.amplitude is None else args.amplitude,
+        frequency_hz=math.nan if args.frequency is None else args.frequency,
+        decrement_per_cycle=args.decrement,
+        rhythm_jitter=args.jitter,
+        amplitude_jitter=args.amplitude_jitter,
+        hesitations=args.hesitation_taps,
+        hesitation_s=args.hesitation_s,
+        halts=args.halts,
+        drift_mm=min(args.drift, 30.0),
+        side=args.hand,
     )
 
 
@@ -330,21 +377,31 @@ def run(args: argparse.Namespace) -> int:
     from core.simulation.kinematics import simulate_tapping
     from core.simulation.rig import default_rig
     from core.simulation.session import simulate_session
+    from core.simulation.tasks import rig_geometry, simulate_task
     from core.simulation.timing import CameraTiming
 
     try:
         tapping = _tapping(args)
+        task = None if args.task == Task.FINGER_TAPPING.value else _task(args)
         imaging = _imaging(args)
         # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
-        simulate_tapping(tapping, seed=args.seed)
+        if task is None:
+            simulate_tapping(tapping, seed=args.seed)
+        else:
+            simulate_task(task, seed=args.seed)
+        names = tapping.marker_names if task is None else task.marker_names
         for _, marker, _, _ in imaging.occlusions:
-            if marker not in tapping.marker_names:
+            if marker not in names:
                 raise ValueError(
-                    f"an occlusion names marker {marker!r}; markers are {', '.join(tapping.marker_names)}"
+                    f"an occlusion names marker {marker!r}; markers are {', '.join(names)}"
                 )
-        rig = default_rig(image_size=imaging.image_size)
+        geometry = rig_geometry(args.task)
+        rig = default_rig(image_size=imaging.image_size, **geometry._asdict())
         if args.right_size is not None:
-            rig = StereoRig(rig.left, default_rig(image_size=imaging.camera_size("right")).right)
+            rig = StereoRig(
+                rig.left,
+                default_rig(image_size=imaging.camera_size("right"), **geometry._asdict()).right,
+            )
         if args.overlap is not None:
             cam_name, separation = args.overlap
             camera = rig.left if cam_name == "left" else rig.right
@@ -363,7 +420,13 @@ def run(args: argparse.Namespace) -> int:
         ) from exc
     with progress_bar() as progress:
         session = simulate_session(
-            args.out, seed=args.seed, tapping=tapping, imaging=imaging, rig=rig, progress=progress
+            args.out,
+            seed=args.seed,
+            tapping=tapping,
+            imaging=imaging,
+            rig=rig,
+            progress=progress,
+            task=task,
         )
     if args.boards:
         # The board is filmed by the same free-running cameras (their start and clock;
@@ -382,6 +445,11 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"wrote {args.out}: {session.left_video.name}, {session.right_video.name}"
         f" ({truth['frame_count']} frames at {truth['fps']:g} fps), rig.json, truth.json"
-        f" ({truth['tap_count']} taps)" + (", calibration/" if args.boards else "")
+        + (
+            f" ({truth['tap_count']} taps)"
+            if task is None
+            else f" ({truth['cycle_count']} cycles of {args.task})"
+        )
+        + (", calibration/" if args.boards else "")
     )
     return 0

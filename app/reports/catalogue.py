@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.reports.result import TrialResult, read_result
+from core.cycles import PHASE_WORDS, task_key
+from core.tasks import Task, parse_task
 
 
 @dataclass(frozen=True)
@@ -304,9 +306,71 @@ METRICS: dict[str, MetricSpec] = {
 }
 
 
+#: The common keys of every task (docs/interfaces.md) that repeat a task's own metric
+#: under another name: shown once, under the task's own name.
+ALIAS_KEYS = frozenset(
+    {"amplitude_mean", "amplitude_unit", "amplitude_cv", "amplitude_decrement_per_cycle"}
+)
+
+_SIGNAL_WORDS = {
+    Task.HAND_MOVEMENTS: "finger–wrist distance",
+    Task.PRONATION_SUPINATION: "rotation of the hand about the forearm",
+    Task.TOE_TAPPING: "toe lift",
+}
+
+
+def _task_text(text: str, task: Task) -> str:
+    """A finger-tapping label, unit or definition reworded for ``task``."""
+    towards, back = PHASE_WORDS[task]
+    unit = task.amplitude_unit
+    out = text
+    for old, new in (
+        (
+            "largest thumb–index distance of a tap minus the distance at its start (the closed"
+            " position)",
+            f"largest {_SIGNAL_WORDS[task]} of a cycle minus that at its start",
+        ),
+        ("thumb–index", _SIGNAL_WORDS[task]),
+        ("Tapping frequency", "Frequency"),
+        ("Tapping time", "Movement time"),
+        ("Tap rate", "Cycle rate"),
+        ("the fingers", "the movement"),
+        ("opening", towards),
+        ("Opening", towards.capitalize()),
+        ("closing", back),
+        ("Closing", back.capitalize()),
+        ("open–close cycle", "cycle"),
+        ("taps", "cycles"),
+        ("Taps", "Cycles"),
+        ("tap", "cycle"),
+        ("Tap", "Cycle"),
+    ):
+        out = out.replace(old, new)
+    if unit != "mm":
+        out = out.replace("mm", unit)
+    return out
+
+
+def task_metric_spec(key: str, task: Task) -> MetricSpec | None:
+    """The catalogue entry of a metric of ``task`` (renamed by ``core.cycles.task_key``)."""
+    for ft_key, spec in METRICS.items():
+        if task_key(ft_key, task) == key:
+            return MetricSpec(
+                _task_text(spec.label, task),
+                _task_text(spec.unit, task),
+                _task_text(spec.ucum, task),
+                spec.decimals,
+                _task_text(spec.definition, task),
+                spec.primary,
+            )
+    return None
+
+
 def _guess_units(key: str) -> tuple[str, str]:
     """Display unit and UCUM code of a metric the catalogue does not know, from its name."""
     for suffix, unit, ucum in (
+        ("_deg_s", "deg/s", "deg/s"),
+        ("_deg", "deg", "deg"),
         ("_mm_s_per_tap", "mm/s per tap", "mm/s/{tap}"),
         ("_pct_per_tap", "%/tap", "%/{tap}"),
         ("_mm_per_tap", "mm/tap", "mm/{tap}"),
@@ -321,8 +385,14 @@ def _guess_units(key: str) -> tuple[str, str]:
     return "", "1"
 
 
-def metric_spec(key: str) -> MetricSpec:
-    """The catalogue entry of ``key``, or one guessed from its name (secondary, no definition)."""
+def metric_spec(key: str, task: str = "finger_tapping") -> MetricSpec:
+    """The catalogue entry of ``key`` (a metric of ``task``), or one guessed from its name
+    (secondary, no definition)."""
+    the_task = parse_task(task)
+    if the_task is not Task.FINGER_TAPPING:
+        found = task_metric_spec(key, the_task)
+        if found is not None:
+            return found
     spec = METRICS.get(key)
     if spec is not None:
         return spec
@@ -341,8 +411,8 @@ TREND_METRICS: tuple[tuple[str, str, str], ...] = (
 
 
 def is_tap_number(key: str) -> bool:
-    """Whether the metric ``key`` is a tap number (0-based in result.json, shown from 1)."""
-    return key.endswith("_onset_tap")
+    """Whether the metric ``key`` is a tap (cycle) number (0-based in result.json, shown from 1)."""
+    return key.endswith(("_onset_tap", "_onset_cycle"))
 
 
 def display_value(key: str, value: float) -> float:
@@ -350,7 +420,7 @@ def display_value(key: str, value: float) -> float:
     return value + 1 if is_tap_number(key) else value
 
 
-def format_metric(key: str, value: object) -> str:
+def format_metric(key: str, value: object, task: str = "finger_tapping") -> str:
     """``value`` formatted with the metric's decimals (no unit); "–" when absent.
 
     Tap numbers (``*_onset_tap``) are shown counted from 1.
@@ -362,12 +432,13 @@ def format_metric(key: str, value: object) -> str:
     if not math.isfinite(float(value)):
         return "–"
     value = display_value(key, value)
-    spec = METRICS.get(key)
+    spec = METRICS.get(key) if parse_task(task) is Task.FINGER_TAPPING else None
+    spec = spec or (task_metric_spec(key, parse_task(task)) if task != "finger_tapping" else None)
     decimals = spec.decimals if spec else (0 if isinstance(value, int) else 3)
-    if key.endswith(("_count", "_onset_tap")) and float(value).is_integer():
+    if key.endswith(("_count", "_onset_tap", "_onset_cycle")) and float(value).is_integer():
         decimals = 0
     text = f"{float(value):.{decimals}f}"
-    if key.endswith("_per_tap") and float(value) > 0:
+    if key.endswith(("_per_tap", "_per_cycle")) and float(value) > 0:
         text = "+" + text
     return text
 
@@ -397,18 +468,23 @@ def metric_rows(
     """
     read = result if isinstance(result, TrialResult) else read_result(result)
     metrics, first10 = read.metrics, read.metrics_first_10
-    keys = [k for k in METRICS if k in metrics] + [k for k in metrics if k not in METRICS]
+    task = parse_task(read.task)
+    ordered = [task_key(k, task) for k in METRICS]
+    keys = [k for k in ordered if k in metrics] + [k for k in metrics if k not in ordered]
+    aliases = ALIAS_KEYS | ({"cycle_count"} if task is Task.FINGER_TAPPING else set())
     rows = []
     for key in keys:
-        spec = metric_spec(key)
+        if key in aliases:
+            continue
+        spec = metric_spec(key, task)
         if primary is not None and spec.primary != primary:
             continue
         rows.append(
             MetricRow(
                 key=key,
                 label=spec.label,
-                value=format_metric(key, metrics[key]),
-                value_first_10=format_metric(key, first10[key]) if key in first10 else None,
+                value=format_metric(key, metrics[key], task),
+                value_first_10=format_metric(key, first10[key], task) if key in first10 else None,
                 unit=spec.unit,
                 definition=spec.definition,
             )

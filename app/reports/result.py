@@ -116,6 +116,10 @@ class TrialResult:
         (None for results older than that key).
     calibration_id : int or None
         The id of the calibration the worker measured with (``calibration.id``).
+    task : str
+        The task measured (``task``; results older than tasks are finger tapping).
+    cycles : tuple of mappings
+        The cycles of a task other than finger tapping, as the document gives them.
     """
 
     fps: float | None = None
@@ -128,6 +132,8 @@ class TrialResult:
     software_version: str | None = None
     algorithm_version: str | None = None
     calibration_id: int | None = None
+    task: str = "finger_tapping"
+    cycles: tuple[Mapping[str, object], ...] = ()
 
     def metric(self, key: str) -> float | None:
         """The metric ``key`` as a float, None when absent or undefined."""
@@ -228,6 +234,8 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         software_version=_text(software.get("version")),
         algorithm_version=_text(software.get("algorithm")),
         calibration_id=int(cal_id) if isinstance(cal_id, int) else None,
+        task=_text(doc.get("task")) or "finger_tapping",
+        cycles=tuple(c for c in _list(doc.get("cycles")) if isinstance(c, Mapping)),
         quality=ResultQuality(
             tracked_fraction=fraction("tracked_fraction"),
             interpolated_fraction=fraction("interpolated_fraction"),

@@ -29,6 +29,8 @@ from core.clinical import (
     medication_response_pct,
     unanchored_band,
 )
+from core.cycles import task_key
+from core.tasks import Task, parse_task
 
 FINGER_TAPPING = "finger_tapping"
 
@@ -77,17 +79,19 @@ class SummaryColumn:
 
     @property
     def label(self) -> str:
-        """``"Left hand, medication off"``."""
-        return f"{self.hand.capitalize()} hand, medication {self.medication_state}"
+        """``"Left hand, medication off"`` (``"Left foot, ..."`` for toe tapping)."""
+        limb = parse_task(self.task).limb
+        return f"{self.hand.capitalize()} {limb}, medication {self.medication_state}"
 
     def value(self, key: str) -> float | None:
-        """A metric over the first 10 taps (None when undefined or absent)."""
-        value = self.result.metrics_first_10.get(key)
+        """A metric over the first 10 taps (None when undefined or absent); ``key`` is a
+        finger-tapping name, read under the trial's task's name (``core.cycles.task_key``)."""
+        value = self.result.metrics_first_10.get(task_key(key, parse_task(self.task)))
         return None if value is None else float(value)
 
     @property
     def taps_counted(self) -> int:
-        """Complete taps among the first 10 (fewer when the recording held fewer)."""
+        """Complete taps (cycles) among the first 10 (fewer when the recording held fewer)."""
         return int(self.value("tap_count") or 0)
 
     def band(self, aspect: str) -> Band:
@@ -128,10 +132,12 @@ class SummaryRow:
 
 def _formatted(column: SummaryColumn, key: str) -> str:
     value = column.value(key)
+    task = parse_task(column.task)
     if key == "amplitude_decrement_onset_tap":
         # Counted from 1 on every page and report (result.json counts from 0).
-        return "none" if value is None else f"after tap {int(value) + 1}"
-    return format_metric(key, value)
+        word = "tap" if task is Task.FINGER_TAPPING else "cycle"
+        return "none" if value is None else f"after {word} {int(value) + 1}"
+    return format_metric(task_key(key, task), value, task.value)
 
 
 # (aspect, metric key, label); the band is shown on the aspect's first row.
@@ -147,27 +153,34 @@ ROWS: tuple[tuple[str, str, str], ...] = (
 
 
 def summary_rows(columns: Sequence[SummaryColumn]) -> list[SummaryRow]:
-    """The rows of a summary block for ``columns`` (trials), the band on each aspect's first row."""
+    """The rows of a summary block for ``columns`` (trials of one task), the band on each
+    aspect's first row; labels, units and keys in that task's words."""
+    task = parse_task(columns[0].task if columns else None)
     rows: list[SummaryRow] = []
     seen: set[str] = set()
     for aspect, key, label in ROWS:
         first = aspect not in seen
         seen.add(aspect)
-        unit = "" if key == "amplitude_decrement_onset_tap" else metric_spec(key).unit
+        own = task_key(key, task)
+        spec = metric_spec(own, task.value)
+        unit = "" if key == "amplitude_decrement_onset_tap" else spec.unit
+        if task is not Task.FINGER_TAPPING:
+            label = spec.label if key != "amplitude_decrement_onset_tap" else label
         cells = tuple(
             SummaryCell(_formatted(c, key), c.band(aspect) if first else None) for c in columns
         )
-        rows.append(SummaryRow(aspect=aspect, label=label, unit=unit, cells=cells, key=key))
+        rows.append(SummaryRow(aspect=aspect, label=label, unit=unit, cells=cells, key=own))
     return rows
 
 
 def short_taps_note(column: SummaryColumn) -> str | None:
-    """A note when fewer than 10 taps were completed (band 4 is the clinician's to judge)."""
+    """A note when fewer than 10 taps (cycles) were completed (band 4 is the clinician's)."""
     n = column.taps_counted
     if n >= ITEM_REPETITIONS:
         return None
+    word = "tap" if parse_task(column.task) is Task.FINGER_TAPPING else "cycle"
     return (
-        f"Only {n} complete tap{'s' if n != 1 else ''} in the recording; the item asks for"
+        f"Only {n} complete {word}{'s' if n != 1 else ''} in the recording; the item asks for"
         f" {ITEM_REPETITIONS}."
     )
 
@@ -185,12 +198,17 @@ def _pct(value: float | None) -> str:
     return "–" if value is None else f"{value:+.0f} %"
 
 
+def _own(key: str, column: SummaryColumn) -> tuple[str, str]:
+    """The key and label of a key metric in the column's task."""
+    task = parse_task(column.task)
+    own = task_key(key, task)
+    return own, metric_spec(own, task.value).label
+
+
 def asymmetry_rows(right: SummaryColumn, left: SummaryColumn) -> list[Comparison]:
-    """Right–left asymmetry of the key metrics (``core.clinical.asymmetry_pct``)."""
+    """Right–left asymmetry of the key metrics (``core.clinical.asymmetry_pct``), one task."""
     return [
-        Comparison(
-            key, metric_spec(key).label, _pct(asymmetry_pct(right.value(key), left.value(key)))
-        )
+        Comparison(*_own(key, right), _pct(asymmetry_pct(right.value(key), left.value(key))))
         for key in KEY_METRICS
     ]
 
@@ -198,11 +216,7 @@ def asymmetry_rows(right: SummaryColumn, left: SummaryColumn) -> list[Comparison
 def medication_rows(on: SummaryColumn, off: SummaryColumn) -> list[Comparison]:
     """Medication response of the key metrics (``core.clinical.medication_response_pct``)."""
     return [
-        Comparison(
-            key,
-            metric_spec(key).label,
-            _pct(medication_response_pct(on.value(key), off.value(key))),
-        )
+        Comparison(*_own(key, on), _pct(medication_response_pct(on.value(key), off.value(key))))
         for key in KEY_METRICS
     ]
 

@@ -380,6 +380,8 @@ class TrialInputs:
         The stored timestamps files of the videos, if they came with them.
     task : str
         The task recorded (``core.tasks.Task`` value).
+    side : str
+        The trial's side (its ``hand``: the hand, or the foot for toe tapping).
     """
 
     trial_id: int
@@ -392,6 +394,7 @@ class TrialInputs:
     left_times: Path | None = None
     right_times: Path | None = None
     task: str = DEFAULT_TASK.value
+    side: str = "right"
 
     @property
     def files(self) -> tuple[Path, ...]:
@@ -451,6 +454,7 @@ def analysis_inputs(
         left_times=_times_file(storage, videos["left"]),
         right_times=_times_file(storage, videos["right"]),
         task=trial.task,
+        side=trial.hand,
     )
 
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -255,6 +255,27 @@ class _Drift:
     amps: FloatArray  # (6, 2): mm for translations, radians for rotations
 
 
+def timeline_opening(timeline: _Timeline, t_s: ArrayLike) -> FloatArray:
+    """The opening signal ``o(t)`` of a cycle timeline, same shape as ``t_s`` (the unit of
+    its amplitudes): smootherstep up to each peak and back down, 0 between cycles."""
+    t = np.asarray(t_s, dtype=np.float64)
+    tl = timeline
+    k = np.searchsorted(tl.t_start_s, t, side="right") - 1
+    out = np.zeros_like(t)
+    valid = (k >= 0) & (k < len(tl.t_start_s))
+    kk = np.clip(k, 0, max(len(tl.t_start_s) - 1, 0))
+    if len(tl.t_start_s) == 0:
+        return out
+    t0, tp, te, amp = tl.t_start_s[kk], tl.t_peak_s[kk], tl.t_end_s[kk], tl.amplitude_mm[kk]
+    opening = valid & (t < tp)
+    closing = valid & (t >= tp) & (t < te)
+    x_open = np.clip((t - t0) / (tp - t0), 0.0, 1.0)
+    x_close = np.clip((t - tp) / (te - tp), 0.0, 1.0)
+    out = np.where(opening, amp * _smootherstep(x_open), out)
+    out = np.where(closing, amp * (1.0 - _smootherstep(x_close)), out)
+    return out
+
+
 @dataclass(frozen=True)
 class TappingModel:
     """The continuous-time model behind a :class:`TappingTruth` (positions at any time)."""
@@ -268,22 +289,7 @@ class TappingModel:
 
     def opening_mm(self, t_s: ArrayLike) -> FloatArray:
         """Opening ``o(t)`` (mm) = aperture minus the closed distance, same shape as ``t_s``."""
-        t = np.asarray(t_s, dtype=np.float64)
-        tl = self.timeline
-        k = np.searchsorted(tl.t_start_s, t, side="right") - 1
-        out = np.zeros_like(t)
-        valid = (k >= 0) & (k < len(tl.t_start_s))
-        kk = np.clip(k, 0, max(len(tl.t_start_s) - 1, 0))
-        if len(tl.t_start_s) == 0:
-            return out
-        t0, tp, te, amp = tl.t_start_s[kk], tl.t_peak_s[kk], tl.t_end_s[kk], tl.amplitude_mm[kk]
-        opening = valid & (t < tp)
-        closing = valid & (t >= tp) & (t < te)
-        x_open = np.clip((t - t0) / (tp - t0), 0.0, 1.0)
-        x_close = np.clip((t - tp) / (te - tp), 0.0, 1.0)
-        out = np.where(opening, amp * _smootherstep(x_open), out)
-        out = np.where(closing, amp * (1.0 - _smootherstep(x_close)), out)
-        return out
+        return timeline_opening(self.timeline, t_s)
 
     def aperture_mm(self, t_s: ArrayLike) -> FloatArray:
         """True thumb–index marker-centre distance (mm) at times ``t_s``."""
@@ -519,8 +525,39 @@ def _hand_rotation(orientation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     return R
 
 
+class TimelineSpec(Protocol):
+    """What a cycle timeline is built from (:class:`TappingScenario` and the other tasks'
+    scenarios, ``core.simulation.tasks``); ``amplitude_mm`` is in the task's unit."""
+
+    @property
+    def duration_s(self) -> float: ...
+    @property
+    def amplitude_mm(self) -> float: ...
+    @property
+    def frequency_hz(self) -> float: ...
+    @property
+    def decrement_mm_per_tap(self) -> float: ...
+    @property
+    def rhythm_jitter(self) -> float: ...
+    @property
+    def amplitude_jitter(self) -> float: ...
+    @property
+    def hesitations(self) -> tuple[int, ...]: ...
+    @property
+    def hesitation_s(self) -> float: ...
+    @property
+    def halts(self) -> tuple[tuple[int, float], ...]: ...
+
+
+def build_timeline(
+    scenario: TimelineSpec, rng: np.random.Generator
+) -> tuple[_Timeline, list[PauseTruth], list[PauseTruth]]:
+    """The cycles of a trial: their start, peak and end times and amplitudes, and the pauses."""
+    return _build_timeline(scenario, rng)
+
+
 def _build_timeline(
-    scenario: TappingScenario, rng: np.random.Generator
+    scenario: TimelineSpec, rng: np.random.Generator
 ) -> tuple[_Timeline, list[PauseTruth], list[PauseTruth]]:
     s = scenario
     pause_hes = set(s.hesitations)

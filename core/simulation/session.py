@@ -48,10 +48,15 @@ from core.simulation.render import (
     to_uint8,
 )
 from core.simulation.rig import default_rig
+from core.simulation.tasks import TaskModel, TaskScenario, TaskTruth, rig_geometry, simulate_task
 from core.simulation.timing import CameraClock, CameraTiming, camera_clock, rolling_shutter_times
+from core.tasks import Task
 from core.video import VideoWriter, video_suffix
 
 TRUTH_FORMAT = "bradyscope.truth/1"
+TrialTruth = TappingTruth | TaskTruth
+"""The ground truth of a finger-tapping trial or of another task's (core.simulation.tasks)."""
+MotionModel = TappingModel | TaskModel
 CAMERA_NAMES = ("left", "right")
 _MAX_BLUR_SAMPLES = 16
 _BLUR_SAMPLE_SPACING_PX = 0.5
@@ -215,7 +220,7 @@ class _MovingDistractor:
     twinkle_hz: float
     twinkle_phase: float
 
-    def positions_mm(self, model: TappingModel, t_s: FloatArray) -> FloatArray:
+    def positions_mm(self, model: MotionModel, t_s: FloatArray) -> FloatArray:
         """World positions ``(N, 3)``."""
         base = model.hand_points_mm(t_s, self.local_mm[None])[:, 0]
         wobble = self.wobble_amp_mm * np.sin(
@@ -333,7 +338,7 @@ def _choose_moving(n: int, rng: np.random.Generator) -> list[_MovingDistractor]:
 
 
 def _blur_samples(
-    model: TappingModel,
+    model: MotionModel,
     camera_times: FloatArray,
     exposure_s: float,
     focal_px: float,
@@ -351,7 +356,7 @@ def _blur_samples(
 
 
 def _camera_clocks(
-    truth: TappingTruth, imaging: ImagingScenario, seed: int
+    truth: TrialTruth, imaging: ImagingScenario, seed: int
 ) -> dict[str, CameraClock]:
     """When each camera captures its frames (:mod:`core.simulation.timing`).
 
@@ -382,14 +387,14 @@ class StereoRenderer:
 
     Parameters
     ----------
-    truth : TappingTruth
+    truth : TappingTruth or TaskTruth
     rig : StereoRig
     imaging : ImagingScenario
     seed : int
     """
 
     def __init__(
-        self, truth: TappingTruth, *, rig: StereoRig, imaging: ImagingScenario, seed: int
+        self, truth: TrialTruth, *, rig: StereoRig, imaging: ImagingScenario, seed: int
     ) -> None:
         for cam in rig.cameras:
             if cam.image_size != imaging.camera_size(cam.name):
@@ -401,6 +406,8 @@ class StereoRenderer:
         for _, marker, _, _ in imaging.occlusions:
             if marker not in names:
                 raise ValueError(f"occlusion marker must be one of {names}, got {marker!r}")
+        if imaging.skin_level > 0 and not isinstance(truth.model, TappingModel):
+            raise ValueError("the skin is drawn for finger tapping only; use skin_level 0")
         self.truth = truth
         self.rig = rig
         self.imaging = imaging
@@ -456,6 +463,15 @@ class StereoRenderer:
             t = self.times[cam_name]
             self.occluded[cam_name][:, names.index(marker)] |= (t >= t0) & (t < t0 + dur)
         self._cameras = {"left": rig.left, "right": rig.right}
+        # The movement hides markers itself (a mount seen from behind): the other tasks.
+        self.self_occluded = {
+            c: np.zeros((self.frame_counts[c], len(names)), dtype=bool) for c in CAMERA_NAMES
+        }
+        if isinstance(model, TaskModel):
+            for c, cam in self._cameras.items():
+                hidden = model.hidden_from(cam.center_world_mm, self.times[c])
+                self.self_occluded[c] = hidden
+                self.occluded[c] |= hidden
         self._n_sub = {
             c: _blur_samples(model, self.times[c], imaging.exposure_s, float(cam.K[0, 0]))
             for c, cam in self._cameras.items()
@@ -535,6 +551,7 @@ class StereoRenderer:
         records each marker's visible fraction."""
         imaging = self.imaging
         assert self._skin_look is not None
+        assert isinstance(self.model, TappingModel)
         cam = self._cameras[c]
         S = int(self._n_sub[c][j])
         t_mid = self.times[c][j]
@@ -592,6 +609,7 @@ class StereoRenderer:
             movings=self.movings,
             model=self.model,
             clocks=self.clocks,
+            self_occluded=self.self_occluded,
         )
 
 
@@ -603,6 +621,7 @@ def simulate_session(
     imaging: ImagingScenario | None = None,
     rig: StereoRig | None = None,
     progress: ProgressCallback | None = None,
+    task: TaskScenario | None = None,
 ) -> SimulatedSession:
     """Render a stereo recording of a simulated tapping trial with its ground truth.
 
@@ -622,6 +641,9 @@ def simulate_session(
         Default: :func:`~core.simulation.rig.default_rig` for the image size.
     progress : callable, optional
         ``progress("simulation", frames_done, frames_total)``.
+    task : TaskScenario, optional
+        Simulate that task (hand movements, pronation–supination, toe tapping;
+        :mod:`core.simulation.tasks`) instead of finger tapping (``tapping`` is then ignored).
 
     Returns
     -------
@@ -633,16 +655,22 @@ def simulate_session(
             ImagingScenario() if rig is None else ImagingScenario(image_size=rig.left.image_size)
         )
     if rig is None:
-        rig = default_rig(image_size=imaging.camera_size("left"))
+        geometry = rig_geometry(Task.FINGER_TAPPING if task is None else task.task)
+        rig = default_rig(image_size=imaging.camera_size("left"), **geometry._asdict())
         if imaging.camera_size("right") != rig.left.image_size:
-            rig = StereoRig(rig.left, default_rig(image_size=imaging.camera_size("right")).right)
+            rig = StereoRig(
+                rig.left,
+                default_rig(image_size=imaging.camera_size("right"), **geometry._asdict()).right,
+            )
     # The rig file says what each camera's rolling shutter is (readout_ms).
     rig = StereoRig(
         replace(rig.left, readout_ms=imaging.left_timing.readout_ms),
         replace(rig.right, readout_ms=imaging.right_timing.readout_ms),
         dict(rig.quality),
     )
-    truth = simulate_tapping(tapping, seed=seed)
+    truth: TrialTruth = (
+        simulate_tapping(tapping, seed=seed) if task is None else simulate_task(task, seed=seed)
+    )
     renderer = StereoRenderer(truth, rig=rig, imaging=imaging, seed=seed)
 
     out = Path(out_dir)
@@ -723,7 +751,7 @@ def _frame_intervals(mask: NDArray[np.bool_]) -> list[list[int]]:
 
 
 def _truth_document(
-    truth: TappingTruth,
+    truth: TrialTruth,
     *,
     seed: int,
     imaging: ImagingScenario,
@@ -732,8 +760,9 @@ def _truth_document(
     visibility: dict[str, FloatArray],
     statics: list[_StaticDistractor],
     movings: list[_MovingDistractor],
-    model: TappingModel,
+    model: MotionModel,
     clocks: dict[str, CameraClock],
+    self_occluded: dict[str, NDArray[np.bool_]] | None = None,
 ) -> dict[str, Any]:
     kin = truth.to_dict()
     t_left = clocks["left"].true_s
@@ -797,6 +826,12 @@ def _truth_document(
     kin.pop("marker_names")
     doc.update(kin)
     doc["occlusions"] = occlusions
+    if self_occluded is not None and any(np.any(v) for v in self_occluded.values()):
+        # [camera][marker]: frame ranges (that camera's numbering) the movement hid it
+        doc["self_occlusions"] = {
+            c: {name: _frame_intervals(self_occluded[c][:, k]) for k, name in enumerate(names)}
+            for c in CAMERA_NAMES
+        }
     # [camera][frame of that camera][marker]: share of the marker's image not hidden
     doc["visibility"] = {c: np.round(visibility[c], 4).tolist() for c in CAMERA_NAMES}
     t = t_left

@@ -114,6 +114,7 @@ def test_fhir_bundle_validates_and_carries_every_metric_and_the_pdf():
         e["resource"]
         for e in doc["entry"]
         if "clinician-rating" not in str(e["resource"].get("code", ""))
+        and "hasMember" not in e["resource"]  # the task's Observation group (below)
     ]
     kinds = [r["resourceType"] for r in resources]
     numeric = {
@@ -141,7 +142,11 @@ def test_fhir_bundle_validates_and_carries_every_metric_and_the_pdf():
     assert units["amplitude_decrement_mm_per_tap"] == "mm/{tap}"
     assert units["tap_count"] == units["amplitude_mm_cv"] == "1"
     report = DiagnosticReport.model_validate(resources[kinds.index("DiagnosticReport")])
-    assert len(report.result) == 11
+    assert len(report.result) == 11 + 1  # the metrics and their task group
+    (group,) = [e for e in doc["entry"] if "hasMember" in e["resource"]]
+    assert group["resource"]["code"]["coding"][0]["code"] == "finger-tapping"
+    members = {m["reference"] for m in group["resource"]["hasMember"]}
+    assert len(members) == 11 and group["fullUrl"] in {r.reference for r in report.result}
     form = report.presentedForm[0]
     assert form.contentType == "application/pdf"
     assert base64.b64decode(doc["entry"][-1]["resource"]["presentedForm"][0]["data"]) == pdf

@@ -1,0 +1,465 @@
+"""Marker protocols of the tasks other than finger tapping: labels, labelling rules, cycle signals.
+
+Each task has a marker protocol (``docs/protocols.md`` has the drawings and the
+reasons): where the markers go, what they are called in ``markers.csv``, the
+rule that gives each tracked marker its label, and the **cycle signal** the
+cycles are found on (:mod:`core.cycles`), in the unit of the task's amplitude.
+
+- **Hand movements** (MDS-UPDRS 3.5): ``finger`` on the back of the middle
+  phalanx of the middle finger, ``wrist`` on the back of the wrist. Both face
+  the cameras in the open hand *and* in the fist (a fingertip marker would be
+  buried in the palm). Signal: the finger–wrist distance (mm), largest when the
+  hand is open.
+- **Pronation–supination** (3.6): a rigid three-marker cluster on the back of
+  the hand, markers on posts (``radial``, ``ulnar``, ``distal``; a mirrored
+  cluster for the left hand, so that ``radial`` is always on the thumb side).
+  Signal: the rotation of the cluster about the forearm axis (degrees) from
+  its full 3D orientation (a proper rotation, swing–twist decomposition), 0 at
+  the most pronated position of the recording, positive towards supination.
+- **Toe tapping** (3.7): ``toe`` (lateral forefoot, over the 5th metatarsal
+  head), ``heel`` (lateral heel), ``shin`` (front of the lower leg, ~20 cm up).
+  Signal: the toe's lift (mm): the rotation of the heel–toe line since its
+  mean direction, in the plane of the foot and the shin, times the heel–toe
+  length (the arc the toe marker travels); positive towards the shin.
+
+Labelling rules (from stereo chains of tracklets, :mod:`core.tracks`): the
+fastest chain is the distal marker (``finger``, ``toe``); the other labels
+follow from distances, which rigid body parts keep and the room's reflections
+do not. The cluster of 3.6 is labelled by matching its three distances to
+the cluster's known ones.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from core.tasks import Task
+
+FloatArray = NDArray[np.float64]
+
+#: The three markers of the pronation–supination cluster in its own frame (mm): x from
+#: the ulnar to the radial marker, y distal (towards the fingers), z up the posts (15, 30
+#: and 45 mm tall). A scalene triangle, so that its three distances name its three
+#: markers; tilted, so that with the palm down no two markers share a row of a rig
+#: whose cameras stand side by side (the same epipolar line: docs/protocols.md).
+PS_CLUSTER_MM: dict[str, tuple[float, float, float]] = {
+    "radial": (35.0, 0.0, 0.0),
+    "ulnar": (-35.0, 0.0, 30.0),
+    "distal": (-10.0, 45.0, 15.0),
+}
+#: A chain triple is the cluster when each distance is within this of the cluster's (mm).
+PS_DISTANCE_TOLERANCE_MM = 6.0
+#: ... and each distance varies by less than this (SD, mm): a rigid body.
+PS_RIGID_SD_MM = 2.0
+#: Chains with fewer stereo frames in common are not compared.
+MIN_COMMON_FRAMES = 10
+#: The wrist marker lies this far from the finger marker (median, mm).
+HM_DISTANCE_RANGE_MM = (40.0, 250.0)
+#: The heel marker lies this far from the toe marker (median, mm).
+TT_TOE_HEEL_RANGE_MM = (100.0, 320.0)
+#: The shin marker lies this far from the heel marker (median, mm).
+TT_HEEL_SHIN_RANGE_MM = (60.0, 400.0)
+#: A chain moves when its 3D spread is at least this (mm) (as ``core.tracks``).
+MIN_SPREAD_MM = 1.0
+
+
+@dataclass(frozen=True)
+class MarkerProtocol:
+    """The markers of one task.
+
+    Attributes
+    ----------
+    task : Task
+    labels : tuple of str
+        The marker labels of ``markers.csv``, in this order.
+    rule : str
+        The labelling rule in one sentence (docs/protocols.md).
+    """
+
+    task: Task
+    labels: tuple[str, ...]
+    rule: str
+
+
+PROTOCOLS: dict[Task, MarkerProtocol] = {
+    Task.FINGER_TAPPING: MarkerProtocol(
+        Task.FINGER_TAPPING,
+        ("thumb", "index"),
+        "the index is the fastest moving marker; the thumb the moving one that comes closest to it",
+    ),
+    Task.HAND_MOVEMENTS: MarkerProtocol(
+        Task.HAND_MOVEMENTS,
+        ("finger", "wrist"),
+        "the finger is the fastest marker; the wrist the moving marker 40-250 mm from it"
+        " seen with it most often",
+    ),
+    Task.PRONATION_SUPINATION: MarkerProtocol(
+        Task.PRONATION_SUPINATION,
+        ("radial", "ulnar", "distal"),
+        "the three markers that keep the cluster's three distances (within 6 mm, SD under 2 mm),"
+        " named by those distances",
+    ),
+    Task.TOE_TAPPING: MarkerProtocol(
+        Task.TOE_TAPPING,
+        ("toe", "heel", "shin"),
+        "the toe is the fastest marker; the heel the one 100-320 mm from it at the steadiest"
+        " distance; the shin the nearest other marker 60-400 mm from the heel among those seen"
+        " with it at least half as often as the most seen",
+    ),
+}
+
+
+def protocol_for(task: Task | str) -> MarkerProtocol:
+    """The marker protocol of ``task``."""
+    return PROTOCOLS[Task(task)]
+
+
+# ----------------------------------------------------------------------------- labelling
+
+
+def _speed(track: FloatArray, fps: float) -> float:
+    step = np.linalg.norm(np.diff(track, axis=0), axis=1) * fps
+    step = step[np.isfinite(step)]
+    return float(np.percentile(step, 75)) if len(step) >= 3 else 0.0
+
+
+def _spread(track: FloatArray) -> float:
+    pts = track[np.all(np.isfinite(track), axis=1)]
+    return float(np.sqrt(np.sum(np.var(pts, axis=0)))) if len(pts) > 1 else 0.0
+
+
+def _distances(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Distances over the frames where both are seen (mm)."""
+    both = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+    result: FloatArray = np.linalg.norm(a[both] - b[both], axis=1)
+    return result
+
+
+def label_chains(
+    task: Task | str, tracks: Sequence[FloatArray], *, fps: float
+) -> tuple[list[int | None], list[str]]:
+    """Which chain carries each label of the task's protocol.
+
+    Parameters
+    ----------
+    task : Task or str
+        Not finger tapping (``core.tracks.select_markers`` labels that one).
+    tracks : sequence of ndarray, shape (T, 3)
+        Each chain's stereo positions on the frame axis (mm), NaN elsewhere.
+    fps : float
+
+    Returns
+    -------
+    picks : list of int or None
+        For each label of :func:`protocol_for`, the index of its chain (None: not found).
+    warnings : list of str
+    """
+    task = Task(task)
+    if task is Task.FINGER_TAPPING:
+        raise ValueError("finger tapping is labelled by core.tracks.select_markers")
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    tracks = [np.asarray(t, dtype=np.float64) for t in tracks]
+    if task is Task.PRONATION_SUPINATION:
+        return _label_cluster(tracks)
+    labels = protocol_for(task).labels
+    if not tracks:
+        return [None] * len(labels), [
+            f"no marker was found; {task.label.lower()} needs {len(labels)}"
+        ]
+    speeds = [_speed(t, fps) for t in tracks]
+    distal = int(np.argmax(speeds))
+    if task is Task.HAND_MOVEMENTS:
+        return _label_hand(tracks, distal)
+    return _label_foot(tracks, distal)
+
+
+def _label_hand(tracks: list[FloatArray], finger: int) -> tuple[list[int | None], list[str]]:
+    lo, hi = HM_DISTANCE_RANGE_MM
+    best: tuple[int, int] | None = None
+    for k, track in enumerate(tracks):
+        if k == finger or _spread(track) < MIN_SPREAD_MM:
+            continue
+        d = _distances(tracks[finger], track)
+        if len(d) < MIN_COMMON_FRAMES or not lo <= float(np.median(d)) <= hi:
+            continue
+        if best is None or len(d) > best[0]:
+            best = (len(d), k)
+    if best is None:
+        return [finger, None], [
+            "no wrist marker was found 40-250 mm from the finger marker; check that the wrist"
+            " marker sits on the back of the wrist, in view of both cameras"
+        ]
+    return [finger, best[1]], []
+
+
+def _label_foot(tracks: list[FloatArray], toe: int) -> tuple[list[int | None], list[str]]:
+    lo, hi = TT_TOE_HEEL_RANGE_MM
+    heel: tuple[float, int] | None = None
+    for k, track in enumerate(tracks):
+        if k == toe:
+            continue
+        d = _distances(tracks[toe], track)
+        if len(d) < MIN_COMMON_FRAMES or not lo <= float(np.median(d)) <= hi:
+            continue
+        sd = float(np.std(d))
+        if heel is None or sd < heel[0]:
+            heel = (sd, k)
+    if heel is None:
+        return [toe, None, None], [
+            "no heel marker was found 100-320 mm from the toe marker; check that the heel marker"
+            " is in view of both cameras"
+        ]
+    lo, hi = TT_HEEL_SHIN_RANGE_MM
+    near: list[tuple[float, int, int]] = []  # (median distance, frames, chain)
+    for k, track in enumerate(tracks):
+        if k in (toe, heel[1]):
+            continue
+        d = _distances(tracks[heel[1]], track)
+        if len(d) >= MIN_COMMON_FRAMES and lo <= float(np.median(d)) <= hi:
+            near.append((float(np.median(d)), len(d), k))
+    # Seen with the heel at least half as often as the best seen (a glint twinkles).
+    most = max((n for _, n, _ in near), default=0)
+    steady = [(d, k) for d, n, k in near if n >= 0.5 * most]
+    shin = min(steady) if steady else None
+    if shin is None:
+        return [toe, heel[1], None], [
+            "no shin marker was found 60-400 mm from the heel marker; check that the shin marker"
+            " is in view of both cameras"
+        ]
+    return [toe, heel[1], shin[1]], []
+
+
+def _cluster_distances() -> dict[tuple[str, str], float]:
+    pts = {k: np.asarray(v) for k, v in PS_CLUSTER_MM.items()}
+    return {
+        (a, b): float(np.linalg.norm(pts[a] - pts[b]))
+        for a, b in itertools.combinations(PS_CLUSTER_MM, 2)
+    }
+
+
+def _label_cluster(tracks: list[FloatArray]) -> tuple[list[int | None], list[str]]:
+    labels = tuple(PS_CLUSTER_MM)
+    template = _cluster_distances()
+    seen = [int(np.count_nonzero(np.all(np.isfinite(t), axis=1))) for t in tracks]
+    candidates = sorted(range(len(tracks)), key=lambda k: -seen[k])[:10]
+    best: tuple[float, tuple[int, ...]] | None = None
+    for triple in itertools.combinations(candidates, 3):
+        stats: dict[tuple[int, int], tuple[float, float]] = {}
+        ok = True
+        for a, b in itertools.combinations(triple, 2):
+            d = _distances(tracks[a], tracks[b])
+            if len(d) < MIN_COMMON_FRAMES or float(np.std(d)) > PS_RIGID_SD_MM:
+                ok = False
+                break
+            stats[(a, b)] = stats[(b, a)] = (float(np.median(d)), float(np.std(d)))
+        if not ok:
+            continue
+        for perm in itertools.permutations(triple):
+            named = dict(zip(labels, perm, strict=True))
+            errors = [stats[(named[a], named[b])][0] - ref for (a, b), ref in template.items()]
+            if max(abs(e) for e in errors) > PS_DISTANCE_TOLERANCE_MM:
+                continue
+            cost = float(sum(e * e for e in errors))
+            if best is None or cost < best[0]:
+                best = (cost, perm)
+    if best is None:
+        return [None, None, None], [
+            "the three markers of the pronation-supination cluster were not found together;"
+            " check that the cluster is on the back of the hand and in view of both cameras"
+        ]
+    return list(best[1]), []
+
+
+# ----------------------------------------------------------------------------- cycle signals
+
+
+@dataclass(frozen=True)
+class CycleSignal:
+    """A task's cycle signal: one value per frame, largest at the turn of each cycle.
+
+    Attributes
+    ----------
+    values : ndarray, shape (T,)
+        In ``unit``; NaN where a marker it needs is missing.
+    unit : {"mm", "deg"}
+    details : dict
+        What the signal was computed with (JSON-ready), e.g. the forearm axis.
+    """
+
+    values: FloatArray
+    unit: str
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+def cycle_signal(
+    task: Task | str, positions_mm: NDArray[np.floating], *, side: str = "right"
+) -> CycleSignal:
+    """The cycle signal of ``task`` from the labelled markers.
+
+    Parameters
+    ----------
+    task : Task or str
+    positions_mm : ndarray, shape (T, M, 3)
+        Marker positions (mm) in the order of the protocol's labels; NaN where missing.
+    side : {"right", "left"}
+        The side examined; gives the direction of supination (3.6).
+
+    Returns
+    -------
+    CycleSignal
+    """
+    task = Task(task)
+    pos = np.asarray(positions_mm, dtype=np.float64)
+    n_labels = len(protocol_for(task).labels)
+    if pos.ndim != 3 or pos.shape[1] != n_labels or pos.shape[2] != 3:
+        raise ValueError(f"positions_mm must have shape (T, {n_labels}, 3), got {pos.shape}")
+    if side not in ("right", "left"):
+        raise ValueError(f"side must be 'right' or 'left', got {side!r}")
+    if task is Task.FINGER_TAPPING or task is Task.HAND_MOVEMENTS:
+        return CycleSignal(np.linalg.norm(pos[:, 1] - pos[:, 0], axis=1), "mm")
+    if task is Task.TOE_TAPPING:
+        return toe_lift_mm(pos)
+    return supination_deg(pos, side=side)
+
+
+def toe_lift_mm(positions_mm: FloatArray) -> CycleSignal:
+    """Toe lift (mm) from toe, heel and shin markers ``(T, 3, 3)``.
+
+    ``f = toe - heel`` rotates with the foot. Its mean direction ``f0`` and the
+    shin's direction from the heel span the foot's sagittal plane, with normal
+    ``n = f0 x (shin - heel)`` (mean over frames): the signed angle
+    ``theta = atan2((f0 x f) . n, f0 . f)`` grows as the toe rises towards the
+    shin. The signal is ``L (theta - min theta)`` with ``L`` the median
+    heel–toe length: the arc the toe marker travels about the heel, 0 at the
+    lowest toe position of the recording. A rotation of the foot about any
+    lateral axis (the heel's contact point, the ankle) changes ``theta`` by
+    exactly its angle.
+    """
+    toe, heel, shin = positions_mm[:, 0], positions_mm[:, 1], positions_mm[:, 2]
+    f = toe - heel
+    g = shin - heel
+    ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(g), axis=1)
+    out = np.full(len(f), np.nan)
+    if np.count_nonzero(ok) < 3:
+        return CycleSignal(out, "mm", {"heel_toe_mm": None})
+    length = float(np.median(np.linalg.norm(f[ok], axis=1)))
+    unit_f = f[ok] / np.linalg.norm(f[ok], axis=1)[:, None]
+    f0 = np.mean(unit_f, axis=0)
+    f0 /= np.linalg.norm(f0)
+    n = np.mean(np.cross(f0[None], g[ok]), axis=0)
+    n /= np.linalg.norm(n)
+    sin_part = np.cross(f0[None], unit_f) @ n
+    theta = np.arctan2(sin_part, unit_f @ f0)
+    lift = length * (theta - float(np.min(theta)))
+    out[ok] = lift
+    return CycleSignal(out, "mm", {"heel_toe_mm": length})
+
+
+def _kabsch(ref: FloatArray, cur: FloatArray) -> FloatArray:
+    """Rotation ``R`` with ``cur - mean(cur) ~ R (ref - mean(ref))`` (least squares, det +1)."""
+    a = ref - ref.mean(axis=0)
+    b = cur - cur.mean(axis=0)
+    u, _, vt = np.linalg.svd(b.T @ a)
+    d = np.sign(np.linalg.det(u @ vt))
+    result: FloatArray = u @ np.diag([1.0, 1.0, d]) @ vt
+    return result
+
+
+def _quaternion(R: FloatArray) -> FloatArray:
+    """Unit quaternion ``(w, x, y, z)`` of a rotation matrix (Shepperd's method)."""
+    tr = float(np.trace(R))
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    out = np.asarray(q, dtype=np.float64)
+    result: FloatArray = out / np.linalg.norm(out)
+    return result
+
+
+def _rotation_vector(R: FloatArray) -> FloatArray:
+    q = _quaternion(R)
+    if q[0] < 0:
+        q = -q
+    s = float(np.linalg.norm(q[1:]))
+    if s < 1e-15:
+        return np.zeros(3)
+    result: FloatArray = 2.0 * math.atan2(s, float(q[0])) * q[1:] / s
+    return result
+
+
+def supination_deg(positions_mm: FloatArray, *, side: str) -> CycleSignal:
+    """Rotation about the forearm axis (degrees) of the cluster ``(T, 3, 3)`` (radial, ulnar, distal).
+
+    1. The cluster's orientation ``R(t)`` relative to a reference frame (the
+       first frame that sees all three markers): the least-squares rotation
+       (Kabsch) taking the reference cluster onto the current one.
+    2. The forearm axis ``a``: the principal direction of the frame-to-frame
+       rotation vectors (the axis the hand turns about), pointing distally
+       (towards the ``distal`` marker's side of the cluster).
+    3. Supination turns the radial side towards the back of the hand, a
+       positive rotation about ``-a`` for a right hand and ``+a`` for a left
+       hand; the angle is the *twist* of ``R(t)`` about that axis
+       (swing–twist decomposition of its quaternion ``(w, v)``:
+       ``2 atan2(v . n, w)``), unwrapped over time, so it stays exact through
+       palm up and beyond 180 degrees.
+    4. The signal is that angle minus its minimum: 0 at the most pronated
+       position of the recording.
+    """
+    pos = positions_mm
+    ok = np.all(np.isfinite(pos), axis=(1, 2))
+    out = np.full(len(pos), np.nan)
+    frames = np.flatnonzero(ok)
+    if len(frames) < 3:
+        return CycleSignal(out, "deg", {"forearm_axis": None})
+    ref = pos[frames[0]]
+    rots = np.stack([_kabsch(ref, pos[i]) for i in frames])
+    steps = [
+        _rotation_vector(rots[k + 1] @ rots[k].T)
+        for k in range(len(frames) - 1)
+        if frames[k + 1] - frames[k] <= 3
+    ]
+    omega = np.asarray(steps) if steps else np.zeros((0, 3))
+    if len(omega) < 2 or not np.any(omega):
+        return CycleSignal(out, "deg", {"forearm_axis": None})
+    _, _, vt = np.linalg.svd(omega, full_matrices=False)
+    axis = vt[0]
+    distal_dir = ref[2] - 0.5 * (ref[0] + ref[1])
+    if float(axis @ distal_dir) < 0:
+        axis = -axis
+    n = -axis if side == "right" else axis
+    quats = np.stack([_quaternion(R) for R in rots])
+    twist = 2.0 * np.arctan2(quats[:, 1:] @ n, quats[:, 0])
+    angle = np.rad2deg(np.unwrap(twist))
+    angle -= float(np.min(angle))
+    out[frames] = angle
+    return CycleSignal(out, "deg", {"forearm_axis": axis.tolist(), "side": side})
+
+
+__all__ = [
+    "PROTOCOLS",
+    "PS_CLUSTER_MM",
+    "CycleSignal",
+    "MarkerProtocol",
+    "cycle_signal",
+    "label_chains",
+    "protocol_for",
+    "supination_deg",
+    "toe_lift_mm",
+]
