@@ -17,6 +17,7 @@ from core.errors import InputError
 from core.tasks import TASKS, Task
 
 if TYPE_CHECKING:  # the sub-command imports the simulator only when it runs
+    from core.camera import StereoRig
     from core.simulation.kinematics import TappingScenario
     from core.simulation.session import ImagingScenario
     from core.simulation.tasks import TaskScenario
@@ -369,16 +370,15 @@ def _imaging(args: argparse.Namespace) -> ImagingScenario:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    from app.cli.progress import progress_bar
+def _scenarios(
+    args: argparse.Namespace,
+) -> tuple[TappingScenario, TaskScenario | None, ImagingScenario, StereoRig]:
+    """The scenarios and rig of the command line, checked before anything is rendered."""
     from core.camera import StereoRig
-    from core.simulation.boards import write_board_recordings
     from core.simulation.hand import overlap_orientation_deg
     from core.simulation.kinematics import simulate_tapping
     from core.simulation.rig import default_rig
-    from core.simulation.session import simulate_session
     from core.simulation.tasks import rig_geometry, simulate_task
-    from core.simulation.timing import CameraTiming
 
     try:
         tapping = _tapping(args)
@@ -411,6 +411,16 @@ def run(args: argparse.Namespace) -> int:
             )
     except ValueError as exc:
         raise InputError(f"invalid scenario: {exc}; see bradyscope simulate --help.") from exc
+    return tapping, task, imaging, rig
+
+
+def run(args: argparse.Namespace) -> int:
+    from app.cli.progress import progress_bar
+    from core.simulation.boards import write_board_recordings
+    from core.simulation.session import simulate_session
+    from core.simulation.timing import CameraTiming
+
+    tapping, task, imaging, rig = _scenarios(args)
     try:
         args.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

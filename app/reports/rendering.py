@@ -17,7 +17,12 @@ from app.reports.figures import report_plots
 from app.reports.summary import short_taps_note, summary_rows
 from app.reports.visit import VisitData, task_groups
 from app.templating import jinja_env
+from core.tasks import Task, parse_task
 from core.version import software_version
+
+
+def _word(task: str) -> str:
+    return "tap" if parse_task(task) is Task.FINGER_TAPPING else "cycle"
 
 
 def summary_context(data: ReportData) -> dict[str, Any]:
@@ -27,7 +32,8 @@ def summary_context(data: ReportData) -> dict[str, Any]:
         "summary_columns": columns,
         "summary_rows": summary_rows(columns),
         "summary_first": True,
-        "summary_caption": "First 10 taps against the MDS-UPDRS 3.4 wording"
+        "summary_caption": f"First 10 {_word(data.task)}s against the MDS-UPDRS"
+        f" {parse_task(data.task).updrs_item} wording"
         + (", beside the same visit's other trials" if data.beside else ""),
         "summary_note": short_taps_note(columns[0]),
     }

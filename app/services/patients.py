@@ -207,14 +207,16 @@ def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
     """Per trend metric, one point per analysed trial of the patient: its first-10-tap value.
 
     The MDS-UPDRS item is rated on the first 10 taps, so the trends follow
-    ``metrics_first_10`` (a result without it has no point).
+    ``metrics_first_10`` (a result without it has no point). The trends are
+    finger tapping's: the other tasks' trials (another item, other units) are
+    not drawn on them.
     """
     points: dict[str, list[TrendPoint]] = {key: [] for key, _, _ in TREND_METRICS}
     for s in patient.sessions:
         if s.deleted_at is not None:
             continue
         for t in s.trials:
-            if t.deleted_at is not None or t.result is None:
+            if t.deleted_at is not None or t.result is None or t.task != "finger_tapping":
                 continue
             result = read_result(t.result.document)
             first10 = result.metrics_first_10

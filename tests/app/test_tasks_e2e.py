@@ -44,7 +44,13 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[SimulatedSessio
                 seed=40 + k,
                 task=scenario,
                 rig=rig,
-                imaging=ImagingScenario(image_size=SIZE, codec="mp4v"),  # small files
+                imaging=ImagingScenario(
+                    image_size=SIZE,
+                    codec="mp4v",  # small files
+                    # the foot's markers are 10 mm (docs/protocols.md): 5 mm at 800 mm is
+                    # under 4 px at this size
+                    marker_diameter_mm=10.0 if task is Task.TOE_TAPPING else 5.0,
+                ),
             )
         )
     return out
