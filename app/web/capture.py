@@ -22,15 +22,15 @@ from app.errors import NotFoundError
 from app.services import capture
 from app.web.common import PageUser, error_page, render
 from core.errors import InputError
+from core.protocols import protocol_for
 from core.tasks import DEFAULT_TASK, Task, parse_task
 
 router = APIRouter()
 
 CAMERA_PERMISSION = "camera=(self), microphone=(), geolocation=()"
-MARKERS_PER_VIEW: dict[Task, int] = {Task.FINGER_TAPPING: 2}  # thumb and index, in both views
-"""Markers each camera must see for the gate to call its view ready, per task. A task
-without a number here (its marker protocol is not in core yet) is not counted by the gate:
-the page shows the spots it sees, and the analysis says what it missed."""
+MARKERS_PER_VIEW: dict[Task, int] = {task: len(protocol_for(task).labels) for task in Task}
+"""Markers each camera must see for the gate to call its view ready, per task: the task's
+marker protocol (core.protocols; finger tapping: thumb and index)."""
 COUNTDOWN_S = 3
 DEFAULT_DURATION_S = 15
 CALIBRATION_SIZES = ((640, 480), (640, 512), (1280, 720), (1280, 1024), (1920, 1080))

@@ -51,6 +51,8 @@ def test_the_session_capture_page_asks_for_the_rigs_resolution(
         "toe_tapping",
     ]
     assert options[0] == ("finger_tapping", "2", " selected")
+    # The other tasks' marker protocols (docs/protocols.md): finger and wrist; three markers.
+    assert [markers for _, markers, _ in options[1:]] == ["2", "3", "3"]
     assert '<script src="/static/capture.js" defer></script>' in html
     assert "<script>" not in html  # no inline script (the CSP forbids them)
     # Only the capture pages may use the camera.
