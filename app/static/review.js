@@ -113,15 +113,24 @@
       drawPlot(t);
     }
 
+    // The frame last asked for: keys pressed faster than the video seeks step on from it,
+    // not from the frame still on screen (three presses move three frames).
+    var pending = null;
+    function current() { return pending === null ? lead.frame : pending; }
+
     function seekFrame(frame) {
       var max = lead.cam ? lead.cam.frame_count - 1 : Math.floor(lead.video.duration * fps) - 1;
       frame = Math.max(0, Math.min(max, frame));
       lead.video.pause();
       if (follow) follow.video.pause();
+      pending = frame;
       lead.video.currentTime = (frame + 0.25) / fps;
     }
 
-    lead.video.addEventListener("seeked", function () { show(frameOf(lead.video.currentTime, fps)); });
+    lead.video.addEventListener("seeked", function () {
+      if (!lead.video.seeking) pending = null;  // the last seek asked for has landed
+      show(frameOf(lead.video.currentTime, fps));
+    });
     if (follow) follow.video.addEventListener("seeked", function () {
       if (follow.video.paused) draw(follow, frameOf(follow.video.currentTime, follow.fps));
     });
@@ -144,6 +153,7 @@
 
     function togglePlay() {
       if (lead.video.paused) {
+        pending = null;
         var p = lead.video.play();
         if (follow) follow.video.play();
         if (p && p.catch) p.catch(function () {});
@@ -160,14 +170,14 @@
       if (follow) follow.video.pause();
     });
     playButton.addEventListener("click", togglePlay);
-    document.querySelector('[data-action="prev"]').addEventListener("click", function () { seekFrame(lead.frame - 1); });
-    document.querySelector('[data-action="next"]').addEventListener("click", function () { seekFrame(lead.frame + 1); });
+    document.querySelector('[data-action="prev"]').addEventListener("click", function () { seekFrame(current() - 1); });
+    document.querySelector('[data-action="next"]').addEventListener("click", function () { seekFrame(current() + 1); });
     document.addEventListener("keydown", function (e) {
       var tag = (e.target && e.target.tagName) || "";
       if (/^(INPUT|TEXTAREA|SELECT|BUTTON|A)$/.test(tag)) return;
       if (e.key === " ") { e.preventDefault(); togglePlay(); }
-      else if (e.key === "ArrowLeft") { e.preventDefault(); seekFrame(lead.frame - 1); }
-      else if (e.key === "ArrowRight") { e.preventDefault(); seekFrame(lead.frame + 1); }
+      else if (e.key === "ArrowLeft") { e.preventDefault(); seekFrame(current() - 1); }
+      else if (e.key === "ArrowRight") { e.preventDefault(); seekFrame(current() + 1); }
     });
     Array.prototype.forEach.call(document.querySelectorAll("[data-jump]"), function (b) {
       b.addEventListener("click", function () {
@@ -252,7 +262,7 @@
       plot.addEventListener("keydown", function (e) {
         if (e.key === "ArrowLeft" || e.key === "ArrowRight") {
           e.preventDefault(); e.stopPropagation();
-          seekFrame(lead.frame + (e.key === "ArrowLeft" ? -1 : 1));
+          seekFrame(current() + (e.key === "ArrowLeft" ? -1 : 1));
         }
       });
     }
