@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from core.aperture import aperture_signal
+from core.cycles import with_common_keys
 from core.markers_csv import MEASURED, MarkerTable
 from core.metrics import TappingMetrics, _clean, locate_events, summarise_taps
 from core.resample import uniform_trajectories
@@ -133,9 +134,10 @@ class CorrectedMetrics:
     dismissed_events: tuple[dict[str, Any], ...]
 
     def to_result(self) -> dict[str, Any]:
-        """The tapping part of result.json (as :meth:`TappingMetrics.to_result`) plus
+        """The tapping part of result.json (as :meth:`TappingMetrics.to_result`, with the
+        common keys of every task) plus
         ``corrections``, ``excluded_taps``, ``outside_window_taps`` and ``dismissed_events``."""
-        doc = self.metrics.to_result()
+        doc = with_common_keys(self.metrics.to_result(), self.metrics)
         doc["corrections"] = self.corrections.to_dict()
         doc["excluded_taps"] = _clean([t.to_dict() for t in self.excluded_taps])
         doc["outside_window_taps"] = _clean([t.to_dict() for t in self.outside_window_taps])

@@ -63,6 +63,18 @@ def common_metrics(metrics: dict[str, Number], unit: str) -> dict[str, Number | 
     }
 
 
+def with_common_keys(result: dict[str, Any], tapping: TappingMetrics) -> dict[str, Any]:
+    """Finger tapping's ``result`` (:meth:`TappingMetrics.to_result`) with the common keys of
+    every task added to ``metrics`` and ``metrics_first_10``, beside its own names."""
+    out = dict(result)
+    out["metrics"] = {**result.get("metrics", {}), **common_metrics(tapping.metrics, "mm")}
+    out["metrics_first_10"] = {
+        **result.get("metrics_first_10", {}),
+        **common_metrics(tapping.metrics_first_10, "mm"),
+    }
+    return out
+
+
 def task_key(key: str, task: Task) -> str:
     """A finger-tapping metric or tap key renamed for ``task`` (``amplitude_mm_mean`` ->
     ``amplitude_deg_mean``, ``opening_velocity_mm_s_max`` -> ``supination_velocity_deg_s_max``,
@@ -217,4 +229,11 @@ def compute_task_metrics(
     return TaskMetrics(task, signal, tapping)
 
 
-__all__ = ["COMMON_KEYS", "TaskMetrics", "common_metrics", "compute_task_metrics", "task_key"]
+__all__ = [
+    "COMMON_KEYS",
+    "TaskMetrics",
+    "common_metrics",
+    "compute_task_metrics",
+    "task_key",
+    "with_common_keys",
+]

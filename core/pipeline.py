@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from core.camera import Camera, StereoRig
 from core.clock import TimeModelResult, corrected_times, synchronise
-from core.cycles import TaskMetrics, common_metrics, compute_task_metrics
+from core.cycles import TaskMetrics, compute_task_metrics, with_common_keys
 from core.errors import DetectionError, InputError
 from core.markers import EXPECTED_COUNT_FULL_SEARCHES as EXPECTED_COUNT_FULL_SEARCHES
 from core.markers import FULL_SEARCH_EVERY as FULL_SEARCH_EVERY
@@ -198,16 +198,11 @@ class Analysis:
         taps: list[dict[str, Any]] = []
         extra: dict[str, Any] = {}
         if self.metrics is not None:
-            res = self.metrics.to_result()
-            metrics = dict(res.get("metrics", {}))
+            # The common keys of every task (docs/interfaces.md), beside finger tapping's own.
+            res = with_common_keys(self.metrics.to_result(), self.metrics)
+            metrics = dict(res["metrics"])
             taps = list(res.get("taps", []))
             extra = {k: v for k, v in res.items() if k not in ("metrics", "taps")}
-            # The common keys of every task (docs/interfaces.md), beside finger tapping's own.
-            metrics.update(common_metrics(self.metrics.metrics, "mm"))
-            extra["metrics_first_10"] = {
-                **extra.get("metrics_first_10", {}),
-                **common_metrics(self.metrics.metrics_first_10, "mm"),
-            }
         elif self.task_metrics is not None:
             res = self.task_metrics.to_result()
             metrics = dict(res["metrics"])

@@ -10,6 +10,7 @@ from sqlalchemy import select
 from app.models import AuditEvent, Job, Result, Trial
 from app.reports.figures import read_plots_document
 from app.storage import Storage
+from core.cycles import common_metrics
 from core.markers_csv import MEASURED, read_markers_csv
 from core.metrics import compute_metrics, tapping_metrics
 
@@ -49,7 +50,8 @@ def _core_metrics_without(
         for e in full.events
         if e["kind"] == "gap" or (e["tap_index"] in idx and e["tap_index"] not in dismiss)
     ]
-    return full, tapping_metrics(kept, events)
+    metrics = tapping_metrics(kept, events)
+    return full, {**metrics, **common_metrics(metrics, "mm")}  # with every task's common keys
 
 
 def test_excluding_a_tap_is_a_new_revision_measured_by_core(api: Api, video_pair) -> None:
