@@ -626,6 +626,14 @@ def least_squares_slope(values: ArrayLike) -> float:
     return float(np.sum(x * (y - y.mean())) / np.sum(x * x))
 
 
+def cycle_frames(timeline: _Timeline, fps: float, n_frames: int) -> list[tuple[int, int]]:
+    """The frames (start, end) of each cycle of ``timeline`` in a recording of ``n_frames``."""
+    return [
+        (min(round(t0 * fps), n_frames - 2), min(round(t1 * fps), n_frames - 1))
+        for t0, t1 in zip(timeline.t_start_s, timeline.t_end_s, strict=True)
+    ]
+
+
 def tap_amplitudes_from_positions(
     positions_mm: FloatArray, frame_ranges: Sequence[tuple[int, int]]
 ) -> FloatArray:
@@ -691,10 +699,7 @@ def simulate_tapping(scenario: TappingScenario, *, seed: int) -> TappingTruth:
     t_s = np.arange(n_frames) / scenario.fps
     positions = model.positions_mm(t_s)
     fps = scenario.fps
-    frames = [
-        (min(round(t0 * fps), n_frames - 2), min(round(t1 * fps), n_frames - 1))
-        for t0, t1 in zip(timeline.t_start_s, timeline.t_end_s, strict=True)
-    ]
+    frames = cycle_frames(timeline, fps, n_frames)
     amps = tap_amplitudes_from_positions(positions, frames) if frames else np.zeros(0)
     taps = tuple(
         TapTruth(

@@ -48,6 +48,7 @@ from core.simulation.kinematics import (
     _rotations,
     _Timeline,
     build_timeline,
+    cycle_frames,
     least_squares_slope,
     timeline_opening,
 )
@@ -548,10 +549,7 @@ def simulate_task(scenario: TaskScenario, *, seed: int) -> TaskTruth:
     t_s = np.arange(n_frames) / fps
     positions = model.positions_mm(t_s)
     signal = true_signal(model, t_s)
-    frames = [
-        (min(round(a * fps), n_frames - 2), min(round(b * fps), n_frames - 1))
-        for a, b in zip(timeline.t_start_s, timeline.t_end_s, strict=True)
-    ]
+    frames = cycle_frames(timeline, fps, n_frames)
     amplitudes = _sampled_amplitudes(signal, frames) if frames else np.zeros(0)
     cycles = tuple(
         CycleTruth(
