@@ -153,9 +153,13 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
                 "Marker reprojection error (95th percentile)", f"{value:.2f} px", value > 2.0
             )
         )
-    if q.tracked_fraction is not None:
-        value = q.tracked_fraction
+    # measured, interpolated and missing apart: an interpolated frame is no measurement
+    if q.measured_fraction is not None:
+        value = q.measured_fraction
         rows.append(QualityRow("Frames measured", f"{100 * value:.1f} %", value < 0.9))
+    if q.tracked_fraction is not None:
+        value = 1.0 - q.tracked_fraction
+        rows.append(QualityRow("Frames missing", f"{100 * value:.1f} %", value > 0.05))
     if q.interpolated_fraction is not None:
         value = q.interpolated_fraction
         rows.append(QualityRow("Frames interpolated", f"{100 * value:.1f} %", value > 0.05))

@@ -82,6 +82,8 @@ class ResultQuality:
     """The ``quality`` object: fractions 0–1, reprojection errors in px, warnings."""
 
     tracked_fraction: float | None = None
+    #: frames x markers measured by both cameras (the rest interpolated or missing)
+    measured_fraction: float | None = None
     interpolated_fraction: float | None = None
     reprojection_px_median: float | None = None
     reprojection_px_p95: float | None = None
@@ -238,6 +240,7 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         cycles=tuple(c for c in _list(doc.get("cycles")) if isinstance(c, Mapping)),
         quality=ResultQuality(
             tracked_fraction=fraction("tracked_fraction"),
+            measured_fraction=fraction("measured_fraction"),
             interpolated_fraction=fraction("interpolated_fraction"),
             reprojection_px_median=fraction("reprojection_px_median"),
             reprojection_px_p95=fraction("reprojection_px_p95"),

@@ -132,7 +132,8 @@ def synthetic_trial(
         "events": events,
         "taps": taps,
         "quality": {
-            "tracked_fraction": float(np.mean(status == "measured")),
+            "tracked_fraction": float(np.mean(status != "missing")),
+            "measured_fraction": float(np.mean(status == "measured")),
             "interpolated_fraction": float(np.mean(status == "interpolated")),
             "reprojection_px_median": 0.1,
             "warnings": ["The thumb marker was lost in the last frame."],

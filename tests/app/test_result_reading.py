@@ -77,3 +77,29 @@ def test_marker_images_set_aside_and_overlaps_reach_the_quality_panel() -> None:
         for r in quality_rows(type("D", (), {"calibration": None, "analysis": read_result({})})())
     }  # type: ignore[arg-type]
     assert not any("set aside" in label or "overlapping" in label for label in old)
+
+
+def test_frames_measured_counts_measured_only() -> None:
+    """The quality panel's "Frames measured" is the measured share, not measured plus
+    interpolated; interpolated and missing frames have their own rows."""
+    from app.reports.data import quality_rows
+    from app.reports.result import read_result
+
+    doc = {
+        "fps": 100.0,
+        "quality": {
+            "tracked_fraction": 0.97,  # measured or interpolated
+            "measured_fraction": 0.88,
+            "interpolated_fraction": 0.09,
+            "frames_left": 1000,
+        },
+    }
+
+    class _Data:  # the two fields quality_rows reads
+        calibration = None
+        analysis = read_result(doc)
+
+    rows = {r.label: r for r in quality_rows(_Data())}  # type: ignore[arg-type]
+    assert (rows["Frames measured"].value, rows["Frames measured"].warn) == ("88.0 %", True)
+    assert (rows["Frames interpolated"].value, rows["Frames interpolated"].warn) == ("9.0 %", True)
+    assert (rows["Frames missing"].value, rows["Frames missing"].warn) == ("3.0 %", False)
