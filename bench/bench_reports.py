@@ -1,7 +1,8 @@
 """Time the report path: plots, HTML and PDF of one trial (synthetic 20-tap trial, 9 s at 100 fps).
 
-Prints CPU seconds per step and the ratio of a cached (second) rendering to
-the first, measured in the same run. Usage::
+Prints CPU seconds per step, the ratio of a cached (second) rendering to
+the first, and of the PDF with its plots as SVG images (as served) to the same
+with inline SVG (as before), measured in the same run. Usage::
 
     python bench/bench_reports.py [--repeat 3]
 """
@@ -9,15 +10,18 @@ the first, measured in the same run. Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "app"))
 
 from sample_trial import sample_report_data
 
-from app import exports, reports
+from app import exports
+from app.reports import figures, rendering
 
 
 def _cpu(fn) -> float:
@@ -26,28 +30,42 @@ def _cpu(fn) -> float:
     return time.process_time() - t0
 
 
+@contextlib.contextmanager
+def _inline_svg() -> Iterator[None]:
+    """The PDF drawn as before: the plots inline SVG in the page, not images of it."""
+    convert = rendering.svg_plots_as_images
+    rendering.svg_plots_as_images = lambda html: html
+    try:
+        yield
+    finally:
+        rendering.svg_plots_as_images = convert
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     data = sample_report_data()
-    reports.render_report_html(data)  # warm imports and the Jinja cache
+    rendering.render_report_html(data)  # warm imports and the Jinja cache
     rows = []
     for _ in range(args.repeat):
-        reports._PLOT_CACHE.clear()
-        plots_s = _cpu(lambda: reports.report_plots(data))
-        reports._PLOT_CACHE.clear()
-        pdf_cold = _cpu(lambda: reports.render_report_pdf(data))
-        pdf_warm = _cpu(lambda: reports.render_report_pdf(data))
-        html_warm = _cpu(lambda: reports.render_report_html(data))
-        pdf = reports.render_report_pdf(data)
+        figures._PLOT_CACHE.clear()
+        plots_s = _cpu(lambda: figures.report_plots(data))
+        figures._PLOT_CACHE.clear()
+        pdf_cold = _cpu(lambda: rendering.render_report_pdf(data))
+        pdf_warm = _cpu(lambda: rendering.render_report_pdf(data))
+        with _inline_svg():
+            pdf_inline = _cpu(lambda: rendering.render_report_pdf(data))
+        html_warm = _cpu(lambda: rendering.render_report_html(data))
+        pdf = rendering.render_report_pdf(data)
         fhir = _cpu(lambda pdf=pdf: exports.fhir_bundle(data, pdf))
-        rows.append((plots_s, pdf_cold, pdf_warm, html_warm, fhir))
+        rows.append((plots_s, pdf_cold, pdf_warm, pdf_inline, html_warm, fhir))
     best = [min(col) for col in zip(*rows, strict=True)]
     names = [
         "4 plots (SVG)",
         "PDF, plots not cached",
         "PDF, plots cached",
+        "same, plots as inline SVG",
         "HTML, plots cached",
         "FHIR bundle (validated)",
     ]
@@ -56,6 +74,7 @@ def main() -> None:
     for name, value in zip(names, best, strict=True):
         print(f"  {name:28s} {value:6.3f} s")
     print(f"  cached / uncached PDF ratio  {best[2] / best[1]:6.2f}")
+    print(f"  SVG images / inline SVG      {best[2] / best[3]:6.2f}")
 
 
 if __name__ == "__main__":

@@ -4,10 +4,18 @@
   page: inline CSS and inline SVG plots, no external resource).
 - :func:`render_report_pdf` renders the same HTML with WeasyPrint; its URL
   fetcher refuses every URL, so a report can never reach the network.
+
+For the PDF each inline ``<svg>`` plot becomes an ``<img>`` of the same SVG
+(a ``data:`` URL, :func:`svg_plots_as_images`): WeasyPrint then draws it as an
+image, outside the page's CSS cascade, which made the report's PDF about 30 %
+cheaper (docs/performance.md); the plots stay vector and their words searchable.
 """
 
 from __future__ import annotations
 
+import base64
+import html as html_lib
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -76,11 +84,38 @@ def _refusing_fetcher() -> Any:
     return RefusingURLFetcher(allowed_protocols=("data",), fail_on_errors=False)
 
 
+_INLINE_SVG = re.compile(r"<svg\b([^>]*)>.*?</svg>", re.S)
+_ATTRIBUTE = re.compile(r'\s([\w:-]+)="([^"]*)"')
+
+
+def _svg_image(match: re.Match[str]) -> str:
+    attributes = dict(_ATTRIBUTE.findall(match.group(1)))
+    body = base64.b64encode(match.group(0).encode("utf-8")).decode("ascii")
+    alt = attributes.get("aria-label", "")  # already escaped in the attribute
+    css_class = html_lib.escape(attributes.get("class", ""), quote=True)
+    return f'<img class="{css_class}" alt="{alt}" src="data:image/svg+xml;base64,{body}">'
+
+
+def svg_plots_as_images(html: str) -> str:
+    """``html`` with every inline ``<svg>`` element replaced by an ``<img>`` of it.
+
+    The image keeps the plot's class and its accessible label (as ``alt``). Inline
+    SVG in HTML is laid out by WeasyPrint as part of the page: every one of its
+    elements goes through the page's CSS cascade; as an image it is drawn alone.
+    """
+    return _INLINE_SVG.sub(_svg_image, html)
+
+
 def html_to_pdf(html: str) -> bytes:
-    """A standalone HTML page as PDF bytes (WeasyPrint; no URL is ever fetched)."""
+    """A standalone HTML page as PDF bytes (WeasyPrint; no URL is ever fetched).
+
+    Inline SVG plots are drawn as images of themselves (:func:`svg_plots_as_images`).
+    """
     import weasyprint
 
-    document = weasyprint.HTML(string=html, base_url=None, url_fetcher=_refusing_fetcher())
+    document = weasyprint.HTML(
+        string=svg_plots_as_images(html), base_url=None, url_fetcher=_refusing_fetcher()
+    )
     return bytes(document.write_pdf())
 
 

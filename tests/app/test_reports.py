@@ -116,7 +116,11 @@ def test_pdf_renderer_fetches_no_url(data, monkeypatch):
     monkeypatch.setattr(reports, "render_report_html", lambda d: html_with_remote)
     pdf = reports.render_report_pdf(data)
     assert pdf.startswith(b"%PDF")
-    assert fetched == ["http://127.0.0.1:9/tracker.png"]  # asked, and refused (no exception)
+    # The plots are inline data (each SVG plot as a data: image); the one remote URL
+    # was asked for, and refused (no exception).
+    remote = [url for url in fetched if not url.startswith("data:")]
+    assert remote == ["http://127.0.0.1:9/tracker.png"]
+    assert sum(url.startswith("data:image/svg+xml;base64,") for url in fetched) == 4
     with pytest.raises(ValueError, match="does not fetch"):
         original().fetch("http://example.org/x.css")
 
@@ -203,6 +207,16 @@ def test_pdf_text_holds_the_patient_code_and_every_metric_value(pdf_path, data):
     for value in _expected_values(data):
         assert re.search(rf"(?<![\d.]){re.escape(value)}(?![\d])", text), value
     assert "Measurement quality" in text and "Definitions" in text
+
+
+@needs_poppler
+def test_pdf_plot_words_stay_text(pdf_path):
+    """The plots reach the PDF as vector drawings: their axis labels are searchable text."""
+    text = subprocess.run(
+        ["pdftotext", str(pdf_path), "-"], check=True, capture_output=True, text=True
+    ).stdout
+    for words in ("time (s)", "tap peak", "thumb–index distance (mm)"):
+        assert words in text, words
 
 
 @needs_poppler
