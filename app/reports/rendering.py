@@ -9,14 +9,21 @@ For the PDF each inline ``<svg>`` plot becomes an ``<img>`` of the same SVG
 (a ``data:`` URL, :func:`svg_plots_as_images`): WeasyPrint then draws it as an
 image, outside the page's CSS cascade, which made the report's PDF about 30 %
 cheaper (docs/performance.md); the plots stay vector and their words searchable.
+A trial's PDF asked for again with nothing changed comes from an in-process
+cache (:func:`render_report_pdf`).
 """
 
 from __future__ import annotations
 
 import base64
+import hashlib
 import html as html_lib
 import re
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
+from dataclasses import replace
+from datetime import UTC, datetime
 from typing import Any
 
 from app.reports.catalogue import METRICS, metric_rows
@@ -119,9 +126,35 @@ def html_to_pdf(html: str) -> bytes:
     return bytes(document.write_pdf())
 
 
+_PDF_CACHE: OrderedDict[str, bytes] = OrderedDict()
+_PDF_CACHE_SIZE = 32  # reports of ~0.1-0.3 MB
+_pdf_cache_lock = threading.Lock()
+_KEY_TIME = datetime(2000, 1, 1, tzinfo=UTC)
+
+
 def render_report_pdf(data: ReportData) -> bytes:
-    """The report of one trial as PDF bytes (WeasyPrint; no URL is ever fetched)."""
-    return html_to_pdf(render_report_html(data))
+    """The report of one trial as PDF bytes (WeasyPrint; no URL is ever fetched).
+
+    A report whose page would be the same but for its "generated on" time is
+    served from a small in-process cache (the PDF made first, with its time):
+    the key is the report's HTML rendered at a fixed time, so any change of what
+    the report shows (the result revision, a rating, the visit's other trials,
+    the session, the template or the software) makes a new PDF.
+    """
+    key = hashlib.sha256(
+        render_report_html(replace(data, generated_at=_KEY_TIME)).encode("utf-8")
+    ).hexdigest()
+    with _pdf_cache_lock:
+        cached = _PDF_CACHE.get(key)
+        if cached is not None:
+            _PDF_CACHE.move_to_end(key)
+            return cached
+    pdf = html_to_pdf(render_report_html(data))
+    with _pdf_cache_lock:
+        _PDF_CACHE[key] = pdf
+        while len(_PDF_CACHE) > _PDF_CACHE_SIZE:
+            _PDF_CACHE.popitem(last=False)
+    return pdf
 
 
 def visit_context(visit: VisitData) -> dict[str, Any]:

@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import subprocess
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -123,6 +124,38 @@ def test_pdf_renderer_fetches_no_url(data, monkeypatch):
     assert sum(url.startswith("data:image/svg+xml;base64,") for url in fetched) == 4
     with pytest.raises(ValueError, match="does not fetch"):
         original().fetch("http://example.org/x.css")
+
+
+def test_pdf_is_made_again_when_what_it_shows_changes(data, monkeypatch):
+    """The in-process PDF cache: the same report again is not laid out again (its
+    "generated on" time aside), and a change of what it shows makes a new PDF."""
+    import app.reports.rendering as reports
+
+    made: list[str] = []
+    convert = reports.html_to_pdf
+
+    def counting(html: str) -> bytes:
+        made.append(html)
+        return convert(html)
+
+    monkeypatch.setattr(reports, "html_to_pdf", counting)
+    monkeypatch.setattr(reports, "_PDF_CACHE", type(reports._PDF_CACHE)())
+    first = reports.render_report_pdf(data)
+    later = dataclasses.replace(data, generated_at=data.generated_at + timedelta(hours=3))
+    assert reports.render_report_pdf(later) == first
+    assert len(made) == 1
+    changes = {
+        "rating": dataclasses.replace(data, clinician_rating=3, rating_comment="Slower"),
+        "revision": dataclasses.replace(data, revision=2),
+        "notes": dataclasses.replace(data, notes="Tremor at rest."),
+        "result": dataclasses.replace(
+            data, result={**data.result, "metrics": {**data.result["metrics"], "tap_count": 9}}
+        ),
+    }
+    for what, changed in changes.items():
+        assert reports.render_report_pdf(changed) != first, what
+    assert len(made) == 1 + len(changes)
+    assert "Slower" in made[1] and "Tremor at rest." in made[3]
 
 
 def _pdf_words(pdf: Path, page: int) -> list[tuple[str, float, float, float, float]]:
