@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from app.reports.catalogue import ALIAS_KEYS, display_value, metric_spec
 from app.reports.data import ReportData
 from core.markers_csv import MarkerTable
-from core.tasks import Task, parse_task
+from core.tasks import Task, parse_task, task_key
 
 # Identifier systems of bradyscope's own codes (URNs: valid URIs that need no web server).
 PATIENT_CODE_SYSTEM = "urn:bradyscope:patient-code"
@@ -426,16 +426,14 @@ def _diagnostic_report(
 def _conclusion(data: ReportData) -> str:
     m = data.analysis
     task = parse_task(data.task)
-    ft = task is Task.FINGER_TAPPING
-    unit, word = task.amplitude_unit, ("tap" if ft else "cycle")
+    unit, word = task.amplitude_unit, task.cycle_word
     parts = [f"{data.hand.capitalize()} {task.limb}, medication {data.medication_state}."]
-    if (taps := m.metric("tap_count" if ft else "cycle_count")) is not None:
+    if (taps := m.metric(task_key("tap_count", task))) is not None:
         parts.append(f"{int(taps)} {word}s")
     if (frequency := m.metric("frequency_hz")) is not None:
         parts.append(f"at {frequency:.2f} Hz")
-    if (amplitude := m.metric(f"amplitude_{unit}_mean")) is not None:
+    if (amplitude := m.metric(task_key("amplitude_mm_mean", task))) is not None:
         parts.append(f"mean amplitude {amplitude:.1f} {unit}")
-    key = "amplitude_decrement_mm_per_tap" if ft else f"amplitude_decrement_{unit}_per_cycle"
-    if (decrement := m.metric(key)) is not None:
+    if (decrement := m.metric(task_key("amplitude_decrement_mm_per_tap", task))) is not None:
         parts.append(f"decrement {decrement:+.2f} {unit}/{word}")
     return " ".join(parts[:1]) + " " + ", ".join(parts[1:]) + "." if len(parts) > 1 else parts[0]

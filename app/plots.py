@@ -5,8 +5,10 @@ an HTML page or in the report (WeasyPrint renders inline SVG in the PDF).
 Text stays text (``svg.fonttype = "none"``) so the PDF's words are searchable,
 and element ids are prefixed per plot so that several plots can share a page.
 
-Lengths are in mm, times in s, velocities in mm/s, as everywhere in bradyscope.
-The set-up shared with a patient's trends (:mod:`app.trends`) is public here:
+Lengths are in mm, angles in degrees, times in s, as everywhere in bradyscope.
+What a plot of cycles shows (the task's signal, its unit, its words and the
+result.json keys of its cycles) is a :class:`app.quantities.CycleQuantity`,
+built from the task's definition; the default is finger tapping's. The set-up shared with a patient's trends (:mod:`app.trends`) is public here:
 :data:`COLOURS`, :data:`RC`, :func:`new_figure`, :func:`draw_empty`, :func:`to_svg`.
 """
 
@@ -24,6 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from app.quantities import TAPPING, CycleQuantity
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -72,6 +76,9 @@ RC: Any = {  # matplotlib rc parameters (typed as Any: its stubs want Literal ke
 # numbers start at a random point per process instead of 0.
 _counter = itertools.count(secrets.randbelow(10**12) * 1000)
 MAX_PATH_POINTS = 400
+#: Colours of the markers in the order of their task's labels, with their names for captions
+#: (finger tapping's thumb and index are the first two, as in :data:`COLOURS`).
+MARKER_COLOURS = (("#d55e00", "orange"), ("#0072b2", "blue"), ("#009e73", "green"))
 
 
 @dataclass(frozen=True)
@@ -169,10 +176,14 @@ def draw_empty(fig: Figure, message: str) -> None:
     ax.text(0.5, 0.5, message, ha="center", va="center", color="#52606d", transform=ax.transAxes)
 
 
-def _aperture_line(
-    ax: Axes, t: NDArray[np.float64], a: NDArray[np.float64], interpolated: ArrayLike | None
+def _signal_line(
+    ax: Axes,
+    t: NDArray[np.float64],
+    a: NDArray[np.float64],
+    interpolated: ArrayLike | None,
+    name: str,
 ) -> None:
-    """The aperture over time, gap-filled stretches in grey."""
+    """The signal over time, gap-filled stretches in grey."""
     measured = a.copy()
     if interpolated is not None:
         interp = np.asarray(interpolated, dtype=bool)
@@ -185,17 +196,22 @@ def _aperture_line(
         measured[interp] = np.nan
         if interp.any():
             ax.plot(t, gap, color=COLOURS["interpolated"], lw=1.2, label="interpolated")
-    ax.plot(t, measured, color=COLOURS["aperture"], lw=1.2, label="aperture")
+    ax.plot(t, measured, color=COLOURS["aperture"], lw=1.2, label=name)
 
 
 def _tap_marks(
-    ax: Axes, t: NDArray[np.float64], a: NDArray[np.float64], taps: Sequence[Mapping[str, Any]]
+    ax: Axes,
+    t: NDArray[np.float64],
+    a: NDArray[np.float64],
+    taps: Sequence[Mapping[str, Any]],
+    quantity: CycleQuantity,
 ) -> None:
-    """Each tap's peak as a numbered dot, its start as a faint tick."""
-    t_peak = np.array([_value(tp, "t_max_aperture_s") for tp in taps])
+    """Each tap's (cycle's) peak as a numbered dot, its start as a faint tick."""
+    word = quantity.cycle
+    t_peak = np.array([_value(tp, quantity.peak_key) for tp in taps])
     a_peak = np.interp(t_peak, t[np.isfinite(a)], a[np.isfinite(a)])
     a_peak[~np.isfinite(t_peak)] = np.nan
-    ax.plot(t_peak, a_peak, "o", ms=3.5, color=COLOURS["tap"], label="tap peak")
+    ax.plot(t_peak, a_peak, "o", ms=3.5, color=COLOURS["tap"], label=f"{word} peak")
     for tp, x, y in zip(taps, t_peak, a_peak, strict=True):
         if not (np.isfinite(x) and np.isfinite(y)):
             continue
@@ -211,57 +227,64 @@ def _tap_marks(
     starts = [_value(tp, "t_start_s") for tp in taps]
     for k, start in enumerate(s for s in starts if math.isfinite(s)):
         # The legend names the thin grey lines once ("tap start").
-        ax.axvline(start, color="#cbd2d9", lw=0.5, zorder=0, label="tap start" if k == 0 else None)
+        ax.axvline(
+            start, color="#cbd2d9", lw=0.5, zorder=0, label=f"{word} start" if k == 0 else None
+        )
 
 
 def aperture_plot(
     time_s: ArrayLike,
-    aperture_mm: ArrayLike,
+    values: ArrayLike,
     *,
     taps: Sequence[Mapping[str, Any]] = (),
     events: Sequence[PlotEvent] = (),
     interpolated: ArrayLike | None = None,
-    top_mm: float | None = None,
+    top: float | None = None,
+    quantity: CycleQuantity = TAPPING,
 ) -> str:
-    """Aperture (thumb–index distance) over time with taps, hesitations and halts marked.
+    """The task's cycle signal over time (finger tapping: the aperture, the thumb–index
+    distance) with taps (cycles), hesitations and halts marked.
 
     Parameters
     ----------
     time_s : (T,) float
         Time of each frame in seconds.
-    aperture_mm : (T,) float
-        Thumb–index distance in mm; NaN where a marker is missing.
-    taps : sequence of tap dicts (``result.json`` ``taps``)
-        Each tap's peak (``t_max_aperture_s``) is marked with a dot and its
+    values : (T,) float
+        The signal in ``quantity.unit`` (mm, or degrees); NaN where a marker is missing.
+    taps : sequence of tap (cycle) dicts (``result.json`` ``taps`` or ``cycles``)
+        Each one's turn (``quantity.peak_key``) is marked with a dot and its
         number; its start ``t_start_s`` with a faint tick.
     events : sequence of PlotEvent
         Hesitations (shaded amber) and halts (shaded red).
     interpolated : (T,) bool, optional
         Frames whose position was gap-filled; drawn in grey.
-    top_mm : float, optional
-        Upper end of the distance axis (mm), to draw two trials on one scale.
+    top : float, optional
+        Upper end of the signal axis (``quantity.unit``), to draw two trials on one scale.
+    quantity : CycleQuantity
+        What the signal is (axis label, unit, words, cycle keys).
 
     Returns
     -------
     str
         An ``<svg>`` element.
     """
+    q = quantity
     t = np.asarray(time_s, dtype=np.float64)
-    a = np.asarray(aperture_mm, dtype=np.float64)
+    a = np.asarray(values, dtype=np.float64)
     if t.ndim != 1 or a.shape != t.shape:
-        raise ValueError(f"time_s and aperture_mm must be (T,) arrays, got {t.shape}, {a.shape}")
+        raise ValueError(f"time_s and values must be (T,) arrays, got {t.shape}, {a.shape}")
     fig = new_figure(7.2, 2.6)
     if t.size == 0 or not np.isfinite(a).any():
-        draw_empty(fig, "No aperture could be measured in this trial.")
-        return to_svg(fig, title="Aperture over time: no data", name="aperture")
+        draw_empty(fig, f"No {q.title.lower()} could be measured in this trial.")
+        return to_svg(fig, title=f"{q.title} over time: no data", name="aperture")
     with plot_rc():
         ax = fig.add_subplot()
         for ev in events:
             colour = COLOURS.get(ev.kind, COLOURS["hesitation"])
             ax.axvspan(ev.t_start_s, ev.t_end_s, color=colour, alpha=0.22, lw=0)
-        _aperture_line(ax, t, a, interpolated)
+        _signal_line(ax, t, a, interpolated, q.title.lower())
         if taps:
-            _tap_marks(ax, t, a, taps)
+            _tap_marks(ax, t, a, taps, q)
         kinds = {ev.kind for ev in events}
         if "hesitation" in kinds:
             ax.fill_between([], [], color=COLOURS["hesitation"], alpha=0.3, label="hesitation")
@@ -270,39 +293,47 @@ def aperture_plot(
         if "gap" in kinds:
             ax.fill_between([], [], color=COLOURS["gap"], alpha=0.3, label="no signal")
         ax.set_xlabel("time (s)")
-        ax.set_ylabel("thumb–index distance (mm)")
+        ax.set_ylabel(f"{q.signal} ({q.unit})")
         ax.set_xlim(float(t[0]), float(t[-1]))
-        top = float(np.nanmax(a)) * 1.12 if top_mm is None else float(top_mm)
-        ax.set_ylim(bottom=min(0.0, float(np.nanmin(a))), top=top)
+        upper = float(np.nanmax(a)) * 1.12 if top is None else float(top)
+        ax.set_ylim(bottom=min(0.0, float(np.nanmin(a))), top=upper)
         fig.legend(loc="outside upper right", ncols=5)
     n_h = sum(ev.kind == "hesitation" for ev in events)
     n_halt = sum(ev.kind == "halt" for ev in events)
-    title = f"Aperture over time: {len(taps)} taps, {n_h} hesitation(s), {n_halt} halt(s) marked"
+    title = (
+        f"{q.title} over time: {len(taps)} {q.cycle}s, {n_h} hesitation(s), {n_halt} halt(s) marked"
+    )
     return to_svg(fig, title=title, name="aperture")
 
 
 def tap_amplitude_plot(
     taps: Sequence[Mapping[str, Any]],
     *,
-    decrement_mm_per_tap: float | None = None,
-    top_mm: float | None = None,
+    decrement_per_tap: float | None = None,
+    top: float | None = None,
+    quantity: CycleQuantity = TAPPING,
 ) -> str:
-    """Amplitude of each tap with the decrement line.
+    """Amplitude of each tap (cycle) with the decrement line.
 
     Parameters
     ----------
-    taps : sequence of tap dicts with ``amplitude_mm``.
-    decrement_mm_per_tap : float, optional
-        Slope of the decrement line (``amplitude_decrement_mm_per_tap``). The
-        line passes through the mean tap; without a slope it is fitted here.
-    top_mm : float, optional
-        Upper end of the amplitude axis (mm), to draw two trials on one scale.
+    taps : sequence of tap (cycle) dicts with ``quantity.amplitude_key``.
+    decrement_per_tap : float, optional
+        Slope of the decrement line (``amplitude_decrement_per_cycle``, ``quantity.unit``
+        per tap). The line passes through the mean tap; without a slope it is fitted here.
+    top : float, optional
+        Upper end of the amplitude axis (``quantity.unit``), to draw two trials on one scale.
+    quantity : CycleQuantity
+        The unit, words and keys of the task's cycles.
     """
+    q = quantity
     fig = new_figure(3.6, 2.6)
-    amp = np.array([_value(tp, "amplitude_mm") for tp in taps], dtype=np.float64)
+    amp = np.array([_value(tp, q.amplitude_key) for tp in taps], dtype=np.float64)
     if amp.size == 0 or not np.isfinite(amp).any():
-        draw_empty(fig, "No taps were found.")
-        return to_svg(fig, title="Tap amplitude: no taps", name="amplitude")
+        draw_empty(fig, f"No {q.cycle}s were found.")
+        return to_svg(
+            fig, title=f"{q.cycle.capitalize()} amplitude: no {q.cycle}s", name="amplitude"
+        )
     n = np.arange(1, amp.size + 1, dtype=np.float64)
     with plot_rc():
         ax = fig.add_subplot()
@@ -317,10 +348,10 @@ def tap_amplitude_plot(
         if (~reliable & ok).any():
             ax.bar(
                 n[~reliable & ok], amp[~reliable & ok], width=0.7, color="#eef2f5",
-                edgecolor="#9aa5b1", lw=0.6, hatch="//", label="unreliable tap",
+                edgecolor="#9aa5b1", lw=0.6, hatch="//", label=f"unreliable {q.cycle}",
             )  # fmt: skip
         fit = reliable & ok if (reliable & ok).sum() >= 2 else ok
-        slope = decrement_mm_per_tap
+        slope = decrement_per_tap
         if slope is None or not math.isfinite(slope):
             slope = float(np.polyfit(n[fit], amp[fit], 1)[0]) if fit.sum() >= 2 else 0.0
         intercept = float(np.mean(amp[fit]) - slope * np.mean(n[fit]))
@@ -329,45 +360,55 @@ def tap_amplitude_plot(
             intercept + slope * n,
             color=COLOURS["halt"],
             lw=1.4,
-            label=f"decrement {slope:+.2f} mm/tap",
+            label=f"decrement {slope:+.2f} {q.unit}/{q.cycle}",
         )
-        ax.set_xlabel("tap number")
-        ax.set_ylabel("amplitude (mm)")
-        ax.set_ylim(0, float(np.nanmax(amp)) * 1.2 if top_mm is None else float(top_mm))
+        ax.set_xlabel(f"{q.cycle} number")
+        ax.set_ylabel(f"amplitude ({q.unit})")
+        ax.set_ylim(0, float(np.nanmax(amp)) * 1.2 if top is None else float(top))
         ax.legend(loc="lower left", facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
     return to_svg(
         fig,
-        title=f"Amplitude of {amp.size} taps with decrement line {slope:+.2f} mm per tap",
+        title=(
+            f"Amplitude of {amp.size} {q.cycle}s with decrement line {slope:+.2f} {q.unit}"
+            f" per {q.cycle}"
+        ),
         name="amplitude",
     )
 
 
-def velocity_plot(taps: Sequence[Mapping[str, Any]]) -> str:
-    """Peak opening and closing velocity of each tap (mm/s)."""
+def velocity_plot(taps: Sequence[Mapping[str, Any]], *, quantity: CycleQuantity = TAPPING) -> str:
+    """Peak velocity of each tap (cycle) in its two halves (opening and closing, mm/s;
+    supination and pronation, deg/s...)."""
+    q = quantity
+    towards, back = q.phases
     fig = new_figure(3.6, 2.6)
     if not taps:
-        draw_empty(fig, "No taps were found.")
-        return to_svg(fig, title="Opening and closing velocity: no taps", name="velocity")
+        draw_empty(fig, f"No {q.cycle}s were found.")
+        title = f"{towards.capitalize()} and {back} velocity: no {q.cycle}s"
+        return to_svg(fig, title=title, name="velocity")
     n = np.arange(1, len(taps) + 1)
-    v_open = np.array([_value(tp, "opening_velocity_mm_s_max") for tp in taps])
-    v_close = np.array([_value(tp, "closing_velocity_mm_s_max") for tp in taps])
+    v_open = np.array([_value(tp, q.velocity_keys[0]) for tp in taps])
+    v_close = np.array([_value(tp, q.velocity_keys[1]) for tp in taps])
     with plot_rc():
         ax = fig.add_subplot()
-        ax.plot(n, v_open, "o-", ms=3, lw=1.2, color=COLOURS["opening"], label="opening")
-        ax.plot(n, v_close, "s-", ms=3, lw=1.2, color=COLOURS["closing"], label="closing")
-        ax.set_xlabel("tap number")
-        ax.set_ylabel("peak velocity (mm/s)")
+        ax.plot(n, v_open, "o-", ms=3, lw=1.2, color=COLOURS["opening"], label=towards)
+        ax.plot(n, v_close, "s-", ms=3, lw=1.2, color=COLOURS["closing"], label=back)
+        ax.set_xlabel(f"{q.cycle} number")
+        ax.set_ylabel(f"peak velocity ({q.unit}/s)")
         finite = np.concatenate([v_open, v_close])
         finite = finite[np.isfinite(finite)]
         ax.set_ylim(0, float(finite.max()) * 1.2 if finite.size else 1.0)
         ax.legend(loc="lower left", ncols=2, facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(len(taps) / 10))])
-    return to_svg(fig, title="Peak opening and closing velocity per tap", name="velocity")
+    return to_svg(fig, title=f"Peak {towards} and {back} velocity per {q.cycle}", name="velocity")
 
 
-def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> str:
-    """Paths of the fingertips: front view (x–y), side view (z–y) and a 3D view.
+def fingertip_paths_plot(
+    positions_mm: ArrayLike, *, labels: Sequence[str], quantity: CycleQuantity = TAPPING
+) -> str:
+    """Paths of the markers (fingertips for finger tapping): front view (x–y), side view
+    (z–y) and a 3D view.
 
     Parameters
     ----------
@@ -376,14 +417,17 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
         z away from the camera), NaN where missing.
     labels : sequence of M str
         Marker names (``thumb``, ``index``, ...).
+    quantity : CycleQuantity
+        Names what the markers are (``quantity.markers``).
     """
+    what = quantity.markers
     p = np.asarray(positions_mm, dtype=np.float64)
     if p.ndim != 3 or p.shape[2] != 3 or p.shape[1] != len(labels):
         raise ValueError(f"positions_mm must be (T, {len(labels)}, 3), got {p.shape}")
     fig = new_figure(7.2, 2.6)
     if not np.isfinite(p).any():
-        draw_empty(fig, "No fingertip positions were measured.")
-        return to_svg(fig, title="Fingertip paths: no data", name="paths")
+        draw_empty(fig, f"No {what.lower()} positions were measured.")
+        return to_svg(fig, title=f"{what} paths: no data", name="paths")
     # At most ~MAX_PATH_POINTS samples per path: the drawing looks the same and
     # the SVG stays light for browsers and the PDF renderer.
     p = p[:: max(1, -(-p.shape[0] // MAX_PATH_POINTS))]
@@ -392,7 +436,7 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
         ax_side = fig.add_subplot(1, 3, 2)
         ax_3d = fig.add_subplot(1, 3, 3, projection="3d")
         for m, name in enumerate(labels):
-            colour = COLOURS.get(name, "#555555")
+            colour = MARKER_COLOURS[m % len(MARKER_COLOURS)][0]
             x, y, z = p[:, m, 0], p[:, m, 1], p[:, m, 2]
             ax_front.plot(x, y, lw=0.8, color=colour, label=name)
             ax_side.plot(z, y, lw=0.8, color=colour, label=name)
@@ -419,23 +463,4 @@ def fingertip_paths_plot(positions_mm: ArrayLike, *, labels: Sequence[str]) -> s
         ax_3d.tick_params(labelsize=6)
         ax_3d.set_title("3D", fontsize=8.5)
         ax_front.legend(loc="best")
-    return to_svg(fig, title="Fingertip paths in front, side and 3D views (mm)", name="paths")
-
-
-def aperture_from_positions(positions_mm: ArrayLike, *, labels: Sequence[str]) -> NDArray[Any]:
-    """Thumb–index distance (mm) per frame, NaN where either marker is missing.
-
-    Parameters
-    ----------
-    positions_mm : (T, M, 3) float
-    labels : M marker names; must contain ``thumb`` and ``index``.
-    """
-    p = np.asarray(positions_mm, dtype=np.float64)
-    if p.ndim != 3 or p.shape[2] != 3:
-        raise ValueError(f"positions_mm must be (T, M, 3), got {p.shape}")
-    try:
-        i_thumb, i_index = list(labels).index("thumb"), list(labels).index("index")
-    except ValueError as exc:
-        raise ValueError(f"labels must contain 'thumb' and 'index', got {labels}") from exc
-    result: NDArray[Any] = np.linalg.norm(p[:, i_index] - p[:, i_thumb], axis=1)
-    return result
+    return to_svg(fig, title=f"{what} paths in front, side and 3D views (mm)", name="paths")

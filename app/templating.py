@@ -14,8 +14,11 @@ from typing import Any
 from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoescape
 from starlette.templating import Jinja2Templates
 
+from app.plots import MARKER_COLOURS
+from app.quantities import quantity_of
 from app.timezones import to_zone
-from core.tasks import Task, parse_task
+from core.protocols import protocol_for
+from core.tasks import parse_task
 
 TEMPLATES_DIR = Path(__file__).resolve().parents[1] / "templates"
 
@@ -69,7 +72,16 @@ def _task_label(value: str | None) -> str:
 
 def _cycle_word(value: str | None) -> str:
     """``"tap"`` for finger tapping, ``"cycle"`` for the other tasks."""
-    return "tap" if parse_task(value) is Task.FINGER_TAPPING else "cycle"
+    return parse_task(value).cycle_word
+
+
+def _marker_legend(value: str | None) -> str:
+    """The task's markers with their colours in the plots: ``"thumb (orange) and index (blue)"``."""
+    names = [
+        f"{label} ({MARKER_COLOURS[k % len(MARKER_COLOURS)][1]})"
+        for k, label in enumerate(protocol_for(parse_task(value)).labels)
+    ]
+    return f"{', '.join(names[:-1])} and {names[-1]}"
 
 
 def _limb(value: str | None) -> str:
@@ -94,6 +106,8 @@ def _make_env() -> Environment:
     env.filters["limb"] = _limb
     env.filters["task_label"] = _task_label
     env.filters["cycle_word"] = _cycle_word
+    env.filters["quantity"] = quantity_of  # what a task's plots show (app.plots.CycleQuantity)
+    env.filters["marker_legend"] = _marker_legend
     return env
 
 

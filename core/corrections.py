@@ -1,15 +1,19 @@
-"""A clinician's corrections of a finger-tapping measurement, and the metrics they give.
+"""A clinician's corrections of a measurement of any task, and the metrics they give.
 
-The clinician reviews a trial against its video and may say: this tap is not
-a tap (exclude it), this pause was the patient talking (not a hesitation or a
-halt), only this stretch of the recording counts (the analysis window), or the
-thumb and index labels are the wrong way round. :func:`correct_metrics` takes
-the stored trajectories (:class:`core.markers_csv.MarkerTable`, what
-``markers.csv`` holds) and :class:`Corrections`, and measures again:
+The clinician reviews a trial against its video and may say: this tap (or
+cycle) is not one (exclude it), this pause was the patient talking (not a
+hesitation or a halt), only this stretch of the recording counts (the analysis
+window), or the two markers' labels are the wrong way round (thumb and index;
+finger and wrist). :func:`correct_metrics` takes the stored trajectories
+(:class:`core.markers_csv.MarkerTable`, what ``markers.csv`` holds), the task
+and :class:`Corrections`, and measures again:
 
-1. The aperture signal, the taps and the pauses are found exactly as
-   :func:`core.metrics.compute_metrics` finds them on the same trajectories, so
-   tap numbers (``Tap.index``) are those the clinician saw.
+1. The task's signal, the taps (cycles) and the pauses are found exactly as the
+   analysis finds them on the same trajectories
+   (:func:`core.metrics.compute_metrics` for finger tapping, the first step of
+   :func:`core.cycles.compute_task_metrics`, :func:`core.cycles.task_signal`,
+   for the other tasks), so tap numbers (``Tap.index``) are those the
+   clinician saw.
 2. Taps excluded by the clinician, and taps not wholly inside the window, are
    removed from the list of taps; hesitations and halts of a removed tap, and
    those the clinician dismissed, are removed from the events; gaps outside
@@ -21,9 +25,14 @@ the stored trajectories (:class:`core.markers_csv.MarkerTable`, what
    to the next detected tap, cycle number), so the decrement's tap axis keeps
    the recording's order.
 
-Swapping the thumb and index labels does not change the aperture (a distance)
-and so no tapping metric; it changes which trajectory is called which in the
-marker file, the exports and the plots (:func:`swap_thumb_index`).
+Every task's corrected ``metrics`` hold its own names and the common keys
+(:mod:`core.cycles`), as its analysis does.
+
+Swapping the labels of a two-marker protocol does not change the signal (a
+distance) and so no metric; it changes which trajectory is called which in the
+marker file, the exports and the plots (:func:`swap_labels`). The three
+markers of pronation–supination and toe tapping are named by their distances
+(:mod:`core.protocols`) and are not swapped.
 """
 
 from __future__ import annotations
@@ -35,14 +44,15 @@ from typing import Any
 
 import numpy as np
 
-from core.aperture import aperture_signal
-from core.cycles import with_common_keys
+from core.aperture import Aperture, aperture_signal
+from core.cycles import TaskMetrics, cycle_events, cycle_rows, task_signal, with_common_keys
 from core.markers_csv import MEASURED, MarkerTable
 from core.metrics import TappingMetrics, _clean, locate_events, summarise_taps
+from core.protocols import CycleSignal, marker_columns, protocol_for
 from core.resample import uniform_trajectories
 from core.taps import Tap, segment_recording
+from core.tasks import Task
 
-THUMB, INDEX = "thumb", "index"
 PAUSE_KINDS = ("hesitation", "halt")
 
 
@@ -61,7 +71,7 @@ class Corrections:
         Only taps wholly inside ``[t0, t1]`` (s, left-video time) count; None:
         the whole recording.
     swap_labels : bool
-        The thumb and index labels are exchanged.
+        The labels of the two markers (thumb and index; finger and wrist) are exchanged.
     """
 
     exclude_taps: tuple[int, ...] = ()
@@ -125,6 +135,10 @@ class CorrectedMetrics:
         Taps not wholly inside the analysis window.
     dismissed_events : tuple of dict
         Hesitations and halts the clinician dismissed, or that belonged to a removed tap.
+    task : Task
+        The task measured.
+    signal : CycleSignal or None
+        The cycle signal of a task other than finger tapping (None for finger tapping).
     """
 
     metrics: TappingMetrics
@@ -132,58 +146,112 @@ class CorrectedMetrics:
     excluded_taps: tuple[Tap, ...]
     outside_window_taps: tuple[Tap, ...]
     dismissed_events: tuple[dict[str, Any], ...]
+    task: Task = Task.FINGER_TAPPING
+    signal: CycleSignal | None = None
 
     def to_result(self) -> dict[str, Any]:
-        """The tapping part of result.json (as :meth:`TappingMetrics.to_result`, with the
-        common keys of every task) plus
-        ``corrections``, ``excluded_taps``, ``outside_window_taps`` and ``dismissed_events``."""
-        doc = with_common_keys(self.metrics.to_result(), self.metrics)
+        """The task's part of result.json, as its analysis writes it (finger tapping:
+        :meth:`TappingMetrics.to_result` with the common keys; the other tasks:
+        :meth:`core.cycles.TaskMetrics.to_result`), plus ``corrections``,
+        ``excluded_taps``, ``outside_window_taps`` and ``dismissed_events`` (the
+        removed taps or cycles under the task's names)."""
+        if self.signal is None:
+            doc = with_common_keys(self.metrics.to_result(), self.metrics)
+        else:
+            doc = TaskMetrics(self.task, self.signal, self.metrics).to_result()
         doc["corrections"] = self.corrections.to_dict()
-        doc["excluded_taps"] = _clean([t.to_dict() for t in self.excluded_taps])
-        doc["outside_window_taps"] = _clean([t.to_dict() for t in self.outside_window_taps])
-        doc["dismissed_events"] = _clean(list(self.dismissed_events))
+        doc["excluded_taps"] = _clean(cycle_rows(self.excluded_taps, self.task))
+        doc["outside_window_taps"] = _clean(cycle_rows(self.outside_window_taps, self.task))
+        doc["dismissed_events"] = _clean(cycle_events(self.dismissed_events, self.task))
         return doc
 
 
-def swap_thumb_index(table: MarkerTable) -> MarkerTable:
-    """``table`` with the labels ``thumb`` and ``index`` exchanged (the data stay in place).
+def swappable_labels(task: Task | str) -> tuple[str, str] | None:
+    """The two labels a clinician may swap (a two-marker protocol), None for the others."""
+    labels = protocol_for(task).labels
+    return (labels[0], labels[1]) if len(labels) == 2 else None
+
+
+def swap_labels(table: MarkerTable, task: Task | str = Task.FINGER_TAPPING) -> MarkerTable:
+    """``table`` with the labels of ``task``'s two markers exchanged (the data stay in place).
 
     Raises
     ------
     ValueError
-        The table lacks a ``thumb`` or an ``index`` marker.
+        The task has more than two markers (named by their distances), or the
+        table lacks one of the two.
     """
+    task = Task(task)
+    pair = swappable_labels(task)
+    if pair is None:
+        raise ValueError(
+            f"the {task.label.lower()} markers ({', '.join(protocol_for(task).labels)}) are named"
+            " by their distances and cannot be swapped"
+        )
+    a, b = pair
     labels = list(table.labels)
-    if THUMB not in labels or INDEX not in labels:
-        raise ValueError(f"the markers {table.labels} have no thumb and index to swap")
-    i, j = labels.index(THUMB), labels.index(INDEX)
-    labels[i], labels[j] = INDEX, THUMB
+    if a not in labels or b not in labels:
+        raise ValueError(f"the markers {table.labels} have no {a} and {b} to swap")
+    i, j = labels.index(a), labels.index(b)
+    labels[i], labels[j] = b, a
     return replace(table, labels=tuple(labels))
 
 
-def _thumb_index(table: MarkerTable) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
-    """Positions ``(T, 2, 3)`` and measured flags ``(T, 2)`` in the order thumb, index."""
-    if THUMB not in table.labels or INDEX not in table.labels:
-        raise ValueError(f"finger tapping needs thumb and index markers, got {table.labels}")
-    cols = [table.labels.index(THUMB), table.labels.index(INDEX)]
+def swap_thumb_index(table: MarkerTable) -> MarkerTable:
+    """``table`` with the labels ``thumb`` and ``index`` exchanged (:func:`swap_labels`)."""
+    return swap_labels(table, Task.FINGER_TAPPING)
+
+
+def _protocol_markers(
+    table: MarkerTable, task: Task
+) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    """Positions ``(T, M, 3)`` and measured flags ``(T, M)`` in the order of the task's labels."""
+    cols = marker_columns(table.labels, task)
     return table.positions_mm[:, cols, :], table.status[:, cols] == MEASURED
 
 
+def _signal(
+    table: MarkerTable, task: Task, *, side: str, cutoff_hz: float | None
+) -> tuple[Aperture, CycleSignal | None]:
+    """The filtered signal the analysis found the taps on (and a task's raw cycle signal)."""
+    positions, measured = _protocol_markers(table, task)
+    # At the frames' real times, as the analysis measured them (core.resample).
+    even = uniform_trajectories(positions, measured, table.time_s, table.fps)
+    if task is Task.FINGER_TAPPING:
+        aperture = aperture_signal(
+            even.positions_mm, even.fps, measured=even.measured, cutoff_hz=cutoff_hz
+        )
+        return aperture, None
+    signal, aperture = task_signal(
+        task, even.positions_mm, even.fps, measured=even.measured, side=side, cutoff_hz=cutoff_hz
+    )
+    return aperture, signal
+
+
 def correct_metrics(
-    table: MarkerTable, corrections: Corrections, *, cutoff_hz: float | None = None
+    table: MarkerTable,
+    corrections: Corrections,
+    *,
+    task: Task | str = Task.FINGER_TAPPING,
+    side: str = "right",
+    cutoff_hz: float | None = None,
 ) -> CorrectedMetrics:
     """Measure the trajectories of ``table`` again with the clinician's corrections.
 
     Parameters
     ----------
     table : MarkerTable
-        The tracked trajectories (``markers.csv``); labels must include
-        ``thumb`` and ``index``.
+        The tracked trajectories (``markers.csv``); labels must include the
+        task's (``thumb`` and ``index`` for finger tapping, docs/protocols.md).
     corrections : Corrections
-        Tap numbers refer to the taps :func:`core.metrics.compute_metrics`
-        finds on these trajectories.
+        Tap (cycle) numbers refer to those the analysis finds on these
+        trajectories.
+    task : Task or str
+        The task recorded (result.json ``task``).
+    side : {"right", "left"}
+        The side examined (the direction of supination, 3.6), as for the analysis.
     cutoff_hz : float, optional
-        Low-pass cut-off of the aperture (Hz), as for ``compute_metrics``.
+        Low-pass cut-off of the signal (Hz), as for the analysis.
 
     Returns
     -------
@@ -193,30 +261,28 @@ def correct_metrics(
     ------
     ValueError
         A tap number does not exist, a dismissed tap has no hesitation or halt,
-        or no tap is left (a clinician-readable sentence).
+        no tap is left, or the labels cannot be swapped (a clinician-readable sentence).
     """
+    task = Task(task)
+    word = task.cycle_word
     if corrections.swap_labels:
-        table = swap_thumb_index(table)
-    positions, measured = _thumb_index(table)
-    # At the frames' real times, as the analysis measured them (core.resample).
-    even = uniform_trajectories(positions, measured, table.time_s, table.fps)
-    aperture = aperture_signal(
-        even.positions_mm, even.fps, measured=even.measured, cutoff_hz=cutoff_hz
-    )
+        table = swap_labels(table, task)
+    aperture, signal = _signal(table, task, side=side, cutoff_hz=cutoff_hz)
     seg = segment_recording(aperture)
     events = locate_events(aperture, seg)
     known = {t.index for t in seg.taps}
     unknown = sorted(set(corrections.exclude_taps) - known)
     if unknown:
         raise ValueError(
-            f"there is no tap {', '.join(str(i + 1) for i in unknown)} in this recording"
-            f" (it has {len(seg.taps)} taps)."
+            f"there is no {word} {', '.join(str(i + 1) for i in unknown)} in this recording"
+            f" (it has {len(seg.taps)} {word}s)."
         )
     paused = {e["tap_index"] for e in events if e["kind"] in PAUSE_KINDS}
     not_paused = sorted(set(corrections.dismiss_pauses) - paused)
     if not_paused:
         raise ValueError(
-            f"tap {', '.join(str(i + 1) for i in not_paused)} has no hesitation or halt to dismiss."
+            f"{word} {', '.join(str(i + 1) for i in not_paused)} has no hesitation or halt"
+            " to dismiss."
         )
 
     excluded = set(corrections.exclude_taps)
@@ -234,7 +300,9 @@ def correct_metrics(
             keep = window is None or window[0] <= e["t_start_s"] <= window[1]
         (kept_events if keep else dropped_events).append(e)
     if not kept:
-        raise ValueError("no tap would be left to measure; exclude fewer taps or widen the window.")
+        raise ValueError(
+            f"no {word} would be left to measure; exclude fewer {word}s or widen the window."
+        )
     metrics = summarise_taps(aperture, seg, kept, kept_events)
     return CorrectedMetrics(
         metrics=metrics,
@@ -244,6 +312,8 @@ def correct_metrics(
             t for t in seg.taps if t.index not in inside and t.index not in excluded
         ),
         dismissed_events=tuple(e for e in dropped_events if e["kind"] in PAUSE_KINDS),
+        task=task,
+        signal=signal,
     )
 
 
@@ -255,19 +325,18 @@ def _inside(taps: Sequence[Tap], window: tuple[float, float] | None) -> set[int]
 
 
 def revised_document(base: Mapping[str, Any], corrected: CorrectedMetrics) -> dict[str, Any]:
-    """``result.json`` of a correction: ``base`` (the analysis) with the tapping part measured again.
+    """``result.json`` of a correction: ``base`` (the analysis) with the task's part measured again.
 
     Everything core measured about the recording itself (``fps``, ``sync``,
     ``quality``, ``markers``...) is kept; the keys of
     :meth:`CorrectedMetrics.to_result` replace the analysis's.
     """
     doc = {k: v for k, v in base.items()}
-    tapping = corrected.to_result()
-    doc.update(tapping)
-    if corrected.corrections.swap_labels and isinstance(doc.get("markers"), list):
-        doc["markers"] = [
-            INDEX if m == THUMB else THUMB if m == INDEX else m for m in doc["markers"]
-        ]
+    doc.update(corrected.to_result())
+    pair = swappable_labels(corrected.task)
+    if corrected.corrections.swap_labels and pair and isinstance(doc.get("markers"), list):
+        a, b = pair
+        doc["markers"] = [b if m == a else a if m == b else m for m in doc["markers"]]
     return doc
 
 
@@ -276,5 +345,7 @@ __all__ = [
     "Corrections",
     "correct_metrics",
     "revised_document",
+    "swap_labels",
     "swap_thumb_index",
+    "swappable_labels",
 ]

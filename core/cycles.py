@@ -16,17 +16,18 @@ Every task's ``metrics`` hold the common keys of docs/interfaces.md
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from core.aperture import default_cutoff_hz, signal_aperture
+from core.aperture import Aperture, default_cutoff_hz, signal_aperture
 from core.metrics import Number, TappingMetrics, json_ready, locate_events, summarise_taps
 from core.protocols import CycleSignal, cycle_signal
-from core.taps import segment_recording
-from core.tasks import Task
+from core.taps import Tap, segment_recording
+from core.tasks import Task, task_key
 
 #: The keys every task's ``metrics`` hold (docs/interfaces.md).
 COMMON_KEYS = (
@@ -39,14 +40,6 @@ COMMON_KEYS = (
     "hesitation_count",
     "halt_count",
 )
-
-#: The words for the two halves of a cycle: (towards the turn, back).
-PHASE_WORDS = {
-    Task.FINGER_TAPPING: ("opening", "closing"),
-    Task.HAND_MOVEMENTS: ("opening", "closing"),
-    Task.PRONATION_SUPINATION: ("supination", "pronation"),
-    Task.TOE_TAPPING: ("lift", "lowering"),
-}
 
 
 def common_metrics(metrics: dict[str, Number], unit: str) -> dict[str, Number | str]:
@@ -75,36 +68,17 @@ def with_common_keys(result: dict[str, Any], tapping: TappingMetrics) -> dict[st
     return out
 
 
-def task_key(key: str, task: Task) -> str:
-    """A finger-tapping metric or tap key renamed for ``task`` (``amplitude_mm_mean`` ->
-    ``amplitude_deg_mean``, ``opening_velocity_mm_s_max`` -> ``supination_velocity_deg_s_max``,
-    ``tap_count`` -> ``cycle_count``); finger tapping's own keys are returned unchanged."""
+def cycle_rows(taps: Sequence[Tap], task: Task) -> list[dict[str, Any]]:
+    """One dict per cycle: the fields of ``core.taps.Tap`` under the task's names."""
+    return [{task_key(k, task): v for k, v in tap.to_dict().items()} for tap in taps]
+
+
+def cycle_events(events: Sequence[Mapping[str, Any]], task: Task) -> list[dict[str, Any]]:
+    """Hesitations, halts and gaps with the cycle they precede (``cycle_index``; finger
+    tapping keeps ``tap_index``)."""
     if task is Task.FINGER_TAPPING:
-        return key
-    unit = task.amplitude_unit
-    towards, back = PHASE_WORDS[task]
-    out = key
-    for old, new in (
-        ("inter_tap_interval", "inter_cycle_interval"),
-        ("tapping_time_s", "movement_time_s"),
-        ("reliable_tap_count", "reliable_cycle_count"),
-        ("tap_count", "cycle_count"),
-        ("tap_duration", "cycle_duration"),
-        ("tap_rate_hz", "cycle_rate_hz"),
-        ("_per_tap", "_per_cycle"),
-        ("_onset_tap", "_onset_cycle"),
-        ("opening_", f"{towards}_"),
-        ("closing_", f"{back}_"),
-        ("max_aperture", f"max_{'angle' if unit == 'deg' else 'signal'}"),
-        ("closed_aperture", f"start_{'angle' if unit == 'deg' else 'signal'}"),
-        ("_mm_s_", f"_{unit}_s_"),
-        ("_mm_s", f"_{unit}_s"),
-        ("_mm_", f"_{unit}_"),
-    ):
-        out = out.replace(old, new)
-    if out.endswith("_mm"):
-        out = out[: -len("_mm")] + f"_{unit}"
-    return out
+        return [dict(e) for e in events]
+    return [{("cycle_index" if k == "tap_index" else k): v for k, v in e.items()} for e in events]
 
 
 @dataclass(frozen=True)
@@ -143,18 +117,12 @@ class TaskMetrics:
     @property
     def cycles(self) -> list[dict[str, Any]]:
         """One dict per cycle (the task's names of ``core.taps.Tap`` fields)."""
-        return [
-            {task_key(k, self.task): v for k, v in tap.to_dict().items()}
-            for tap in self.tapping.taps
-        ]
+        return cycle_rows(self.tapping.taps, self.task)
 
     @property
     def events(self) -> list[dict[str, Any]]:
         """Hesitations, halts and gaps with the cycle they precede (``cycle_index``)."""
-        return [
-            {("cycle_index" if k == "tap_index" else k): v for k, v in e.items()}
-            for e in self.tapping.events
-        ]
+        return cycle_events(self.tapping.events, self.task)
 
     def to_result(self) -> dict[str, Any]:
         """The task's part of result.json (JSON-ready; None for undefined)."""
@@ -177,6 +145,44 @@ class TaskMetrics:
                 }
             )
         )
+
+
+def task_signal(
+    task: Task | str,
+    positions_mm: NDArray[np.floating],
+    fps: float,
+    *,
+    measured: NDArray[np.bool_] | None = None,
+    side: str = "right",
+    cutoff_hz: float | None = None,
+) -> tuple[CycleSignal, Aperture]:
+    """The protocol's cycle signal of ``task`` and its filtered form, on which cycles are found.
+
+    The first step of :func:`compute_task_metrics` (parameters as there); a
+    clinician's corrections (:mod:`core.corrections`) measure from the same.
+
+    Returns
+    -------
+    (CycleSignal, Aperture)
+        The raw signal (in its unit) and finger tapping's filtered signal of it.
+    """
+    task = Task(task)
+    if task is Task.FINGER_TAPPING:
+        raise ValueError("finger tapping is measured by core.metrics.compute_metrics")
+    if not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps must be a positive number, got {fps}")
+    pos = np.asarray(positions_mm, dtype=np.float64)
+    signal = cycle_signal(task, pos, side=side)
+    meas = None
+    if measured is not None:
+        m = np.asarray(measured, dtype=bool)
+        if m.shape != pos.shape[:2]:
+            raise ValueError(f"measured must have shape {pos.shape[:2]}, got {m.shape}")
+        meas = np.all(m, axis=1)
+    cutoff = default_cutoff_hz(fps) if cutoff_hz is None else float(cutoff_hz)
+    if not 0 < cutoff < fps / 2:
+        raise ValueError(f"cutoff_hz must lie in (0, fps/2) = (0, {fps / 2}), got {cutoff}")
+    return signal, signal_aperture(signal.values, fps, measured=meas, cutoff_hz=cutoff)
 
 
 def compute_task_metrics(
@@ -208,22 +214,9 @@ def compute_task_metrics(
     TaskMetrics
     """
     task = Task(task)
-    if task is Task.FINGER_TAPPING:
-        raise ValueError("finger tapping is measured by core.metrics.compute_metrics")
-    if not np.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps must be a positive number, got {fps}")
-    pos = np.asarray(positions_mm, dtype=np.float64)
-    signal = cycle_signal(task, pos, side=side)
-    meas = None
-    if measured is not None:
-        m = np.asarray(measured, dtype=bool)
-        if m.shape != pos.shape[:2]:
-            raise ValueError(f"measured must have shape {pos.shape[:2]}, got {m.shape}")
-        meas = np.all(m, axis=1)
-    cutoff = default_cutoff_hz(fps) if cutoff_hz is None else float(cutoff_hz)
-    if not 0 < cutoff < fps / 2:
-        raise ValueError(f"cutoff_hz must lie in (0, fps/2) = (0, {fps / 2}), got {cutoff}")
-    aperture = signal_aperture(signal.values, fps, measured=meas, cutoff_hz=cutoff)
+    signal, aperture = task_signal(
+        task, positions_mm, fps, measured=measured, side=side, cutoff_hz=cutoff_hz
+    )
     seg = segment_recording(aperture)
     tapping = summarise_taps(aperture, seg, seg.taps, locate_events(aperture, seg))
     return TaskMetrics(task, signal, tapping)
@@ -234,6 +227,9 @@ __all__ = [
     "TaskMetrics",
     "common_metrics",
     "compute_task_metrics",
+    "cycle_events",
+    "cycle_rows",
     "task_key",
+    "task_signal",
     "with_common_keys",
 ]

@@ -116,6 +116,24 @@ PROTOCOLS: dict[Task, MarkerProtocol] = {
 }
 
 
+def marker_columns(labels: Sequence[str], task: Task | str) -> list[int]:
+    """The column of each of ``task``'s markers in ``labels`` (e.g. ``markers.csv``'s), in the
+    protocol's order, the order :func:`cycle_signal` takes them in.
+
+    Raises
+    ------
+    ValueError
+        A marker of the protocol is not among ``labels`` (the sentence names them all).
+    """
+    task = Task(task)
+    wanted = protocol_for(task).labels
+    missing = [name for name in wanted if name not in labels]
+    if missing:
+        named = f"{', '.join(wanted[:-1])} and {wanted[-1]}"
+        raise ValueError(f"{task.label.lower()} needs the markers {named}, got {tuple(labels)}")
+    return [list(labels).index(name) for name in wanted]
+
+
 def protocol_for(task: Task | str) -> MarkerProtocol:
     """The marker protocol of ``task``."""
     return PROTOCOLS[Task(task)]
@@ -459,6 +477,7 @@ __all__ = [
     "MarkerProtocol",
     "cycle_signal",
     "label_chains",
+    "marker_columns",
     "protocol_for",
     "supination_deg",
     "toe_lift_mm",

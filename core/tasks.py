@@ -48,6 +48,22 @@ class Task(StrEnum):
         """``"foot"`` for toe tapping, else ``"hand"``."""
         return "foot" if self is Task.TOE_TAPPING else "hand"
 
+    @property
+    def signal(self) -> str:
+        """What the cycle signal measures, in words: ``"thumb–index distance"``,
+        ``"rotation of the hand about the forearm"`` (:mod:`core.protocols`)."""
+        return _SIGNALS[self]
+
+    @property
+    def cycle_word(self) -> str:
+        """``"tap"`` for finger tapping, ``"cycle"`` for the other tasks."""
+        return "tap" if self is Task.FINGER_TAPPING else "cycle"
+
+    @property
+    def phase_words(self) -> tuple[str, str]:
+        """The two halves of a cycle: (towards the turn, back), e.g. ``("opening", "closing")``."""
+        return PHASE_WORDS[self]
+
 
 _ITEMS = {
     Task.FINGER_TAPPING: "3.4",
@@ -60,6 +76,21 @@ _NAMES = {
     Task.HAND_MOVEMENTS: "Hand movements",
     Task.PRONATION_SUPINATION: "Pronation–supination",
     Task.TOE_TAPPING: "Toe tapping",
+}
+
+_SIGNALS = {
+    Task.FINGER_TAPPING: "thumb–index distance",
+    Task.HAND_MOVEMENTS: "finger–wrist distance",
+    Task.PRONATION_SUPINATION: "rotation of the hand about the forearm",
+    Task.TOE_TAPPING: "toe lift",
+}
+
+#: The words for the two halves of a cycle: (towards the turn, back).
+PHASE_WORDS = {
+    Task.FINGER_TAPPING: ("opening", "closing"),
+    Task.HAND_MOVEMENTS: ("opening", "closing"),
+    Task.PRONATION_SUPINATION: ("supination", "pronation"),
+    Task.TOE_TAPPING: ("lift", "lowering"),
 }
 
 TASKS: tuple[str, ...] = tuple(t.value for t in Task)
@@ -89,4 +120,36 @@ def parse_task(value: str | Task | None) -> Task:
         ) from None
 
 
-__all__ = ["DEFAULT_TASK", "TASKS", "Task", "parse_task"]
+def task_key(key: str, task: Task) -> str:
+    """A finger-tapping metric or tap key renamed for ``task`` (``amplitude_mm_mean`` ->
+    ``amplitude_deg_mean``, ``opening_velocity_mm_s_max`` -> ``supination_velocity_deg_s_max``,
+    ``tap_count`` -> ``cycle_count``); finger tapping's own keys are returned unchanged."""
+    if task is Task.FINGER_TAPPING:
+        return key
+    unit = task.amplitude_unit
+    towards, back = task.phase_words
+    out = key
+    for old, new in (
+        ("inter_tap_interval", "inter_cycle_interval"),
+        ("tapping_time_s", "movement_time_s"),
+        ("reliable_tap_count", "reliable_cycle_count"),
+        ("tap_count", "cycle_count"),
+        ("tap_duration", "cycle_duration"),
+        ("tap_rate_hz", "cycle_rate_hz"),
+        ("_per_tap", "_per_cycle"),
+        ("_onset_tap", "_onset_cycle"),
+        ("opening_", f"{towards}_"),
+        ("closing_", f"{back}_"),
+        ("max_aperture", f"max_{'angle' if unit == 'deg' else 'signal'}"),
+        ("closed_aperture", f"start_{'angle' if unit == 'deg' else 'signal'}"),
+        ("_mm_s_", f"_{unit}_s_"),
+        ("_mm_s", f"_{unit}_s"),
+        ("_mm_", f"_{unit}_"),
+    ):
+        out = out.replace(old, new)
+    if out.endswith("_mm"):
+        out = out[: -len("_mm")] + f"_{unit}"
+    return out
+
+
+__all__ = ["DEFAULT_TASK", "PHASE_WORDS", "TASKS", "Task", "parse_task", "task_key"]

@@ -12,8 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.reports.result import TrialResult, read_result
-from core.cycles import PHASE_WORDS, task_key
-from core.tasks import Task, parse_task
+from core.tasks import Task, parse_task, task_key
 
 
 @dataclass(frozen=True)
@@ -312,25 +311,19 @@ ALIAS_KEYS = frozenset(
     {"amplitude_mean", "amplitude_unit", "amplitude_cv", "amplitude_decrement_per_cycle"}
 )
 
-_SIGNAL_WORDS = {
-    Task.HAND_MOVEMENTS: "finger–wrist distance",
-    Task.PRONATION_SUPINATION: "rotation of the hand about the forearm",
-    Task.TOE_TAPPING: "toe lift",
-}
-
 
 def _task_text(text: str, task: Task) -> str:
     """A finger-tapping label, unit or definition reworded for ``task``."""
-    towards, back = PHASE_WORDS[task]
+    towards, back = task.phase_words
     unit = task.amplitude_unit
     out = text
     for old, new in (
         (
             "largest thumb–index distance of a tap minus the distance at its start (the closed"
             " position)",
-            f"largest {_SIGNAL_WORDS[task]} of a cycle minus that at its start",
+            f"largest {task.signal} of a cycle minus that at its start",
         ),
-        ("thumb–index", _SIGNAL_WORDS[task]),
+        ("thumb–index", task.signal),
         ("Tapping frequency", "Frequency"),
         ("Tapping time", "Movement time"),
         ("Tap rate", "Cycle rate"),

@@ -22,10 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from app import plots
+from app import plots, quantities
+from app.quantities import quantity_of
 from app.reports.data import ReportData
 from app.reports.result import TrialResult, read_result
 from core.markers_csv import MarkerTable
+from core.protocols import cycle_signal, marker_columns, protocol_for
+from core.tasks import Task, parse_task, task_key
 
 PLOTS_FORMAT = "bradyscope.plots/1"
 PLOT_NAMES = ("aperture", "amplitude", "velocity", "paths")
@@ -75,7 +78,7 @@ def _plots_style() -> str:
     from importlib.metadata import version
 
     digest = hashlib.sha256(version("matplotlib").encode())
-    for module in (plots, sys.modules[__name__]):
+    for module in (plots, quantities, sys.modules[__name__]):
         digest.update(inspect.getsource(module).encode())
     return digest.hexdigest()[:16]
 
@@ -119,75 +122,90 @@ def read_plots_document(text: str) -> dict[str, str] | None:
     return {str(k): str(v) for k, v in drawn.items()}
 
 
-def _aperture_series(
-    markers: MarkerTable | None,
+def signal_series(
+    markers: MarkerTable | None, task: Task | str, *, side: str | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(time_s, aperture_mm, interpolated) of the trial, or None without thumb and index."""
-    m = markers
-    if m is None or not {"thumb", "index"} <= set(m.labels):
+    """(time_s, signal, interpolated) of a trial: the task's cycle signal per frame, raw
+    (:func:`core.protocols.cycle_signal`, in its unit), and the frames where one of its
+    markers was filled in; None without the protocol's markers.
+
+    ``side`` gives pronation–supination's direction of supination (None: right).
+    """
+    if markers is None:
         return None
-    aperture = plots.aperture_from_positions(m.positions_mm, labels=m.labels)
-    i_t, i_i = m.labels.index("thumb"), m.labels.index("index")
-    interp = (m.status[:, i_t] == "interpolated") | (m.status[:, i_i] == "interpolated")
-    return m.time_s, aperture, interp
+    try:
+        cols = marker_columns(markers.labels, task)
+    except ValueError:
+        return None
+    values = cycle_signal(task, markers.positions_mm[:, cols], side=side or "right").values
+    interp = np.any(markers.status[:, cols] == "interpolated", axis=1)
+    return markers.time_s, values, interp
 
 
-def _aperture(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    return _aperture_series(data.markers)
+def _signal(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    return signal_series(data.markers, data.analysis.task, side=data.analysis.side)
 
 
 def _aperture_svg(
-    analysis: TrialResult, markers: MarkerTable | None, *, top_mm: float | None = None
+    analysis: TrialResult, markers: MarkerTable | None, *, top: float | None = None
 ) -> str:
-    series = _aperture_series(markers)
+    quantity = quantity_of(analysis.task)
+    series = signal_series(markers, analysis.task, side=analysis.side)
     if series is None:
-        return plots.aperture_plot(np.zeros(0), np.zeros(0))
-    time_s, aperture, interp = series
+        return plots.aperture_plot(np.zeros(0), np.zeros(0), quantity=quantity)
+    time_s, values, interp = series
     return plots.aperture_plot(
         time_s,
-        aperture,
-        taps=analysis.taps,
+        values,
+        taps=analysis.task_cycles,
         events=analysis.events,
         interpolated=interp,
-        top_mm=top_mm,
+        top=top,
+        quantity=quantity,
     )
 
 
-def _amplitude_svg(analysis: TrialResult, *, top_mm: float | None = None) -> str:
+def _amplitude_svg(analysis: TrialResult, *, top: float | None = None) -> str:
+    task = parse_task(analysis.task)
     return plots.tap_amplitude_plot(
-        analysis.taps,
-        decrement_mm_per_tap=analysis.metric("amplitude_decrement_mm_per_tap"),
-        top_mm=top_mm,
+        analysis.task_cycles,
+        decrement_per_tap=analysis.metric(task_key("amplitude_decrement_mm_per_tap", task)),
+        top=top,
+        quantity=quantity_of(task),
     )
 
 
 def draw_plots(analysis: TrialResult, markers: MarkerTable | None) -> dict[str, str]:
-    """Draw the four plots of one result (``aperture``, ``amplitude``, ``velocity``, ``paths``).
+    """Draw the four plots of one result (``aperture``, ``amplitude``, ``velocity``, ``paths``)
+    in its task's quantity (the aperture plot shows the task's cycle signal).
 
     ``markers`` None (the file is gone) draws the trajectory plots empty.
     """
+    quantity = quantity_of(analysis.task)
+    labels = protocol_for(analysis.task).labels
     out: dict[str, str] = {
         "aperture": _aperture_svg(analysis, markers),
         "amplitude": _amplitude_svg(analysis),
     }
     m = markers
-    if m is not None and {"thumb", "index"} <= set(m.labels):
-        keep = [i for i, name in enumerate(m.labels) if name in ("thumb", "index")]
+    if m is not None and set(labels) <= set(m.labels):
+        cols = marker_columns(m.labels, analysis.task)
         out["paths"] = plots.fingertip_paths_plot(
-            m.positions_mm[:, keep], labels=[m.labels[i] for i in keep]
+            m.positions_mm[:, cols], labels=labels, quantity=quantity
         )
     else:
         out["paths"] = plots.fingertip_paths_plot(
-            np.full((0, 2, 3), np.nan), labels=["thumb", "index"]
+            np.full((0, len(labels), 3), np.nan), labels=labels, quantity=quantity
         )
-    out["velocity"] = plots.velocity_plot(analysis.taps)
+    out["velocity"] = plots.velocity_plot(analysis.task_cycles, quantity=quantity)
     return out
 
 
 def comparison_plots(
     first: ReportData, second: ReportData
 ) -> tuple[dict[str, str], dict[str, str]]:
-    """Aperture and amplitude plots of two trials drawn on the same scales (mm).
+    """Signal and amplitude plots of two trials drawn on the same scales (mm, or degrees);
+    trials of two different tasks (two quantities) each keep their own.
 
     Returns
     -------
@@ -198,22 +216,27 @@ def comparison_plots(
         finite = [v for v in values if math.isfinite(v)]
         return max(finite) if finite else None
 
-    apertures = [_aperture(d) for d in (first, second)]
-    top_aperture = peak(
-        [float(np.nanmax(a[1])) for a in apertures if a is not None and np.isfinite(a[1]).any()]
-    )
-    top_amplitude = peak(first.analysis.tap_amplitudes_mm + second.analysis.tap_amplitudes_mm)
     out = []
+    if parse_task(first.analysis.task) is not parse_task(second.analysis.task):
+        for d in (first, second):
+            out.append({"aperture": _aperture_svg(d.analysis, d.markers)})
+            out[-1]["amplitude"] = _amplitude_svg(d.analysis)
+        return out[0], out[1]
+    signals = [_signal(d) for d in (first, second)]
+    top_signal = peak(
+        [float(np.nanmax(a[1])) for a in signals if a is not None and np.isfinite(a[1]).any()]
+    )
+    top_amplitude = peak(first.analysis.cycle_amplitudes + second.analysis.cycle_amplitudes)
     for d in (first, second):
         out.append(
             {
                 "aperture": _aperture_svg(
                     d.analysis,
                     d.markers,
-                    top_mm=None if top_aperture is None else 1.12 * top_aperture,
+                    top=None if top_signal is None else 1.12 * top_signal,
                 ),
                 "amplitude": _amplitude_svg(
-                    d.analysis, top_mm=None if top_amplitude is None else 1.2 * top_amplitude
+                    d.analysis, top=None if top_amplitude is None else 1.2 * top_amplitude
                 ),
             }
         )

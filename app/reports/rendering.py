@@ -63,7 +63,7 @@ def report_context(data: ReportData) -> dict[str, Any]:
         "more_metric_rows": metric_rows(data.analysis, primary=False),
         "quality_rows": quality_rows(data),
         "warnings": list(data.analysis.quality.warnings),
-        "taps": list(data.analysis.taps),
+        "taps": list(data.analysis.task_cycles),  # the cycles of a task other than tapping
         "events": list(data.analysis.events),
         "plots": report_plots(data),
         "metric_specs": {k: v for k, v in METRICS.items() if v.primary},

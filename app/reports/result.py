@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.plots import PlotEvent
+from core.tasks import Task, parse_task, task_key
 
 Number = int | float
 
@@ -122,6 +123,10 @@ class TrialResult:
         The task measured (``task``; results older than tasks are finger tapping).
     cycles : tuple of mappings
         The cycles of a task other than finger tapping, as the document gives them.
+    side : str or None
+        The side the cycle signal was measured for (``cycle_analysis.signal.side``:
+        pronation–supination's direction of supination); None when the document does
+        not say.
     """
 
     fps: float | None = None
@@ -136,6 +141,7 @@ class TrialResult:
     calibration_id: int | None = None
     task: str = "finger_tapping"
     cycles: tuple[Mapping[str, object], ...] = ()
+    side: str | None = None
 
     def metric(self, key: str) -> float | None:
         """The metric ``key`` as a float, None when absent or undefined."""
@@ -143,9 +149,15 @@ class TrialResult:
         return None if value is None else float(value)
 
     @property
-    def tap_amplitudes_mm(self) -> list[float]:
-        """The amplitude of every tap that has one (mm)."""
-        return [float(a) for tp in self.taps if (a := _number(tp.get("amplitude_mm"))) is not None]
+    def task_cycles(self) -> tuple[Mapping[str, object], ...]:
+        """The taps of finger tapping, the cycles of the other tasks."""
+        return self.taps if parse_task(self.task) is Task.FINGER_TAPPING else self.cycles
+
+    @property
+    def cycle_amplitudes(self) -> list[float]:
+        """The amplitude of every tap (cycle) that has one, in the task's unit (mm or deg)."""
+        key = task_key("amplitude_mm", parse_task(self.task))
+        return [float(a) for tp in self.task_cycles if (a := _number(tp.get(key))) is not None]
 
 
 def result_events(result: Mapping[str, Any] | None) -> list[PlotEvent]:
@@ -238,6 +250,7 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         calibration_id=int(cal_id) if isinstance(cal_id, int) else None,
         task=_text(doc.get("task")) or "finger_tapping",
         cycles=tuple(c for c in _list(doc.get("cycles")) if isinstance(c, Mapping)),
+        side=_text(_mapping(_mapping(doc.get("cycle_analysis")).get("signal")).get("side")),
         quality=ResultQuality(
             tracked_fraction=fraction("tracked_fraction"),
             measured_fraction=fraction("measured_fraction"),

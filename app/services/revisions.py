@@ -4,10 +4,11 @@ A trial's result is never replaced. Revision 1 is the first analysis; each
 correction or re-analysis adds the next number, with who asked for it, when,
 why (a reason is required) and what changed; the newest is current.
 
-- A **correction** (exclude taps, dismiss a hesitation or halt, set the
-  analysis window, swap the thumb/index labels) is measured again at once by
-  core (:func:`core.corrections.correct_metrics`) from the stored trajectories
-  of the newest *analysis* revision: a few milliseconds, so inside the request.
+- A **correction** (exclude taps or cycles, dismiss a hesitation or halt, set
+  the analysis window, swap the two markers' labels) of any task is measured
+  again at once by core (:func:`core.corrections.correct_metrics`, with the
+  task and side of the analysis) from the stored trajectories of the newest
+  *analysis* revision: a few milliseconds, so inside the request.
   The request gives the corrections it changes; the others stay as the current
   revision has them (``window_s: null`` clears the window).
 - A **re-analysis** (a given camera offset, or the two videos swapped) is a
@@ -42,6 +43,7 @@ from app.services.common import load_trial
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv, write_markers_csv
 from core.overlay import swap_overlay_labels
+from core.tasks import Task, parse_task
 
 if TYPE_CHECKING:
     from core.corrections import Corrections
@@ -255,23 +257,25 @@ def _stored_trajectories(storage: Storage, trial: Trial, base: Result) -> Marker
 
 
 def _write_swapped_labels(
-    storage: Storage, base: Result, table: MarkerTable, written: list[str]
+    storage: Storage, base: Result, table: MarkerTable, task: Task, written: list[str]
 ) -> tuple[str | None, str | None]:
-    """markers.csv and the review overlay with thumb and index swapped; their stored paths.
+    """markers.csv and the review overlay with the task's two labels swapped (thumb and
+    index; finger and wrist); their stored paths.
 
     Each file written is appended to ``written`` at once, so that the caller
     can remove it if storing the revision fails.
     """
-    from core.corrections import swap_thumb_index
+    from core.corrections import swap_labels, swappable_labels
 
     with storage.writing("results", ".csv") as (tmp, markers_path):
-        write_markers_csv(swap_thumb_index(table), tmp)
+        write_markers_csv(swap_labels(table, task), tmp)
     written.append(markers_path)
     overlay_path = base.overlay_path
-    if base.overlay_path and storage.exists(base.overlay_path):
+    pair = swappable_labels(task)
+    if pair and base.overlay_path and storage.exists(base.overlay_path):
         overlay = json.loads(storage.absolute(base.overlay_path).read_text())
         with storage.writing("overlays", ".json") as (tmp, overlay_path):
-            tmp.write_text(json.dumps(swap_overlay_labels(overlay)))
+            tmp.write_text(json.dumps(swap_overlay_labels(overlay, *pair)))
         written.append(overlay_path)
     return markers_path, overlay_path
 
@@ -290,15 +294,14 @@ def _correct(
         raise ConflictError(
             f"The trial {trial.id} has no result to correct yet; wait for its analysis."
         )
-    task = base.document.get("task", "finger_tapping")
-    if task != "finger_tapping":
-        raise InvalidRequestError(f"Corrections of taps apply to finger tapping, not to {task}.")
-    from core.corrections import correct_metrics, revised_document, swap_thumb_index
+    from core.corrections import correct_metrics, revised_document, swap_labels
 
+    task = parse_task(base.document.get("task"))
     corrections = _merged_corrections(current, change)
     table = _stored_trajectories(storage, trial, base)
     try:
-        corrected = correct_metrics(table, corrections)
+        # The task and side the analysis measured (the side: the direction of supination).
+        corrected = correct_metrics(table, corrections, task=task, side=trial.hand)
     except ValueError as exc:
         raise InvalidRequestError(f"The correction cannot be applied: {exc}") from exc
 
@@ -314,8 +317,8 @@ def _correct(
     markers_path, overlay_path = base.markers_path, base.overlay_path
     try:
         if corrections.swap_labels:
-            markers_path, overlay_path = _write_swapped_labels(storage, base, table, written)
-        shown = swap_thumb_index(table) if corrections.swap_labels else table
+            markers_path, overlay_path = _write_swapped_labels(storage, base, table, task, written)
+        shown = swap_labels(table, task) if corrections.swap_labels else table
         plots_path = store_plots(storage, document, shown)
         written.append(plots_path)
         db.add(

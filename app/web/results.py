@@ -67,7 +67,7 @@ def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
         a, b = data.analysis.metric(key), other.analysis.metric(key)
         diff, pct = "–", "–"
         if a is not None and b is not None and not is_tap_number(key):
-            diff = format_metric(key, b - a)
+            diff = format_metric(key, b - a, data.task)
             if not diff.startswith(("-", "+", "–")):
                 diff = "+" + diff
             if a != 0:
@@ -83,7 +83,7 @@ def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
             }
         )
     plots_a, plots_b = comparison_plots(data, other)
-    return {"rows": rows, "plots_a": plots_a, "plots_b": plots_b}
+    return {"rows": rows, "plots_a": plots_a, "plots_b": plots_b, "task": other.task}
 
 
 def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]:

@@ -15,6 +15,7 @@ import numpy as np
 
 from app.reports.data import CalibrationInfo, ReportData
 from core.markers_csv import MarkerTable
+from core.simulation.tasks import TaskTruth
 from core.version import software_document
 
 FPS = 100.0  # Hz
@@ -169,3 +170,67 @@ def sample_report_data(*, patient_code: str = "PD-0042", hand: str = "right") ->
         ),
         generated_at=datetime(2025, 3, 14, 10, 0, tzinfo=UTC),
     )
+
+
+def task_trial(
+    task: str,
+    *,
+    side: str = "right",
+    duration_s: float = 6.0,
+    seed: int = 0,
+    amplitude_scale: float = 1.0,
+) -> tuple[MarkerTable, dict, TaskTruth]:
+    """(markers, result.json, truth) of a simulated trial of a task other than finger tapping.
+
+    The trajectories are the simulator's (``core.simulation.tasks``) with 0.03 mm of
+    seeded 3D noise, a hesitation before cycle 3, a halt before cycle 6 and the
+    decrement of tests/core/test_task_metrics.py (-1 mm or -3 degrees per cycle); the metrics
+    are measured by core (:func:`core.cycles.compute_task_metrics`), and the document
+    is laid out as ``core.pipeline`` writes it for such a task.
+    """
+    from core.cycles import compute_task_metrics
+    from core.simulation.tasks import TaskScenario, simulate_task
+    from core.tasks import Task
+
+    the_task = Task(task)
+    base = TaskScenario(task=the_task)
+    scenario = TaskScenario(
+        task=the_task,
+        duration_s=duration_s,
+        side=side,
+        amplitude=base.amplitude * amplitude_scale,
+        decrement_per_cycle=-3.0 if the_task is Task.PRONATION_SUPINATION else -1.0,
+        hesitations=(3,),
+        halts=((6, 0.5),),
+    )
+    truth = simulate_task(scenario, seed=seed)
+    rng = np.random.default_rng(seed)
+    pos = truth.positions_mm + rng.normal(0.0, 0.03, truth.positions_mm.shape)  # mm
+    n, m = pos.shape[:2]
+    markers = MarkerTable(
+        fps=truth.fps,
+        frames=np.arange(n, dtype=np.int64),
+        labels=tuple(truth.marker_names),
+        positions_mm=pos,
+        status=np.full((n, m), "measured"),
+        reprojection_px=np.full((n, m), 0.1),
+    )
+    measured = compute_task_metrics(the_task, pos, truth.fps, side=side).to_result()
+    result = {
+        "format": "bradyscope.result/1",
+        "task": the_task.value,
+        "software": software_document(),
+        "fps": truth.fps,
+        "sync": {"offset_frames": 0.0, "method": "given"},
+        "taps": [],
+        "markers": list(truth.marker_names),
+        "frame_count": n,
+        "quality": {
+            "tracked_fraction": 1.0,
+            "interpolated_fraction": 0.0,
+            "reprojection_px_median": 0.1,
+            "warnings": [],
+        },
+        **measured,
+    }
+    return markers, result, truth

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import re
+from dataclasses import replace
 from datetime import UTC, datetime
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from sample_trial import CLOSED_MM, synthetic_trial
 
 from app import plots, trends
+from app.reports.figures import signal_series
 from app.reports.result import result_events
 
 
@@ -23,9 +25,14 @@ def _n_drawn_paths(svg: str) -> int:
     return len(re.findall(r"<path [^>]*d=\"M", svg))
 
 
-def test_aperture_from_positions_is_the_thumb_index_distance(trial):
+def _aperture(markers):
+    """The thumb–index distance per frame, as the report draws it (mm)."""
+    return signal_series(markers, "finger_tapping")[1]
+
+
+def test_the_finger_tapping_signal_is_the_thumb_index_distance(trial):
     markers, result = trial
-    a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
+    a = _aperture(markers)
     assert a.shape == (markers.frames.size,)
     # Before the first tap the fingers are closed: distance = CLOSED_MM (+ jitter).
     np.testing.assert_allclose(a[:20], CLOSED_MM, atol=0.1)  # mm, 0.02 mm jitter per axis
@@ -34,22 +41,25 @@ def test_aperture_from_positions_is_the_thumb_index_distance(trial):
     np.testing.assert_allclose(a[i], CLOSED_MM + peak["amplitude_mm"], atol=0.1)  # mm
     assert np.isnan(a[-1])  # the thumb is missing in the last frame
     # Convention: the marker order must not matter.
-    swapped = plots.aperture_from_positions(
-        markers.positions_mm[:, ::-1], labels=("index", "thumb")
+    swapped = replace(
+        markers,
+        labels=("index", "thumb"),
+        positions_mm=markers.positions_mm[:, ::-1],
+        status=markers.status[:, ::-1],
     )
-    np.testing.assert_array_equal(swapped, a)
+    np.testing.assert_array_equal(_aperture(swapped), a)
 
 
-def test_aperture_from_positions_rejects_bad_shapes():
-    with pytest.raises(ValueError, match="T, M, 3"):
-        plots.aperture_from_positions(np.zeros((5, 2)), labels=("thumb", "index"))
-    with pytest.raises(ValueError, match="thumb"):
-        plots.aperture_from_positions(np.zeros((5, 2, 3)), labels=("a", "b"))
+def test_a_trial_without_the_task_markers_has_no_signal(trial):
+    markers, _ = trial
+    assert signal_series(replace(markers, labels=("a", "b")), "finger_tapping") is None
+    assert signal_series(markers, "toe_tapping") is None
+    assert signal_series(None, "finger_tapping") is None
 
 
 def test_aperture_plot_marks_every_tap_and_the_hesitation(trial):
     markers, result = trial
-    a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
+    a = _aperture(markers)
     svg = plots.aperture_plot(markers.time_s, a, taps=result["taps"], events=result_events(result))
     assert svg.startswith("<svg") and svg.rstrip().endswith("</svg>")
     assert "<title>Aperture over time: 20 taps, 1 hesitation(s), 0 halt(s) marked</title>" in svg
@@ -95,7 +105,7 @@ def test_shape_errors_are_value_errors():
 
 def test_amplitude_plot_draws_the_given_decrement(trial):
     _, result = trial
-    svg = plots.tap_amplitude_plot(result["taps"], decrement_mm_per_tap=-0.8)
+    svg = plots.tap_amplitude_plot(result["taps"], decrement_per_tap=-0.8)
     assert "decrement -0.80 mm/tap" in svg
     # Without a slope it is fitted from the amplitudes (exactly linear here).
     fitted = plots.tap_amplitude_plot(result["taps"])
@@ -150,7 +160,7 @@ def test_missing_and_unreliable_tap_values_do_not_break_the_plots(trial):
     # The decrement is fitted on reliable, measured taps only: still the true slope.
     assert "decrement -0.80 mm/tap" in svg
     assert plots.velocity_plot(taps).startswith("<svg")
-    a = plots.aperture_from_positions(markers.positions_mm, labels=markers.labels)
+    a = _aperture(markers)
     taps[6]["t_max_aperture_s"] = None
     assert plots.aperture_plot(markers.time_s, a, taps=taps).startswith("<svg")
 

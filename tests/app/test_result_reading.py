@@ -15,7 +15,7 @@ def test_a_full_document_reads_typed() -> None:
     assert result.metric("amplitude_decrement_mm_per_tap") == -0.8  # mm/tap, as written
     assert result.metrics["tap_count"] == 20 and isinstance(result.metrics["tap_count"], int)
     assert result.metrics_first_10["frequency_hz"] == 2.5
-    assert len(result.taps) == 20 and result.tap_amplitudes_mm[0] == 52.0
+    assert len(result.taps) == 20 and result.cycle_amplitudes[0] == 52.0
     assert [e.kind for e in result.events] == ["hesitation"]
     assert result.quality.reprojection_px_median == 0.1
     assert result.quality.warnings == ("The thumb marker was lost in the last frame.",)

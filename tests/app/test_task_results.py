@@ -1,0 +1,207 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support / test_pages are parameters here)
+"""A result of each task other than finger tapping: its plots, reports and corrections.
+
+The trials are simulated (``sample_trial.task_trial``: the simulator's
+trajectories, measured by core) and stored as the worker stores them. Each
+one's result page must draw its own quantity in its own unit with its cycles
+marked (the SVG's text is checked), its reports must give its metrics with
+units, and a correction must be measured again by the analysis's own code and
+match the simulator's truth within the tolerances of the tasks' acceptance
+(tests/core/test_task_metrics.py).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from api_support import Api, api  # noqa: F401 - fixture
+from sample_trial import task_trial
+from sqlalchemy import select
+from test_pages import client, login, seeded  # noqa: F401 - fixtures
+
+from app.models import Job, RecordingSession, Result, Trial
+from core.markers_csv import markers_csv_text
+from core.tasks import Task, task_key
+
+NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING)
+# What each task's plots must say: (signal axis label, unit, the two halves of a cycle).
+EXPECTED = {
+    Task.HAND_MOVEMENTS: ("finger–wrist distance", "mm", ("opening", "closing")),
+    Task.PRONATION_SUPINATION: (
+        "rotation of the hand about the forearm",
+        "deg",
+        ("supination", "pronation"),
+    ),
+    Task.TOE_TAPPING: ("toe lift", "mm", ("lift", "lowering")),
+}
+DURATION_S = {Task.HAND_MOVEMENTS: 9.0, Task.PRONATION_SUPINATION: 11.0, Task.TOE_TAPPING: 6.0}
+
+
+def store_task_trial(
+    db_sessionmaker, storage, task: Task, *, hand: str = "right", session_index: int = -1,
+    seed: int = 3, amplitude_scale: float = 1.0,
+):  # fmt: skip
+    """A trial of ``task`` with a simulated, core-measured result, stored as the worker
+    stores it in a session of ``seeded``'s patient; returns (trial id, result.json, truth)."""
+    markers, document, truth = task_trial(
+        task.value, side=hand, duration_s=DURATION_S[task], seed=seed,
+        amplitude_scale=amplitude_scale,
+    )  # fmt: skip
+    stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
+    with db_sessionmaker() as db:
+        session = db.scalars(select(RecordingSession).order_by(RecordingSession.recorded_at)).all()[
+            session_index
+        ]
+        trial = Trial(session_id=session.id, hand=hand, task=task.value, status="succeeded")
+        db.add(trial)
+        db.flush()
+        job = Job(kind="analyze_trial", trial_id=trial.id, status="succeeded", progress=1.0)
+        db.add(job)
+        db.flush()
+        db.add(
+            Result(
+                trial_id=trial.id, job_id=job.id, document=document, markers_path=stored.path
+            )
+        )  # fmt: skip
+        db.commit()
+        return trial.id, document, truth
+
+
+def _plot(html: str, name: str) -> str:
+    match = re.search(rf'<svg[^>]*data-plot="{name}".*?</svg>', html, re.S)
+    assert match, f"no {name} plot"
+    return match.group(0)
+
+
+def _texts(svg: str) -> list[str]:
+    """The words drawn in an SVG (matplotlib keeps text as text)."""
+    return [t.strip() for t in re.findall(r"<text[^>]*>([^<]*)</text>", svg)]
+
+
+@pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
+@pytest.mark.parametrize("where", ["page", "report"])
+def test_the_result_page_plots_the_task_s_own_quantity(
+    api: Api, client, seeded, db_sessionmaker, storage, task: Task, where: str
+) -> None:
+    trial_id, doc, truth = store_task_trial(db_sessionmaker, storage, task)
+    signal, unit, (towards, back) = EXPECTED[task]
+    if where == "page":
+        login(client)
+        html = client.get(f"/trials/{trial_id}").text
+    else:
+        html = api.client.get(f"/api/v1/trials/{trial_id}/report.html", headers=api.headers).text
+    n = doc["metrics"]["cycle_count"]
+    assert n == len(truth.cycles)
+
+    aperture = _plot(html, "aperture")
+    assert f"{signal} ({unit})" in _texts(aperture)  # the y axis
+    title = f"{signal[0].upper()}{signal[1:]} over time: {n} cycles, 1 hesitation(s), 1 halt(s)"
+    assert f"<title>{title} marked</title>" in aperture
+    # Every cycle is numbered at its turn, and the legend speaks of cycles.
+    assert {str(k) for k in range(1, n + 1)} <= set(_texts(aperture))
+    assert {"cycle peak", "cycle start", "hesitation", "halt"} <= set(_texts(aperture))
+
+    amplitude = _plot(html, "amplitude")
+    assert {f"amplitude ({unit})", "cycle number"} <= set(_texts(amplitude))
+    slope = doc["metrics"]["amplitude_decrement_per_cycle"]
+    assert f"decrement {slope:+.2f} {unit}/cycle" in _texts(amplitude)
+    assert f"<title>Amplitude of {n} cycles with decrement line" in amplitude
+
+    velocity = _plot(html, "velocity")
+    assert {f"peak velocity ({unit}/s)", towards, back, "cycle number"} <= set(_texts(velocity))
+
+    paths = _plot(html, "paths")
+    assert set(doc["markers"]) <= set(_texts(paths))
+    for svg in (aperture, amplitude, velocity, paths):
+        assert "thumb" not in svg and "tap" not in " ".join(_texts(svg))
+
+    # The page around the plots says the same; the tables carry the units.
+    assert f"{signal[0].upper()}{signal[1:]} over time" in html
+    assert "amplitude of each cycle" in html.lower()
+    amp_key = task_key("amplitude_mm_mean", task)
+    row = re.search(rf'<tr[^>]*data-metric="{amp_key}".*?</tr>', html, re.S)
+    assert row and f">{unit}<" in row.group(0)
+    cycles = re.search(r'<table class="taps">.*?</table>', html, re.S)
+    assert cycles, "the table of cycles"
+    heads = re.findall(r"<th[^>]*>([^<]*)</th>", cycles.group(0))
+    assert heads[:6] == [
+        "Cycle", "Start (s)", "Peak (s)", f"Amplitude ({unit})",
+        f"{towards.capitalize()} ({unit}/s)", f"{back.capitalize()} ({unit}/s)",
+    ]  # fmt: skip
+    first = doc["cycles"][0]
+    assert f"{first[task_key('amplitude_mm', task)]:.1f}" in cycles.group(0)
+
+
+@pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
+def test_the_cycles_are_marked_where_the_signal_turns(task: Task) -> None:
+    """The dots of the signal plot sit on the cycle peaks: the drawn peak heights are the
+    signal at each cycle's turn, so a plot of another quantity (or unit) would not fit."""
+    from app.reports.figures import signal_series
+    from app.reports.result import read_result
+
+    markers, doc, _ = task_trial(task.value, duration_s=DURATION_S[task], seed=3)
+    series = signal_series(markers, task.value, side=read_result(doc).side)
+    assert series is not None
+    t, values, _ = series
+    peaks = np.interp([c[task_key("t_max_aperture_s", task)] for c in doc["cycles"]], t, values)
+    amp = np.array([c[task_key("amplitude_mm", task)] for c in doc["cycles"]])
+    starts = np.interp([c["t_start_s"] for c in doc["cycles"]], t, values)
+    # The raw signal's peak minus its start is the measured amplitude (filtering aside).
+    tolerance = 0.5 if task is Task.PRONATION_SUPINATION else 0.01 * amp  # degrees / 1 %
+    assert np.all(np.abs((peaks - starts) - amp) <= tolerance + 0.2)  # + raw-sample noise
+
+
+@pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
+def test_a_correction_of_a_task_is_measured_again_and_matches_the_truth(
+    api: Api, seeded, db_sessionmaker, storage, task: Task
+) -> None:
+    hand = "left" if task is Task.PRONATION_SUPINATION else "right"  # the side matters there
+    trial_id, original, truth = store_task_trial(db_sessionmaker, storage, task, hand=hand)
+    h = api.headers
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"exclude_taps": [2], "dismiss_pauses": [3], "reason": "cycle 3 was a cough"},
+        headers=h,
+    )
+    assert r.status_code == 201, r.text
+    doc = api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()
+    assert doc["revision"] == 2 and doc["task"] == task.value
+    m = doc["metrics"]
+    kept = [c for c in truth.cycles if c.index != 2]
+    assert m["cycle_count"] == len(kept) == original["metrics"]["cycle_count"] - 1  # exact
+    amp_key = task_key("amplitude_mm", task)
+    amp = np.array([c[amp_key] for c in doc["cycles"]])
+    true_amp = np.array([c.amplitude for c in kept])
+    mean = m[task_key("amplitude_mm_mean", task)]
+    assert m["amplitude_mean"] == mean and m["amplitude_unit"] == task.amplitude_unit
+    if task is Task.PRONATION_SUPINATION:
+        assert np.max(np.abs(amp - true_amp)) <= 0.5  # degrees
+        assert abs(mean - np.mean(true_amp)) <= 0.5  # degrees
+    else:
+        assert np.max(np.abs(amp / true_amp - 1)) <= 0.01  # 1 %
+        assert abs(mean / np.mean(true_amp) - 1) <= 0.01  # 1 %
+    assert abs(m["frequency_hz"] / truth.frequency_hz - 1) <= 0.01  # 1 %
+    assert abs(m["amplitude_decrement_per_cycle"] / truth.decrement_per_cycle - 1) <= 0.10
+    assert m["hesitation_count"] == 0 and m["halt_count"] == 1  # the hesitation dismissed
+    assert [c["index"] for c in doc["excluded_taps"]] == [2]
+    assert doc["metrics_first_10"]["cycle_count"] == 10
+
+    # Its stored plots are the corrected revision's, in the task's quantity.
+    html = api.client.get(f"/api/v1/trials/{trial_id}/report.html", headers=h).text
+    aperture = _plot(html, "aperture")
+    signal, unit, _ = EXPECTED[task]
+    assert f"{signal} ({unit})" in _texts(aperture)
+    assert f"{len(kept)} cycles, 0 hesitation(s), 1 halt(s)" in aperture
+
+
+def test_three_marker_labels_cannot_be_swapped(api: Api, seeded, db_sessionmaker, storage) -> None:
+    trial_id, _, _ = store_task_trial(db_sessionmaker, storage, Task.TOE_TAPPING)
+    r = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"swap_labels": True, "reason": "labels look wrong"},
+        headers=api.headers,
+    )
+    assert r.status_code == 422
+    assert "named by their distances" in r.json()["detail"]
