@@ -34,7 +34,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from math import sqrt
+from math import nan, sqrt
 
 import numpy as np
 from numpy.typing import NDArray
@@ -336,6 +336,7 @@ def build_tracklets(
         raise ValueError(f"gate_mm must be positive, got {gate_mm}")
     cams = rig.cameras
     f_px = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]
+    projections = [_Projection(c) for c in cams]
     active: list[_Track] = []
     done: list[_Track] = []
     # Per frame only a handful of tracks and candidates meet: plain Python
@@ -356,7 +357,7 @@ def build_tracklets(
                 preds.append((tr.x + tr.vx * gap, tr.y + tr.vy * gap, tr.z + tr.vz * gap))
                 gates.append(gate_mm * (1.0 + 0.5 * (gap - 1)))
             if merge_px is not None and len(active) > 1:
-                if _block_merged_images(active, preds, frame, obs, cams, merge_px, used):
+                if _block_merged_images(active, preds, frame, obs, projections, merge_px, used):
                     if overlap_frames is not None:
                         overlap_frames.append(frame)
             assigned = [False] * len(active)
@@ -403,12 +404,52 @@ def build_tracklets(
     return tracklets
 
 
+class _Projection:
+    """:meth:`Camera.project` of one point in plain Python floats (the tracker asks for a
+    few points per frame, where numpy's per-call cost is most of the time); the same
+    formula, term for term. A camera with a tilted sensor goes through ``Camera.project``."""
+
+    __slots__ = ("cam", "dist", "k", "r", "t", "tilted")
+
+    def __init__(self, cam: Camera) -> None:
+        self.cam = cam
+        self.r = cam.R_cam_from_world.tolist()
+        self.t = cam.t_cam_from_world_mm.tolist()
+        self.k = (cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2])
+        d = np.zeros(14)
+        d[: cam.dist.shape[0]] = cam.dist
+        self.dist = d.tolist()
+        self.tilted = d[12] != 0.0 or d[13] != 0.0
+
+    def __call__(self, p: tuple[float, float, float]) -> tuple[float, float]:
+        """Distorted pixel ``(u, v)`` of world point ``p`` (mm); NaN behind the camera."""
+        if self.tilted:
+            u, v = self.cam.project(np.array([p]))[0].tolist()
+            return u, v
+        (r0, r1, r2), t = self.r, self.t
+        z = p[0] * r2[0] + p[1] * r2[1] + p[2] * r2[2] + t[2]
+        if not z > 0:
+            return nan, nan
+        x = (p[0] * r0[0] + p[1] * r0[1] + p[2] * r0[2] + t[0]) / z
+        y = (p[0] * r1[0] + p[1] * r1[1] + p[2] * r1[2] + t[1]) / z
+        k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = self.dist[:12]
+        rr2 = x * x + y * y
+        rr4 = rr2 * rr2
+        rr6 = rr4 * rr2
+        radial = (1 + k1 * rr2 + k2 * rr4 + k3 * rr6) / (1 + k4 * rr2 + k5 * rr4 + k6 * rr6)
+        a1 = 2 * x * y
+        xd = x * radial + p1 * a1 + p2 * (rr2 + 2 * x * x) + s1 * rr2 + s2 * rr4
+        yd = y * radial + p1 * (rr2 + 2 * y * y) + p2 * a1 + s3 * rr2 + s4 * rr4
+        fx, fy, cx, cy = self.k
+        return xd * fx + cx, yd * fy + cy
+
+
 def _block_merged_images(
     active: Sequence[_Track],
     preds: Sequence[tuple[float, float, float]],
     frame: int,
     obs: FrameObservations,
-    cams: Sequence[Camera],
+    projections: Sequence[_Projection],
     merge_px: tuple[float, float],
     used: tuple[list[bool], list[bool]],
 ) -> bool:
@@ -419,21 +460,27 @@ def _block_merged_images(
     blocked = False
     if len(recent) < 2:
         return blocked
-    pts = np.array([preds[r] for r in recent])
-    for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
+    for ci, dets in enumerate((obs.left_px, obs.right_px)):
         limit = float(merge_px[ci])
         if dets.shape[0] == 0 or not limit > 0:
             continue
-        proj = cam.project(pts)
-        d = np.linalg.norm(proj[:, None, :] - proj[None, :, :], axis=2)
-        np.fill_diagonal(d, np.inf)
-        close = np.flatnonzero(np.any(d < limit, axis=1))
-        if len(close) == 0:
+        proj = [projections[ci](preds[r]) for r in recent]
+        # each pair once; |du| >= limit implies a distance >= limit (sqrt of a sum of squares)
+        close = [False] * len(proj)
+        for a, (ua, va) in enumerate(proj):
+            for b in range(a + 1, len(proj)):
+                du, dv = ua - proj[b][0], va - proj[b][1]
+                if du < limit and -du < limit and sqrt(du * du + dv * dv) < limit:
+                    close[a] = close[b] = True
+        centres = [uv for uv, c in zip(proj, close, strict=True) if c]
+        if not centres:
             continue
-        near = np.linalg.norm(dets[:, None, :] - proj[None, close, :], axis=2) < limit
-        for j in np.flatnonzero(np.any(near, axis=1)).tolist():
-            used[ci][j] = True
-            blocked = True
+        for j, (x, y) in enumerate(dets.tolist()):
+            for u, v in centres:
+                if sqrt((x - u) * (x - u) + (y - v) * (y - v)) < limit:
+                    used[ci][j] = True
+                    blocked = True
+                    break
     return blocked
 
 

@@ -422,3 +422,31 @@ def test_distance_is_numpy_norm_bit_for_bit() -> None:
     want = np.linalg.norm(p[:, None, :] - q[None, :, :], axis=2)  # as the reference does
     got = [[tracks._distance(tuple(a), b) for b in q.tolist()] for a in p.tolist()]
     assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize(
+    "dist",
+    [
+        np.array([-0.12, 0.08, 0.0005, -0.0003, -0.02]),
+        np.array([-0.1, 0.02, 0.001, -0.002, 0.003, 0.01, -0.004, 0.002, 1e-3, -2e-3, 3e-4, 1e-4]),
+        np.array([-0.1, 0.02, 0.001, -0.002, 0.003, 0, 0, 0, 0, 0, 0, 0, 0.01, -0.02]),  # tilt
+    ],
+)
+def test_projection_of_one_point_is_camera_project(dist) -> None:
+    # The merged-images check projects the predictions in plain floats: the same pixels
+    # as Camera.project (to rounding), NaN behind the camera, and a swapped x/y fails.
+    from core.camera import Camera
+
+    right = RIG.right
+    cam = Camera("c", right.image_size, right.K, dist, right.R_cam_from_world,
+                 right.t_cam_from_world_mm)  # fmt: skip
+    rng = np.random.default_rng(5)
+    pts = rng.normal([0, 0, 500], [80, 60, 60], (300, 3))
+    pts[:5, 2] = -pts[:5, 2] - 2000.0  # far behind both cameras
+    want = cam.project(pts)
+    proj = tracks._Projection(cam)
+    got = np.array([proj(tuple(p)) for p in pts.tolist()])
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.isnan(got[:5]).all()
+    np.testing.assert_allclose(got[5:], want[5:], rtol=0, atol=1e-9)  # px
+    assert not np.allclose(got[5:, ::-1], want[5:], atol=1.0)
