@@ -7,7 +7,8 @@ session's calibration, a patient and a session; the pair is uploaded
 which checks the videos by decoding them) and one worker (``run_worker``)
 measures the queued trials: analysis, ``markers.csv``, overlay, browser
 proxies, plots, result. Prints per trial the worker's wall time and this
-process's CPU time (all threads), and from them:
+process's CPU time (all threads), the CPU time of the two browser proxies
+(``write_proxy`` of both videos, timed alone after the worker), and from them:
 
 - trials per hour for one worker (3600 / wall s per trial) on this machine now;
 - trials per hour per core (3600 / CPU s per trial): what N workers on N
@@ -113,10 +114,17 @@ def bench(session_dir: Path, n_trials: int) -> None:
         c0, t0 = _cpu_s(), time.perf_counter()
         done = run_worker(settings, once=True)
         wall, cpu = (time.perf_counter() - t0) / done, (_cpu_s() - c0) / done
+        from core.video import write_proxy
+
+        c0 = _cpu_s()
+        for video in (left, right):
+            write_proxy(video, Path(tmp) / "proxy.mp4")
+        proxies_cpu = _cpu_s() - c0
     total_wall, total_cpu = up_wall + wall, up_cpu + cpu
     print(
         f"{session_dir.name}: {done} trials; per trial: upload check {up_wall:.1f} s"
-        f" (CPU {up_cpu:.1f} s), worker {wall:.1f} s (CPU {cpu:.1f} s)"
+        f" (CPU {up_cpu:.1f} s), worker {wall:.1f} s (CPU {cpu:.1f} s),"
+        f" of which the two browser proxies about {proxies_cpu:.1f} s of CPU (timed alone after)"
     )
     print(
         f"  one worker: {3600 / total_wall:.0f} trials/hour here now;"

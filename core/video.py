@@ -873,6 +873,21 @@ class VideoWriter:
 #: instead of 3.4 MB; bench/bench_throughput.py, docs/performance.md).
 PROXY_OPTIONS = {"crf": "23", "preset": "ultrafast", "g": "10", "bf": "0"}
 
+#: The widest browser proxy (px). The review view shows the two videos side by
+#: side, each at most about half a 1920-px screen; a wider video is reduced by a
+#: whole factor (1280x1024 to 640x512, 1920x1080 to 960x540), which cut the two
+#: proxies of a 10-s 1280x1024 100-fps trial from 12.7 s of CPU to 7.1 s
+#: (bench/bench_throughput.py, load 6-9; decoding the video is now ~1/3 of it).
+PROXY_MAX_WIDTH_PX = 960
+
+
+def proxy_size(image_size: ImageSize) -> ImageSize:
+    """The size of a video's browser proxy: reduced by the smallest whole factor that
+    makes it at most :data:`PROXY_MAX_WIDTH_PX` wide, then cut to even sizes (H.264 4:2:0)."""
+    factor = -(-image_size.width // PROXY_MAX_WIDTH_PX)  # ceil
+    width, height = image_size.width // factor, image_size.height // factor
+    return ImageSize(width - width % 2, height - height % 2)
+
 
 def write_proxy(
     source: str | Path, target: str | Path, *, progress: Callable[[int], None] | None = None
@@ -881,9 +896,12 @@ def write_proxy(
 
     Every decoded frame of ``source`` becomes frame ``i`` of the proxy at
     ``i / fps`` (constant frame rate), so a player's frame number is the
-    analysis's; gray (the luma plane, what the analysis measured). An odd
-    width or height loses its last column or row (H.264 4:2:0 needs even
-    sizes), which keeps every pixel coordinate. ``source`` is only read.
+    analysis's; gray (the luma plane, what the analysis measured). A video
+    wider than :data:`PROXY_MAX_WIDTH_PX` is reduced by a whole factor (pixel
+    areas averaged, :func:`proxy_size`); the review view draws its overlay in
+    the video's own pixels over whatever size the player shows. An odd width or
+    height loses its last column or row (H.264 4:2:0 needs even sizes), which
+    keeps every pixel coordinate. ``source`` is only read.
 
     Parameters
     ----------
@@ -907,7 +925,9 @@ def write_proxy(
     import av
 
     info = probe_video(source)
-    width, height = (v - v % 2 for v in info.image_size)
+    size = proxy_size(info.image_size)
+    width, height = size.width, size.height
+    factor = -(-info.image_size.width // PROXY_MAX_WIDTH_PX)
     out = Path(target)
     tb = fractions.Fraction(1, 90000)
     n = 0
@@ -922,9 +942,17 @@ def write_proxy(
             stream.codec_context.time_base = tb
             stream.options = dict(PROXY_OPTIONS)
             for gray in iter_frames(info.path, gray=True, expected_count=info.frame_count):
-                image = av.VideoFrame.from_ndarray(
-                    np.ascontiguousarray(gray[:height, :width]), format="gray"
-                )
+                shown = gray[:height, :width]
+                if factor > 1:  # pixel areas averaged; cv2 returns the input's dtype
+                    shown = np.asarray(
+                        cv2.resize(
+                            gray[: height * factor, : width * factor],
+                            (width, height),
+                            interpolation=cv2.INTER_AREA,
+                        ),
+                        dtype=np.uint8,
+                    )
+                image = av.VideoFrame.from_ndarray(np.ascontiguousarray(shown), format="gray")
                 image.pts = round(n / info.fps / tb)
                 image.time_base = tb
                 for packet in stream.encode(image):

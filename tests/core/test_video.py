@@ -15,6 +15,7 @@ from core.video import (
     iter_frames,
     list_images,
     probe_video,
+    proxy_size,
     read_image,
     video_suffix,
     write_proxy,
@@ -233,6 +234,44 @@ def test_proxy_is_browser_h264_frame_for_frame_and_leaves_the_original(tmp_path)
         square = (slice(12, 18), slice(12 + k, 18 + k))
         assert abs(float(b[square].mean()) - float(expected[square].mean())) < 4  # grey levels
         assert b[:, : 10 + k].mean() < 60  # the square is in its frame's place (frame order)
+
+
+@pytest.mark.parametrize(
+    ("size", "expected"),
+    [
+        (ImageSize(640, 512), ImageSize(640, 512)),  # the demo's: as it is
+        (ImageSize(960, 600), ImageSize(960, 600)),
+        (ImageSize(65, 41), ImageSize(64, 40)),
+        (ImageSize(1280, 1024), ImageSize(640, 512)),  # lab rig
+        (ImageSize(1920, 1080), ImageSize(960, 540)),  # consumer cameras
+        (ImageSize(2880, 1000), ImageSize(960, 332)),  # a factor of 3
+    ],
+)
+def test_proxy_size_is_the_video_reduced_by_a_whole_factor(size, expected):
+    assert proxy_size(size) == expected
+
+
+def test_wide_video_proxy_is_reduced_and_keeps_places_and_frames(tmp_path):
+    """A 1282x100 video (reduced by 2): the square is at half its coordinates in its frame."""
+    size = ImageSize(1282, 100)
+    src = tmp_path / "wide.mkv"
+    frames = []
+    for k in range(12):
+        f = np.full((size.height, size.width), 20, np.uint8)
+        f[40:60, 600 + 20 * k : 620 + 20 * k] = 230  # 20 px to the right each frame
+        frames.append(f)
+    with VideoWriter(src, fps=100.0, image_size=size) as w:
+        for f in frames:
+            w.write(f)
+    out = tmp_path / "wide.mp4"
+    assert write_proxy(src, out) == 12
+    info = probe_video(out)
+    assert info.image_size == ImageSize(640, 50) and info.frame_count == 12
+    for k, b in enumerate(iter_frames(out)):
+        columns = np.flatnonzero(b[20:30].mean(axis=0) > 120)
+        # Source columns 600 + 20k .. 619 + 20k are proxy columns 300 + 10k .. 309 + 10k.
+        assert columns.min() == pytest.approx(300 + 10 * k, abs=1)  # px
+        assert columns.max() == pytest.approx(309 + 10 * k, abs=1)  # px
 
 
 def test_proxy_of_a_broken_file_is_an_input_error(tmp_path):
