@@ -52,8 +52,9 @@ def trend_plot(
     label: str,
     unit: str,
     integer: bool = False,
+    limb: str = "hand",
 ) -> str:
-    """One metric over sessions, per hand, with medication on and off drawn apart.
+    """One metric over sessions, per side, with medication on and off drawn apart.
 
     Left and right hands have their own colour; "on" medication is a solid line
     with filled dots, "off" a dashed line with open dots, "unknown" grey
@@ -61,7 +62,7 @@ def trend_plot(
     of one visit are spread slightly sideways (:data:`DODGE_FRACTION` of the
     axis per series) so that none hides another; resting the pointer on a
     point shows its date, hand, medication state and value. ``integer`` puts
-    ticks on whole numbers only (counts).
+    ticks on whole numbers only (counts); ``limb`` names the side (hand, foot) on hover.
     """
     fig = new_figure(3.6, 2.3)
     usable = [p for p in points if p.value is not None and math.isfinite(float(p.value))]
@@ -100,7 +101,7 @@ def trend_plot(
                     dot.set_gid(gid)
                     value = f"{y:.0f}" if integer else f"{y:.3g}"
                     hover[gid] = (
-                        f"{_as_datetime(p.recorded_at):%Y-%m-%d %H:%M}, {hand} hand,"
+                        f"{_as_datetime(p.recorded_at):%Y-%m-%d %H:%M}, {hand} {limb},"
                         f" medication {med}: {value}{' ' + unit if unit and unit != 'count' else ''}"
                     )
         ax.set_ylabel(f"{label} ({unit})" if unit else label)
@@ -122,7 +123,9 @@ def trend_plot(
                 mdates.date2num(centre - timedelta(days=45)),  # type: ignore[no-untyped-call]
                 mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
             )
-    return to_svg(fig, title=f"{label} per session over time, per hand", name="trend", hover=hover)
+    return to_svg(
+        fig, title=f"{label} per session over time, per {limb}", name="trend", hover=hover
+    )
 
 
 def _as_datetime(value: date | datetime) -> datetime:

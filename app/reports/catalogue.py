@@ -393,7 +393,7 @@ def metric_spec(key: str, task: str = "finger_tapping") -> MetricSpec:
     return MetricSpec(key.replace("_", " ").capitalize(), unit, ucum, 3, "", primary=False)
 
 
-# Metrics shown in trend plots (key, label, unit).
+# Metrics shown in trend plots (key, label, unit), finger tapping's names.
 TREND_METRICS: tuple[tuple[str, str, str], ...] = (
     ("amplitude_mm_mean", "Mean amplitude", "mm"),
     ("frequency_hz", "Tapping frequency", "Hz"),
@@ -401,6 +401,18 @@ TREND_METRICS: tuple[tuple[str, str, str], ...] = (
     ("amplitude_decrement_mm_per_tap", "Amplitude decrement", "mm/tap"),
     ("hesitation_count", "Hesitations and halts", "count"),
 )
+
+
+def trend_metrics(task: str | Task = Task.FINGER_TAPPING) -> tuple[tuple[str, str, str], ...]:
+    """The trend metrics of ``task``: :data:`TREND_METRICS` under the task's keys, words
+    and units (``amplitude_deg_mean``, "Peak supination velocity", ``deg/s``)."""
+    the_task = parse_task(task)
+    if the_task is Task.FINGER_TAPPING:
+        return TREND_METRICS
+    return tuple(
+        (task_key(key, the_task), _task_text(label, the_task), _task_text(unit, the_task))
+        for key, label, unit in TREND_METRICS
+    )
 
 
 def is_tap_number(key: str) -> bool:

@@ -20,12 +20,13 @@ from app.actors import Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, NotFoundError
 from app.models import Patient, RecordingSession, Trial, utcnow
-from app.reports.catalogue import TREND_METRICS
+from app.reports.catalogue import trend_metrics
 from app.reports.result import read_result
 from app.schemas import PatientCreate, PatientUpdate
 from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
 from app.services.erasure import tombstone_code
 from app.trends import TrendPoint
+from core.tasks import TASKS
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
@@ -199,33 +200,38 @@ class PatientOverview:
 
     patient: Patient
     sessions: list[SessionRow]
-    trends: dict[str, list[TrendPoint]]
+    trends: dict[str, dict[str, list[TrendPoint]]]
+    """Per task, per trend metric: the points (:func:`trend_points`)."""
     job_ids: dict[int, int]
 
 
-def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
-    """Per trend metric, one point per analysed trial of the patient: its first-10-tap value.
+def trend_points(patient: Patient) -> dict[str, dict[str, list[TrendPoint]]]:
+    """Per task measured, per trend metric of that task, one point per analysed trial of the
+    patient: its first-10-tap (cycle) value.
 
-    The MDS-UPDRS item is rated on the first 10 taps, so the trends follow
-    ``metrics_first_10`` (a result without it has no point). The trends are
-    finger tapping's: the other tasks' trials (another item, other units) are
-    not drawn on them.
+    The MDS-UPDRS items are rated on the first 10 taps (cycles), so the trends
+    follow ``metrics_first_10`` (a result without it has no point). Each task
+    has its own trends, in its own metrics and units
+    (:func:`app.reports.catalogue.trend_metrics`): the items are rated apart and
+    their amplitudes are not of one quantity (mm, degrees). Tasks come in the
+    order of the items; a task with no analysed trial has no entry.
     """
-    points: dict[str, list[TrendPoint]] = {key: [] for key, _, _ in TREND_METRICS}
+    points: dict[str, dict[str, list[TrendPoint]]] = {}
     for s in patient.sessions:
         if s.deleted_at is not None:
             continue
         for t in s.trials:
-            if t.deleted_at is not None or t.result is None or t.task != "finger_tapping":
+            if t.deleted_at is not None or t.result is None:
                 continue
-            result = read_result(t.result.document)
-            first10 = result.metrics_first_10
-            for key, _, _ in TREND_METRICS:
+            metrics = trend_metrics(t.task)
+            by_key = points.setdefault(t.task, {key: [] for key, _, _ in metrics})
+            first10 = read_result(t.result.document).metrics_first_10
+            for key, _, _ in metrics:
                 raw = first10.get(key)
                 value = None if raw is None else float(raw)
                 if key == "hesitation_count" and value is not None:
                     value += float(first10.get("halt_count") or 0)  # interruptions: both kinds
-                points[key].append(
+                by_key[key].append(
                     TrendPoint(
                         recorded_at=s.recorded_at,
                         hand=t.hand,
@@ -233,7 +239,7 @@ def trend_points(patient: Patient) -> dict[str, list[TrendPoint]]:
                         value=value,
                     )
                 )
-    return points
+    return {task: points[task] for task in TASKS if task in points}
 
 
 def patient_overview(db: Session, actor: Actor, patient_id: int) -> PatientOverview:

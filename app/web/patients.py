@@ -21,7 +21,7 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import DBS_STATES, MEDICATION_STATES, Patient, Rig
-from app.reports.catalogue import TREND_METRICS, format_metric
+from app.reports.catalogue import format_metric, trend_metrics
 from app.schemas import PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient
@@ -40,6 +40,7 @@ from app.web.common import (
     status_of,
     validation_message,
 )
+from core.tasks import parse_task
 
 router = APIRouter()
 
@@ -132,10 +133,28 @@ def _list_with_error(
 
 
 @functools.lru_cache(maxsize=64)
-def _trend_svg(points: tuple[TrendPoint, ...], label: str, unit: str) -> str:
+def _trend_svg(points: tuple[TrendPoint, ...], label: str, unit: str, limb: str) -> str:
     """A trend plot, drawn once per set of points (the page is opened far more often
     than a trial is measured; drawing the plots took most of its time)."""
-    return trend_plot(points, label=label, unit=unit, integer=unit == "count")
+    return trend_plot(points, label=label, unit=unit, integer=unit == "count", limb=limb)
+
+
+def _trend_group(task: str, points: dict[str, list[TrendPoint]], tz: str) -> dict[str, Any]:
+    """One task's trends: a plot per trend metric (its keys, words and units), or a table
+    when all its trials are from one visit."""
+    metrics = trend_metrics(task)
+    limb = parse_task(task).limb
+    measured = [p for key, _, _ in metrics for p in points[key] if p.value is not None]
+    visits = {local_date(_aware(p.recorded_at), tz) for p in measured}
+    group: dict[str, Any] = {"task": task, "trends": [], "table": None, "limb": limb}
+    if len(visits) > 1:
+        group["trends"] = [
+            {"key": key, "label": label, "svg": _trend_svg(tuple(points[key]), label, unit, limb)}
+            for key, label, unit in metrics
+        ]
+    elif measured:
+        group["table"] = _single_visit_table(task, points)
+    return group
 
 
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
@@ -144,23 +163,8 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
         overview = patients.patient_overview(db, user, patient_id)
     except NotFoundError as exc:
         return not_found_page(request, user, exc)
-    points = overview.trends
     tz = settings_of(request).timezone
-    measured = [p for key, _, _ in TREND_METRICS for p in points[key] if p.value is not None]
-    n_results = len({(p.recorded_at, p.hand) for p in measured})
-    visits = {local_date(_aware(p.recorded_at), tz) for p in measured}
-    trends, trend_table = [], None
-    if len(visits) > 1:
-        trends = [
-            {
-                "key": key,
-                "label": label,
-                "svg": _trend_svg(tuple(points[key]), label, unit),
-            }
-            for key, label, unit in TREND_METRICS
-        ]
-    elif measured:
-        trend_table = _single_visit_table(points)
+    groups = [_trend_group(task, points, tz) for task, points in overview.trends.items()]
     return render(
         request,
         "patient.html",
@@ -169,9 +173,7 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
         title=f"Patient {overview.patient.code}",
         patient=overview.patient,
         rows=[{"session": r.session, "trials": r.trials} for r in overview.sessions],
-        trends=trends,
-        trend_table=trend_table,
-        n_results=n_results,
+        trend_groups=[g for g in groups if g["trends"] or g["table"]],
         job_ids=overview.job_ids,
         format_metric=format_metric,
     )
@@ -183,26 +185,29 @@ def _aware(value: date | datetime) -> datetime:
     return datetime(value.year, value.month, value.day, tzinfo=UTC)
 
 
-def _single_visit_table(points: dict[str, list[TrendPoint]]) -> dict[str, Any]:
-    """One visit: a table (metric × hand and medication state) instead of one-dot plots."""
+def _single_visit_table(task: str, points: dict[str, list[TrendPoint]]) -> dict[str, Any]:
+    """One visit: a table (metric × side and medication state) instead of one-dot plots."""
+    metrics = trend_metrics(task)
+    limb = parse_task(task).limb
     columns = sorted(
-        {(p.medication_state, p.hand) for key, _, _ in TREND_METRICS for p in points[key]},
+        {(p.medication_state, p.hand) for key, _, _ in metrics for p in points[key]},
         key=lambda c: (
             ("off", "on", "unknown").index(c[0]) if c[0] in ("off", "on", "unknown") else 9,
             c[1] != "right",
         ),
     )
     rows = []
-    for key, label, unit in TREND_METRICS:
+    for key, label, unit in metrics:
         by_column = {(p.medication_state, p.hand): p.value for p in points[key]}
         cells = [
-            "–" if by_column.get(c) is None else format_metric(key, by_column[c]) for c in columns
+            "–" if by_column.get(c) is None else format_metric(key, by_column[c], task)
+            for c in columns
         ]
         rows.append(
             {"key": key, "label": label, "unit": "" if unit == "count" else unit, "cells": cells}
         )
     return {
-        "columns": [f"{hand} hand, medication {med}" for med, hand in columns],
+        "columns": [f"{hand} {limb}, medication {med}" for med, hand in columns],
         "rows": rows,
     }
 

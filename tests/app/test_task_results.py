@@ -205,3 +205,72 @@ def test_three_marker_labels_cannot_be_swapped(api: Api, seeded, db_sessionmaker
     )
     assert r.status_code == 422
     assert "named by their distances" in r.json()["detail"]
+
+
+def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
+    client, seeded, db_sessionmaker, storage
+) -> None:
+    """Finger tapping (``seeded``: two visits), hand movements and toe tapping at both visits
+    (plots), pronation–supination at one (a table): each task its own trends."""
+    from app.reports.catalogue import format_metric, trend_metrics
+
+    docs = {}
+    for task, sessions in (
+        (Task.HAND_MOVEMENTS, (0, 1)),
+        (Task.TOE_TAPPING, (0, 1)),
+        (Task.PRONATION_SUPINATION, (1,)),
+    ):
+        for k in sessions:
+            # the amplitude falls from the first visit to the second (another trial)
+            _, doc, _ = store_task_trial(
+                db_sessionmaker, storage, task, session_index=k, seed=k,
+                amplitude_scale=1.0 - 0.2 * k,
+            )  # fmt: skip
+            docs[(task, k)] = doc
+    login(client)
+    html = client.get(f"/patients/{seeded['patient_id']}").text
+    groups = re.findall(r'data-trend-task="([a-z_]+)"', html)
+    assert groups == ["finger_tapping", "hand_movements", "pronation_supination", "toe_tapping"]
+    sections = dict(
+        re.findall(r'data-trend-task="([a-z_]+)"(.*?)</section>', html, re.S)
+    )  # fmt: skip
+
+    for task in (Task.HAND_MOVEMENTS, Task.TOE_TAPPING):
+        part = sections[task.value]
+        keys = re.findall(r'<figure class="plot-figure trend" data-trend="([^"]+)"', part)
+        assert keys == [key for key, _, _ in trend_metrics(task)]
+        assert (
+            task_key("amplitude_decrement_mm_per_tap", task) == "amplitude_decrement_mm_per_cycle"
+        )
+        texts = _texts(part)
+        assert {"Mean amplitude (mm)", "Amplitude decrement (mm/cycle)", "Frequency (Hz)"} <= set(
+            texts
+        )
+        towards = task.phase_words[0]
+        assert f"Peak {towards} velocity (mm/s)" in texts
+        # Each point's hover: the date, the side's limb, and that trial's first-10 value.
+        for k, (day, med) in enumerate((("2024-03-01", "off"), ("2025-03-01", "on"))):
+            first10 = docs[(task, k)]["metrics_first_10"]["amplitude_mean"]
+            hover = f"{day} 09:00, right {task.limb}, medication {med}: {first10:.3g} mm"
+            assert hover in part
+        assert "thumb" not in part and "Tapping" not in part
+
+    ps = sections[Task.PRONATION_SUPINATION.value]
+    assert "data-trend-table" in ps and 'data-plot="trend"' not in ps  # one visit: a table
+    rows = dict(
+        re.findall(r'<tr data-trend="([^"]+)">(.*?)</tr>', ps, re.S)
+    )  # fmt: skip
+    first10 = docs[(Task.PRONATION_SUPINATION, 1)]["metrics_first_10"]
+    for key, label, unit in trend_metrics(Task.PRONATION_SUPINATION):
+        cells = re.findall(r"<t[dh][^>]*>([^<]*)</t[dh]>", rows[key])
+        assert cells[0] == label
+        expected = format_metric(key, first10[key], "pronation_supination")
+        if key == "hesitation_count":  # interruptions: hesitations and halts
+            expected = format_metric(key, first10[key] + first10["halt_count"])
+        assert cells[1] == expected and cells[-1] == ("" if unit == "count" else unit)
+    assert "amplitude_deg_mean" in rows and "supination_velocity_deg_s_max" in rows
+    assert "deg/s" in ps and "right hand, medication on" in ps
+
+    # Finger tapping keeps its own trends, untouched by the other tasks' trials.
+    ft = sections["finger_tapping"]
+    assert ft.count('data-plot="trend"') == 5 and "Tapping frequency (Hz)" in _texts(ft)
