@@ -1,7 +1,9 @@
-"""The review view of a trial: its videos' browser copies, the aperture, taps and pauses.
+"""The review view of a trial: its videos' browser copies, the task's signal, cycles and pauses.
 
 One revision of a trial's result as the review page shows it beside the two
-videos (docs/reports.md): :func:`review_page` reads the stored trajectories,
+videos (docs/reports.md), for every task: the task's cycle signal (the
+aperture of finger tapping, the rotation of pronation–supination...) with its
+taps or cycles, in its words and unit. :func:`review_page` reads the stored trajectories,
 the review overlay (the tracked markers drawn on each video) and the revision
 history, and is one ``read review`` audit event; :func:`proxy_file` serves the
 browser-playable copy of a video to the page's player. The corrections made
@@ -23,10 +25,14 @@ from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, NotFoundError
 from app.models import Job, Result, Trial
+from app.quantities import quantity_of
+from app.reports.figures import signal_series
+from app.reports.result import read_result
 from app.services.common import load_trial
 from app.services.revisions import RevisionInfo, history, served_document
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
+from core.tasks import parse_task
 
 if TYPE_CHECKING:  # core.corrections imports core.metrics (SciPy): when a page needs it
     from core.corrections import Corrections
@@ -47,9 +53,13 @@ class ReviewPage:
     """The review view of one revision of a trial's result.
 
     ``data`` is what the player script draws (embedded in the page, so the one
-    audited view covers it): the aperture per left frame, the taps, pauses and
-    the overlay of each video. ``videos`` are the sides that have a browser
-    proxy; ``job`` the newest analysis job (a re-analysis in progress or failed).
+    audited view covers it): the task's signal per left frame (``signal``, in
+    ``unit``), the taps or cycles (``taps``: their result.json objects, the turn
+    at ``peak_key``, the amplitude at ``amplitude_key``), pauses (naming their
+    tap or cycle by ``pause_key``) and the overlay of each video. ``videos`` are
+    the sides that have a browser proxy; ``job`` the newest analysis job (a
+    re-analysis in progress or failed); ``swap_pair`` the two labels that may
+    be swapped (None for a three-marker protocol).
     """
 
     trial: Trial
@@ -61,36 +71,37 @@ class ReviewPage:
     job: Job | None = None
     not_carried: tuple[str, ...] = ()
     """The corrections in force before this re-analysis, in words (1-based taps)."""
+    swap_pair: tuple[str, str] | None = ("thumb", "index")
 
 
-def _aperture(table: MarkerTable) -> list[float | None]:
-    """Raw thumb–index distance per left frame (mm, 0.01 mm), None where unknown."""
-    labels = list(table.labels)
-    if "thumb" not in labels or "index" not in labels:
+def _signal(table: MarkerTable, task: str, side: str) -> list[float | None]:
+    """The task's raw cycle signal per left frame (0.01 of its unit), None where unknown."""
+    series = signal_series(table, task, side=side)
+    if series is None:
         return []
-    d = np.linalg.norm(
-        table.positions_mm[:, labels.index("thumb")] - table.positions_mm[:, labels.index("index")],
-        axis=1,
-    )
-    return [round(float(v), 2) if np.isfinite(v) else None for v in d]
+    return [round(float(v), 2) if np.isfinite(v) else None for v in series[1]]
 
 
-def describe_corrections(corrections: Corrections) -> tuple[str, ...]:
-    """Each correction in words, as a clinician reads it (taps numbered from 1)."""
+def describe_corrections(corrections: Corrections, task: str = "finger_tapping") -> tuple[str, ...]:
+    """Each correction in words, as a clinician reads it (taps or cycles numbered from 1)."""
+    from core.corrections import swappable_labels
+
+    word = parse_task(task).cycle_word
 
     def taps(numbers: tuple[int, ...]) -> str:
         return ", ".join(str(i + 1) for i in numbers)
 
     words = []
     if corrections.exclude_taps:
-        words.append(f"taps {taps(corrections.exclude_taps)} excluded")
+        words.append(f"{word}s {taps(corrections.exclude_taps)} excluded")
     if corrections.dismiss_pauses:
-        words.append(f"the pauses at taps {taps(corrections.dismiss_pauses)} dismissed")
+        words.append(f"the pauses at {word}s {taps(corrections.dismiss_pauses)} dismissed")
     if corrections.window_s is not None:
         t0, t1 = corrections.window_s
         words.append(f"analysis window {t0:g}–{t1:g} s")
     if corrections.swap_labels:
-        words.append("thumb and index labels swapped")
+        a, b = swappable_labels(task) or ("the two", "")
+        words.append(f"{a} and {b} labels swapped")
     return tuple(words)
 
 
@@ -120,23 +131,29 @@ def review_page(
             f" its revisions are 1 to {trial.result.revision}."
         )
     doc = served_document(result)
-    aperture: list[float | None] = []
+    read = read_result(doc)
+    signal: list[float | None] = []
     if result.markers_path and storage.exists(result.markers_path):
         table = read_markers_csv(
             storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
         )
-        aperture = _aperture(table)
+        signal = _signal(table, read.task, trial.hand)
     videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
-    from core.corrections import Corrections
+    from core.corrections import Corrections, swappable_labels
 
     corrections = Corrections.from_dict(doc.get("corrections"))
+    quantity = quantity_of(read.task)
     data = {
         "trial_id": trial.id,
         "revision": result.revision,
         "current": result.id == trial.result.id,
         "fps": doc.get("fps"),
-        "aperture_mm": aperture,
-        "taps": doc.get("taps") or [],
+        "signal": signal,
+        "unit": quantity.unit,
+        "peak_key": quantity.peak_key,
+        "amplitude_key": quantity.amplitude_key,
+        "pause_key": "tap_index" if quantity.cycle == "tap" else "cycle_index",
+        "taps": [dict(c) for c in read.task_cycles],
         "excluded_taps": doc.get("excluded_taps") or [],
         "outside_window_taps": doc.get("outside_window_taps") or [],
         "events": doc.get("events") or [],
@@ -153,7 +170,10 @@ def review_page(
         videos=videos,
         corrections=corrections,
         job=jobs.latest_job(db, trial_id=trial.id),
-        not_carried=describe_corrections(Corrections.from_dict(doc.get("corrections_not_carried"))),
+        not_carried=describe_corrections(
+            Corrections.from_dict(doc.get("corrections_not_carried")), read.task
+        ),
+        swap_pair=swappable_labels(read.task),
     )
     audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
     db.commit()

@@ -186,12 +186,17 @@
       });
     });
 
-    // ------------------------------------------------------------------ the aperture plot
-    var ap = data.aperture_mm || [];
+    // ------------------------------------------------------------------ the signal plot
+    // The task's cycle signal (finger tapping: the aperture), in data.unit (mm or deg).
+    var ap = data.signal || [];
+    var peakKey = data.peak_key || "t_max_aperture_s";
     var duration = ap.length / fps || lead.video.duration || 1;
     var ymax = 0;
     ap.forEach(function (v) { if (v !== null && v > ymax) ymax = v; });
     ymax = ymax * 1.1 || 1;
+    // Ticks every 1, 2 or 5 x 10^k units: five to ten of them, in mm or degrees.
+    var yStep = Math.pow(10, Math.floor(Math.log(ymax / 5) / Math.LN10));
+    if (ymax / yStep > 25) yStep *= 5; else if (ymax / yStep > 10) yStep *= 2;
     var pad = { l: 48, r: 10, t: 10, b: 28 };
     function X(t) { return pad.l + (plot.width - pad.l - pad.r) * t / duration; }
     function Y(v) { return plot.height - pad.b - (plot.height - pad.t - pad.b) * v / ymax; }
@@ -234,16 +239,16 @@
       ctx.stroke();
       ctx.fillStyle = "rgb(31,119,180)"; ctx.font = "11px sans-serif";
       (data.taps || []).forEach(function (tp) {
-        var i = Math.round(tp.t_max_aperture_s * fps);
+        var i = Math.round(tp[peakKey] * fps);
         var v = ap[i];
         if (v === null || v === undefined) return;
-        ctx.beginPath(); ctx.arc(X(tp.t_max_aperture_s), Y(v), 3, 0, 2 * Math.PI); ctx.fill();
-        ctx.fillText(String(tp.index + 1), X(tp.t_max_aperture_s) - 3, Y(v) - 6);
+        ctx.beginPath(); ctx.arc(X(tp[peakKey]), Y(v), 3, 0, 2 * Math.PI); ctx.fill();
+        ctx.fillText(String(tp.index + 1), X(tp[peakKey]) - 3, Y(v) - 6);
       });
       ctx.fillStyle = "rgb(60,60,60)";
-      ctx.fillText("mm", 4, pad.t + 10);
+      ctx.fillText(data.unit || "mm", 4, pad.t + 10);
       for (var s = 0; s <= duration; s += 1) ctx.fillText(s + " s", X(s) - 6, plot.height - 8);
-      for (var m = 0; m <= ymax; m += 20) ctx.fillText(String(m), 8, Y(m) + 4);
+      for (var m = 0; m <= ymax; m += yStep) ctx.fillText(String(m), 8, Y(m) + 4);
       ctx.strokeStyle = "rgb(214,39,40)"; ctx.lineWidth = 2; ctx.beginPath();
       ctx.moveTo(X(cursor), pad.t); ctx.lineTo(X(cursor), plot.height - pad.b); ctx.stroke();
       plot.setAttribute("data-cursor-s", cursor.toFixed(4));

@@ -35,7 +35,7 @@ def test_review_view_is_one_audit_event_and_embeds_its_data(client, seeded, db_s
     )
     data = json.loads(block.group(1))
     assert data["revision"] == 1 and data["current"] is True
-    assert len(data["aperture_mm"]) > 100 and data["taps"]
+    assert len(data["signal"]) > 100 and data["taps"] and data["unit"] == "mm"
     assert 'src="/static/review.js"' in page.text
     # A trial without browser copies says so instead of showing a broken player.
     assert "no browser copy" in page.text

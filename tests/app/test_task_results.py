@@ -12,6 +12,7 @@ match the simulator's truth within the tolerances of the tasks' acceptance
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -274,3 +275,45 @@ def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
     # Finger tapping keeps its own trends, untouched by the other tasks' trials.
     ft = sections["finger_tapping"]
     assert ft.count('data-plot="trend"') == 5 and "Tapping frequency (Hz)" in _texts(ft)
+
+
+@pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
+def test_the_review_page_shows_the_task_s_signal_and_corrects_its_cycles(
+    client, seeded, db_sessionmaker, storage, task: Task
+) -> None:
+    from app.reports.figures import signal_series
+    from app.reports.result import read_result
+
+    trial_id, doc, truth = store_task_trial(db_sessionmaker, storage, task)
+    csrf = login(client)
+    html = client.get(f"/trials/{trial_id}/review").text
+    block = re.search(
+        r'<script type="application/json" id="review-data">(.*?)</script>', html, re.S
+    )
+    data = json.loads(block.group(1))
+    signal, unit, _ = EXPECTED[task]
+    markers, _, _ = task_trial(task.value, duration_s=DURATION_S[task], seed=3)
+    expected = signal_series(markers, task.value, side=read_result(doc).side)[1]
+    # markers.csv keeps 0.1 µm, the page shows the signal to 0.01 (mm or deg): within 0.05
+    np.testing.assert_allclose(np.array(data["signal"], float), expected, atol=0.05)
+    assert data["unit"] == unit and data["peak_key"] == task_key("t_max_aperture_s", task)
+    assert [c["index"] for c in data["taps"]] == [c["index"] for c in doc["cycles"]]
+    assert data["pause_key"] == "cycle_index"
+    assert f"{signal[0].upper()}{signal[1:]} ({unit}) over time" in html
+    assert f'<th scope="col" class="num">Amplitude ({unit})</th>' in html
+    assert "Cycle 3</button>" in html and "Tap " not in html
+    # The pauses are listed at their cycle: the hesitation before cycle 3, the halt before 6.
+    row3 = re.search(r'<tr data-tap-row="3".*?</tr>', html, re.S).group(0)
+    assert "hesitation" in row3 and 'name="dismiss_pauses" value="3"' in row3
+    swap = "Finger and wrist labels are the wrong way round"
+    assert (swap in html) == (task is Task.HAND_MOVEMENTS)  # three markers: nothing to swap
+
+    form = {"csrf_token": csrf, "kind": "correct", "exclude_taps": ["1"], "reason": "a cough"}
+    r = client.post(f"/trials/{trial_id}/revisions", data=form, follow_redirects=False)
+    assert r.status_code == 303, r.text[:300]
+    with db_sessionmaker() as db:
+        current = db.get(Trial, trial_id).result.document
+    assert current["metrics"]["cycle_count"] == len(truth.cycles) - 1
+    assert [c["index"] for c in current["excluded_taps"]] == [1]
+    again = client.get(f"/trials/{trial_id}/review").text
+    assert "Cycle 2</button> (excluded)" in again
