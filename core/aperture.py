@@ -10,8 +10,12 @@ Gaps are respected, never bridged: frames where a marker is missing (NaN) split
 the recording into separate runs that are filtered and differentiated on their
 own, and the filtered signal and velocity are NaN inside the gap. Frames that
 the tracker filled in (``measured`` False) are kept for the continuity of the
-filter when the filled-in stretch is short (at most ``max_fill_s``), and
-treated as missing when it is longer. Either way they are marked not ``valid``.
+filter when the filled-in stretch is short (at most ``max_fill_s``), or when
+the two markers' images merged in one camera in every frame of it while the
+other camera saw both (``merged``, a closure seen along the opening
+direction: only their depth was interpolated; at most ``max_merged_fill_s``),
+and treated as missing when it is longer.
+Either way they are marked not ``valid``.
 
 See ``docs/metrics.md`` for the choice of the cut-off frequency.
 """
@@ -36,6 +40,9 @@ MAX_CUTOFF_FRACTION_OF_FPS = 0.4
 FILTER_ORDER = 4
 #: Longest filled-in (interpolated) stretch kept for filtering (s).
 DEFAULT_MAX_FILL_S = 0.1
+#: Longest one in which the markers' images merged in one camera in every frame, the
+#: other seeing both (only the depth interpolated) (s).
+DEFAULT_MAX_MERGED_FILL_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -159,6 +166,8 @@ def aperture_signal(
     measured: NDArray[np.bool_] | None = None,
     cutoff_hz: float | None = None,
     max_fill_s: float = DEFAULT_MAX_FILL_S,
+    merged: NDArray[np.bool_] | None = None,
+    max_merged_fill_s: float = DEFAULT_MAX_MERGED_FILL_S,
 ) -> Aperture:
     """Compute the thumb–index aperture, filtered, with its velocity.
 
@@ -177,6 +186,13 @@ def aperture_signal(
         :func:`default_cutoff_hz` (20 Hz for 60–200 fps).
     max_fill_s : float
         Filled-in stretches longer than this (s) are treated as gaps.
+    merged : (T, M) or (T,) bool, optional
+        True where a filled-in position was seen by one camera while the two
+        markers' images merged in the other (``core.tracks.Tracks.merged``:
+        only its depth interpolated).
+    max_merged_fill_s : float
+        Filled-in stretches in which every frame's markers are measured or
+        ``merged`` are kept up to this long (s).
 
     Returns
     -------
@@ -200,7 +216,13 @@ def aperture_signal(
         raise ValueError(f"max_fill_s must be >= 0, got {max_fill_s}")
     distance = np.linalg.norm(pos[:, 1, :] - pos[:, 0, :], axis=1)
     return signal_aperture(
-        distance, fps, measured=measured, cutoff_hz=cutoff_hz, max_fill_s=max_fill_s
+        distance,
+        fps,
+        measured=measured,
+        cutoff_hz=cutoff_hz,
+        max_fill_s=max_fill_s,
+        merged=merged,
+        max_merged_fill_s=max_merged_fill_s,
     )
 
 
@@ -211,6 +233,8 @@ def signal_aperture(
     measured: NDArray[np.bool_] | None = None,
     cutoff_hz: float,
     max_fill_s: float = DEFAULT_MAX_FILL_S,
+    merged: NDArray[np.bool_] | None = None,
+    max_merged_fill_s: float = DEFAULT_MAX_MERGED_FILL_S,
 ) -> Aperture:
     """Filter and differentiate a cycle signal as :func:`aperture_signal` does the aperture.
 
@@ -223,7 +247,7 @@ def signal_aperture(
     ----------
     signal : (T,) float
         The raw signal; NaN where it is missing.
-    fps, cutoff_hz, max_fill_s
+    fps, cutoff_hz, max_fill_s, merged, max_merged_fill_s
         As for :func:`aperture_signal` (the cut-off already checked).
     measured : (T, M) or (T,) bool, optional
         False where a marker position was filled in or is missing (with
@@ -232,24 +256,22 @@ def signal_aperture(
     distance = np.asarray(signal, dtype=np.float64)
     n_frames = distance.shape[0]
     finite = np.isfinite(distance)
-    if measured is None:
-        meas = finite.copy()
-    else:
-        m = np.asarray(measured, dtype=bool)
-        if m.ndim == 2:
-            if m.shape[0] != n_frames or m.shape[1] < 2:
-                raise ValueError(f"measured must have shape (T, M>=2) or (T,), got {m.shape}")
-            m = m[:, 0] & m[:, 1]
-        elif m.shape != (n_frames,):
-            raise ValueError(f"measured must have shape (T, M>=2) or (T,), got {m.shape}")
-        meas = m & finite
+    meas = finite.copy() if measured is None else _per_frame(measured, n_frames, "measured")
+    meas &= finite
+    seen = meas  # measured, or merged in one camera with only the depth filled in
+    if merged is not None:
+        sv = np.asarray(merged, dtype=bool)
+        if measured is not None and np.shape(measured) == sv.shape:
+            sv = sv | np.asarray(measured, dtype=bool)  # per marker: measured or one view
+        seen = _per_frame(sv, n_frames, "merged") & finite
     distance = np.where(finite, distance, np.nan)
 
     # Usable for filtering: finite, and not inside a long filled-in stretch.
     usable = finite.copy()
     max_fill_frames = int(np.floor(max_fill_s * fps + 1e-9))
+    max_merged_frames = max(max_fill_frames, int(np.floor(max_merged_fill_s * fps + 1e-9)))
     for a, b in true_runs(finite & ~meas):
-        if b - a > max_fill_frames:
+        if b - a > max_fill_frames and not (b - a <= max_merged_frames and np.all(seen[a:b])):
             usable[a:b] = False
 
     filtered = np.full(n_frames, np.nan)
@@ -271,6 +293,20 @@ def signal_aperture(
         noise_mm=noise,
         velocity_noise_mm_s=noise * noise_gains(fps, cutoff_hz)[1],
     )
+
+
+def _per_frame(mask: NDArray[np.bool_], n_frames: int, name: str) -> NDArray[np.bool_]:
+    """A ``(T,)`` frame mask from a ``(T, M>=2)`` or ``(T,)`` one (with ``(T, M)``, a
+    frame counts when its first two markers do)."""
+    m = np.asarray(mask, dtype=bool)
+    if m.ndim == 2:
+        if m.shape[0] != n_frames or m.shape[1] < 2:
+            raise ValueError(f"{name} must have shape (T, M>=2) or (T,), got {m.shape}")
+        result: NDArray[np.bool_] = m[:, 0] & m[:, 1]
+        return result
+    if m.shape != (n_frames,):
+        raise ValueError(f"{name} must have shape (T, M>=2) or (T,), got {m.shape}")
+    return m
 
 
 def noise_gains(fps: float, cutoff_hz: float, *, order: int = FILTER_ORDER) -> tuple[float, float]:

@@ -98,6 +98,7 @@ def compute_metrics(
     fps: float,
     *,
     measured: NDArray[np.bool_] | None = None,
+    merged: NDArray[np.bool_] | None = None,
     cutoff_hz: float | None = None,
 ) -> TappingMetrics:
     """Measure a finger-tapping recording.
@@ -110,6 +111,11 @@ def compute_metrics(
         Frames per second.
     measured : (T, M) or (T,) bool, optional
         False where a position was filled in (interpolated) or is missing.
+    merged : (T, M) or (T,) bool, optional
+        True where a filled-in position was seen by one camera while the
+        markers' images merged in the other (only its depth interpolated):
+        such stretches keep the aperture continuous for longer
+        (:func:`core.aperture.aperture_signal`).
     cutoff_hz : float, optional
         Low-pass cut-off of the aperture (Hz); default 20 Hz (see docs/metrics.md).
 
@@ -118,7 +124,9 @@ def compute_metrics(
     TappingMetrics
         With ``tap_count`` 0 and the other metrics None when no tap is found.
     """
-    aperture = aperture_signal(positions_mm, fps, measured=measured, cutoff_hz=cutoff_hz)
+    aperture = aperture_signal(
+        positions_mm, fps, measured=measured, cutoff_hz=cutoff_hz, merged=merged
+    )
     seg = segment_recording(aperture)
     return summarise_taps(aperture, seg, seg.taps, locate_events(aperture, seg))
 

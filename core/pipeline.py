@@ -381,13 +381,22 @@ def _compute_metrics(
     time_s: FloatArray | None = None,
     *,
     max_gap_s: float = 0.1,
+    merged: NDArray[np.bool_] | None = None,
 ) -> tuple[TappingMetrics | None, list[str]]:
     """Tapping metrics (core.metrics) at the frames' real times ``time_s`` (core.resample:
-    an even grid from uneven frame times); None with a warning when they cannot be computed."""
+    an even grid from uneven frame times); None with a warning when they cannot be computed.
+    ``merged`` (T, M): filled-in positions whose images merged in one camera
+    (``Tracks.merged``)."""
     measured = status == MEASURED  # core.metrics: False where filled in or missing
     even = uniform_trajectories(positions_mm, measured, time_s, fps, max_gap_s=max_gap_s)
+    sv = merged
+    if sv is not None and even.resampled and time_s is not None:
+        # each instant of the even grid takes the frame at or before it
+        grid = even.t0_s + np.arange(even.positions_mm.shape[0]) / even.fps
+        at = np.clip(np.searchsorted(np.asarray(time_s), grid + 1e-9, side="right") - 1, 0, None)
+        sv = sv[np.minimum(at, len(sv) - 1)]
     try:
-        return compute_metrics(even.positions_mm, even.fps, measured=even.measured), []
+        return compute_metrics(even.positions_mm, even.fps, measured=even.measured, merged=sv), []
     except ValueError as exc:
         return None, [f"tapping metrics could not be computed: {exc}"]
 
@@ -604,7 +613,12 @@ def analyze_recording(
     task_metrics: TaskMetrics | None = None
     if task is Task.FINGER_TAPPING:
         metrics, metric_warnings = _compute_metrics(
-            tracks.positions_mm, fps, tracks.status, timed.left_time_s, max_gap_s=max_gap_s
+            tracks.positions_mm,
+            fps,
+            tracks.status,
+            timed.left_time_s,
+            max_gap_s=max_gap_s,
+            merged=tracks.merged,
         )
     else:
         task_metrics, metric_warnings = _compute_task_metrics(

@@ -27,7 +27,11 @@ Gaps of at most ``max_gap_frames`` between measured frames are filled and
 marked ``interpolated`` (:func:`fill_gaps`): a cubic spline through the
 measured neighbours gives the position; where one camera still sees the
 marker, the point is moved onto that camera's ray at the interpolated depth,
-so only the depth is interpolated. Longer gaps stay ``missing`` (NaN).
+so only the depth is interpolated. A gap in which the two markers' images
+merged in one camera while the other camera saw both in every frame (a
+closure seen along the opening direction) may be longer
+(``max_merged_gap_frames``): only its depth is interpolated. Longer gaps stay
+``missing`` (NaN).
 """
 
 from __future__ import annotations
@@ -519,7 +523,11 @@ def _continue_single_view(
     dets = obs.left_px if ci == 0 else obs.right_px
     origin, direction = cams[ci].backproject(dets[j][None])
     if np.all(np.isfinite(direction)):
-        xyz = _closest_on_ray(origin[0], direction[0], pred).tolist()
+        # The depth along the ray is unobserved: keep the last one (the point nearest the
+        # last position), not the constant-velocity prediction's, which overshoots the
+        # turning point of a closure by centimetres within ten frames.
+        last = np.array([tr.x, tr.y, tr.z])
+        xyz = _closest_on_ray(origin[0], direction[0], last).tolist()
         used[ci][j] = True
         u, v = dets[j].tolist()
         tr.add_single_view(frame, LEFT_ONLY if ci == 0 else RIGHT_ONLY, xyz, (u, v))
@@ -572,45 +580,64 @@ def link_chains(
 ) -> list[list[int]]:
     """Link tracklets into chains (one per marker identity); see :func:`select_markers`.
 
+    Every end of a tracklet may continue at most one later start, and the links
+    are chosen together (a linear assignment of ends to starts; cost the
+    distance over its allowance, an unlinked end or start costs half the
+    allowance): at a closure both fingers' tracklets end and start within a
+    few centimetres of each other, and taking the nearest start for each end
+    in turn can give the index's start to the thumb's end. Distances and gaps
+    are between the last stereo point of one and the first of the other.
+
     Returns
     -------
     list of list of int
-        Chains of tracklet indices, longest tracklets first.
+        Chains of tracklet indices in time order, the chain of the longest
+        tracklet first.
     """
     usable = [i for i, t in enumerate(tracklets) if t.n_stereo >= min_stereo_frames]
-    usable.sort(key=lambda i: -tracklets[i].n_stereo)
+    n = len(usable)
+    if n == 0:
+        return []
+    stereo_ends = [_stereo_ends(tracklets[i]) for i in usable]
+    spans = [e[:2] for e in stereo_ends]
+    ends = [e[2:] for e in stereo_ends]
+    cost = np.full((n, n), np.inf)
+    for a in range(n):
+        for b in range(n):
+            if not spans[a][1] < spans[b][0]:
+                continue  # j must start after i's last stereo point
+            gap_s = (spans[b][0] - spans[a][1]) / fps
+            if gap_s > max_link_gap_s:
+                continue
+            allow = min(link_base_mm + link_speed_mm_s * gap_s, link_max_mm)
+            d = float(np.linalg.norm(ends[b][0] - ends[a][1]))
+            if d <= allow:
+                cost[a, b] = d / allow
+    nxt = [-1] * n
+    if np.any(np.isfinite(cost)):
+        # Augmented assignment: ends x (starts + "no link"), starts' "no link" rows.
+        big = 1e6
+        aug = np.zeros((2 * n, 2 * n))
+        aug[:n, :n] = np.where(np.isfinite(cost), cost, big)
+        aug[:n, n:] = big
+        aug[n:, :n] = big
+        np.fill_diagonal(aug[:n, n:], 0.5)
+        np.fill_diagonal(aug[n:, :n], 0.5)
+        rows, cols = linear_sum_assignment(aug)
+        for a, b in zip(rows.tolist(), cols.tolist(), strict=True):
+            if a < n and b < n and aug[a, b] < big:
+                nxt[a] = b
+    has_prev = set(b for b in nxt if b >= 0)
     chains: list[list[int]] = []
-    spans: list[list[tuple[int, int]]] = []
-    for i in usable:
-        s0, s1, p0, p1 = _stereo_ends(tracklets[i])
-        best: tuple[float, int] | None = None
-        for c, chain in enumerate(chains):
-            if any(not (s1 < a or s0 > b) for a, b in spans[c]):
-                continue  # overlaps in time with the chain
-            costs = []
-            for j in chain:
-                a0, a1, q0, q1 = _stereo_ends(tracklets[j])
-                if a1 < s0:
-                    gap_s = (s0 - a1) / fps
-                    d = float(np.linalg.norm(p0 - q1))
-                elif s1 < a0:
-                    gap_s = (a0 - s1) / fps
-                    d = float(np.linalg.norm(q0 - p1))
-                else:
-                    continue
-                if gap_s > max_link_gap_s:
-                    continue
-                allow = min(link_base_mm + link_speed_mm_s * gap_s, link_max_mm)
-                if d <= allow:
-                    costs.append(d / allow)
-            if costs and (best is None or min(costs) < best[0]):
-                best = (min(costs), c)
-        if best is None:
-            chains.append([i])
-            spans.append([(s0, s1)])
-        else:
-            chains[best[1]].append(i)
-            spans[best[1]].append((s0, s1))
+    for a in range(n):
+        if a in has_prev:
+            continue
+        chain, b = [], a
+        while b >= 0:
+            chain.append(usable[b])
+            b = nxt[b]
+        chains.append(chain)
+    chains.sort(key=lambda ch: -max(tracklets[i].n_stereo for i in ch))
     return chains
 
 
@@ -735,6 +762,8 @@ def fill_gaps(
     rig: StereoRig | None = None,
     single_view_camera: NDArray[np.int_] | None = None,
     single_view_px: FloatArray | None = None,
+    merged: NDArray[np.bool_] | None = None,
+    max_merged_gap_frames: int | None = None,
     context_frames: int = 6,
     poly_degree: int = 7,
     path_window_frames: int = 35,
@@ -755,6 +784,13 @@ def fill_gaps(
         camera saw the marker at frame ``t`` (else -1), at pixel
         ``single_view_px[t]``; the filled point is then put on that
         camera's ray at the interpolated depth.
+    merged : ndarray, shape (T,), optional
+        Frames in which this marker's image merged with another marker's in
+        one camera while the other camera saw it (``single_view_camera``).
+    max_merged_gap_frames : int, optional
+        A gap longer than ``max_gap_frames`` is still filled when every frame
+        of it is ``merged`` and it is at most this long: only the depth is
+        interpolated there. Default ``max_gap_frames``.
     context_frames : int
         Measured frames on each side that shape the spline (at least).
     poly_degree : int
@@ -781,13 +817,22 @@ def fill_gaps(
         raise ValueError(f"max_gap_frames must be >= 0, got {max_gap_frames}")
     filled = np.zeros(len(pos), bool)
     idx = np.flatnonzero(meas)
-    if len(idx) < 2 or max_gap_frames == 0:
+    views = rig is not None and single_view_camera is not None and single_view_px is not None
+    long_limit = max_gap_frames
+    if views and merged is not None and max_merged_gap_frames is not None:
+        long_limit = max(max_gap_frames, max_merged_gap_frames)
+    if len(idx) < 2 or long_limit == 0:
         return pos, filled
     holes = np.flatnonzero(np.diff(idx) > 1)
     for h in holes:
         a, b = int(idx[h]), int(idx[h + 1])  # measured frames around the gap
         gap = b - a - 1
-        if gap > max_gap_frames:
+        if gap > max_gap_frames and not (
+            gap <= long_limit
+            and merged is not None
+            and single_view_camera is not None
+            and np.all(merged[a + 1 : b] & (single_view_camera[a + 1 : b] >= 0))
+        ):
             continue
         width = max(context_frames, gap)
         before = idx[max(0, h - width + 1) : h + 1]
@@ -972,7 +1017,13 @@ class Tracks:
     warnings : list of str
     overlap_frames : int
         Frames in which the two markers' images touched in a camera, so that
-        camera did not measure them (``marker_diameter_px`` of :func:`track_markers`).
+        camera did not measure them (``marker_diameter_px`` of :func:`track_markers`),
+        or merged there (set aside by the detector) and were filled from the other
+        camera (``merged``).
+    merged : ndarray, shape (T, M), optional
+        ``interpolated`` frames in which the markers' images merged in one
+        camera while the other camera saw each of them: only the depth is
+        interpolated.
     """
 
     positions_mm: FloatArray
@@ -981,6 +1032,7 @@ class Tracks:
     marker_names: tuple[str, ...]
     warnings: list[str]
     overlap_frames: int = 0
+    merged: NDArray[np.bool_] | None = None
 
 
 def track_markers(
@@ -989,6 +1041,7 @@ def track_markers(
     *,
     fps: float,
     max_gap_s: float = 0.1,
+    max_merged_gap_s: float = 1.0,
     swap_labels: bool = False,
     gate_mm: float | None = None,
     max_reprojection_px: float | None = None,
@@ -1006,6 +1059,11 @@ def track_markers(
         Frame rate (Hz).
     max_gap_s : float
         Gaps up to this long (s) are interpolated; longer ones stay missing.
+    max_merged_gap_s : float
+        Gaps in which the markers' images merged in one camera in every frame
+        (a closure or closed pause seen along the opening direction) while the
+        other camera saw each marker are interpolated up to this long (s): only
+        the depth is. At least ``max_gap_s``.
     swap_labels : bool
         Exchange the automatic thumb/index labels.
     gate_mm : float, optional
@@ -1035,17 +1093,22 @@ def track_markers(
         raise ValueError(f"fps must be positive, got {fps}")
     if max_gap_s < 0:
         raise ValueError(f"max_gap_s must be >= 0, got {max_gap_s}")
+    if not max_merged_gap_s >= max_gap_s:
+        raise ValueError(
+            f"max_merged_gap_s must be >= max_gap_s ({max_gap_s}), got {max_merged_gap_s}"
+        )
     n_frames = len(observations)
     dt = 1.0 / fps
     if gate_mm is None:
         gate_mm = 5.0 + 8e4 * dt * dt
     max_gap_frames = int(np.floor(max_gap_s * fps + 1e-9))
+    max_sv_frames = int(np.floor(max_merged_gap_s * fps + 1e-9))
     overlaps: list[int] = []
     tracklets = build_tracklets(
         rig,
         observations,
         gate_mm=gate_mm,
-        max_single_view_frames=max_gap_frames + 2,
+        max_single_view_frames=max_sv_frames + 2,
         merge_px=None
         if marker_diameter_px is None
         else (marker_diameter_px[0] + 2.0, marker_diameter_px[1] + 2.0),
@@ -1064,7 +1127,8 @@ def track_markers(
     positions = np.full((n_frames, m, 3), np.nan)
     status = np.full((n_frames, m), MISSING, dtype=object)
     reproj = np.full((n_frames, m), np.nan)
-    for k, chain in enumerate(chains):
+    per_marker = []
+    for chain in chains:
         pos = np.full((n_frames, 3), np.nan)
         rep = np.full(n_frames, np.nan)
         sv_cam = np.full(n_frames, -1, dtype=int)
@@ -1087,6 +1151,15 @@ def track_markers(
             pos[bad] = np.nan
             rep[bad] = np.nan
             meas &= ~bad
+        per_marker.append((pos, rep, sv_cam, sv_px, meas))
+    # Merged: two markers seen by the same single camera in one frame (their images
+    # merged in the other, or both hidden there: never one marker alone).
+    cams_sv = np.array([pm[2] for pm in per_marker]).reshape(len(per_marker), n_frames)
+    merged = np.zeros((n_frames, m), dtype=bool)
+    for k in range(len(per_marker)):
+        same = (cams_sv == cams_sv[k]) & (cams_sv[k] >= 0)
+        merged[:, k] = np.count_nonzero(same, axis=0) >= 2
+    for k, (pos, rep, sv_cam, sv_px, meas) in enumerate(per_marker):
         filled_pos, filled = fill_gaps(
             pos,
             meas,
@@ -1094,21 +1167,27 @@ def track_markers(
             rig=rig,
             single_view_camera=sv_cam,
             single_view_px=sv_px,
+            merged=merged[:, k],
+            max_merged_gap_frames=max_sv_frames,
         )
         positions[:, k] = np.where(meas[:, None] | filled[:, None], filled_pos, np.nan)
         status[meas, k] = MEASURED
         status[filled & ~meas, k] = INTERPOLATED
         reproj[meas, k] = rep[meas]
+        merged[:, k] &= filled & ~meas
     if task is Task.FINGER_TAPPING:
         order = [1, 0] if swap_labels else [0, 1]
         positions = positions[:, order]
         status = status[:, order]
         reproj = reproj[:, order]
+        merged = merged[:, order]
     return Tracks(
         positions_mm=positions,
         status=status.astype(str),
         reprojection_px=reproj,
         marker_names=names,
         warnings=warnings,
-        overlap_frames=len(overlaps),
+        # blocked by the tracker, or both markers seen by the same single camera
+        overlap_frames=len(set(overlaps) | set(np.flatnonzero(merged.any(axis=1)).tolist())),
+        merged=merged,
     )

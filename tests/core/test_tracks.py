@@ -153,6 +153,33 @@ def test_short_one_camera_occlusion_is_interpolated_and_long_is_missing() -> Non
     assert np.max(err0) < 1.0  # mm
 
 
+def test_closures_hidden_in_one_camera_keep_identities() -> None:
+    """Both markers hidden from the right camera around every closure (their images merged
+    there, set aside), for 12-15 frames: each track continues on the left camera, the
+    tracklets after each closure link to the right identities, no frame is swapped."""
+    dist = np.linalg.norm(POS[:, 0] - POS[:, 1], axis=1)
+    closed = np.flatnonzero(dist < dist.min() + 0.45 * (dist.max() - dist.min()))
+    frames = [int(i) for i in closed if i > 40]  # the merged frames, after the first opening
+    obs = observations(hide={(0, 1): frames, (1, 1): frames}, seed=3)
+    tr = track_markers(RIG, obs, fps=FPS)
+    assert tr.marker_names == ("thumb", "index")
+    err = np.linalg.norm(tr.positions_mm - POS[:, :2], axis=2)
+    other = np.linalg.norm(tr.positions_mm - POS[:, ::-1][:, 1:], axis=2)
+    meas = tr.status == MEASURED
+    assert not np.any(meas[frames])  # merged in one camera: never measured
+    assert np.count_nonzero(meas & (other < err)) == 0  # no identity swap
+    assert np.all(err[meas] < 1.0)  # mm
+    # after the first closure both identities are measured again in every opening
+    opened = np.flatnonzero(dist > dist.min() + 0.5 * (dist.max() - dist.min()))
+    opened = opened[opened > frames[0]]
+    assert np.mean(meas[opened]) > 0.95
+    # every merged frame between two measured ones is filled (only its depth) and counted
+    inner = [f for f in frames if f < np.flatnonzero(meas.all(axis=1)).max()]
+    assert np.all(tr.status[inner] == INTERPOLATED)
+    assert tr.merged is not None and np.all(tr.merged[inner])
+    assert tr.overlap_frames == len(inner)
+
+
 def test_fill_gaps_spline_exact_on_cubic_and_rules() -> None:
     t = np.arange(40, dtype=float)
     pos = np.column_stack([0.01 * t**3 - t, 2 * t, np.full_like(t, 500.0)])
@@ -167,6 +194,42 @@ def test_fill_gaps_spline_exact_on_cubic_and_rules() -> None:
     np.testing.assert_allclose(filled_pos[10:15], pos[10:15], atol=1e-6)  # mm: a cubic is exact
     with pytest.raises(ValueError):
         fill_gaps(p, meas[:-1], max_gap_frames=3)
+
+
+def test_fill_gaps_long_gap_merged_in_one_camera() -> None:
+    """A 40-frame gap (longer than max_gap_frames) in which the marker's image merged with
+    the other's in the right camera while the left saw it in every frame is filled up to
+    max_merged_gap_frames, with the points on the left rays; a frame not merged, or a gap
+    seen by one camera without merging (a marker simply hidden), stays missing."""
+    k = np.arange(100.0)
+    # a closed pause: the fingertips drift slowly (0.2 mm/frame, curving in depth)
+    truth = POS[150, 0] + np.column_stack([0.2 * k, 0.1 * k, 2e-3 * (k - 50) ** 2])
+    meas = np.ones(100, bool)
+    meas[30:70] = False
+    pos = np.where(meas[:, None], truth, np.nan)
+    cam = np.where(meas, -1, 0)
+    px = RIG.left.project(truth)
+    kw = {"rig": RIG, "single_view_camera": cam, "single_view_px": px}
+    merged = ~meas
+    out, filled = fill_gaps(
+        pos, meas, max_gap_frames=10, merged=merged, max_merged_gap_frames=50, **kw
+    )
+    assert np.array_equal(filled, ~meas)
+    err = np.linalg.norm(out[30:70] - truth[30:70], axis=1)
+    assert np.max(err) < 0.1  # mm: the rays fix two coordinates, the depth is interpolated
+    reproj = np.linalg.norm(RIG.left.project(out[30:70]) - px[30:70], axis=1)
+    assert np.max(reproj) < 1e-6  # px: on the ray
+    _, filled = fill_gaps(
+        pos, meas, max_gap_frames=10, merged=merged, max_merged_gap_frames=30, **kw
+    )
+    assert not filled.any()  # longer than the limit
+    _, filled = fill_gaps(pos, meas, max_gap_frames=10, max_merged_gap_frames=50, **kw)
+    assert not filled.any()  # seen by one camera, not merged: a hidden marker
+    merged[50] = False
+    _, filled = fill_gaps(
+        pos, meas, max_gap_frames=10, merged=merged, max_merged_gap_frames=50, **kw
+    )
+    assert not filled.any()  # one frame not merged
 
 
 def test_bad_arguments() -> None:
@@ -272,7 +335,8 @@ def reference_build_tracklets(
                 dets = obs.left_px if ci == 0 else obs.right_px
                 origin, direction = cams[ci].backproject(dets[j][None])
                 if np.all(np.isfinite(direction)):
-                    s = max(float(np.dot(preds[r] - origin[0], direction[0])), 1e-6)
+                    # depth kept from the last position, not the prediction's
+                    s = max(float(np.dot(tr.pos[-1] - origin[0], direction[0])), 1e-6)
                     pos = origin[0] + s * direction[0]
                     used[ci][j] = True
                     assigned[r] = True
