@@ -20,6 +20,7 @@ Usage::
 
     python bench/bench_analyze.py --kind all --no-memory --repeat 1 --keep /tmp/abench
     python bench/bench_throughput.py --sessions /tmp/abench [--trials 3]
+    python bench/bench_throughput.py --sessions /tmp/abench --compare-proxy-sizes
 """
 
 from __future__ import annotations
@@ -133,11 +134,44 @@ def bench(session_dir: Path, n_trials: int) -> None:
     )
 
 
+def compare_proxy_sizes(session_dir: Path, repeat: int = 2) -> None:
+    """``write_proxy`` of the left video at full size (as before 960-px proxies) and
+    reduced, alternating in this process: CPU s, best of ``repeat``, and their ratio."""
+    import core.video as video
+
+    source = next(iter(sorted(session_dir.glob("left.*"))))
+    best = {"full size": float("inf"), "reduced": float("inf")}
+    limit = video.PROXY_MAX_WIDTH_PX
+    with tempfile.TemporaryDirectory(prefix="bench-proxy-") as tmp:
+        try:
+            for _ in range(repeat):
+                for name, width in (("full size", 1 << 30), ("reduced", limit)):
+                    video.PROXY_MAX_WIDTH_PX = width
+                    c0 = _cpu_s()
+                    video.write_proxy(source, Path(tmp) / "proxy.mp4")
+                    best[name] = min(best[name], _cpu_s() - c0)
+        finally:
+            video.PROXY_MAX_WIDTH_PX = limit
+    size = video.probe_video(source).image_size
+    small = video.proxy_size(size)
+    print(
+        f"  proxy of {source.name} ({size.width}x{size.height}): full size"
+        f" {best['full size']:.2f} s CPU, reduced to {small.width}x{small.height}"
+        f" {best['reduced']:.2f} s (ratio {best['reduced'] / best['full size']:.2f});"
+        f" best of {repeat}, load average {os.getloadavg()[0]:.1f}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=Path, help="a folder of simulated sessions (session_*)")
     ap.add_argument("--dir", type=Path, action="append", default=[], help="one session folder")
     ap.add_argument("--trials", type=int, default=3)
+    ap.add_argument(
+        "--compare-proxy-sizes",
+        action="store_true",
+        help="only time write_proxy of each left video at full size and reduced (alternating)",
+    )
     args = ap.parse_args()
     dirs = list(args.dir)
     if args.sessions is not None:
@@ -145,7 +179,10 @@ def main() -> None:
     if not dirs:
         ap.error("give --sessions or --dir")
     for d in dirs:
-        bench(d, args.trials)
+        if args.compare_proxy_sizes:
+            compare_proxy_sizes(d)
+        else:
+            bench(d, args.trials)
 
 
 if __name__ == "__main__":
