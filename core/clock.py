@@ -353,11 +353,7 @@ def _cost_matrix(
     r_row: NDArray[np.intp],
 ) -> tuple[FloatArray, FloatArray]:
     """Per left detection and candidate: truncated cost and nearest epipolar distance (px)."""
-    d_min = np.full(r_row.shape, np.inf)
-    # _epipolar_costs averages per candidate; one candidate per row gives the
-    # per-detection values when every other detection is masked out.
-    for c in range(r_row.shape[0]):
-        d_min[c] = _nearest_epipolar_px(scene.rig, l_pts, right, r_row[c])
+    d_min = _nearest_epipolar_px(scene.rig, l_pts, right, r_row)
     cost = np.minimum(d_min, GATE_PX) ** 2 / GATE_PX**2
     return cost, d_min
 
@@ -368,25 +364,37 @@ def _nearest_epipolar_px(
     right: tuple[FloatArray, NDArray[np.intp]],
     rows: NDArray[np.intp],
 ) -> FloatArray:
-    """Symmetric epipolar distance (px) of each left point to the nearest right point of its row."""
+    """Symmetric epipolar distance (px) of each left point to the nearest right point of its row.
+
+    ``rows`` is ``(L,)`` (one right row per left point) or ``(C, L)`` (one set per
+    candidate, all at once); the result has its shape. Each point's epipolar line is
+    computed once, whatever the number of candidates and pairs it takes part in.
+    """
     r_pts, r_counts = right
     E = rig.essential_matrix
+    n_l = len(l_pts)
     starts = np.concatenate([[0], np.cumsum(r_counts)]).astype(np.intp)
-    cnt = r_counts[rows]
-    idx, owner = _segment_indices(starts[rows], cnt)
-    out = np.full(len(l_pts), np.inf)
+    flat_rows = np.asarray(rows, dtype=np.intp).ravel()
+    cnt = r_counts[flat_rows]
+    idx, owner = _segment_indices(starts[flat_rows], cnt)
+    out = np.full(flat_rows.shape, np.inf)
     if len(idx) == 0:
-        return out
-    lp = np.column_stack([l_pts[owner], np.ones(len(owner))])
-    rp = np.column_stack([r_pts[idx], np.ones(len(idx))])
-    line_r = lp @ E.T  # lines in the right image
-    line_l = rp @ E  # lines in the left image
-    alg = np.abs(np.sum(rp * line_r, axis=1))
-    d_r = alg / np.linalg.norm(line_r[:, :2], axis=1) * _focal(rig.right)
-    d_l = alg / np.linalg.norm(line_l[:, :2], axis=1) * _focal(rig.left)
+        return out.reshape(np.shape(rows))
+    line_r = np.column_stack([l_pts, np.ones(n_l)]) @ E.T  # lines in the right image
+    line_l = np.column_stack([r_pts, np.ones(len(r_pts))]) @ E  # lines in the left image
+    norm_r = np.sqrt(line_r[:, 0] * line_r[:, 0] + line_r[:, 1] * line_r[:, 1])
+    norm_l = np.sqrt(line_l[:, 0] * line_l[:, 0] + line_l[:, 1] * line_l[:, 1])
+    lo = owner % n_l if n_l else owner
+    lr = line_r[lo]
+    rp = r_pts[idx]
+    alg = np.abs(rp[:, 0] * lr[:, 0] + rp[:, 1] * lr[:, 1] + lr[:, 2])
+    d_r = alg / norm_r[lo] * _focal(rig.right)
+    d_l = alg / norm_l[idx] * _focal(rig.left)
     d = np.sqrt(0.5 * (d_l**2 + d_r**2))
-    np.minimum.at(out, owner, d)
-    return out
+    # owner is ascending, each point's pairs contiguous: a minimum per segment
+    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    out[owner[first]] = np.minimum.reduceat(d, first)
+    return out.reshape(np.shape(rows))
 
 
 # ------------------------------------------------------------------- estimation

@@ -240,3 +240,54 @@ def test_clock_model_maps_both_ways():
     np.testing.assert_allclose(
         corrected_times(uniform_times(5, 10.0), [1]), [0, 0.1, 0.3, 0.4, 0.5]
     )
+
+
+def _nearest_epipolar_reference(rig, l_pts, right, rows):
+    """The former per-candidate formulation: every pair's lines computed anew, minimum.at."""
+    from core.sync import _segment_indices
+
+    r_pts, r_counts = right
+    E = rig.essential_matrix
+    starts = np.concatenate([[0], np.cumsum(r_counts)]).astype(np.intp)
+    idx, owner = _segment_indices(starts[rows], r_counts[rows])
+    out = np.full(len(l_pts), np.inf)
+    if len(idx) == 0:
+        return out
+    lp = np.column_stack([l_pts[owner], np.ones(len(owner))])
+    rp = np.column_stack([r_pts[idx], np.ones(len(idx))])
+    line_r, line_l = lp @ E.T, rp @ E
+    alg = np.abs(np.sum(rp * line_r, axis=1))
+    f_r = 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
+    f_l = 0.5 * (rig.left.K[0, 0] + rig.left.K[1, 1])
+    d_r = alg / np.linalg.norm(line_r[:, :2], axis=1) * f_r
+    d_l = alg / np.linalg.norm(line_l[:, :2], axis=1) * f_l
+    with np.errstate(invalid="ignore"):
+        np.minimum.at(out, owner, np.sqrt(0.5 * (d_l**2 + d_r**2)))
+    return out
+
+
+def test_nearest_epipolar_px_all_candidates_at_once_is_the_per_candidate_loop() -> None:
+    # The time model's costs compare these distances: all candidates in one pass (each
+    # point's epipolar line once) must give the former loop's values bit for bit, NaN
+    # (a lost right point) and inf (no partner) included.
+    from core.clock import _focal, _nearest_epipolar_px
+
+    rig = default_rig()
+    assert _focal(rig.right) == 0.5 * (rig.right.K[0, 0] + rig.right.K[1, 1])
+    rng = np.random.default_rng(1)
+    for trial in range(60):
+        n_l, n_r, n_f, n_c = (int(v) for v in rng.integers([0, 0, 1, 1], [60, 50, 20, 8]))
+        l_pts = rng.normal(0, 0.2, (n_l, 2))
+        r_counts = rng.multinomial(n_r, np.ones(n_f) / n_f).astype(np.intp)
+        r_pts = rng.normal(0, 0.2, (n_r, 2))
+        if n_r and trial % 3 == 0:
+            r_pts[rng.integers(0, n_r)] = np.nan
+        rows = rng.integers(0, n_f, (n_c, n_l)).astype(np.intp)
+        want = np.array(
+            [_nearest_epipolar_reference(rig, l_pts, (r_pts, r_counts), r) for r in rows]
+        ).reshape(n_c, n_l)
+        got = _nearest_epipolar_px(rig, l_pts, (r_pts, r_counts), rows)
+        assert np.array_equal(got, want, equal_nan=True)
+        assert np.array_equal(
+            _nearest_epipolar_px(rig, l_pts, (r_pts, r_counts), rows[0]), want[0], equal_nan=True
+        )
