@@ -312,7 +312,7 @@ ALIAS_KEYS = frozenset(
 )
 
 
-def _task_text(text: str, task: Task) -> str:
+def task_text(text: str, task: Task) -> str:
     """A finger-tapping label, unit or definition reworded for ``task``."""
     towards, back = task.phase_words
     unit = task.amplitude_unit
@@ -349,11 +349,11 @@ def task_metric_spec(key: str, task: Task) -> MetricSpec | None:
     for ft_key, spec in METRICS.items():
         if task_key(ft_key, task) == key:
             return MetricSpec(
-                _task_text(spec.label, task),
-                _task_text(spec.unit, task),
-                _task_text(spec.ucum, task),
+                task_text(spec.label, task),
+                task_text(spec.unit, task),
+                task_text(spec.ucum, task),
                 spec.decimals,
-                _task_text(spec.definition, task),
+                task_text(spec.definition, task),
                 spec.primary,
             )
     return None
@@ -391,28 +391,6 @@ def metric_spec(key: str, task: str = "finger_tapping") -> MetricSpec:
         return spec
     unit, ucum = _guess_units(key)
     return MetricSpec(key.replace("_", " ").capitalize(), unit, ucum, 3, "", primary=False)
-
-
-# Metrics shown in trend plots (key, label, unit), finger tapping's names.
-TREND_METRICS: tuple[tuple[str, str, str], ...] = (
-    ("amplitude_mm_mean", "Mean amplitude", "mm"),
-    ("frequency_hz", "Tapping frequency", "Hz"),
-    ("opening_velocity_mm_s_max", "Peak opening velocity", "mm/s"),
-    ("amplitude_decrement_mm_per_tap", "Amplitude decrement", "mm/tap"),
-    ("hesitation_count", "Hesitations and halts", "count"),
-)
-
-
-def trend_metrics(task: str | Task = Task.FINGER_TAPPING) -> tuple[tuple[str, str, str], ...]:
-    """The trend metrics of ``task``: :data:`TREND_METRICS` under the task's keys, words
-    and units (``amplitude_deg_mean``, "Peak supination velocity", ``deg/s``)."""
-    the_task = parse_task(task)
-    if the_task is Task.FINGER_TAPPING:
-        return TREND_METRICS
-    return tuple(
-        (task_key(key, the_task), _task_text(label, the_task), _task_text(unit, the_task))
-        for key, label, unit in TREND_METRICS
-    )
 
 
 def is_tap_number(key: str) -> bool:

@@ -26,13 +26,14 @@ from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
-from app.reports.catalogue import METRICS, metric_rows
+from app.reports.catalogue import metric_rows
 from app.reports.data import ReportData, quality_rows, summary_column
 from app.reports.figures import report_plots
 from app.reports.summary import short_taps_note, summary_rows
+from app.reports.task_metrics import primary_specs
 from app.reports.visit import VisitData, task_groups
 from app.templating import jinja_env
-from core.tasks import Task, parse_task
+from core.tasks import TASKS, Task, parse_task
 from core.version import software_version
 
 
@@ -66,7 +67,7 @@ def report_context(data: ReportData) -> dict[str, Any]:
         "taps": list(data.analysis.task_cycles),  # the cycles of a task other than tapping
         "events": list(data.analysis.events),
         "plots": report_plots(data),
-        "metric_specs": {k: v for k, v in METRICS.items() if v.primary},
+        "metric_specs": primary_specs(data.task),
         "software_version": software_version(),
     }
 
@@ -178,7 +179,12 @@ def visit_context(visit: VisitData) -> dict[str, Any]:
         "provenance": provenance_lines(visit.trials),
         "groups": task_groups(visit.trials),
         "details": details,
-        "metric_specs": {k: v for k, v in METRICS.items() if v.primary},
+        # the definitions of each task measured at the visit, in the order of the items
+        "metric_definitions": [
+            {"task": task, "specs": primary_specs(task)}
+            for task in TASKS
+            if any(d.task == task for d in visit.trials)
+        ],
     }
 
 

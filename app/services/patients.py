@@ -20,8 +20,8 @@ from app.actors import Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, NotFoundError
 from app.models import Patient, RecordingSession, Trial, utcnow
-from app.reports.catalogue import trend_metrics
 from app.reports.result import read_result
+from app.reports.task_metrics import trend_metrics
 from app.schemas import PatientCreate, PatientUpdate
 from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
 from app.services.erasure import tombstone_code
@@ -212,7 +212,7 @@ def trend_points(patient: Patient) -> dict[str, dict[str, list[TrendPoint]]]:
     The MDS-UPDRS items are rated on the first 10 taps (cycles), so the trends
     follow ``metrics_first_10`` (a result without it has no point). Each task
     has its own trends, in its own metrics and units
-    (:func:`app.reports.catalogue.trend_metrics`): the items are rated apart and
+    (:func:`app.reports.task_metrics.trend_metrics`): the items are rated apart and
     their amplitudes are not of one quantity (mm, degrees). Tasks come in the
     order of the items; a task with no analysed trial has no entry.
     """

@@ -21,7 +21,8 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import DBS_STATES, MEDICATION_STATES, Patient, Rig
-from app.reports.catalogue import format_metric, trend_metrics
+from app.reports.catalogue import format_metric
+from app.reports.task_metrics import trend_metrics
 from app.schemas import PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient

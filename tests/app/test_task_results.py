@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
+import subprocess
 
 import numpy as np
 import pytest
@@ -213,7 +215,8 @@ def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
 ) -> None:
     """Finger tapping (``seeded``: two visits), hand movements and toe tapping at both visits
     (plots), pronation–supination at one (a table): each task its own trends."""
-    from app.reports.catalogue import format_metric, trend_metrics
+    from app.reports.catalogue import format_metric
+    from app.reports.task_metrics import trend_metrics
 
     docs = {}
     for task, sessions in (
@@ -317,3 +320,57 @@ def test_the_review_page_shows_the_task_s_signal_and_corrects_its_cycles(
     assert [c["index"] for c in current["excluded_taps"]] == [1]
     again = client.get(f"/trials/{trial_id}/review").text
     assert "Cycle 2</button> (excluded)" in again
+
+
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils is not installed")
+def test_the_pdf_report_gives_the_task_s_metrics_with_units_and_plots(
+    api: Api, seeded, db_sessionmaker, storage, tmp_path
+) -> None:
+    from app.reports.catalogue import metric_rows
+    from app.reports.result import read_result
+
+    task = Task.PRONATION_SUPINATION
+    trial_id, doc, _ = store_task_trial(db_sessionmaker, storage, task)
+    r = api.client.get(f"/api/v1/trials/{trial_id}/report.pdf", headers=api.headers)
+    assert r.status_code == 200 and r.content.startswith(b"%PDF")
+    (tmp_path / "r.pdf").write_bytes(r.content)
+    text = subprocess.run(
+        ["pdftotext", "-layout", str(tmp_path / "r.pdf"), "-"],
+        check=True, capture_output=True, text=True,
+    ).stdout  # fmt: skip
+    lines = [" ".join(line.split()) for line in text.splitlines()]
+    # Every primary metric: the first word of its label, its value, first-10 value and unit
+    # on one line of the table (longer labels wrap onto the next lines).
+    rows = metric_rows(read_result(doc))
+    assert any(row.unit == "deg" for row in rows) and any(row.unit == "deg/s" for row in rows)
+    for row in rows:
+        cells = " ".join(v for v in (row.value, row.value_first_10, row.unit) if v)
+        assert any(
+            line.startswith(row.label.split()[0]) and f" {cells}" in line for line in lines
+        ), row
+    # The plots' words stay text in the PDF: the task's axes and units.
+    for words in ("rotation of the hand about the forearm (deg)", "peak velocity (deg/s)"):
+        assert words in " ".join(lines)
+    assert "thumb" not in text.lower()
+
+
+def test_the_visit_report_draws_and_defines_each_task_in_its_own_units(
+    api: Api, seeded, db_sessionmaker, storage
+) -> None:
+    for task in NEW_TASKS:
+        store_task_trial(db_sessionmaker, storage, task, session_index=1)
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, seeded["trials"][(1, "right")]).session_id
+    html = api.client.get(f"/api/v1/sessions/{session_id}/report.html", headers=api.headers).text
+    apertures = re.findall(r'<svg[^>]*data-plot="aperture".*?</svg>', html, re.S)
+    labels = [t for svg in apertures for t in _texts(svg) if t.endswith(("(mm)", "(deg)"))]
+    # Finger tapping's two hands, then one trial of each other task: each its own axis.
+    assert labels == ["thumb–index distance (mm)"] * 2 + [
+        f"{EXPECTED[t][0]} ({EXPECTED[t][1]})" for t in NEW_TASKS
+    ]
+    definitions = re.search(r'<dl class="definitions">(.*?)</dl>', html, re.S).group(1)
+    terms = re.findall(r"<dt>([^<]*)</dt>", definitions)
+    assert "Finger tapping: Mean amplitude (mm)" in terms
+    assert "Pronation–supination: Mean amplitude (deg)" in terms
+    assert "Pronation–supination: Peak supination velocity (deg/s)" in terms
+    assert "Toe tapping: Amplitude decrement (mm/cycle)" in terms
