@@ -15,6 +15,10 @@ from dataclasses import dataclass
 
 from core.tasks import Task, parse_task, task_key
 
+#: Shorter words for a signal axis where the task's own (:attr:`core.tasks.Task.signal`)
+#: would not fit beside the plot (a 2.6-inch axis holds about 25 characters at 9 pt).
+_AXIS_WORDS = {Task.PRONATION_SUPINATION: "hand rotation angle"}
+
 
 @dataclass(frozen=True)
 class CycleQuantity:
@@ -23,7 +27,8 @@ class CycleQuantity:
     Attributes
     ----------
     signal : str
-        The cycle signal in words, as the axis names it (``"thumb–index distance"``).
+        The cycle signal in words, as the signal axis names it (``"thumb–index distance"``;
+        at most about 20 characters, so that the axis label fits the plot's height).
     unit : str
         Its unit (``"mm"`` or ``"deg"``); velocities are in ``unit``/s.
     cycle : str
@@ -61,11 +66,11 @@ def quantity_of(task: Task | str) -> CycleQuantity:
     if task is Task.FINGER_TAPPING:
         return TAPPING
     return CycleQuantity(
-        signal=task.signal,
+        signal=_AXIS_WORDS.get(task, task.signal),
         unit=task.amplitude_unit,
         cycle=task.cycle_word,
         phases=task.phase_words,
-        title=task.signal[0].upper() + task.signal[1:],
+        title=task.signal[0].upper() + task.signal[1:],  # the whole words in titles
         markers="Marker",
         peak_key=task_key(TAPPING.peak_key, task),
         amplitude_key=task_key(TAPPING.amplitude_key, task),

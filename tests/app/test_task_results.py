@@ -29,15 +29,17 @@ from core.markers_csv import markers_csv_text
 from core.tasks import Task, task_key
 
 NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING)
-# What each task's plots must say: (signal axis label, unit, the two halves of a cycle).
+# What each task's plots must say: (signal axis label, unit, the two halves of a cycle), and
+# the signal in the plot's title and the page's heading.
 EXPECTED = {
     Task.HAND_MOVEMENTS: ("finger–wrist distance", "mm", ("opening", "closing")),
-    Task.PRONATION_SUPINATION: (
-        "rotation of the hand about the forearm",
-        "deg",
-        ("supination", "pronation"),
-    ),
+    Task.PRONATION_SUPINATION: ("hand rotation angle", "deg", ("supination", "pronation")),
     Task.TOE_TAPPING: ("toe lift", "mm", ("lift", "lowering")),
+}
+TITLE = {
+    Task.HAND_MOVEMENTS: "Finger–wrist distance",
+    Task.PRONATION_SUPINATION: "Rotation of the hand about the forearm",
+    Task.TOE_TAPPING: "Toe lift",
 }
 DURATION_S = {Task.HAND_MOVEMENTS: 9.0, Task.PRONATION_SUPINATION: 11.0, Task.TOE_TAPPING: 6.0}
 
@@ -100,7 +102,7 @@ def test_the_result_page_plots_the_task_s_own_quantity(
 
     aperture = _plot(html, "aperture")
     assert f"{signal} ({unit})" in _texts(aperture)  # the y axis
-    title = f"{signal[0].upper()}{signal[1:]} over time: {n} cycles, 1 hesitation(s), 1 halt(s)"
+    title = f"{TITLE[task]} over time: {n} cycles, 1 hesitation(s), 1 halt(s)"
     assert f"<title>{title} marked</title>" in aperture
     # Every cycle is numbered at its turn, and the legend speaks of cycles.
     assert {str(k) for k in range(1, n + 1)} <= set(_texts(aperture))
@@ -121,7 +123,7 @@ def test_the_result_page_plots_the_task_s_own_quantity(
         assert "thumb" not in svg and "tap" not in " ".join(_texts(svg))
 
     # The page around the plots says the same; the tables carry the units.
-    assert f"{signal[0].upper()}{signal[1:]} over time" in html
+    assert f"{TITLE[task]} over time" in html
     assert "amplitude of each cycle" in html.lower()
     amp_key = task_key("amplitude_mm_mean", task)
     row = re.search(rf'<tr[^>]*data-metric="{amp_key}".*?</tr>', html, re.S)
@@ -349,7 +351,7 @@ def test_the_pdf_report_gives_the_task_s_metrics_with_units_and_plots(
             line.startswith(row.label.split()[0]) and f" {cells}" in line for line in lines
         ), row
     # The plots' words stay text in the PDF: the task's axes and units.
-    for words in ("rotation of the hand about the forearm (deg)", "peak velocity (deg/s)"):
+    for words in ("hand rotation angle (deg)", "peak velocity (deg/s)"):
         assert words in " ".join(lines)
     assert "thumb" not in text.lower()
 

@@ -13,30 +13,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+# The scenarios of the tasks' acceptance: at least 10 cycles, a hesitation before cycle 3
+# and a halt before cycle 6, the decrement of each task.
+from test_task_metrics import NEW_TASKS, _truth
+
 from core.corrections import Corrections, correct_metrics, revised_document, swappable_labels
 from core.cycles import COMMON_KEYS, compute_task_metrics
 from core.markers_csv import MarkerTable
-from core.simulation.tasks import TaskScenario, TaskTruth, simulate_task
+from core.simulation.tasks import TaskTruth
 from core.tasks import Task, task_key
 
-NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING)
-# As tests/core/test_task_metrics.py: at least 10 cycles, a hesitation before cycle 3
-# and a halt before cycle 6.
-DURATION_S = {Task.HAND_MOVEMENTS: 9.0, Task.PRONATION_SUPINATION: 11.0, Task.TOE_TAPPING: 6.0}
-DECREMENT = {Task.HAND_MOVEMENTS: -1.0, Task.PRONATION_SUPINATION: -3.0, Task.TOE_TAPPING: -1.0}
 EXCLUDED = 2  # 0-based cycle the clinician excludes
-
-
-def _truth(task: Task, side: str) -> TaskTruth:
-    scenario = TaskScenario(
-        task=task,
-        duration_s=DURATION_S[task],
-        side=side,
-        decrement_per_cycle=DECREMENT[task],
-        hesitations=(3,),
-        halts=((6, 0.5),),
-    )
-    return simulate_task(scenario, seed=5)
 
 
 def _table(truth: TaskTruth, *, noise_mm: float = 0.03) -> MarkerTable:
@@ -64,7 +51,7 @@ def _within(measured: np.ndarray, true: np.ndarray, task: Task) -> None:
 @pytest.mark.parametrize("side", ["right", "left"])
 @pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
 def test_excluding_a_cycle_and_dismissing_a_pause_match_the_truth(task: Task, side: str) -> None:
-    truth = _truth(task, side)
+    truth = _truth(task, side, seed=5)
     corrections = Corrections(exclude_taps=(EXCLUDED,), dismiss_pauses=(3,))
     corrected = correct_metrics(_table(truth), corrections, task=task, side=side)
     doc = corrected.to_result()
@@ -105,7 +92,7 @@ def test_excluding_a_cycle_and_dismissing_a_pause_match_the_truth(task: Task, si
 @pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
 def test_no_correction_gives_the_analysis_numbers(task: Task) -> None:
     """The correction measures through the analysis's code: nothing changed, nothing differs."""
-    truth = _truth(task, "right")
+    truth = _truth(task, "right", seed=5)
     table = _table(truth)
     analysis = compute_task_metrics(task, table.positions_mm, table.fps, side="right")
     corrected = correct_metrics(table, Corrections(), task=task, side="right").to_result()
@@ -116,7 +103,7 @@ def test_no_correction_gives_the_analysis_numbers(task: Task) -> None:
 
 def test_the_window_keeps_the_cycles_inside_it() -> None:
     task = Task.TOE_TAPPING
-    truth = _truth(task, "right")
+    truth = _truth(task, "right", seed=5)
     inside = truth.cycles[1:8]
     window = (inside[0].t_start_s - 0.02, inside[-1].t_end_s + 0.02)  # s
     corrected = correct_metrics(_table(truth), Corrections(window_s=window), task=task).to_result()
@@ -133,7 +120,7 @@ def test_the_window_keeps_the_cycles_inside_it() -> None:
 
 def test_a_correction_of_the_wrong_task_fails_loudly() -> None:
     """Trajectories of one task corrected as another: its markers are named, nothing measured."""
-    truth = _truth(Task.HAND_MOVEMENTS, "right")
+    truth = _truth(Task.HAND_MOVEMENTS, "right", seed=5)
     with pytest.raises(ValueError, match="toe, heel and shin"):
         correct_metrics(_table(truth), Corrections(exclude_taps=(1,)), task=Task.TOE_TAPPING)
     with pytest.raises(ValueError, match="thumb and index"):
@@ -141,7 +128,7 @@ def test_a_correction_of_the_wrong_task_fails_loudly() -> None:
 
 
 def test_cycle_numbers_in_errors_are_counted_from_1_in_the_task_words() -> None:
-    truth = _truth(Task.HAND_MOVEMENTS, "right")
+    truth = _truth(Task.HAND_MOVEMENTS, "right", seed=5)
     n = len(truth.cycles)
     with pytest.raises(
         ValueError, match=rf"no cycle {n + 1} in this recording \(it has {n} cycles"
@@ -155,7 +142,7 @@ def test_labels_swap_for_two_markers_only() -> None:
     assert swappable_labels(Task.FINGER_TAPPING) == ("thumb", "index")
     assert swappable_labels(Task.HAND_MOVEMENTS) == ("finger", "wrist")
     assert swappable_labels(Task.PRONATION_SUPINATION) is None
-    truth = _truth(Task.HAND_MOVEMENTS, "right")
+    truth = _truth(Task.HAND_MOVEMENTS, "right", seed=5)
     table = _table(truth)
     plain = correct_metrics(table, Corrections(), task=Task.HAND_MOVEMENTS)
     swapped = correct_metrics(table, Corrections(swap_labels=True), task=Task.HAND_MOVEMENTS)
@@ -164,4 +151,6 @@ def test_labels_swap_for_two_markers_only() -> None:
     assert revised_document(base, swapped)["markers"] == ["wrist", "finger"]
     for task in (Task.PRONATION_SUPINATION, Task.TOE_TAPPING):
         with pytest.raises(ValueError, match="named by their distances"):
-            correct_metrics(_table(_truth(task, "right")), Corrections(swap_labels=True), task=task)
+            correct_metrics(
+                _table(_truth(task, "right", seed=5)), Corrections(swap_labels=True), task=task
+            )
