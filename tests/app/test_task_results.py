@@ -376,3 +376,32 @@ def test_the_visit_report_draws_and_defines_each_task_in_its_own_units(
     assert "Pronation–supination: Mean amplitude (deg)" in terms
     assert "Pronation–supination: Peak supination velocity (deg/s)" in terms
     assert "Toe tapping: Amplitude decrement (mm/cycle)" in terms
+
+
+def test_the_exports_give_the_task_s_markers_and_metrics_with_units(
+    api: Api, seeded, db_sessionmaker, storage
+) -> None:
+    """markers.csv (positions in mm under the protocol's labels) and the FHIR Bundle (each
+    metric an Observation with its UCUM unit) of a pronation–supination trial."""
+    task = Task.PRONATION_SUPINATION
+    trial_id, doc, _ = store_task_trial(db_sessionmaker, storage, task)
+    csv = api.client.get(f"/api/v1/trials/{trial_id}/markers.csv", headers=api.headers).text
+    lines = csv.splitlines()
+    assert lines[0] == "frame,time_s,marker,x_mm,y_mm,z_mm,status,reprojection_px"
+    assert {line.split(",")[2] for line in lines[1:]} == {"radial", "ulnar", "distal"}
+    bundle = api.client.get(f"/api/v1/trials/{trial_id}/fhir", headers=api.headers).json()
+    quantities = {
+        coding["code"]: r["resource"]["valueQuantity"]
+        for r in bundle["entry"]
+        if r["resource"]["resourceType"] == "Observation" and "valueQuantity" in r["resource"]
+        for coding in r["resource"]["code"]["coding"]
+    }
+    expected = {
+        "amplitude_deg_mean": "deg",
+        "supination_velocity_deg_s_max": "deg/s",
+        "amplitude_decrement_deg_per_cycle": "deg/{cycle}",
+        "frequency_hz": "Hz",
+    }
+    for key, ucum in expected.items():
+        assert quantities[key]["code"] == ucum, (key, quantities[key])
+        assert quantities[key]["value"] == pytest.approx(doc["metrics"][key], abs=1e-6)
