@@ -16,6 +16,7 @@ import re
 import time
 
 import pytest
+from browser_support import Recording
 from test_browser_flow import VIEWPORTS, PageChecker
 
 from core.cycles import common_metrics
@@ -46,9 +47,9 @@ def _api(page, method: str, url: str, csrf: str, **kw):
     return r
 
 
-def _measured_trial(page, served, recording, csrf: str) -> int:
+def _measured_trial(page, served, recording, csrf: str, *, tag: str = "review") -> int:
     base = f"{served.url}/api/v1"
-    rig = _api(page, "POST", f"{base}/rigs", csrf, data={"name": "review-rig"}).json()
+    rig = _api(page, "POST", f"{base}/rigs", csrf, data={"name": f"{tag}-rig"}).json()
     _api(
         page,
         "POST",
@@ -62,7 +63,9 @@ def _measured_trial(page, served, recording, csrf: str) -> int:
             }
         },
     )
-    patient = _api(page, "POST", f"{base}/patients", csrf, data={"code": "PD-REVIEW"}).json()
+    patient = _api(
+        page, "POST", f"{base}/patients", csrf, data={"code": f"PD-{tag.upper()}"}
+    ).json()
     session = _api(
         page,
         "POST",
@@ -188,4 +191,86 @@ def test_review_view(browser, served, recording, screenshot_dir):
     assert current["metrics"]["tap_count"] == original["metrics"]["tap_count"] - 1
     first = page.request.get(f"{served.url}/api/v1/trials/{trial_id}/result?revision=1").json()
     assert first == original
+    context.close()
+
+
+@pytest.fixture(scope="module")
+def wide_recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
+    """A 1280x1024 recording: its browser proxies are reduced to 640x512."""
+    from core.camera import ImageSize
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario, simulate_session
+
+    sim = simulate_session(
+        tmp_path_factory.mktemp("wide-recording"),
+        seed=8,
+        tapping=TappingScenario(duration_s=2.0, amplitude_mm=45.0, frequency_hz=3.0),
+        imaging=ImagingScenario(image_size=ImageSize(1280, 1024)),
+    )
+    return Recording(sim.left_video, sim.right_video, sim.rig_path, sim.truth)
+
+
+# The video's current frame drawn at its own size: the centroid of its bright pixels
+# (> 100) within 7 px of (x, y), in the video's pixels (OpenCV's convention), and their count.
+VIDEO_SPOT_JS = """([side, x, y]) => {
+  const v = document.querySelector(`video[data-video="${side}"]`);
+  const c = document.createElement('canvas');
+  c.width = v.videoWidth; c.height = v.videoHeight;
+  const ctx = c.getContext('2d');
+  ctx.drawImage(v, 0, 0);
+  const x0 = Math.round(x) - 7, y0 = Math.round(y) - 7;
+  const img = ctx.getImageData(x0, y0, 15, 15).data;
+  let n = 0, sx = 0, sy = 0;
+  for (let i = 0; i < img.length; i += 4) {
+    if (img[i] > 100) { const p = i / 4; sx += x0 + p % 15; sy += y0 + Math.floor(p / 15); n++; }
+  }
+  return n ? {x: sx / n, y: sy / n, n: n} : null;
+}"""
+
+BOXES_JS = """(side) => {
+  const v = document.querySelector(`video[data-video="${side}"]`);
+  const c = document.querySelector(`canvas[data-overlay="${side}"]`);
+  const a = v.getBoundingClientRect(), b = c.getBoundingClientRect();
+  return {video: [v.videoWidth, v.videoHeight], canvas: [c.width, c.height],
+          video_box: [a.x, a.y, a.width, a.height], canvas_box: [b.x, b.y, b.width, b.height]};
+}"""
+
+
+def test_review_view_draws_on_a_reduced_proxy(browser, served, wide_recording):
+    """A 1280x1024 recording plays from 640x512 proxies (core.video.proxy_size): the
+    overlay, drawn in the original's pixels, covers the video's box exactly, and the
+    thumb's disc lands on the thumb marker's bright spot in the reduced video."""
+    context = browser.new_context(viewport=VIEWPORTS["desktop"])
+    page = context.new_page()
+    page.set_default_timeout(30_000)
+    page.goto(f"{served.url}/login")
+    page.fill("#email", served.email)
+    page.fill("#password", served.password)
+    page.keyboard.press("Enter")
+    page.wait_for_url(re.compile(r"/patients$"))
+    csrf = page.locator("input[name=csrf_token]").first.get_attribute("value")
+    trial_id = _measured_trial(page, served, wide_recording, csrf, tag="wide")
+    page.goto(f"{served.url}/trials/{trial_id}/review")
+    data = json.loads(page.locator("#review-data").text_content())
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('video')].every(v => v.readyState >= 2)"
+    )
+    frame = round(data["taps"][1]["t_max_aperture_s"] * data["fps"])
+    page.evaluate("(f) => window.bradyscopeReview.seekFrame(f)", frame)
+    page.wait_for_function(
+        f"() => document.querySelector('[data-review-player]').dataset.frame === '{frame}'"
+    )
+    for cam in data["overlay"]["cameras"]:
+        side = cam["video"]
+        boxes = page.evaluate(BOXES_JS, side)
+        assert boxes["video"] == [640, 512] and boxes["canvas"] == [1280, 1024], boxes
+        assert boxes["canvas_box"] == pytest.approx(boxes["video_box"], abs=0.5)  # CSS px
+        drawn = page.evaluate(THUMB_DISC_JS, side)
+        assert drawn is not None and drawn["n"] > 50, (side, drawn)
+        # Proxy pixel u averages original pixels 2u and 2u + 1: centre x = 2u + 0.5.
+        at = [(drawn["x"] - 0.5) / 2, (drawn["y"] - 0.5) / 2]
+        spot = page.evaluate(VIDEO_SPOT_JS, [side, *at])
+        assert spot is not None and spot["n"] >= 4, (side, spot)
+        assert spot["x"] == pytest.approx(at[0], abs=1.0), (side, spot, at)  # proxy px
+        assert spot["y"] == pytest.approx(at[1], abs=1.0), (side, spot, at)  # proxy px
     context.close()
