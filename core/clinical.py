@@ -118,7 +118,7 @@ def interruption_band(hesitations: int, halts: int) -> Band:
     return Band("interruptions", 0, "no interruption")
 
 
-def decrement_band(last_steady: int | None, reliable_repetitions: int) -> Band:
+def decrement_band(last_steady: int | None, reliable_repetitions: int, word: str = "tap") -> Band:
     """The band of the amplitude decrement over the first 10 repetitions.
 
     Parameters
@@ -129,6 +129,9 @@ def decrement_band(last_steady: int | None, reliable_repetitions: int) -> Band:
         plus one); None when no decrement was found.
     reliable_repetitions : int
         Repetitions whose amplitude was measured (``reliable_tap_count``).
+    word : str
+        What one repetition is called in the item's wording (``Task.cycle_word``:
+        "tap" for finger tapping, "cycle" for the other tasks).
 
     Returns
     -------
@@ -151,10 +154,10 @@ def decrement_band(last_steady: int | None, reliable_repetitions: int) -> Band:
     if k < 1:
         raise ValueError(f"last_steady counts from 1, got {last_steady!r}")
     if k <= DECREMENT_MODERATE_LAST_STEADY:
-        return Band("decrement", 3, "decrements starting after the 1st tap")
+        return Band("decrement", 3, f"decrements starting after the 1st {word}")
     if k <= DECREMENT_MILD_LAST_STEADY:
-        return Band("decrement", 2, "decrements midway in the 10-tap sequence")
-    return Band("decrement", 1, "decrements near the end of the 10 taps")
+        return Band("decrement", 2, f"decrements midway in the 10-{word} sequence")
+    return Band("decrement", 1, f"decrements near the end of the 10 {word}s")
 
 
 def unanchored_band(aspect: str) -> Band:

@@ -107,6 +107,7 @@ class SummaryColumn:
             return decrement_band(
                 None if onset is None else int(onset) + 1,
                 int(self.value("reliable_tap_count") or 0),
+                parse_task(self.task).cycle_word,
             )
         raise ValueError(f"unknown aspect {aspect!r}")
 
@@ -135,8 +136,7 @@ def _formatted(column: SummaryColumn, key: str) -> str:
     task = parse_task(column.task)
     if key == "amplitude_decrement_onset_tap":
         # Counted from 1 on every page and report (result.json counts from 0).
-        word = "tap" if task is Task.FINGER_TAPPING else "cycle"
-        return "none" if value is None else f"after {word} {int(value) + 1}"
+        return "none" if value is None else f"after {task.cycle_word} {int(value) + 1}"
     return format_metric(task_key(key, task), value, task.value)
 
 
@@ -178,7 +178,7 @@ def short_taps_note(column: SummaryColumn) -> str | None:
     n = column.taps_counted
     if n >= ITEM_REPETITIONS:
         return None
-    word = "tap" if parse_task(column.task) is Task.FINGER_TAPPING else "cycle"
+    word = parse_task(column.task).cycle_word
     return (
         f"Only {n} complete {word}{'s' if n != 1 else ''} in the recording; the item asks for"
         f" {ITEM_REPETITIONS}."

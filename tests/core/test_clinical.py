@@ -79,6 +79,13 @@ def test_decrement_band_at_each_boundary(last_steady, level):
     assert (band.aspect, band.level) == ("decrement", level)
 
 
+def test_decrement_band_speaks_of_the_tasks_repetitions():
+    assert decrement_band(1, 10).wording == "decrements starting after the 1st tap"
+    assert decrement_band(1, 10, "cycle").wording == "decrements starting after the 1st cycle"
+    assert decrement_band(4, 10, "cycle").wording == "decrements midway in the 10-cycle sequence"
+    assert decrement_band(9, 10, "cycle").wording == "decrements near the end of the 10 cycles"
+
+
 def test_decrement_band_needs_five_measured_taps():
     assert decrement_band(None, 5).level == 0
     band = decrement_band(None, 4)
