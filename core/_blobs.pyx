@@ -962,6 +962,7 @@ def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] p
 
 DEF NPAR = 8   # cx, cy, R, s, A, B0, Bx, By
 DEF FIT_COLS = 12
+DEF HALO_PX = 3  # the second, wider border of the dark-room test (see fit_one)
 FIT_COLUMNS = (
     "x", "y", "radius", "edge_sigma", "level", "background", "background_dx", "background_dy",
     "residual_rms", "interior_fill", "pixels", "iterations",
@@ -1060,6 +1061,21 @@ cdef int solve_damped(const double* jtj, const double* jtr, double lam, double* 
     return 1
 
 
+cdef int border_p90(const unsigned char* img, int W, int x0, int y0, int x1, int y1,
+                    int* hist) noexcept nogil:
+    """90th percentile (gray level) of the border pixels of the box ``[x0, x1) x [y0, y1)``."""
+    cdef int x, y, n
+    memset(hist, 0, 256 * sizeof(int))
+    for x in range(x0, x1):
+        hist[img[<size_t>y0 * W + x]] += 1
+        hist[img[<size_t>(y1 - 1) * W + x]] += 1
+    for y in range(y0 + 1, y1 - 1):
+        hist[img[<size_t>y * W + x0]] += 1
+        hist[img[<size_t>y * W + x1 - 1]] += 1
+    n = 2 * (x1 - x0) + 2 * (y1 - y0 - 2)
+    return kth(hist, (9 * n) // 10)
+
+
 cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, double r0,
                  double half_size, double bg0, double level0, const double* others, int K,
                  int max_iter, double dark_level, double* xs, double* ys, double* zs,
@@ -1067,6 +1083,7 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
     """One disc fit (see :func:`fit_discs`); writes ``FIT_COLS`` values to ``o``, which
     the caller filled with NaN.  ``xs``, ``ys``, ``zs`` hold the window's pixels."""
     cdef int k, x, y, x0, y0, x1, y1, n, it, hs, tries, n_in, n_bright, a, ok
+    cdef int fx0, fy0, fx1, fy1
     cdef double d_own, dk, cost, cost_new, lam, dx, dy, r, pl
     cdef double p[NPAR]
     cdef double q[NPAR]
@@ -1086,15 +1103,27 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
     if x1 - x0 < 3 or y1 - y0 < 3:
         return 0
     if dark_level >= 0:
-        memset(hist, 0, sizeof(hist))
-        for x in range(x0, x1):
-            hist[img[<size_t>y0 * W + x]] += 1
-            hist[img[<size_t>(y1 - 1) * W + x]] += 1
-        for y in range(y0 + 1, y1 - 1):
-            hist[img[<size_t>y * W + x0]] += 1
-            hist[img[<size_t>y * W + x1 - 1]] += 1
-        n = 2 * (x1 - x0) + 2 * (y1 - y0 - 2)
-        if kth(hist, (9 * n) // 10) <= dark_level:
+        if border_p90(img, W, x0, y0, x1, y1, hist) <= dark_level:
+            o[11] = 0
+            return 0
+        # A soft blob (a glint) brightens the border with its own halo. When the border
+        # HALO_PX farther out is dark and holds no other blob, it stands on the dark room
+        # all the same, where the centroid is exact: no fit. Lit skin or a finger's edge
+        # that reaches the first border reaches the wider one as much or more.
+        fx0 = max(0, x0 - HALO_PX)
+        fy0 = max(0, y0 - HALO_PX)
+        fx1 = min(W, x1 + HALO_PX)
+        fy1 = min(H, y1 + HALO_PX)
+        ok = fx0 < x0 and fy0 < y0 and fx1 > x1 and fy1 > y1  # not cut by the image edge
+        for k in range(K):
+            if not ok:
+                break
+            dx = others[2 * k] - cx
+            dy = others[2 * k + 1] - cy
+            if (dx * dx + dy * dy > 0.25 and fx0 <= others[2 * k] + 0.5 < fx1
+                    and fy0 <= others[2 * k + 1] + 0.5 < fy1):
+                ok = 0
+        if ok and border_p90(img, W, fx0, fy0, fx1, fy1, hist) <= dark_level:
             o[11] = 0
             return 0
     n = 0
@@ -1193,8 +1222,10 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
     dark_level : float
         A window whose border is at most this bright at its 90th percentile
         (gray levels) lies on the dark background, where the centroid is
-        already exact: it is not fitted (NaN centre, 0 steps).  -1 fits every
-        window.
+        already exact: it is not fitted (NaN centre, 0 steps); so is a window
+        whose border only the blob's own halo brightens (a soft glint): the
+        border ``HALO_PX`` (3) px farther out is that dark and holds no other
+        blob's centre.  -1 fits every window.
 
     Returns
     -------

@@ -399,7 +399,9 @@ def _fit_opaque_discs(
     """Centres (in place) from an opaque blurred disc over a planar background
     (``_blobs.refine_rows``) for the round blobs whose surroundings are brighter than
     ``dark_level`` (the detection threshold: skin, not the dark room, where the
-    centroid is exact and cheaper); the fit residual beyond the image noise, over the
+    centroid is exact and cheaper; a soft glint whose own halo lights the fit window's
+    border but not a border 3 px wider, with no other blob inside, is on the dark room
+    too); the fit residual beyond the image noise, over the
     marker's contrast, goes to the ``_FIT_RES`` column (NaN where no fit was made)."""
     _blobs.refine_rows(
         image,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core import _blobs
 from core.markers import MAX_FIT_RESIDUAL, MarkerParams, detect_markers
 from core.simulation.hand import Capsules, SkinLook, composite_spheres, draw_skin
 from core.simulation.render import DISC, SphereLayer
@@ -101,3 +102,43 @@ def test_a_marker_partly_behind_a_finger_is_not_taken_as_whole(cover_mm: float) 
     assert err_centroid > 0.3  # px: any centre of the visible part is biased
     _, residual = _error_px(img, truth, MarkerParams())
     assert residual > MAX_FIT_RESIDUAL  # so the pipeline sets it aside
+
+
+def _glint(centres_px: list[tuple[float, float]], *, sigma_px: float = 3.0) -> np.ndarray:
+    """Soft Gaussian glints (peak 230) on the dark room (14, noise sigma 2)."""
+    yy, xx = np.mgrid[0:200, 0:240].astype(np.float64)
+    canvas = np.full(xx.shape, 14.0)
+    for cx, cy in centres_px:
+        canvas += 230.0 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma_px**2))
+    canvas += np.random.default_rng(4).normal(0.0, 2.0, canvas.shape)
+    return np.clip(np.rint(canvas), 0, 255).astype(np.uint8)
+
+
+def test_a_soft_glint_on_the_dark_room_is_not_fitted() -> None:
+    # Its own halo lights the fit window's border (3 px beyond half its half-maximum width),
+    # so the first dark-room test alone would fit it; the wider border is dark: centroid.
+    truth = np.array([120.3, 100.6])
+    img = _glint([tuple(truth)], sigma_px=3.5)
+    det = detect_markers(img, search_xy_px=truth[None])
+    ref = detect_markers(img, params=CENTROID, search_xy_px=truth[None])
+    assert len(det) == 1
+    # the first test's border (the fit window's, as core/_blobs.pyx cuts it) is lit
+    hs = int(np.ceil(0.5 * det.diameter_px[0] / det.roundness[0] + 3.0))
+    x, y = np.floor(det.xy_px[0] + 0.5).astype(int)
+    win = img[y - hs : y + hs + 1, x - hs : x + hs + 1]
+    border = np.sort(np.concatenate((win[0], win[-1], win[1:-1, 0], win[1:-1, -1])))
+    bg, sigma = _blobs.background_and_noise(img, 16)
+    threshold = bg + max(0.5 * MarkerParams().min_contrast, 4.0 * sigma)
+    assert border[(9 * len(border)) // 10] > threshold
+    assert np.isnan(det.fit_residual[0])  # not fitted
+    np.testing.assert_array_equal(det.xy_px, ref.xy_px)
+    assert np.linalg.norm(det.xy_px[0] - truth) < 0.05  # px: the centroid is exact here
+
+
+def test_a_soft_glint_beside_another_blob_is_still_fitted() -> None:
+    # another blob's centre within the wider border: the lit border may be that blob's
+    a, b = np.array([110.3, 100.6]), np.array([120.3, 100.0])
+    img = _glint([tuple(a), tuple(b)], sigma_px=2.0)
+    det = detect_markers(img, search_xy_px=np.array([a, b]))
+    assert len(det) == 2
+    assert np.all(np.isfinite(det.fit_residual))  # both fitted, as before the wider test
