@@ -42,7 +42,7 @@ FILTER_ORDER = 4
 DEFAULT_MAX_FILL_S = 0.1
 #: Longest one in which the markers' images merged in one camera in every frame, the
 #: other seeing both (only the depth interpolated) (s).
-DEFAULT_MAX_MERGED_FILL_S = 1.0
+DEFAULT_MAX_MERGED_FILL_S = 0.15
 
 
 @dataclass(frozen=True)

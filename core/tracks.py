@@ -1041,7 +1041,7 @@ def track_markers(
     *,
     fps: float,
     max_gap_s: float = 0.1,
-    max_merged_gap_s: float = 1.0,
+    max_merged_gap_s: float = 0.15,
     swap_labels: bool = False,
     gate_mm: float | None = None,
     max_reprojection_px: float | None = None,

@@ -121,29 +121,29 @@ def test_filled_in_frames_short_kept_long_treated_as_missing():
 def test_filled_in_stretch_merged_in_one_camera_kept_longer():
     """A closure whose images merged in one camera: 0.3 s filled in, the other camera saw
     both markers in every frame (only their depth interpolated): kept for filtering (never
-    valid) up to max_merged_fill_s; one frame not merged makes it a gap again."""
+    valid) up to max_merged_fill_s (here 0.5 s); one frame not merged makes it a gap again."""
     fps = 100.0
     _, dist, _ = _sine(fps)
     pos = _two_markers(dist)
     measured = np.ones((len(dist), 2), bool)
     measured[150:180] = False  # both markers filled in for 0.3 s
     merged = ~measured
-    ap = aperture_signal(pos, fps, measured=measured, merged=merged)
+    ap = aperture_signal(pos, fps, measured=measured, merged=merged, max_merged_fill_s=0.5)
     assert np.isfinite(ap.filtered_mm[150:180]).all()
     assert not ap.valid[150:180].any()
     np.testing.assert_allclose(ap.filtered_mm[150:180], dist[150:180], atol=0.05)  # mm
-    # Longer than the limit, or one frame not seen: a gap.
-    short = aperture_signal(pos, fps, measured=measured, merged=merged, max_merged_fill_s=0.2)
+    # Longer than the limit (default 0.15 s: a closure), or one frame not merged: a gap.
+    short = aperture_signal(pos, fps, measured=measured, merged=merged)
     assert np.isnan(short.filtered_mm[150:180]).all()
     holed = merged.copy()
     holed[165, 1] = False
-    ap2 = aperture_signal(pos, fps, measured=measured, merged=holed)
+    ap2 = aperture_signal(pos, fps, measured=measured, merged=holed, max_merged_fill_s=0.5)
     assert np.isnan(ap2.filtered_mm[150:180]).all()
     # One marker measured, the other merged-filled: the frame counts.
     measured2 = np.ones((len(dist), 2), bool)
     measured2[150:180, 1] = False
     sv2 = ~measured2
-    ap3 = aperture_signal(pos, fps, measured=measured2, merged=sv2)
+    ap3 = aperture_signal(pos, fps, measured=measured2, merged=sv2, max_merged_fill_s=0.5)
     assert np.isfinite(ap3.filtered_mm[150:180]).all()
 
 
