@@ -147,6 +147,9 @@ def run(args: argparse.Namespace) -> int:
         dummy_hash()  # so that the first refused login takes as long as any other
         threads.extend(start_embedded_workers(settings, args.workers_in_process, stop_event))
         serving.set()
+        from app.reports.rendering import warm_up_pdf
+
+        warm_up_pdf()  # so that the first PDF report does not also load WeasyPrint and its fonts
 
     threading.Thread(target=after_start, name="bradyscope-start", daemon=True).start()
 

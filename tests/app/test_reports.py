@@ -126,6 +126,17 @@ def test_pdf_renderer_fetches_no_url(data, monkeypatch):
         original().fetch("http://example.org/x.css")
 
 
+def test_pdf_warm_up_makes_a_pdf_with_the_reports_font(tmp_path):
+    """``bradyscope serve`` warms WeasyPrint up once it answers: a real one-line PDF, in the
+    font the reports use, so that the first report does not pay for loading either."""
+    import app.reports.rendering as reports
+
+    pdf = tmp_path / "warm.pdf"
+    pdf.write_bytes(reports.warm_up_pdf())
+    fonts = subprocess.run(["pdffonts", str(pdf)], capture_output=True, text=True, check=True)
+    assert "DejaVu-Sans" in fonts.stdout
+
+
 def test_pdf_is_made_again_when_what_it_shows_changes(data, monkeypatch):
     """The in-process PDF cache: the same report again is not laid out again (its
     "generated on" time aside), and a change of what it shows makes a new PDF."""
