@@ -3,8 +3,9 @@
 ``bench/bench_hands.py`` runs the 10-s recordings; here 3 s of the same
 scenario (mp4v, skin at a quarter of the markers' brightness, a ring glint,
 3 Hz taps shrinking by 0.8 mm per tap), at 1280x1024 and at 640x512, and
-the ``overlap`` posture (the right camera looks along the opening direction:
-the two markers' images merge there at every closure).
+the ``occlusion`` and ``overlap`` postures (the right camera looks along the
+opening direction: at every closure the index fingertip hides part of the thumb
+marker there, or the two markers' images merge).
 """
 
 from __future__ import annotations
@@ -63,6 +64,15 @@ def small(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, A
 def overlap(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
     # closed marker centres 3 mm apart seen from the right camera (5-mm markers)
     return _hand_session(tmp_path_factory.mktemp("overlap"), ImageSize(1280, 1024), overlap_mm=3.0)
+
+
+@pytest.fixture(scope="module")
+def occlusion(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
+    # closed marker centres 5.5 mm apart seen from the right camera: the index fingertip
+    # hides up to ~3 % of the thumb marker there, their images do not touch
+    return _hand_session(
+        tmp_path_factory.mktemp("occlusion"), ImageSize(1280, 1024), overlap_mm=5.5
+    )
 
 
 def _errors(session: SimulatedSession, analysis: Analysis) -> tuple[np.ndarray, np.ndarray]:
@@ -139,3 +149,30 @@ def test_markers_merged_in_one_camera_at_closures(
     # right camera, so the first opening has no closure before it and the last none after
     # it (no measured frame on the far side to interpolate from; 0 of 6 before issue 19)
     assert len(taps) - 2 <= found <= len(taps)
+
+
+def test_thumb_marker_partly_hidden_in_one_camera(
+    occlusion: tuple[SimulatedSession, Analysis],
+) -> None:
+    """The acceptance's occlusion case, 3 s: 3D and worst-frame bounds, every tap and its
+    amplitude within 1 %, no identity swap. The distance bound (0.05 mm) is not met
+    (0.059 mm here, 0.058 mm on the 10-s recording, docs/markers.md): guarded at its
+    current level, not at the acceptance."""
+    session, analysis = occlusion
+    truth = np.asarray(session.truth["positions_mm"], dtype=float)[:, :2]
+    meas = analysis.status == "measured"
+    err = np.linalg.norm(analysis.positions_mm - truth, axis=2)
+    other = np.linalg.norm(analysis.positions_mm - truth[:, ::-1], axis=2)
+    assert np.count_nonzero(meas & (other < err)) == 0  # no identity swap
+    assert np.sqrt(np.mean(err[meas] ** 2)) <= 0.08  # mm (acceptance)
+    assert err[meas].max() <= 0.5  # mm (acceptance: worst measured frame)
+    both = np.all(meas, axis=1)
+    d = np.linalg.norm(analysis.positions_mm[:, 0] - analysis.positions_mm[:, 1], axis=1)
+    d_true = np.linalg.norm(truth[:, 0] - truth[:, 1], axis=1)
+    assert np.sqrt(np.mean((d - d_true)[both] ** 2)) <= 0.07  # mm (acceptance 0.05: open)
+    assert analysis.metrics is not None
+    taps = session.truth["taps"]
+    assert analysis.metrics.metrics["tap_count"] == len(taps)
+    # every tap, reliable or not (here none is reliable: each has an interpolated closure)
+    for got, want in zip(analysis.metrics.taps, taps, strict=True):
+        assert abs(got.amplitude_mm - want["amplitude_mm"]) <= 0.01 * want["amplitude_mm"]
