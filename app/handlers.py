@@ -33,7 +33,7 @@ from core.errors import InputError
 from core.markers_csv import read_markers_csv
 from core.overlay import overlay_document
 from core.pipeline import Analysis, analyze_recording, write_markers_csv
-from core.video import probe_video, write_proxy
+from core.video import VideoInfo, probe_video, write_proxy
 
 log = logging.getLogger(__name__)
 
@@ -59,17 +59,32 @@ def _upload_warnings(ctx: JobContext, document: dict[str, Any]) -> dict[str, Any
     return {**document, "quality": quality}
 
 
-def _make_proxies(ctx: JobContext, needed: dict[str, Path]) -> tuple[dict[str, str], list[str]]:
+def _make_proxies(
+    ctx: JobContext, needed: dict[str, Path], fps: dict[str, float]
+) -> tuple[dict[str, str], list[str]]:
     """Browser proxies (``core.video.write_proxy``) of the videos that have none yet.
 
-    Returns the stored paths by side, and a warning per video whose proxy could
-    not be made (the measurement stands without it; the review view says so).
+    ``fps`` holds each video's rate as checked at upload (by side), used for a
+    raw stream that states none. Returns the stored paths by side, and a
+    warning per video whose proxy could not be made (the measurement stands
+    without it; the review view says so).
     """
     made: dict[str, str] = {}
     warnings: list[str] = []
-    total = sum(max(1, probe_video(p).frame_count) for p in needed.values())
-    done = 0
+
+    def cannot(side: str, exc: InputError) -> None:
+        log.warning("job %d: no proxy of the %s video: %s", ctx.job.id, side, exc)
+        warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
+
+    infos: dict[str, VideoInfo] = {}
     for side, source in sorted(needed.items()):
+        try:
+            infos[side] = probe_video(source, fps_if_none=fps.get(side))
+        except InputError as exc:
+            cannot(side, exc)
+    total = sum(max(1, info.frame_count) for info in infos.values())
+    done = 0
+    for side, info in infos.items():
         try:
             base = done
 
@@ -77,12 +92,11 @@ def _make_proxies(ctx: JobContext, needed: dict[str, Path]) -> tuple[dict[str, s
                 ctx.progress("proxy", base + n, total)
 
             with ctx.storage.writing("proxies", ".mp4") as (tmp, path):
-                write_proxy(source, tmp, progress=step)
+                write_proxy(info.path, tmp, fps_if_none=info.fps, progress=step)
         except InputError as exc:
-            log.warning("job %d: no proxy of the %s video: %s", ctx.job.id, side, exc)
-            warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
+            cannot(side, exc)
             continue
-        done += probe_video(source).frame_count
+        done += info.frame_count
         made[side] = path
     return made, warnings
 
@@ -155,7 +169,7 @@ def analyze_trial(ctx: JobContext) -> None:
         with ctx.storage.writing("overlays", ".json") as (tmp_path, overlay_path):
             tmp_path.write_text(json.dumps(overlay, allow_nan=False), encoding="utf-8")
         written.append(overlay_path)
-        proxies, proxy_warnings = _make_proxies(ctx, inputs.proxies_needed)
+        proxies, proxy_warnings = _make_proxies(ctx, inputs.proxies_needed, inputs.video_fps)
         written.extend(proxies.values())
         if proxy_warnings:
             quality = dict(document.get("quality") or {})

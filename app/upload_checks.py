@@ -26,7 +26,9 @@ from core.timing import FrameTimes, read_times_csv
 from core.video import VideoInfo, check_stereo_videos, decodes_frame, probe_video
 
 
-def validate_video(path: Path, *, label: str, filename: str = "") -> VideoInfo:
+def validate_video(
+    path: Path, *, label: str, filename: str = "", fps_if_none: float | None = None
+) -> VideoInfo:
     """Decide whether ``path`` is a usable video by decoding it.
 
     Parameters
@@ -37,6 +39,10 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> VideoInfo:
         How the file is named in messages ("The left video").
     filename : str
         The client's file name, shown instead of the temporary file's name.
+    fps_if_none : float, optional
+        The rate of the video's timestamps file, for a video that states
+        neither a frame rate nor frame timestamps (a raw H.264/HEVC/MJPEG
+        stream; ``core.video.probe_video``). Without it such a video is refused.
 
     Returns
     -------
@@ -58,7 +64,8 @@ def validate_video(path: Path, *, label: str, filename: str = "") -> VideoInfo:
     if path.stat().st_size == 0:
         raise UnsupportedUpload(f"{label} is empty (0 bytes); upload the recorded video file.")
     try:
-        info = probe_video(path)  # opens the file and decodes its first frame
+        # Opens the file and decodes its first frame.
+        info = probe_video(path, fps_if_none=fps_if_none)
     except BradyscopeError as exc:
         raise UnsupportedUpload(f"{label} is not a usable video: {why(exc)}") from exc
     # The last frame must decode too: a truncated file fails here even when its
@@ -76,7 +83,7 @@ MAX_TIMES_BYTES = 16 * 1024 * 1024
 """A timestamps file's size limit: ~30 bytes a frame, so an hour at 120 fps fits."""
 
 
-def validate_times(path: Path, *, label: str, n_frames: int) -> FrameTimes:
+def validate_times(path: Path, *, label: str, n_frames: int | None) -> FrameTimes:
     """Read an uploaded timestamps file (``frame,time_s``) for a video of ``n_frames`` frames.
 
     Parameters
@@ -85,9 +92,10 @@ def validate_times(path: Path, *, label: str, n_frames: int) -> FrameTimes:
         The received file.
     label : str
         How the file is named in messages ("the left timestamps file").
-    n_frames : int
+    n_frames : int or None
         The number of frames of its video (decoded count); the file must give
         the time of each (``core.timing.read_times_csv``'s two frames of slack).
+        None reads the file alone (its rate, before its video is probed).
 
     Returns
     -------

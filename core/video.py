@@ -890,7 +890,11 @@ def proxy_size(image_size: ImageSize) -> ImageSize:
 
 
 def write_proxy(
-    source: str | Path, target: str | Path, *, progress: Callable[[int], None] | None = None
+    source: str | Path,
+    target: str | Path,
+    *,
+    fps_if_none: float | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> int:
     """Write a browser-playable copy of a video: H.264 in MP4 with the index first (faststart).
 
@@ -907,6 +911,9 @@ def write_proxy(
     ----------
     source, target : str or Path
         The original video and the ``.mp4`` file to write.
+    fps_if_none : float, optional
+        The rate of a video that states neither a frame rate nor frame
+        timestamps (a raw stream; :func:`probe_video`): its timestamps file's.
     progress : callable, optional
         ``progress(frames_done)`` after each frame.
 
@@ -924,7 +931,7 @@ def write_proxy(
 
     import av
 
-    info = probe_video(source)
+    info = probe_video(source, fps_if_none=fps_if_none)
     size = proxy_size(info.image_size)
     width, height = size.width, size.height
     factor = -(-info.image_size.width // PROXY_MAX_WIDTH_PX)

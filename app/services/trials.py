@@ -376,6 +376,10 @@ class TrialInputs:
         The rig of that calibration.
     proxies_needed : dict of str to Path
         The stored videos (by side) that have no browser proxy yet.
+    video_fps : dict of str to float
+        Each stored video's frame rate as checked at upload (by side): its
+        timestamps file's rate when it came with one, which stands in for the
+        rate a raw stream (no container) does not state.
     left_times, right_times : Path or None
         The stored timestamps files of the videos, if they came with them.
     task : str
@@ -391,6 +395,7 @@ class TrialInputs:
     calibration: CalibrationUsed
     rig: StereoRig
     proxies_needed: dict[str, Path] = field(default_factory=dict)
+    video_fps: dict[str, float] = field(default_factory=dict)
     left_times: Path | None = None
     right_times: Path | None = None
     task: str = DEFAULT_TASK.value
@@ -451,6 +456,7 @@ def analysis_inputs(
             for side, v in videos.items()
             if not v.proxy_path or not storage.exists(v.proxy_path)
         },
+        video_fps={side: float(v.fps) for side, v in videos.items()},
         left_times=_times_file(storage, videos["left"]),
         right_times=_times_file(storage, videos["right"]),
         task=trial.task,

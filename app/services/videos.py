@@ -79,14 +79,26 @@ class VideoPair:
         return self.left if side == "left" else self.right
 
 
-def _checked(upload: ParsedUpload, side: str, info: VideoInfo) -> CheckedVideo:
-    name = TIMES_FIELDS[side]
-    staged = upload.files.get(name)
+def _checked(upload: ParsedUpload, side: str) -> CheckedVideo:
+    """Decode one side's video, with the rate and times of its timestamps file if it has one.
+
+    The timestamps file is read first: a raw stream (no container) states no
+    rate of its own, and the file's stands in (as in ``bradyscope analyze
+    --left-times``); then the file is checked against the decoded frame count.
+    """
+    file = upload.require_file(f"{side}_video")
+    staged = upload.files.get(TIMES_FIELDS[side])
+    label = f"the {side} timestamps file"
+    times = None if staged is None else validate_times(staged.path, label=label, n_frames=None)
+    info = validate_video(
+        file.path,
+        label=f"The {side} video",
+        filename=file.filename,
+        fps_if_none=None if times is None else times.fps,
+    )
     if staged is None:
         return CheckedVideo(info)
-    times = validate_times(
-        staged.path, label=f"the {side} timestamps file", n_frames=info.frame_count
-    )
+    times = validate_times(staged.path, label=label, n_frames=info.frame_count)
     return CheckedVideo(replace(info, fps=times.fps), times)
 
 
@@ -94,6 +106,8 @@ def check_video_pair(upload: ParsedUpload, *, rig: StereoRig | None = None) -> V
     """Decode ``left_video`` and ``right_video`` (and read their timestamps files, if any).
 
     ``rig`` (when known) is the rig that will measure them: their image size must fit it.
+    A video that states neither a frame rate nor frame timestamps (a raw stream) is
+    accepted with its timestamps file, which gives both, and refused without one.
 
     Raises
     ------
@@ -107,9 +121,7 @@ def check_video_pair(upload: ParsedUpload, *, rig: StereoRig | None = None) -> V
         raise InvalidUpload(
             "The left and right videos are the same file; choose the recording of each camera."
         )
-    left = validate_video(left_file.path, label="The left video", filename=left_file.filename)
-    right = validate_video(right_file.path, label="The right video", filename=right_file.filename)
-    pair = (_checked(upload, "left", left), _checked(upload, "right", right))
+    pair = (_checked(upload, "left"), _checked(upload, "right"))
     warnings = validate_stereo_pair(pair[0].info, pair[1].info, rig=rig)
     return VideoPair(pair[0], pair[1], warnings)
 
