@@ -3,7 +3,8 @@
 FROM python:3.11-slim-bookworm
 
 # Pango and a font for WeasyPrint's PDF reports; a C compiler for the compiled
-# marker search (core/_blobs.pyx), removed again after the install below.
+# marker search and the serial part's loops (core/_blobs.pyx, core/_geometry.pyx),
+# removed again after the install below.
 RUN apt-get update \
  && apt-get install -y --no-install-recommends libpango-1.0-0 libpangoft2-1.0-0 libharfbuzz0b \
       libharfbuzz-subset0 libfontconfig1 libglib2.0-0 fonts-dejavu-core gcc libc6-dev \

@@ -25,6 +25,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from core.geometry_kernels import _geometry
+
 FloatArray = NDArray[np.float64]
 
 _VALID_DIST_LENGTHS = (4, 5, 8, 12, 14)
@@ -113,9 +115,19 @@ def undistort_normalized(
 
     Points where the iteration does not converge (outside the region where the
     distortion is invertible) come back as NaN rather than as a wrong value.
+
+    Every point takes each Newton step until all of them have converged. Without
+    sensor tilt the loop is compiled (:func:`core._geometry.undistort`, the
+    arithmetic below in the same order: the same bits, ``tests/core/geometry_reference.py``
+    keeps this formulation and a test compares).
     """
     d = _full_dist(dist)
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = d
+    if tau_x == 0.0 and tau_y == 0.0:
+        xy = np.ascontiguousarray(xy_distorted, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise ValueError(f"xy_distorted must have shape (N, 2), got {xy.shape}")
+        return _geometry.undistort(xy, d, max_iter, tol)
     target = np.array(xy_distorted, dtype=np.float64, copy=True)
     if tau_x != 0.0 or tau_y != 0.0:
         inv_tilt = np.linalg.inv(tilt_matrix(tau_x, tau_y))

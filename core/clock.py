@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 
 from core.camera import Camera, StereoRig
 from core.errors import DetectionError
+from core.geometry_kernels import _geometry
 from core.sync import (
     MAX_POINTS_PER_FRAME,
     SyncEstimate,
@@ -368,32 +369,33 @@ def _nearest_epipolar_px(
 
     ``rows`` is ``(L,)`` (one right row per left point) or ``(C, L)`` (one set per
     candidate, all at once); the result has its shape. Each point's epipolar line is
-    computed once, whatever the number of candidates and pairs it takes part in.
+    computed once, whatever the number of candidates and pairs it takes part in; the
+    pairs are one compiled loop (:func:`core._geometry.nearest_epipolar`, numpy's
+    arithmetic in numpy's order: the former numpy formulation's bits, a test compares).
     """
     r_pts, r_counts = right
     E = rig.essential_matrix
     n_l = len(l_pts)
-    starts = np.concatenate([[0], np.cumsum(r_counts)]).astype(np.intp)
-    flat_rows = np.asarray(rows, dtype=np.intp).ravel()
-    cnt = r_counts[flat_rows]
-    idx, owner = _segment_indices(starts[flat_rows], cnt)
-    out = np.full(flat_rows.shape, np.inf)
-    if len(idx) == 0:
-        return out.reshape(np.shape(rows))
+    flat_rows = np.ascontiguousarray(rows, dtype=np.intp).ravel()
+    if len(flat_rows) == 0 or n_l == 0:
+        return np.full(np.shape(rows), np.inf)
     line_r = np.column_stack([l_pts, np.ones(n_l)]) @ E.T  # lines in the right image
     line_l = np.column_stack([r_pts, np.ones(len(r_pts))]) @ E  # lines in the left image
     norm_r = np.sqrt(line_r[:, 0] * line_r[:, 0] + line_r[:, 1] * line_r[:, 1])
     norm_l = np.sqrt(line_l[:, 0] * line_l[:, 0] + line_l[:, 1] * line_l[:, 1])
-    lo = owner % n_l if n_l else owner
-    lr = line_r[lo]
-    rp = r_pts[idx]
-    alg = np.abs(rp[:, 0] * lr[:, 0] + rp[:, 1] * lr[:, 1] + lr[:, 2])
-    d_r = alg / norm_r[lo] * _focal(rig.right)
-    d_l = alg / norm_l[idx] * _focal(rig.left)
-    d = np.sqrt(0.5 * (d_l**2 + d_r**2))
-    # owner is ascending, each point's pairs contiguous: a minimum per segment
-    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-    out[owner[first]] = np.minimum.reduceat(d, first)
+    counts = np.ascontiguousarray(r_counts, dtype=np.intp)
+    starts = (np.cumsum(counts) - counts).astype(np.intp)
+    out = _geometry.nearest_epipolar(
+        np.ascontiguousarray(line_r),
+        norm_r,
+        np.ascontiguousarray(r_pts, dtype=np.float64).reshape(-1, 2),
+        norm_l,
+        starts,
+        counts,
+        flat_rows,
+        _focal(rig.right),
+        _focal(rig.left),
+    )
     return out.reshape(np.shape(rows))
 
 

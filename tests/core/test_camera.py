@@ -90,6 +90,33 @@ def test_backprojection_inverts_projection_over_whole_image(n_coeffs):
     np.testing.assert_allclose(cam.project(origins + 500.0 * dirs), px, rtol=0, atol=1e-6)  # px
 
 
+@pytest.mark.parametrize("n_coeffs", sorted(DISTS))
+def test_compiled_undistortion_gives_the_numpy_formulation_bit_for_bit(n_coeffs):
+    # core/_geometry.pyx's Newton loop (no sensor tilt; 14 coefficients stay in numpy) must
+    # give the former numpy formulation's bits, NaN included: whole batches (every point
+    # steps until all have converged), one point, none, points beyond the invertible region
+    # of the lens, NaN input and a capped number of steps.
+    from geometry_reference import undistort_normalized_reference
+
+    from core.camera import undistort_normalized
+
+    dist = DISTS[n_coeffs]
+    rng = np.random.default_rng(n_coeffs)
+    inside = rng.uniform(-0.55, 0.55, (3000, 2))
+    inside[::97] = np.nan
+    beyond = rng.uniform(-6.0, 6.0, (300, 2))
+    with np.errstate(all="ignore"):  # the numpy formulation overflows beyond the lens
+        for batch in (inside, beyond, np.vstack([beyond, inside]), inside[5:6], inside[:0]):
+            for max_iter in (50, 4, 1, 0):
+                want = undistort_normalized_reference(batch, dist, max_iter=max_iter)
+                got = undistort_normalized(batch, dist, max_iter=max_iter)
+                assert got.shape == want.shape
+                assert np.array_equal(got, want, equal_nan=True)
+        # the branch that gives up is exercised: points the Newton steps cannot invert (the
+        # 4-coefficient lens, k2 > 0 without k3, inverts everywhere)
+        assert np.any(np.isnan(undistort_normalized_reference(beyond, dist))) == (n_coeffs != 4)
+
+
 def test_strong_barrel_distortion_is_strong():
     """Guard: the 'strong' lens really moves the corners by tens of pixels."""
     cam = _camera(DISTS[5])
