@@ -40,6 +40,7 @@ def fit_discs(
     others: NDArray[np.float64],
     max_iter: int,
     dark_level: float,
+    edges: int = 0,
 ) -> NDArray[np.float64]: ...
 def refine_rows(
     image: NDArray[np.uint8],
@@ -50,4 +51,6 @@ def refine_rows(
     pad_px: float,
     min_roundness: float,
     noise_sigma: float,
+    edges: int = 1,
+    max_hidden: float = 1.0,
 ) -> None: ...

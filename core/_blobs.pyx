@@ -13,7 +13,7 @@ against ground truth and, field by field, against the OpenCV formulation kept
 in ``tests/core/markers_reference.py``.
 """
 
-from libc.math cimport INFINITY, NAN, ceil, exp, fabs, floor, sqrt
+from libc.math cimport INFINITY, M_PI, NAN, acos, atan2, ceil, cos, exp, fabs, floor, sin, sqrt
 from libc.stdlib cimport free, malloc, qsort, realloc
 from libc.string cimport memcpy, memset
 
@@ -961,11 +961,11 @@ def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] p
 # ------------------------------------------------------------------ disc over a planar background
 
 DEF NPAR = 8   # cx, cy, R, s, A, B0, Bx, By
-DEF FIT_COLS = 12
+DEF FIT_COLS = 14
 DEF HALO_PX = 3  # the second, wider border of the dark-room test (see fit_one)
 FIT_COLUMNS = (
     "x", "y", "radius", "edge_sigma", "level", "background", "background_dx", "background_dy",
-    "residual_rms", "interior_fill", "pixels", "iterations",
+    "residual_rms", "interior_fill", "pixels", "iterations", "edge_model", "hidden_share",
 )
 cdef double SQRT1_2 = 0.7071067811865476
 cdef double INV_SQRT_2PI = 0.3989422804014327
@@ -1061,6 +1061,175 @@ cdef int solve_damped(const double* jtj, const double* jtr, double lam, double* 
     return 1
 
 
+DEF NE = 11   # cx, cy, R, s, A, B0, Bx, By, theta, c, F: a disc and a straight skin edge
+#: Edge models of :func:`edge_pass`
+DEF EDGE_FRONT = 1   # skin in front of the marker beyond the edge (a finger hides part of it)
+DEF EDGE_BEHIND = 2  # the background steps at the edge, under the marker
+
+
+cdef inline void normal_cdf(double u, double* Phi, double* phi) noexcept nogil:
+    """``Phi(u)`` (Abramowitz & Stegun 7.1.26) and the density ``phi(u)``; 0/1 beyond 6."""
+    cdef double au = fabs(u), e2, t
+    if au >= 6.0:
+        Phi[0] = 1.0 if u > 0 else 0.0
+        phi[0] = 0.0
+        return
+    e2 = exp(-0.5 * u * u)
+    t = 1.0 / (1.0 + 0.3275911 * SQRT1_2 * au)
+    Phi[0] = 0.5 * t * (0.254829592 + t * (-0.284496736 + t * (1.421413741
+             + t * (-1.453152027 + t * 1.061405429)))) * e2
+    if u > 0:
+        Phi[0] = 1.0 - Phi[0]
+    phi[0] = e2 * INV_SQRT_2PI
+
+
+cdef double edge_pass(const double* xs, const double* ys, const double* zs, int n,
+                      const double* p, double xc0, double yc0, int mode,
+                      double* jtj, double* jtr) noexcept nogil:
+    """:func:`disc_pass` for a disc and a straight edge ``cos(theta) (x - cx) + sin(theta)
+    (y - cy) = c`` blurred like the disc, with the level ``F`` on its far side: skin in
+    front of the marker there (``EDGE_FRONT``: ``m = H F + (1 - H) (P + (A - P) Phi)``)
+    or a step of the background under it (``EDGE_BEHIND``: ``B = H F + (1 - H) P``,
+    ``m = B + (A - B) Phi``); ``H = Phi(e)`` the edge's share of the pixel."""
+    cdef int i, a, b
+    cdef double dx, dy, r, u, Phi, phi, pl, m, res, cost = 0.0, ex, ey, D, Bk, g, gh
+    cdef double e, H, h, de_th
+    cdef double J[NE]
+    cdef double inv_s = 1.0 / p[3]
+    cdef double nx = cos(p[8]), ny = sin(p[8])
+    if jtj != NULL:
+        memset(jtj, 0, NE * NE * sizeof(double))
+        memset(jtr, 0, NE * sizeof(double))
+    for i in range(n):
+        dx = xs[i] - p[0]
+        dy = ys[i] - p[1]
+        r = sqrt(dx * dx + dy * dy) + 1e-9
+        u = (p[2] - r) * inv_s
+        normal_cdf(u, &Phi, &phi)
+        ex = xs[i] - xc0
+        ey = ys[i] - yc0
+        pl = p[5] + p[6] * ex + p[7] * ey
+        e = (nx * dx + ny * dy - p[9]) * inv_s
+        normal_cdf(e, &H, &h)
+        if mode == EDGE_FRONT:
+            D = pl + (p[4] - pl) * Phi
+            m = H * p[10] + (1.0 - H) * D
+        else:
+            Bk = H * p[10] + (1.0 - H) * pl
+            m = Bk + (p[4] - Bk) * Phi
+        res = zs[i] - m
+        cost += res * res
+        if jtj == NULL:
+            continue
+        de_th = (-ny * dx + nx * dy) * inv_s
+        if mode == EDGE_FRONT:
+            g = (1.0 - H) * (p[4] - pl) * phi * inv_s  # d m / d (R - r) through the disc
+            gh = (p[10] - D) * h  # d m / d e
+            J[4] = (1.0 - H) * Phi
+            J[5] = (1.0 - H) * (1.0 - Phi)
+        else:
+            g = (p[4] - Bk) * phi * inv_s
+            gh = (p[10] - pl) * (1.0 - Phi) * h
+            J[4] = Phi
+            J[5] = (1.0 - H) * (1.0 - Phi)
+        J[0] = g * dx / r - gh * nx * inv_s
+        J[1] = g * dy / r - gh * ny * inv_s
+        J[2] = g
+        J[3] = -g * u - gh * e * inv_s
+        J[6] = ex * J[5]
+        J[7] = ey * J[5]
+        J[8] = gh * de_th
+        J[9] = -gh * inv_s
+        J[10] = H if mode == EDGE_FRONT else H * (1.0 - Phi)
+        for a in range(NE):
+            jtr[a] += J[a] * res
+            for b in range(a, NE):
+                jtj[a * NE + b] += J[a] * J[b]
+    return cost
+
+
+cdef int solve_damped_ne(const double* jtj, const double* jtr, double lam, double* delta) noexcept nogil:
+    """:func:`solve_damped` for the ``NE`` parameters of :func:`edge_pass`."""
+    cdef double L[NE * NE]
+    cdef double y[NE]
+    cdef int a, b, k
+    cdef double s
+    for a in range(NE):
+        for b in range(a + 1):
+            s = jtj[b * NE + a]
+            if a == b:
+                s += lam * jtj[a * NE + a] + 1e-9
+            for k in range(b):
+                s -= L[a * NE + k] * L[b * NE + k]
+            if a == b:
+                if s <= 0:
+                    return 0
+                L[a * NE + a] = sqrt(s)
+            else:
+                L[a * NE + b] = s / L[b * NE + b]
+    for a in range(NE):
+        s = jtr[a]
+        for k in range(a):
+            s -= L[a * NE + k] * y[k]
+        y[a] = s / L[a * NE + a]
+    for a in range(NE - 1, -1, -1):
+        s = y[a]
+        for k in range(a + 1, NE):
+            s -= L[k * NE + a] * delta[k]
+        delta[a] = s / L[a * NE + a]
+    return 1
+
+
+cdef double fit_edge(const double* xs, const double* ys, const double* zs, int n, double* p,
+                     double xc0, double yc0, int mode, int max_iter) noexcept nogil:
+    """Levenberg-Marquardt on :func:`edge_pass` from ``p`` (``NE`` values, in place);
+    the final cost."""
+    cdef double q[NE]
+    cdef double delta[NE]
+    cdef double jtj[NE * NE]
+    cdef double jtr[NE]
+    cdef double jtj_new[NE * NE]
+    cdef double jtr_new[NE]
+    cdef double lam = 1e-3, cost, cost_new
+    cdef int it = 0, tries, a, ok
+    cost = edge_pass(xs, ys, zs, n, p, xc0, yc0, mode, jtj, jtr)
+    while it < max_iter:
+        it += 1
+        ok = 0
+        for tries in range(6):
+            if not solve_damped_ne(jtj, jtr, lam, delta):
+                lam *= 10.0
+                continue
+            for a in range(NE):
+                q[a] = p[a] + delta[a]
+            q[3] = min(max(q[3], 0.25), 4.0)
+            q[2] = max(q[2], 0.5)
+            cost_new = edge_pass(xs, ys, zs, n, q, xc0, yc0, mode, jtj_new, jtr_new)
+            if cost_new < cost:
+                memcpy(p, q, NE * sizeof(double))
+                memcpy(jtj, jtj_new, NE * NE * sizeof(double))
+                memcpy(jtr, jtr_new, NE * sizeof(double))
+                cost = cost_new
+                lam = max(lam * 0.1, 1e-7)
+                ok = 1
+                break
+            lam *= 10.0
+        if not ok or (fabs(delta[0]) < 1e-3 and fabs(delta[1]) < 1e-3):
+            break
+    return cost
+
+
+cdef double cut_share(double R, double c) noexcept nogil:
+    """Share of a disc of radius ``R`` beyond a chord at distance ``c`` from its centre."""
+    cdef double b
+    if c >= R:
+        return 0.0
+    if c <= -R:
+        return 1.0
+    b = c / R
+    return (acos(b) - b * sqrt(1.0 - b * b)) / M_PI
+
+
 cdef int border_p90(const unsigned char* img, int W, int x0, int y0, int x1, int y1,
                     int* hist) noexcept nogil:
     """90th percentile (gray level) of the border pixels of the box ``[x0, x1) x [y0, y1)``."""
@@ -1078,13 +1247,16 @@ cdef int border_p90(const unsigned char* img, int W, int x0, int y0, int x1, int
 
 cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, double r0,
                  double half_size, double bg0, double level0, const double* others, int K,
-                 int max_iter, double dark_level, double* xs, double* ys, double* zs,
+                 int max_iter, double dark_level, int edges, double* xs, double* ys, double* zs,
                  double* o) noexcept nogil:
     """One disc fit (see :func:`fit_discs`); writes ``FIT_COLS`` values to ``o``, which
     the caller filled with NaN.  ``xs``, ``ys``, ``zs`` hold the window's pixels."""
     cdef int k, x, y, x0, y0, x1, y1, n, it, hs, tries, n_in, n_bright, a, ok
-    cdef int fx0, fy0, fx1, fy1
+    cdef int fx0, fy0, fx1, fy1, mode = 0, kk
     cdef double d_own, dk, cost, cost_new, lam, dx, dy, r, pl
+    cdef double sx, sy, w, Phi, phi, th_r, th_g, cost_e
+    cdef double pe[NE]
+    cdef double best[NE]
     cdef double p[NPAR]
     cdef double q[NPAR]
     cdef double delta[NPAR]
@@ -1178,6 +1350,58 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
             lam *= 10.0
         if not ok or (fabs(delta[0]) < 1e-3 and fabs(delta[1]) < 1e-3):
             break
+    o[12] = 0
+    o[13] = 0.0
+    if edges:
+        # A straight skin edge near the marker: a step of the background under it (from
+        # the plane's gradient, either side) or skin in front of part of it (from where
+        # the disc's rim is darker than the fitted disc). The best of the three models;
+        # the one in front only when its edge reaches within 0.5 px of the disc.
+        sx = 0.0
+        sy = 0.0
+        for k in range(n):
+            dx = xs[k] - p[0]
+            dy = ys[k] - p[1]
+            r = sqrt(dx * dx + dy * dy)
+            if p[2] - 2.5 < r < p[2] + 0.5:
+                normal_cdf((p[2] - r) / p[3], &Phi, &phi)
+                pl = p[5] + p[6] * (xs[k] - cx) + p[7] * (ys[k] - cy)
+                w = pl + (p[4] - pl) * Phi - zs[k]
+                if w > 0:
+                    sx += w * dx
+                    sy += w * dy
+        th_r = atan2(sy, sx)
+        th_g = atan2(p[7], p[6])
+        for a in range(NPAR):
+            best[a] = p[a]
+        best[8] = 0.0
+        best[9] = 0.0
+        best[10] = 0.0
+        cost_e = cost
+        for kk in range(3):
+            for a in range(NPAR):
+                pe[a] = p[a]
+            pe[10] = p[5]
+            if kk < 2:
+                pe[8] = th_g + kk * M_PI
+                pe[9] = p[2] + 1.0
+                cost_new = fit_edge(xs, ys, zs, n, pe, cx, cy, EDGE_BEHIND, max_iter)
+            else:
+                pe[8] = th_r
+                pe[9] = p[2] - 0.3
+                cost_new = fit_edge(xs, ys, zs, n, pe, cx, cy, EDGE_FRONT, max_iter)
+                if pe[2] - pe[9] < -0.5:
+                    continue  # the edge passes beside the disc: no part of it hidden
+            if cost_new < cost_e:
+                cost_e = cost_new
+                memcpy(best, pe, NE * sizeof(double))
+                mode = EDGE_BEHIND if kk < 2 else EDGE_FRONT
+        if mode:
+            for a in range(NPAR):
+                p[a] = best[a]
+            cost = cost_e
+            o[12] = mode
+            o[13] = cut_share(p[2], best[9]) if mode == EDGE_FRONT else 0.0
     n_in = 0
     n_bright = 0
     for k in range(n):
@@ -1198,7 +1422,7 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
 
 
 def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
-              const double[:, ::1] others, int max_iter, double dark_level):
+              const double[:, ::1] others, int max_iter, double dark_level, int edges=0):
     """Fit an opaque blurred disc over a planar background to each seed's window.
 
     Model of a pixel at ``(x, y)``: ``P + (A - P) Phi((R - r) / s)`` with ``r``
@@ -1226,6 +1450,13 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
         whose border only the blob's own halo brightens (a soft glint): the
         border ``HALO_PX`` (3) px farther out is that dark and holds no other
         blob's centre.  -1 fits every window.
+    edges : int
+        1: after the plain fit, also fit a straight skin edge with the disc
+        (:func:`edge_pass`): a step of the background under the marker (the
+        plane's gradient as its normal, either way) and skin in front of part
+        of it (the normal towards where the rim is darker than the plain fit),
+        and keep the best of the three; the edge in front only when it reaches
+        within 0.5 px of the disc. 0: the plain fit only.
 
     Returns
     -------
@@ -1233,8 +1464,10 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
         ``FIT_COLUMNS``: the fitted parameters, the residual RMS (gray levels),
         ``interior_fill`` (share of the pixels more than 1.5 px inside the
         fitted rim that are brighter than half way between background and
-        marker), the number of pixels and of steps; NaN centre when the window
-        is too small or dark, or has too few pixels.
+        marker), the number of pixels and of steps (of the plain fit), the
+        model kept (0 plain, 1 skin in front, 2 a step behind) and the share of
+        the disc the skin in front hides; NaN centre when the window is too
+        small or dark, or has too few pixels.
     """
     cdef int N = seeds.shape[0], K = others.shape[0], H = image.shape[0], W = image.shape[1]
     cdef int i, hs, cap = 1
@@ -1255,7 +1488,7 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
         with nogil:
             for i in range(N):
                 fit_one(&image[0, 0], W, H, seeds[i, 0], seeds[i, 1], seeds[i, 2], seeds[i, 3],
-                        seeds[i, 4], seeds[i, 5], oth, K, max_iter, dark_level,
+                        seeds[i, 4], seeds[i, 5], oth, K, max_iter, dark_level, edges,
                         buf, buf + cap, buf + 2 * cap, &o[i, 0])
     finally:
         free(buf)
@@ -1264,13 +1497,16 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
 
 def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
                 const double[:, ::1] others, int max_iter, double dark_level, double pad_px,
-                double min_roundness, double noise_sigma):
+                double min_roundness, double noise_sigma, int edges=1,
+                double max_hidden=1.0):
     """Move the centres of detection ``rows`` (``COLUMNS``, in place) to the fitted
     opaque disc (:func:`fit_discs`) and set their ``fit_residual`` (the residual RMS
     beyond the image noise ``noise_sigma``, over the fitted contrast), for round blobs (``roundness >= min_roundness``) off the
     dark background; the window reaches ``pad_px`` beyond the blob's half length.  A
     fit that moved the centre by more than a quarter diameter + 1 px, found no
-    contrast or a radius off by half is not used."""
+    contrast or a radius off by half is not used. ``edges`` as in :func:`fit_discs`;
+    a marker whose fitted skin edge in front hides more than ``max_hidden`` of its
+    disc gets an infinite residual (set aside)."""
     cdef int N = rows.shape[0], K = others.shape[0], H = image.shape[0], W = image.shape[1]
     cdef int i, hs, cap = 1
     cdef double o[FIT_COLS]
@@ -1299,7 +1535,7 @@ def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
                     o[hs] = NAN
                 if not fit_one(&image[0, 0], W, H, rows[i, 0], rows[i, 1], 0.5 * diam,
                                0.5 * diam / max(rnd, 0.1) + pad_px, rows[i, 5],
-                               rows[i, 5] + rows[i, 3], oth, K, max_iter, dark_level,
+                               rows[i, 5] + rows[i, 3], oth, K, max_iter, dark_level, edges,
                                buf, buf + cap, buf + 2 * cap, o):
                     continue
                 moved = sqrt((o[0] - rows[i, 0]) * (o[0] - rows[i, 0])
@@ -1311,5 +1547,7 @@ def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
                 rows[i, 0] = o[0]
                 rows[i, 1] = o[1]
                 rows[i, 20] = sqrt(max(o[8] * o[8] - noise_sigma * noise_sigma, 0.0)) / contrast
+                if o[13] > max_hidden:
+                    rows[i, 20] = INFINITY  # a larger part hidden than the edge model is trusted for
     finally:
         free(buf)

@@ -383,6 +383,9 @@ _FIT_MAX_STEPS = 10
 #: Blobs less round than this (motion streaks, merged or cut discs) are not discs:
 #: they keep their centroid.
 _FIT_MIN_ROUNDNESS = 0.75
+#: A marker whose fitted skin edge in front hides more than this share of its disc is set
+#: aside (infinite fit residual): the straight edge is not trusted for a larger part.
+MAX_HIDDEN_SHARE = 0.15
 #: A fitted disc whose RMS residual exceeds this share of its contrast is not one whole
 #: marker (whole markers on skin: 0.027-0.043; a tenth hidden: 0.04-0.06; a quarter:
 #: 0.09-0.13; bench/bench_hands.py): the pipeline sets it aside.
@@ -412,6 +415,8 @@ def _fit_opaque_discs(
         _FIT_PAD_PX,
         _FIT_MIN_ROUNDNESS,
         float(noise_sigma),
+        1,
+        MAX_HIDDEN_SHARE,
     )
 
 

@@ -104,6 +104,43 @@ def test_a_marker_partly_behind_a_finger_is_not_taken_as_whole(cover_mm: float) 
     assert residual > MAX_FIT_RESIDUAL  # so the pipeline sets it aside
 
 
+@pytest.mark.parametrize(("cover_mm", "seed"), [(0.2, 3), (0.2, 4), (0.35, 5), (0.5, 6)])
+def test_a_marker_a_few_percent_behind_a_finger_is_measured_with_the_edge(
+    cover_mm: float, seed: int
+) -> None:
+    # 3-9 % of the disc behind a finger in front: the disc cut by the finger's edge
+    # (edges=1, the default in detect_markers) finds the centre; the plain disc does not
+    centre = [0.3, 0.2, MARKER_Z_MM]
+    front = _finger(0.2 + 2.5 - cover_mm + 6.0, z_mm=470.0, radius_mm=6.0)
+    img, truth, vis = _image(centre, [_finger(-3.0), front], seed=seed)
+    assert 0.88 < vis < 0.98  # the truth: a few per cent hidden
+    det = detect_markers(img, search_xy_px=truth[None])
+    assert len(det) == 1
+    assert np.linalg.norm(det.xy_px[0] - truth) < 0.05  # px (0.4 mm per px)
+    d, rnd = float(det.diameter_px[0]), float(det.roundness[0])
+    seeds = np.array([[*det.xy_px[0], 0.5 * d, 0.5 * d / rnd + 3.0, det.background[0],
+                       det.background[0] + det.peak[0]]])  # fmt: skip
+    plain = _blobs.fit_discs(img, seeds, np.zeros((0, 2)), 10, -1.0, 0)
+    cut = _blobs.fit_discs(img, seeds, np.zeros((0, 2)), 10, -1.0, 1)
+    assert np.linalg.norm(plain[0, :2] - truth) > 0.2  # px: the hidden part pulls it
+    assert cut[0, _blobs.FIT_COLUMNS.index("edge_model")] == 1  # skin in front, found
+    hidden = cut[0, _blobs.FIT_COLUMNS.index("hidden_share")]
+    assert abs(hidden - (1.0 - vis)) < 0.04  # share of the disc
+
+
+def test_a_marker_on_a_skin_step_keeps_the_edge_behind_it() -> None:
+    # the finger's silhouette runs under the whole marker: a step of the background
+    centre = [0.3, 0.2, MARKER_Z_MM]
+    img, truth, vis = _image(centre, [_finger(0.2 + 1.0 - 7.0)], seed=7)
+    assert vis == pytest.approx(1.0)
+    det = detect_markers(img, search_xy_px=truth[None])
+    seeds = np.array([[*det.xy_px[0], 0.5 * det.diameter_px[0], 9.0, det.background[0],
+                       det.background[0] + det.peak[0]]])  # fmt: skip
+    cut = _blobs.fit_discs(img, seeds, np.zeros((0, 2)), 10, -1.0, 1)
+    assert cut[0, _blobs.FIT_COLUMNS.index("edge_model")] != 1  # nothing in front of it
+    assert np.linalg.norm(det.xy_px[0] - truth) < 0.1  # px
+
+
 def _glint(centres_px: list[tuple[float, float]], *, sigma_px: float = 3.0) -> np.ndarray:
     """Soft Gaussian glints (peak 230) on the dark room (14, noise sigma 2)."""
     yy, xx = np.mgrid[0:200, 0:240].astype(np.float64)
