@@ -703,6 +703,11 @@ MAX_DETECTIONS_PER_FRAME = 16
 #: A blob that does not fit a whole disc is set aside only when it moved less than this
 #: many diameters since the previous frame (faster: a motion streak, kept).
 SET_ASIDE_MAX_STEP = 0.2
+#: Two detections whose centres are closer than their mean diameter + this (px) touch:
+#: their pixels are kept (with those of every set-aside blob) for core.merged.
+TOUCHING_GAP_PX = 4.0
+#: Margin of a kept patch around its blobs (px, beyond one typical diameter).
+PATCH_MARGIN_PX = 4
 
 
 # A detector takes (gray image, predicted xy (K, 2) or None, search radius px or None)
@@ -729,6 +734,32 @@ def _default_detector(params: Any | None) -> Detector:
         return rows[:, _X : _Y + 1].copy(), rows[:, _DIAM].copy(), quality
 
     return detect
+
+
+@dataclass(frozen=True)
+class ImagePatch:
+    """Pixels of one frame of one camera around blobs that are not one whole marker each.
+
+    Attributes
+    ----------
+    x0, y0 : int
+        Image column and row of ``pixels[0, 0]``.
+    pixels : ndarray, shape (h, w), uint8
+    points_px : ndarray, shape (K, 2)
+        The blobs inside (px, OpenCV ``(x, y)``): set aside, or detected.
+    detections : ndarray, shape (D,), int
+        Which of the frame's detections lie in it (``core.merged`` replaces them by the
+        markers it measures).
+    diameter_px : float
+        The camera's typical marker diameter at the time (px).
+    """
+
+    x0: int
+    y0: int
+    pixels: NDArray[np.uint8]
+    points_px: FloatArray
+    detections: NDArray[np.intp]
+    diameter_px: float
 
 
 def _median(values: FloatArray) -> float:
@@ -759,6 +790,8 @@ class _CameraDetections:
         self._diam = 10.0
         self._unproductive = 0  # fallback full searches in a row that found nothing more
         self.n_set_aside = 0  # frames with a blob set aside (partly hidden or merged)
+        # frame -> pixels around set-aside or touching blobs (measured by core.merged)
+        self.patches: dict[int, list[ImagePatch]] = {}
 
     @property
     def diameter_px(self) -> float:
@@ -807,13 +840,13 @@ class _CameraDetections:
 
     def _set_aside(
         self, xy: FloatArray, diam: FloatArray, q: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         """Drop the blobs the detector marked as not whole markers (negative quality),
         unless they moved by more than ``SET_ASIDE_MAX_STEP`` diameters since the last
         frame: a motion streak is not a disc either, and its fit residual says nothing
         about a hidden part.  Partly hidden and merged markers are slow: the fingertips
         touch and turn at closures.  Returns the kept ``xy, diam, quality`` and the
-        positions set aside."""
+        positions and diameters set aside."""
         xy, diam, q = np.asarray(xy), np.asarray(diam), np.asarray(q)
         prev = self._prev if self._prev is not None else np.zeros((0, 2))
         drop = q < 0
@@ -822,7 +855,73 @@ class _CameraDetections:
             drop[i] = step <= SET_ASIDE_MAX_STEP * float(diam[i])
         if np.any(drop):
             self.n_set_aside += 1
-        return xy[~drop], diam[~drop], np.abs(q[~drop]), xy[drop]
+        return xy[~drop], diam[~drop], np.abs(q[~drop]), xy[drop], diam[drop]
+
+    def _keep_patches(
+        self,
+        image: NDArray[np.uint8],
+        frame: int,
+        xy: FloatArray,
+        diam: FloatArray,
+        aside: FloatArray,
+        aside_diam: FloatArray,
+    ) -> None:
+        """Keep the pixels around the set-aside blobs and the touching detections (closer
+        than their mean diameter + ``TOUCHING_GAP_PX``): groups of them, each with a margin
+        of a diameter + ``PATCH_MARGIN_PX``. A blob's diameter is the width of its
+        half-maximum region, a marker's also where two merged along one direction."""
+        pts = xy.tolist()
+        d = diam.tolist()
+        n = len(pts)
+        group = list(range(n + len(aside)))  # union-find over detections, then set-aside blobs
+        pts_all = pts + aside.tolist()
+        d_all = d + aside_diam.tolist()
+
+        def root(i: int) -> int:
+            while group[i] != i:
+                i = group[i]
+            return i
+
+        touching = False
+        for i in range(len(pts_all)):
+            xi, yi = pts_all[i]
+            for j in range(i + 1, len(pts_all)):
+                dx, dy = pts_all[j][0] - xi, pts_all[j][1] - yi
+                lim = 0.5 * (d_all[i] + d_all[j]) + TOUCHING_GAP_PX
+                if dx < lim and -dx < lim and dx * dx + dy * dy < lim * lim:
+                    group[root(j)] = root(i)
+                    touching = True
+        if not touching and not len(aside):
+            return
+        members: dict[int, list[int]] = {}
+        for i in range(len(pts_all)):
+            members.setdefault(root(i), []).append(i)
+        h, w = image.shape
+        kept = []
+        for idx in members.values():
+            if len(idx) < 2 and idx[0] < n:
+                continue  # a whole marker alone
+            p = np.array([pts_all[i] for i in idx])
+            d_group = max(d_all[i] for i in idx)
+            margin = math.ceil(d_group) + PATCH_MARGIN_PX
+            x0 = max(0, math.floor(float(p[:, 0].min())) - margin)
+            y0 = max(0, math.floor(float(p[:, 1].min())) - margin)
+            x1 = min(w, math.ceil(float(p[:, 0].max())) + margin + 1)
+            y1 = min(h, math.ceil(float(p[:, 1].max())) + margin + 1)
+            if x1 - x0 < 5 or y1 - y0 < 5:
+                continue
+            kept.append(
+                ImagePatch(
+                    x0,
+                    y0,
+                    image[y0:y1, x0:x1].copy(),
+                    p,
+                    np.array([i for i in idx if i < n], dtype=np.intp),
+                    float(d_group),
+                )
+            )
+        if kept:
+            self.patches[frame] = kept
 
     def process(self, image: NDArray[np.uint8]) -> None:
         frame = len(self.frames)
@@ -849,14 +948,19 @@ class _CameraDetections:
             else:
                 self._unproductive = 0
         aside = np.zeros((0, 2))
+        aside_diam = np.zeros(0)
         if len(q) and min(q) < 0:
-            xy, diam, q, aside = self._set_aside(xy, diam, q)
+            xy, diam, q, aside, aside_diam = self._set_aside(xy, diam, q)
         if len(xy) > MAX_DETECTIONS_PER_FRAME:
             keep = np.argsort(-q, kind="stable")[:MAX_DETECTIONS_PER_FRAME]
             xy, diam = xy[keep], diam[keep]
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if len(diam):
             self._diam = 0.9 * self._diam + 0.1 * _median(diam)
+        if len(aside) or len(xy) > 1:
+            self._keep_patches(
+                image, frame, xy, np.asarray(diam, dtype=np.float64), aside, aside_diam
+            )
         self.frames.append(xy)
         # set-aside blobs stay in the search windows and in the motion check
         seen = np.concatenate((xy, aside)) if len(aside) else xy

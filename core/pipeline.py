@@ -57,6 +57,7 @@ from core.markers import (
 )
 from core.markers import (  # the per-camera search lives with the detector (light to import)
     Detector,
+    ImagePatch,
     MarkerParams,
     _CameraDetections,
     _default_detector,
@@ -64,6 +65,7 @@ from core.markers import (  # the per-camera search lives with the detector (lig
 from core.markers_csv import MARKERS_CSV_HEADER, MarkerTable
 from core.markers_csv import write_markers_csv as write_marker_table
 from core.matching import concatenate_frames, frame_pairs_epipolar_px
+from core.merged import measure_merged
 
 # Imported with the module, not inside the timed call (scipy's first import costs ~0.5 s).
 from core.metrics import TappingMetrics, compute_metrics
@@ -255,8 +257,11 @@ def _detect_videos(
     *,
     marker_params: MarkerParams | None = None,
     timestamps: tuple[list[float], list[float]] | None = None,
-) -> tuple[list[FloatArray], list[FloatArray], dict[str, float]]:
-    """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays.
+) -> tuple[
+    list[FloatArray], list[FloatArray], dict[str, float], tuple[dict[int, list[ImagePatch]], ...]
+]:
+    """Decode and detect both videos concurrently; per-frame (N, 2) pixel arrays, and the
+    pixels each camera kept around blobs that are not one whole marker (``core.merged``).
 
     ``detect`` None means ``core.markers.detect_markers`` with ``marker_params``.
     One thread per camera: decoding and the compiled search release the GIL,
@@ -306,7 +311,7 @@ def _detect_videos(
         "marker_diameter_px_left": states[0].diameter_px,
         "marker_diameter_px_right": states[1].diameter_px,
     }
-    return states[0].frames, states[1].frames, info
+    return states[0].frames, states[1].frames, info, (states[0].patches, states[1].patches)
 
 
 def _undistort_all(cam: Camera, frames: list[FloatArray]) -> list[FloatArray]:
@@ -325,8 +330,13 @@ def _observations(
     left_norm: list[FloatArray],
     right_norm: list[FloatArray],
     offset: int,
+    *,
+    fitted: tuple[list[NDArray[np.bool_]], list[NDArray[np.bool_]]] | None = None,
 ) -> tuple[list[FrameObservations], int]:
     """Stereo candidates (every gated pair, triangulated) for each left frame.
+
+    ``fitted``: per frame of each video, which detections are markers measured in a
+    merged image (``core.merged``); the tracker uses them where images touch.
 
     All pairs of all frames are gated at once (:func:`core.matching.frame_pairs_epipolar_px`)
     and triangulated in one call; each frame then gets its slice, in pair order.
@@ -361,6 +371,11 @@ def _observations(
     for i in range(n_left):
         j = i - offset
         b0, b1 = bounds[i], bounds[i + 1]
+        paired = 0 <= j < n_right
+        fl = fr = None
+        if fitted is not None:
+            fl = fitted[0][i] if fitted[0][i].any() else None
+            fr = fitted[1][j] if paired and fitted[1][j].any() else None
         obs.append(
             FrameObservations(
                 points[b0:b1],
@@ -368,7 +383,9 @@ def _observations(
                 li_arr[b0:b1],
                 ri_arr[b0:b1],
                 left_px[i],
-                right_px[j] if 0 <= j < n_right else no_right,
+                right_px[j] if paired else no_right,
+                left_fitted=fl,
+                right_fitted=fr,
             )
         )
     return obs, n_rejected
@@ -499,7 +516,7 @@ def analyze_recording(
     warnings = list(check_stereo_videos(left_info, right_info, rig=rig))
     fps = float(left_info.fps)
     stamps: tuple[list[float], list[float]] = ([], [])
-    left_px, right_px, det_info = _detect_videos(
+    left_px, right_px, det_info, patches = _detect_videos(
         (left_info.path, right_info.path),
         (left_info.frame_count, right_info.frame_count),
         detector,
@@ -561,7 +578,22 @@ def analyze_recording(
     report(progress, "synchronisation", 1, 1)
 
     report(progress, "triangulation", 0, 1)
-    obs, n_rejected = _observations(rig, left_px, right_px, left_norm, right_norm, pairing_offset)
+    fitted: tuple[list[NDArray[np.bool_]], list[NDArray[np.bool_]]] | None = None
+    merged_frames = [0, 0]
+    if timed.pairing_offset is not None and (patches[0] or patches[1]):
+        # Merged or touching images measured along the rays from the other camera
+        # (core.merged); only with whole-frame pairing: the two cameras' frames are
+        # then the same instants.
+        mm = measure_merged(rig, left_px, right_px, patches[0], patches[1], pairing_offset)
+        if mm.frames_left or mm.frames_right:
+            left_px, right_px = mm.left_px, mm.right_px
+            left_norm = _undistort_all(rig.left, left_px)
+            right_norm = _undistort_all(rig.right, right_px)
+            fitted = (mm.left_measured, mm.right_measured)
+            merged_frames = [mm.frames_left, mm.frames_right]
+    obs, n_rejected = _observations(
+        rig, left_px, right_px, left_norm, right_norm, pairing_offset, fitted=fitted
+    )
     report(progress, "triangulation", 1, 1)
     paired = [o for o in obs if len(o.left_px) and len(o.right_px)]
     with_candidates = sum(1 for o in paired if len(o.candidates_mm))
@@ -645,6 +677,9 @@ def analyze_recording(
         "frames_right": n_right,
         # left frames where the two markers' images touched in a camera (core.tracks)
         "overlap_frames": tracks.overlap_frames,
+        # frames of each camera whose merged or touching images were measured (core.merged)
+        "merged_measured_frames_left": merged_frames[0],
+        "merged_measured_frames_right": merged_frames[1],
         **det_info,
     }
     sync_doc = timed.sync

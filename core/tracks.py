@@ -78,6 +78,10 @@ class FrameObservations:
     right_px : ndarray, shape (NR, 2)
         All right detections of the paired right frame (px); empty when the
         right video has no frame paired with this one.
+    left_fitted, right_fitted : ndarray, shape (NL,) / (NR,), bool, optional
+        Which detections are markers measured in a merged or touching image
+        along their rays from the other camera (``core.merged``): used even
+        where two markers' images touch. None: none.
     """
 
     candidates_mm: FloatArray
@@ -86,6 +90,8 @@ class FrameObservations:
     right_index: NDArray[np.intp]
     left_px: FloatArray
     right_px: FloatArray
+    left_fitted: NDArray[np.bool_] | None = None
+    right_fitted: NDArray[np.bool_] | None = None
 
     @classmethod
     def empty(cls) -> FrameObservations:
@@ -464,7 +470,9 @@ def _block_merged_images(
     blocked = False
     if len(recent) < 2:
         return blocked
-    for ci, dets in enumerate((obs.left_px, obs.right_px)):
+    for ci, (dets, fitted) in enumerate(
+        ((obs.left_px, obs.left_fitted), (obs.right_px, obs.right_fitted))
+    ):
         limit = float(merge_px[ci])
         if dets.shape[0] == 0 or not limit > 0:
             continue
@@ -480,6 +488,8 @@ def _block_merged_images(
         if not centres:
             continue
         for j, (x, y) in enumerate(dets.tolist()):
+            if fitted is not None and fitted[j]:
+                continue  # measured in the merged image (core.merged): not pulled by the other
             for u, v in centres:
                 if sqrt((x - u) * (x - u) + (y - v) * (y - v)) < limit:
                     used[ci][j] = True

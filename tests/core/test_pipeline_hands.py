@@ -5,7 +5,8 @@ scenario (mp4v, skin at a quarter of the markers' brightness, a ring glint,
 3 Hz taps shrinking by 0.8 mm per tap), at 1280x1024 and at 640x512, and
 the ``occlusion`` and ``overlap`` postures (the right camera looks along the
 opening direction: at every closure the index fingertip hides part of the thumb
-marker there, or the two markers' images merge).
+marker there, or the two markers' images merge; the latter 4 s long with a
+hesitation and a halt).
 """
 
 from __future__ import annotations
@@ -27,9 +28,14 @@ pytestmark = pytest.mark.slow
 
 
 def _hand_session(
-    out: Path, size: ImageSize, *, overlap_mm: float | None = None
+    out: Path,
+    size: ImageSize,
+    *,
+    overlap_mm: float | None = None,
+    tapping: TappingScenario | None = None,
 ) -> tuple[SimulatedSession, Analysis]:
-    tapping = TappingScenario(duration_s=3.0, fps=100.0, decrement_mm_per_tap=-0.8)
+    if tapping is None:
+        tapping = TappingScenario(duration_s=3.0, fps=100.0, decrement_mm_per_tap=-0.8)
     rig = None
     if overlap_mm is not None:
         rig = default_rig(image_size=size)
@@ -62,8 +68,18 @@ def small(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, A
 
 @pytest.fixture(scope="module")
 def overlap(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
-    # closed marker centres 3 mm apart seen from the right camera (5-mm markers)
-    return _hand_session(tmp_path_factory.mktemp("overlap"), ImageSize(1280, 1024), overlap_mm=3.0)
+    # closed marker centres 3 mm apart seen from the right camera (5-mm markers); 4 s with
+    # a hesitation before tap 3 and a 0.5-s halt before tap 6, both closed (merged)
+    tapping = TappingScenario(
+        duration_s=4.0,
+        fps=100.0,
+        decrement_mm_per_tap=-0.8,
+        hesitations=(3,),
+        halts=((6, 0.5),),
+    )
+    return _hand_session(
+        tmp_path_factory.mktemp("overlap"), ImageSize(1280, 1024), overlap_mm=3.0, tapping=tapping
+    )
 
 
 @pytest.fixture(scope="module")
@@ -119,9 +135,10 @@ def test_whole_markers_are_not_set_aside(skin: tuple[SimulatedSession, Analysis]
 def test_markers_merged_in_one_camera_at_closures(
     overlap: tuple[SimulatedSession, Analysis],
 ) -> None:
-    """Both markers keep their identity through every closure whose images merge in the
-    right camera; those frames are interpolated (the left camera saw them), never measured;
-    every tap between the first and the last closure is found."""
+    """Where the two markers' images merge in the right camera (every closure, the start
+    and the end, the closed pauses), both are measured along their rays from the left
+    camera (core.merged): no identity swap, every tap and pause found, every reliable
+    amplitude within 1 %."""
     session, analysis = overlap
     truth = np.asarray(session.truth["positions_mm"], dtype=float)[:, :2]
     rig = read_rig(session.rig_path)
@@ -129,35 +146,46 @@ def test_markers_merged_in_one_camera_at_closures(
     depth_mm = rig.right.to_camera(truth.reshape(-1, 3))[:, 2].reshape(-1, 2).min(axis=1)
     diam_px = float(rig.right.K[0, 0]) * session.truth["marker_diameter_mm"] / depth_mm
     merged = np.linalg.norm(px[:, 0] - px[:, 1], axis=1) < diam_px
-    assert np.count_nonzero(merged) > 30  # the posture makes them merge at closures
+    assert np.count_nonzero(merged) > 100  # the posture makes them merge at closures
     meas = analysis.status == "measured"
-    assert not np.any(meas[merged])  # never a merged image measured
+    # 0 of the merged frames were measured before core.merged
+    assert np.mean(meas[merged]) >= 0.95
+    assert analysis.quality["merged_measured_frames_right"] >= 0.95 * np.count_nonzero(merged)
     err = np.linalg.norm(analysis.positions_mm - truth, axis=2)
     other = np.linalg.norm(analysis.positions_mm - truth[:, ::-1], axis=2)
     assert np.count_nonzero(meas & (other < err)) == 0  # no identity swap
-    assert np.sqrt(np.mean(err[meas] ** 2)) <= 0.1  # mm (the thumb marker a few % hidden)
-    # between the first and the last measured frame nothing is missing: the closures
-    # are interpolated from the left camera (the recording starts and ends closed)
-    both = np.flatnonzero(meas.all(axis=1))
-    inner = np.arange(both.min(), both.max())
-    assert np.all(analysis.status[inner] != "missing")
-    assert analysis.quality["overlap_frames"] >= np.count_nonzero(merged[inner])
+    assert np.sqrt(np.mean(err[meas] ** 2)) <= 0.08  # mm (acceptance)
+    assert np.sqrt(np.mean(err[meas & merged[:, None]] ** 2)) <= 0.1  # mm, the merged frames
     assert analysis.metrics is not None
     taps = session.truth["taps"]
-    found = analysis.metrics.metrics["tap_count"]
-    # all but the first and the last: the recording starts and ends closed, merged in the
-    # right camera, so the first opening has no closure before it and the last none after
-    # it (no measured frame on the far side to interpolate from; 0 of 6 before issue 19)
-    assert len(taps) - 2 <= found <= len(taps)
+    assert analysis.metrics.metrics["tap_count"] == len(taps)
+    reliable = 0
+    for got, want in zip(analysis.metrics.taps, taps, strict=True):
+        assert abs(got.t_start_s - want["t_start_s"]) <= 0.05  # s
+        if got.reliable:
+            reliable += 1
+            assert abs(got.amplitude_mm - want["amplitude_mm"]) <= 0.01 * want["amplitude_mm"]
+    assert reliable >= len(taps) // 2
+    events = sorted(
+        (e["kind"], e["tap_index"])
+        for e in analysis.metrics.events
+        if e["kind"] in ("hesitation", "halt")
+    )
+    expected = sorted(
+        [("hesitation", h["tap_index"]) for h in session.truth["hesitations"]]
+        + [("halt", h["tap_index"]) for h in session.truth["halts"]]
+    )
+    assert len(expected) == 2
+    assert events == expected
 
 
 def test_thumb_marker_partly_hidden_in_one_camera(
     occlusion: tuple[SimulatedSession, Analysis],
 ) -> None:
-    """The acceptance's occlusion case, 3 s: 3D and worst-frame bounds, every tap and its
-    amplitude within 1 %, no identity swap. The distance bound (0.05 mm) is not met
-    (0.059 mm here, 0.058 mm on the 10-s recording, docs/markers.md): guarded at its
-    current level, not at the acceptance."""
+    """The acceptance's occlusion case, 3 s: 3D, distance and worst-frame bounds, every tap
+    and its amplitude within 1 %, no identity swap (the thumb marker a few per cent behind
+    the index fingertip: measured with the finger's edge in the disc fit, docs/markers.md;
+    the distance RMS was 0.059 mm before it)."""
     session, analysis = occlusion
     truth = np.asarray(session.truth["positions_mm"], dtype=float)[:, :2]
     meas = analysis.status == "measured"
@@ -169,10 +197,10 @@ def test_thumb_marker_partly_hidden_in_one_camera(
     both = np.all(meas, axis=1)
     d = np.linalg.norm(analysis.positions_mm[:, 0] - analysis.positions_mm[:, 1], axis=1)
     d_true = np.linalg.norm(truth[:, 0] - truth[:, 1], axis=1)
-    assert np.sqrt(np.mean((d - d_true)[both] ** 2)) <= 0.07  # mm (acceptance 0.05: open)
+    assert np.sqrt(np.mean((d - d_true)[both] ** 2)) <= 0.05  # mm (acceptance)
     assert analysis.metrics is not None
     taps = session.truth["taps"]
     assert analysis.metrics.metrics["tap_count"] == len(taps)
-    # every tap, reliable or not (here none is reliable: each has an interpolated closure)
+    # every tap, reliable or not
     for got, want in zip(analysis.metrics.taps, taps, strict=True):
         assert abs(got.amplitude_mm - want["amplitude_mm"]) <= 0.01 * want["amplitude_mm"]
