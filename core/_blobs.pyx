@@ -1065,6 +1065,8 @@ DEF NE = 11   # cx, cy, R, s, A, B0, Bx, By, theta, c, F: a disc and a straight 
 #: Edge models of :func:`edge_pass`
 DEF EDGE_FRONT = 1   # skin in front of the marker beyond the edge (a finger hides part of it)
 DEF EDGE_BEHIND = 2  # the background steps at the edge, under the marker
+DEF EDGE_MAX_SIGMA = 1.2  # px: blurrier blobs (motion streaks) are no disc to cut by an edge
+DEF EDGE_MIN_RADIUS = 4.0  # px: smaller discs hold too few pixels to place an edge as well
 
 
 cdef inline void normal_cdf(double u, double* Phi, double* phi) noexcept nogil:
@@ -1247,8 +1249,8 @@ cdef int border_p90(const unsigned char* img, int W, int x0, int y0, int x1, int
 
 cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, double r0,
                  double half_size, double bg0, double level0, const double* others, int K,
-                 int max_iter, double dark_level, int edges, double* xs, double* ys, double* zs,
-                 double* o) noexcept nogil:
+                 int max_iter, double dark_level, int edges, double max_hidden,
+                 double* xs, double* ys, double* zs, double* o) noexcept nogil:
     """One disc fit (see :func:`fit_discs`); writes ``FIT_COLS`` values to ``o``, which
     the caller filled with NaN.  ``xs``, ``ys``, ``zs`` hold the window's pixels."""
     cdef int k, x, y, x0, y0, x1, y1, n, it, hs, tries, n_in, n_bright, a, ok
@@ -1352,7 +1354,7 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
             break
     o[12] = 0
     o[13] = 0.0
-    if edges:
+    if edges and p[3] <= EDGE_MAX_SIGMA and p[2] >= EDGE_MIN_RADIUS:
         # A straight skin edge near the marker: a step of the background under it (from
         # the plane's gradient, either side) or skin in front of part of it (from where
         # the disc's rim is darker than the fitted disc). The best of the three models;
@@ -1397,11 +1399,12 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
                 memcpy(best, pe, NE * sizeof(double))
                 mode = EDGE_BEHIND if kk < 2 else EDGE_FRONT
         if mode:
-            for a in range(NPAR):
-                p[a] = best[a]
-            cost = cost_e
             o[12] = mode
-            o[13] = cut_share(p[2], best[9]) if mode == EDGE_FRONT else 0.0
+            o[13] = cut_share(best[2], best[9]) if mode == EDGE_FRONT else 0.0
+            if o[13] <= max_hidden:  # else the plain fit's centre, with the share it hides
+                for a in range(NPAR):
+                    p[a] = best[a]
+                cost = cost_e
     n_in = 0
     n_bright = 0
     for k in range(n):
@@ -1451,7 +1454,9 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
         border ``HALO_PX`` (3) px farther out is that dark and holds no other
         blob's centre.  -1 fits every window.
     edges : int
-        1: after the plain fit, also fit a straight skin edge with the disc
+        1: after the plain fit of a sharp disc (edge sigma at most 1.2 px: not a
+        motion streak) of radius 4 px or more (smaller ones hold too few pixels to
+        place an edge as well), also fit a straight skin edge with the disc
         (:func:`edge_pass`): a step of the background under the marker (the
         plane's gradient as its normal, either way) and skin in front of part
         of it (the normal towards where the rim is darker than the plain fit),
@@ -1488,7 +1493,7 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
         with nogil:
             for i in range(N):
                 fit_one(&image[0, 0], W, H, seeds[i, 0], seeds[i, 1], seeds[i, 2], seeds[i, 3],
-                        seeds[i, 4], seeds[i, 5], oth, K, max_iter, dark_level, edges,
+                        seeds[i, 4], seeds[i, 5], oth, K, max_iter, dark_level, edges, 1.0,
                         buf, buf + cap, buf + 2 * cap, &o[i, 0])
     finally:
         free(buf)
@@ -1506,7 +1511,7 @@ def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
     fit that moved the centre by more than a quarter diameter + 1 px, found no
     contrast or a radius off by half is not used. ``edges`` as in :func:`fit_discs`;
     a marker whose fitted skin edge in front hides more than ``max_hidden`` of its
-    disc gets an infinite residual (set aside)."""
+    disc keeps the plain fit's centre and gets an infinite residual (set aside)."""
     cdef int N = rows.shape[0], K = others.shape[0], H = image.shape[0], W = image.shape[1]
     cdef int i, hs, cap = 1
     cdef double o[FIT_COLS]
@@ -1536,7 +1541,7 @@ def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
                 if not fit_one(&image[0, 0], W, H, rows[i, 0], rows[i, 1], 0.5 * diam,
                                0.5 * diam / max(rnd, 0.1) + pad_px, rows[i, 5],
                                rows[i, 5] + rows[i, 3], oth, K, max_iter, dark_level, edges,
-                               buf, buf + cap, buf + 2 * cap, o):
+                               max_hidden, buf, buf + cap, buf + 2 * cap, o):
                     continue
                 moved = sqrt((o[0] - rows[i, 0]) * (o[0] - rows[i, 0])
                              + (o[1] - rows[i, 1]) * (o[1] - rows[i, 1]))

@@ -98,7 +98,9 @@ class MarkerParams:
         background-subtracted centroid on the dark room, where it is exact
         and the cheapest; a blurred opaque disc over a planar background,
         fitted, where the marker sits on lit skin or near a finger's edge,
-        which pull a centroid by up to a pixel; see ``docs/markers.md``),
+        which pull a centroid by up to a pixel, with a straight skin edge
+        under it or hiding part of it where that fits better; see
+        ``docs/markers.md``),
         ``"centroid"`` everywhere, ``"radial"`` or ``"disc_fit"``.
     reject_border : bool
         Reject blobs whose half-maximum region touches the image border (their
@@ -212,12 +214,14 @@ class MarkerDetections:
         * min(1, peak / (3 * min_contrast))``.  Use it to rank candidates, not
         to reject them.
     fit_residual : ndarray, shape (N,)
-        ``"opaque_disc"`` only: RMS residual of the disc fit beyond the image
-        noise, over the marker's contrast (below 0.04 for a whole marker on
-        skin; more when part of it is hidden or two markers merge, see
-        ``docs/markers.md``); ``inf`` for a blob too elongated to be one disc
-        (a motion streak, or a cut or merged marker); NaN where no disc was
-        fitted (on the dark background, and with the other estimators).
+        ``"opaque_disc"`` only: RMS residual of the disc fit (with a straight
+        skin edge under or in front of it where that fits better) beyond the
+        image noise, over the marker's contrast (below 0.04 for a whole marker
+        on skin; more when two markers merge, see ``docs/markers.md``);
+        ``inf`` for a blob too elongated to be one disc (a motion streak, or a
+        cut or merged marker) or a marker more than ``MAX_HIDDEN_SHARE``
+        behind skin; NaN where no disc was fitted (on the dark background,
+        and with the other estimators).
     """
 
     xy_px: FloatArray

@@ -364,11 +364,28 @@ def _start_positions(q: FloatArray, u: FloatArray, points_px: FloatArray) -> Flo
     return np.array([float(np.dot(pts[pick[k]] - q[k], u[k])) for k in range(2)])
 
 
-def _measure_patch(
+def measure_patch(
     cam_other: Camera, cam: Camera, patch: ImagePatch, other_px: FloatArray
 ) -> list[tuple[int, FloatArray]]:
-    """The markers of one patch that the other camera's detections ``other_px`` place:
-    ``(index into other_px, centre px in the patch camera)`` for each measured one."""
+    """The markers of one patch of camera ``cam`` that detections of ``cam_other`` place.
+
+    Parameters
+    ----------
+    cam_other, cam : Camera
+        The clear camera and the patch's camera.
+    patch : ImagePatch
+    other_px : ndarray, shape (N, 2)
+        The clear camera's detections in the paired frame (px).
+
+    Returns
+    -------
+    list of (int, ndarray (2,))
+        ``(index into other_px, centre px in the patch camera)`` of each marker
+        measured: of the (at most four) detections whose epipolar lines pass within
+        ``LINE_REACH_DIAMETERS`` of the patch's blob, the pair that two discs fit
+        best, each marker that is at least ``MIN_VISIBLE`` visible; none when the
+        fit fails the residual or radius checks.
+    """
     if len(other_px) < 2:
         return []
     img = patch.pixels
@@ -473,7 +490,7 @@ def measure_merged(
             found: list[FloatArray] = []
             replaced: set[int] = set()
             for patch in plist:
-                got = _measure_patch(cams[1 - ci], cams[ci], patch, other_px.reshape(-1, 2))
+                got = measure_patch(cams[1 - ci], cams[ci], patch, other_px.reshape(-1, 2))
                 if got:
                     found.extend(c for _, c in got)
                     replaced.update(int(i) for i in patch.detections)

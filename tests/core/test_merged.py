@@ -15,10 +15,10 @@ from core.markers import ImagePatch
 from core.merged import (
     MIN_VISIBLE,
     _lines_in_patch,
-    _measure_patch,
     _start_positions,
     fit_two_discs,
     measure_merged,
+    measure_patch,
 )
 from core.simulation.hand import Capsules, SkinLook, composite_spheres, draw_skin
 from core.simulation.render import DISC, SphereLayer
@@ -105,7 +105,7 @@ def test_a_marker_almost_hidden_behind_the_other_is_not_measured() -> None:
     img, true_px, vis = _scene(far, skin=True)
     assert vis[1] < MIN_VISIBLE
     other = OTHER.project(np.array([NEAR_MM, far]))
-    got = _measure_patch(OTHER, CAM, _patch(img, true_px), other)
+    got = measure_patch(OTHER, CAM, _patch(img, true_px), other)
     assert [i for i, _ in got] == [0]  # the near one only (the far one's depth is not observed)
     assert np.linalg.norm(got[0][1] - true_px[0]) <= 0.05  # px
 
