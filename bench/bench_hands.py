@@ -32,7 +32,9 @@ Printed per case and centre estimator:
    true centre, split by the truth's visible fraction (``visibility`` of
    truth.json: whole >= 0.98, partial, and the overlap frames, where the
    other marker's image is nearer than a marker diameter): found share,
-   RMS, 95th percentile and worst error (px).
+   RMS, 95th percentile and worst error (px); and, on the overlap frames, the
+   merged image measured by two discs on the lines from the other camera's
+   true projections (``core.merged``: "found" = the share measured).
 2. **End to end** (``analyze_recording`` with the true rig): 3-D RMS of
    measured positions, thumb-index distance RMS (frames where both are
    measured), worst measured frame, measured/interpolated/missing shares,
@@ -66,9 +68,11 @@ from core.camera import ImageSize, StereoRig, read_rig  # noqa: E402
 from core.markers import (  # noqa: E402
     CENTRE_METHODS,
     MAX_FIT_RESIDUAL,
+    ImagePatch,
     MarkerParams,
     detect_markers,
 )
+from core.merged import measure_patch  # noqa: E402
 from core.simulation.hand import overlap_orientation_deg  # noqa: E402
 from core.simulation.kinematics import TappingScenario  # noqa: E402
 from core.simulation.rig import default_rig  # noqa: E402
@@ -132,6 +136,36 @@ def true_pixels(rig: StereoRig, truth: dict[str, Any]) -> dict[str, np.ndarray]:
     return out
 
 
+def _merged_errors(
+    rows: dict[tuple[str, str], list[float]],
+    found: dict[tuple[str, str], list[bool]],
+    gray: np.ndarray,
+    rig: StereoRig,
+    c: str,
+    j: int,
+    px: dict[str, np.ndarray],
+    d_px: np.ndarray,
+) -> None:
+    """Errors (px) of the two-disc fit of a merged image (``core.merged.measure_patch``),
+    each marker's line from the other camera's true projection."""
+    cam, other = (rig.left, rig.right) if c == "left" else (rig.right, rig.left)
+    p = px[c][j, :2]
+    mid = p.mean(axis=0)
+    half = int(np.ceil(0.5 * np.linalg.norm(p[0] - p[1]) + d_px.max() + 4))
+    x0, y0 = round(float(mid[0])) - half, round(float(mid[1])) - half
+    if x0 < 0 or y0 < 0:
+        return
+    pix = gray[y0 : y0 + 2 * half + 1, x0 : x0 + 2 * half + 1].copy()
+    patch = ImagePatch(x0, y0, pix, mid[None], np.zeros(0, np.intp), float(d_px.mean()))
+    got = dict(measure_patch(other, cam, patch, px["right" if c == "left" else "left"][j, :2]))
+    for k in range(2):
+        found.setdefault(("two discs", "merged"), []).append(k in got)
+        if k in got:
+            rows.setdefault(("two discs", "merged"), []).append(
+                float(np.linalg.norm(got[k] - p[k]))
+            )
+
+
 def two_d(d: Path, methods: list[str], step: int) -> None:
     import cv2
 
@@ -163,6 +197,10 @@ def two_d(d: Path, methods: list[str], step: int) -> None:
                         gray, params=MarkerParams(centre_method=m), search_xy_px=p
                     )
                     det = found_det.xy_px
+                    if m == methods[0] and apart < d_px[j].max():
+                        # the merged image measured as two discs on the lines from the
+                        # other camera's true projections (core.merged)
+                        _merged_errors(rows, found, gray, rig, c, j, px, d_px[j])
                     for k in range(2):
                         if apart < d_px[j, k]:
                             kind = "overlap"
@@ -187,8 +225,8 @@ def two_d(d: Path, methods: list[str], step: int) -> None:
         "| method | markers | n | found | RMS px | P95 px | max px | flagged | kept RMS / max px |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
-    for m in methods:
-        for kind in ("whole", "partial", "overlap"):
+    for m in [*methods, "two discs"]:
+        for kind in ("whole", "partial", "overlap", "merged"):
             f = found.get((m, kind), [])
             if not f:
                 continue

@@ -514,3 +514,28 @@ def test_projection_of_one_point_is_camera_project(dist) -> None:
     assert np.isnan(got[:5]).all()
     np.testing.assert_allclose(got[5:], want[5:], rtol=0, atol=1e-9)  # px
     assert not np.allclose(got[5:, ::-1], want[5:], atol=1.0)
+
+
+def test_markers_measured_in_a_merged_image_are_not_blocked() -> None:
+    """Where the two markers' predicted images touch in the right camera, its detections
+    are not used, unless they were measured in the merged image (``right_fitted``,
+    core.merged): those frames are then measured, not filled."""
+    from dataclasses import replace
+
+    obs = observations(seed=5)
+    px = RIG.right.project(POS[:, :2].reshape(-1, 3)).reshape(-1, 2, 2)
+    sep = np.linalg.norm(px[:, 0] - px[:, 1], axis=1)
+    diam = float(np.percentile(sep, 25))  # a quarter of the frames "touch" (diameter + 2 px)
+    touching = np.flatnonzero(sep < np.percentile(sep, 15))  # clearly inside that
+    touching = touching[(touching > 10) & (touching < len(sep) - 10)]
+    assert len(touching) > 20
+    plain = track_markers(RIG, obs, fps=FPS, marker_diameter_px=(1.0, diam))
+    assert plain.overlap_frames > 0
+    # blocked while both tracks were seen in stereo within the last 3 frames: most of them
+    assert np.mean(plain.status[touching] == MEASURED) < 0.5
+    fitted = [replace(o, right_fitted=np.ones(len(o.right_px), bool)) for o in obs]
+    tr = track_markers(RIG, fitted, fps=FPS, marker_diameter_px=(1.0, diam))
+    assert tr.overlap_frames == 0
+    assert np.all(tr.status[touching] == MEASURED)
+    err = np.linalg.norm(tr.positions_mm - POS[:, :2], axis=2)
+    assert np.all(err[touching] < 1.0)  # mm
