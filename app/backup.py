@@ -17,8 +17,10 @@ The database is copied first, then the files: stored files are only ever added
 (or removed by an erasure), so the copy holds every file the database copy
 refers to, at worst a few more. ``restore DIR`` checks every checksum before
 it changes anything, refuses to overwrite a database or data directory that
-holds data (unless ``force``), puts the database and the files back, and
-brings the database to the newest migration.
+holds data (unless ``force``), puts the database and the files back, empties
+the PDF report cache (``<data dir>/cache/reports``: derived from the database,
+never backed up; reports of another database must not be served), and brings
+the database to the newest migration.
 """
 
 from __future__ import annotations
@@ -41,7 +43,9 @@ from app.chain import forget_key
 from app.db import current_revision, dispose_engines, get_engine, migrate
 from app.errors import AppError, ConflictError, InvalidRequestError, ServiceUnavailableError
 from app.models import Base, utcnow
+from app.reports.pdf_cache import ReportPdfCache
 from app.settings import Settings
+from app.storage import Storage
 from app.storage import file_sha256 as _sha256
 from app.storage import fsync_path as _fsync
 
@@ -376,6 +380,7 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
     if force and files_dir.is_dir():
         shutil.rmtree(files_dir)
     count, total = _restore_files(settings, source, manifest, skip=db_file.name, force=force)
+    ReportPdfCache.of(Storage.from_settings(settings)).clear()
     count, total = count + 1, total + int(db_file.stat().st_size)
     (settings.data_dir / "tmp").mkdir(parents=True, exist_ok=True)
     migrate(settings)  # a backup of an older version is brought forward

@@ -1,4 +1,4 @@
-"""What each kind of job does: measure a trial, calibrate a rig.
+"""What each kind of job does: measure a trial, calibrate a rig, make a trial's PDF report.
 
 The real handlers of the worker (:mod:`app.worker` runs them, each with a
 :class:`app.job_context.JobContext`):
@@ -7,7 +7,9 @@ The real handlers of the worker (:mod:`app.worker` runs them, each with a
   two videos → markers.csv, the review overlay, browser proxies and the next
   ``Result`` revision;
 - :func:`calibrate`: ``core.calibration.calibrate_stereo_from_paths`` on a
-  rig's two board recordings → a ready ``Calibration``.
+  rig's two board recordings → a ready ``Calibration``;
+- :func:`make_report_pdf`: the PDF report of a trial's current result into the
+  report cache, so that the request finds it made (``app.reports.pdf_cache``).
 
 What crosses to ``core`` and back is typed:
 :class:`app.services.trials.TrialInputs` and ``core.pipeline.Analysis``,
@@ -26,8 +28,9 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from app import jobs
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
-from app.services import calibrations, revisions, trials
+from app.services import calibrations, results, revisions, trials
 from core.calibration import calibrate_stereo_from_paths
 from core.errors import InputError
 from core.markers_csv import read_markers_csv
@@ -214,7 +217,25 @@ def calibrate(ctx: JobContext) -> None:
     ctx.finish(lambda db: calibrations.store_calibration(db, inputs.calibration_id, outcome))
 
 
-HANDLERS: dict[str, Handler] = {"analyze_trial": analyze_trial, "calibrate": calibrate}
+def make_report_pdf(ctx: JobContext) -> None:
+    """Make the PDF report of the job's trial (its current result) into the report cache.
+
+    Dated in the clinic's time zone (``BRADYSCOPE_TIMEZONE``): a worker must have the
+    server's, or its reports are not the ones asked for (they are made again then).
+    Nothing is made for a report already there, or a trial hidden or erased meanwhile.
+    """
+    if ctx.job.trial_id is None:
+        raise ValueError(f"the report job {ctx.job.id} names no trial")
+    results.make_report_pdf(
+        ctx.sessions, ctx.storage, ctx.job.trial_id, timezone=ctx.settings.timezone
+    )
+
+
+HANDLERS: dict[str, Handler] = {
+    "analyze_trial": analyze_trial,
+    "calibrate": calibrate,
+    jobs.REPORT_PDF: make_report_pdf,
+}
 
 
 STAGES: dict[str, tuple[tuple[str, float], ...]] = {

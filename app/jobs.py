@@ -30,6 +30,12 @@ Life cycle of a :class:`app.models.Job` row::
 - **cancel** (:func:`cancel`) fails a queued or running job (e.g. its trial was
   deleted); a worker still running it loses its lease and stores nothing.
 
+A ``report_pdf`` job (:data:`REPORT_PDF`, :func:`enqueue_report_pdf`) makes a
+trial's PDF report ahead of time, for the report cache. It is claimed before
+the other kinds (about a second of work, against a minute for an analysis) and
+is never a trial's latest job (:func:`latest_jobs`): a trial's status and the
+pages' job views follow its analyses only.
+
 Timestamps come from the worker's clock (UTC): machines sharing a PostgreSQL
 database must keep their clocks synchronised (NTP) to well under the lease.
 """
@@ -43,7 +49,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, exists, func, or_, select, update
+from sqlalchemy import and_, case, exists, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Calibration, Job, Result, Trial, utcnow
@@ -73,6 +79,10 @@ class ClaimedJob:
     @property
     def attempts_left(self) -> int:
         return self.max_attempts - self.attempts
+
+
+REPORT_PDF = "report_pdf"
+"""The kind of job that makes a trial's PDF report ahead of time (``app.handlers``)."""
 
 
 def new_lease_owner(worker_name: str) -> str:
@@ -116,6 +126,23 @@ def enqueue(
     return job
 
 
+def enqueue_report_pdf(db: Session, trial_id: int) -> Job | None:
+    """Queue the making of the PDF report of ``trial_id``'s current result (caller commits).
+
+    Call it in the transaction that changes what the report shows. None when
+    such a job is already queued: it will read the trial when it runs, so it
+    covers this change too (a running one may have read it already).
+    """
+    queued = db.scalar(
+        select(Job.id)
+        .where(Job.kind == REPORT_PDF, Job.trial_id == trial_id, Job.status == "queued")
+        .limit(1)
+    )
+    if queued is not None:
+        return None
+    return enqueue(db, REPORT_PDF, trial_id=trial_id)
+
+
 def _claimable(now: datetime) -> Any:
     return or_(
         and_(Job.status == "queued", Job.run_after <= now),
@@ -127,6 +154,10 @@ def _claimable(now: datetime) -> Any:
     )
 
 
+CLAIM_ORDER = case((Job.kind == REPORT_PDF, 0), else_=1)
+"""Reports first: one takes about a second of a worker, an analysis about a minute."""
+
+
 def claim_next(
     sessions: sessionmaker[Session],
     *,
@@ -135,9 +166,11 @@ def claim_next(
     kinds: tuple[str, ...] | list[str] | None = None,
     now: datetime | None = None,
 ) -> ClaimedJob | None:
-    """Claim the oldest claimable job (of ``kinds``, if given); None when there is none.
+    """Claim the oldest claimable job (of ``kinds``, if given), reports first; None when
+    there is none.
 
-    Commits its own transaction. The linked trial (if any) becomes ``running``.
+    Commits its own transaction. The linked trial (if any; not a report's) becomes
+    ``running``.
     """
     if lease_s <= 0:
         raise ValueError(f"lease_s must be > 0, got {lease_s}")
@@ -149,7 +182,7 @@ def claim_next(
     candidate = (
         select(Job.id)
         .where(condition)
-        .order_by(Job.id)
+        .order_by(CLAIM_ORDER, Job.id)
         .limit(1)
         .with_for_update(skip_locked=True)
         .scalar_subquery()
@@ -182,7 +215,7 @@ def claim_next(
         row = db.execute(stmt).first()
         if row is None:
             return None
-        _set_trial_status(db, row.trial_id, "running")
+        _set_trial_status(db, _status_trial(row.kind, row.trial_id), "running")
     claimed = ClaimedJob(
         id=row.id,
         kind=row.kind,
@@ -215,6 +248,11 @@ def _update_held(db: Session, job: ClaimedJob, values: dict[str, Any]) -> None:
     )
     if result.rowcount != 1:  # type: ignore[attr-defined]
         raise LeaseLostError(f"job {job.id} is no longer held by {job.lease_owner}")
+
+
+def _status_trial(kind: str, trial_id: int | None) -> int | None:
+    """The trial whose status a job of ``kind`` sets: its own, or none for a report."""
+    return None if kind == REPORT_PDF else trial_id
 
 
 def _set_trial_status(db: Session, trial_id: int | None, status: str) -> None:
@@ -282,7 +320,7 @@ def complete(db: Session, job: ClaimedJob) -> None:
             "lease_expires_at": None,
         },
     )
-    _set_trial_status(db, job.trial_id, "succeeded")
+    _set_trial_status(db, _status_trial(job.kind, job.trial_id), "succeeded")
 
 
 def _mark_targets_failed(db: Session, trial_id: int | None, calibration_id: int | None) -> None:
@@ -337,9 +375,9 @@ def fail(
             }
         _update_held(db, job, values)
         if retry:
-            _set_trial_status(db, job.trial_id, "queued")
+            _set_trial_status(db, _status_trial(job.kind, job.trial_id), "queued")
         else:
-            _mark_targets_failed(db, job.trial_id, job.calibration_id)
+            _mark_targets_failed(db, _status_trial(job.kind, job.trial_id), job.calibration_id)
     return str(values["status"])
 
 
@@ -371,7 +409,9 @@ def reap_expired(sessions: sessionmaker[Session], *, now: datetime | None = None
     now = now or utcnow()
     with sessions() as db, db.begin():
         rows = db.execute(
-            select(Job.id, Job.attempts, Job.trial_id, Job.calibration_id, Job.lease_owner).where(
+            select(
+                Job.id, Job.kind, Job.attempts, Job.trial_id, Job.calibration_id, Job.lease_owner
+            ).where(
                 Job.status == "running",
                 Job.lease_expires_at < now,
                 Job.attempts >= Job.max_attempts,
@@ -396,7 +436,7 @@ def reap_expired(sessions: sessionmaker[Session], *, now: datetime | None = None
                 .execution_options(synchronize_session=False)
             )
             if result.rowcount == 1:  # type: ignore[attr-defined]
-                _mark_targets_failed(db, row.trial_id, row.calibration_id)
+                _mark_targets_failed(db, _status_trial(row.kind, row.trial_id), row.calibration_id)
                 reaped += 1
                 log.warning("job %d failed: its lease expired after the last attempt", row.id)
     return reaped
@@ -431,7 +471,8 @@ def latest_jobs(
 
     Pass either ``trial_ids`` or ``calibration_ids``; the answer maps each id
     that has a job to its newest job (the highest job id: a re-analysis or a
-    retry queued later wins).
+    retry queued later wins). A ``report_pdf`` job is never one: a trial's
+    latest job is its latest analysis.
     """
     trials, calibrations = list(trial_ids), list(calibration_ids)
     if trials and calibrations:
@@ -440,7 +481,7 @@ def latest_jobs(
     ids = trials or calibrations
     if not ids:
         return {}
-    newest = select(func.max(Job.id)).where(owner.in_(ids)).group_by(owner)
+    newest = select(func.max(Job.id)).where(owner.in_(ids), Job.kind != REPORT_PDF).group_by(owner)
     out: dict[int, Job] = {}
     for job in db.scalars(select(Job).where(Job.id.in_(newest))):
         key = job.trial_id if trials else job.calibration_id

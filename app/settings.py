@@ -123,6 +123,12 @@ class Settings(BaseSettings):
     sqlite_busy_timeout_ms: int = Field(default=30_000, ge=0)
     migration_lock_timeout_s: float = Field(default=300.0, gt=0)
     log_level: str = Field(default="INFO")
+    report_cache_mb: int = Field(
+        default=256,
+        ge=1,
+        description="The most the trials' PDF reports made ahead of time may take on disk "
+        "(<data_dir>/cache/reports; about 0.1 MB a report).",
+    )
     timezone: str = Field(
         default="UTC",
         description="The clinic's time zone (IANA name, e.g. Europe/Prague): session dates are"

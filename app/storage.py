@@ -6,6 +6,8 @@ Layout (``data_dir`` from the settings)::
       bradyscope.sqlite3        (SQLite only)
       files/<category>/<2 hex>/<32 hex><suffix>   stored files (videos, results, rigs)
       tmp/                      partial uploads and writes; never referenced by the DB
+      cache/reports/            trials' PDF reports made ahead (app.reports.pdf_cache):
+                                derived, bounded, never backed up, emptied by a restore
 
 Paths stored in the database are **relative to data_dir** and always produced
 here (never from a client's file name), e.g.
@@ -76,18 +78,23 @@ class Storage:
     ----------
     data_dir
         The service's data directory (``Settings.data_dir``); created if missing.
+    report_cache_bytes
+        The most the PDF report cache (:attr:`report_cache_dir`) may hold
+        (``Settings.report_cache_mb``).
     """
 
-    def __init__(self, data_dir: Path | str) -> None:
+    def __init__(self, data_dir: Path | str, *, report_cache_bytes: int) -> None:
         self.data_dir = Path(data_dir).resolve()
         self.files_dir = self.data_dir / "files"
         self.tmp_dir = self.data_dir / "tmp"
+        self.report_cache_dir = self.data_dir / "cache" / "reports"
+        self.report_cache_bytes = int(report_cache_bytes)
         self.files_dir.mkdir(parents=True, exist_ok=True)
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
 
     @classmethod
     def from_settings(cls, settings: Settings) -> Storage:
-        return cls(settings.data_dir)
+        return cls(settings.data_dir, report_cache_bytes=settings.report_cache_mb * 1024**2)
 
     # ------------------------------------------------------------------ paths
 

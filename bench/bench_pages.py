@@ -4,23 +4,30 @@ What is timed, over HTTP, as a logged-in clinician:
 
 - the trial (result) page ``/trials/{id}``: its first view, then the median of
   ``--repeat`` views;
-- the PDF report ``/trials/{id}/download/pdf``: first, then median;
-- the patient page ``/patients/{id}`` (trend plots): first, then median.
+- the PDF report ``/trials/{id}/download/pdf``: the first request after the
+  trial was measured (the worker made the PDF then, ``app.reports.pdf_cache``),
+  then the median of ``--repeat``; with ``--trials`` N > 1 the first request of
+  each other trial's PDF too;
+- the patient page ``/patients/{id}`` (trend plots): first, then median;
+- the PDF after a change of what it shows (the clinician's rating, posted as
+  the trial page's form does), ``--repeat`` times each: asked for **at once**
+  (the worker stopped: the request makes the PDF), and asked for **once the
+  worker made it** (a ``bradyscope worker`` process; the bench waits for its
+  ``report_pdf`` job, and prints how long after the rating that was: the
+  worker polls the queue every ``BRADYSCOPE_WORKER_POLL_S``, 1 s).
 
-The first request of the PDF is made anew (and pays for importing WeasyPrint);
-the next ones come from the server's PDF cache when nothing changed
-(``render_report_pdf``), so the first request's server CPU is printed too, and
-with ``--trials`` N > 1 the PDF of each other trial, asked for once (made anew
-by a warm server). Beside each median it prints the server's
-CPU time per request (read from
+Beside each median it prints the server's CPU time per request (read from
 ``/proc/<pid>/stat`` before and after, so that it does not count the time the
-server waited for a core on a loaded machine) and the load average.
+server waited for a core on a loaded machine), the worker's CPU per report it
+made, and the load average.
 
 Without ``--url`` it makes its own server: a fresh data directory (temporary,
 or ``--data-dir``), the demo's rig and patient with ``--trials`` simulated
-recordings measured by the real worker, then ``bradyscope serve
---workers-in-process 0`` on a free port. With ``--url`` it times a server you
-run (``--email``, ``--password``, ``--trial`` and ``--patient`` needed).
+recordings measured by the real worker (which makes their PDF reports too),
+then ``bradyscope serve --workers-in-process 0`` on a free port and, for the
+last part, ``bradyscope worker``. With ``--url`` it times a server you run
+(``--email``, ``--password``, ``--trial`` and ``--patient`` needed), without
+the rating changes.
 
 Usage::
 
@@ -124,6 +131,120 @@ def _prepare(data_dir: Path, n_trials: int) -> tuple[str, str, list[int], int]:
         return demo.DEMO_EMAIL, password.group(1), list(trials), patient.id
 
 
+def _rate(client: httpx.Client, trial_id: int, n: int) -> None:
+    """Post the clinician's rating of ``trial_id`` as the trial page's form does (a new
+    comment each time, so that every report differs)."""
+    page = client.get(f"/trials/{trial_id}")
+    token = re.search(r'name="csrf_token" value="([^"]+)"', page.text)
+    if page.status_code != 200 or token is None:
+        raise SystemExit(f"no rating form on /trials/{trial_id} ({page.status_code})")
+    r = client.post(
+        f"/trials/{trial_id}/rating",
+        data={
+            "clinician_rating": str(1 + n % 2),
+            "comment": f"bench {n}",
+            "csrf_token": token.group(1),
+        },
+    )
+    if r.status_code != 303:
+        raise SystemExit(f"rating refused ({r.status_code})")
+
+
+def _reports_pending(data_dir: Path, trial_id: int) -> bool:
+    """Whether a ``report_pdf`` job of ``trial_id`` is queued or running."""
+    from sqlalchemy import select
+
+    from app import jobs
+    from app.db import get_sessionmaker
+    from app.models import Job
+    from app.settings import settings_with
+
+    with get_sessionmaker(settings_with(data_dir=data_dir))() as db:
+        return (
+            db.scalar(
+                select(Job.id)
+                .where(
+                    Job.kind == jobs.REPORT_PDF,
+                    Job.trial_id == trial_id,
+                    Job.status.in_(("queued", "running")),
+                )
+                .limit(1)
+            )
+            is not None
+        )
+
+
+def _get(client: httpx.Client, path: str, pid: int | None) -> tuple[float, float]:
+    """(seconds, server CPU seconds) of one GET."""
+    cpu0 = _cpu_s(pid)
+    t0 = time.perf_counter()
+    r = client.get(path)
+    took = time.perf_counter() - t0
+    if r.status_code != 200:
+        raise SystemExit(f"GET {path}: {r.status_code}")
+    return took, _cpu_s(pid) - cpu0
+
+
+def _row(name: str, times: list[float], cpus: list[float], extra: str = "") -> None:
+    print(
+        f"  {name:34s} median {1000 * statistics.median(times):5.0f} ms"
+        f" (min {1000 * min(times):5.0f}, max {1000 * max(times):5.0f}),"
+        f" server CPU median {1000 * statistics.median(cpus):5.0f} ms{extra}"
+    )
+
+
+def _after_rating(
+    client: httpx.Client, data_dir: Path, trial_id: int, repeat: int, pid: int | None
+) -> None:
+    """The PDF after each of ``repeat`` rating changes, asked for at once with no worker
+    running (the request makes it), then with a worker, once it made it."""
+    pdf = f"/trials/{trial_id}/download/pdf"
+    times, cpus = [], []
+    for n in range(repeat):
+        _rate(client, trial_id, n)
+        took, cpu = _get(client, pdf, pid)
+        times.append(took)
+        cpus.append(cpu)
+    _row("PDF at once after a rating", times, cpus, " (no worker: made by the request)")
+
+    worker = subprocess.Popen(
+        [str(Path(sys.executable).with_name("bradyscope")), "worker", "--data-dir", str(data_dir)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while _reports_pending(data_dir, trial_id):  # the job the last change queued
+            if time.monotonic() > deadline or worker.poll() is not None:
+                raise SystemExit("the worker did not run the queued report job")
+            time.sleep(0.05)
+        times, cpus, ready, worker_cpus = [], [], [], []
+        for n in range(repeat, 2 * repeat):
+            worker_cpu0 = _cpu_s(worker.pid)
+            _rate(client, trial_id, n)
+            t0 = time.perf_counter()
+            while _reports_pending(data_dir, trial_id):
+                if time.perf_counter() - t0 > 120 or worker.poll() is not None:
+                    raise SystemExit("the worker did not make the report")
+                time.sleep(0.05)
+            ready.append(time.perf_counter() - t0)
+            worker_cpus.append(_cpu_s(worker.pid) - worker_cpu0)
+            took, cpu = _get(client, pdf, pid)
+            times.append(took)
+            cpus.append(cpu)
+        _row(
+            "PDF after a rating, worker's copy",
+            times,
+            cpus,
+            f"; ready {statistics.median(ready):.2f} s after the rating (median;"
+            f" max {max(ready):.2f} s), worker CPU median"
+            f" {1000 * statistics.median(worker_cpus):.0f} ms a report",
+        )
+    finally:
+        worker.terminate()
+        worker.wait(timeout=60)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=20)
@@ -139,6 +260,7 @@ def main() -> None:
     server: subprocess.Popen[bytes] | None = None
     tmp = None
     pid: int | None = None
+    data_dir: Path | None = None
     try:
         if args.url:
             url, email, password = args.url, args.email, args.password
@@ -203,14 +325,18 @@ def main() -> None:
                     f" {1000 * min(times):5.0f} ms {1000 * cpu:8.0f} ms"
                 )
             if len(trial_ids) > 1:
-                # The other trials' PDFs, each asked for once: made anew by a warm server.
-                new = [_time(client, f"/trials/{t}/download/pdf", 0, pid) for t in trial_ids[1:]]
-                print(
-                    f"  PDF made anew (the other {len(new)} trials' first request, warm server):"
-                    f" median {1000 * statistics.median(n[0] for n in new):.0f} ms,"
-                    f" server CPU median {1000 * statistics.median(n[1] for n in new):.0f} ms"
-                    f" ({', '.join(f'{1000 * n[1]:.0f}' for n in new)})"
+                # The other trials' PDFs, each asked for once: the worker made them after
+                # their analysis.
+                new = [_get(client, f"/trials/{t}/download/pdf", pid) for t in trial_ids[1:]]
+                _row(
+                    f"PDF first request ({len(new)} trials)",
+                    [n[0] for n in new],
+                    [n[1] for n in new],
+                    " (made by the worker after the analysis)",
                 )
+            if data_dir is not None and args.repeat > 0:
+                print(f"rating changes (load average {os.getloadavg()[0]:.2f}):")
+                _after_rating(client, data_dir, trial_id, args.repeat, pid)
             print(f"load average after: {os.getloadavg()[0]:.2f}")
     finally:
         if server is not None:

@@ -1,8 +1,10 @@
-"""`bradyscope worker`: run analysis and calibration jobs (INTERFACES.md).
+"""`bradyscope worker`: run analysis, calibration and report jobs (INTERFACES.md).
 
 Start as many as the machine has cores, here or on other machines sharing a
 PostgreSQL database (``BRADYSCOPE_DATABASE_URL``) and the data directory
-(``BRADYSCOPE_DATA_DIR``, e.g. on a shared file system). SIGTERM or Ctrl-C stop
+(``BRADYSCOPE_DATA_DIR``, e.g. on a shared file system), with the server's
+time zone (``BRADYSCOPE_TIMEZONE``: the PDF reports it makes ahead are dated in
+it, and a report in another zone is not the one asked for). SIGTERM or Ctrl-C stop
 the worker after its current job; a worker killed outright has its job taken
 over by another worker once the job's lease expires.
 """
@@ -23,7 +25,7 @@ from app.settings import Settings, settings_with
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "worker",
-        help="run analysis and calibration jobs (more workers, or on other machines)",
+        help="run analysis, calibration and report jobs (more workers, or on other machines)",
         description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
     )
     p.add_argument(

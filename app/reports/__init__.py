@@ -6,6 +6,7 @@
   and the lines derived from it (quality panel, events).
 - :mod:`app.reports.figures`: its plots as inline SVG (cached per result).
 - :mod:`app.reports.rendering`: the HTML and PDF report from one template.
+- :mod:`app.reports.pdf_cache`: PDF reports made ahead of time, kept on disk (by content).
 
 Loading a report from the database is a use case: ``app.services.results``.
 """

@@ -9,8 +9,8 @@ For the PDF each inline ``<svg>`` plot becomes an ``<img>`` of the same SVG
 (a ``data:`` URL, :func:`svg_plots_as_images`): WeasyPrint then draws it as an
 image, outside the page's CSS cascade, which made the report's PDF about 30 %
 cheaper (docs/performance.md); the plots stay vector and their words searchable.
-A trial's PDF asked for again with nothing changed comes from an in-process
-cache (:func:`render_report_pdf`).
+:func:`report_key` names what a report shows, for the PDF report cache
+(:mod:`app.reports.pdf_cache`).
 """
 
 from __future__ import annotations
@@ -19,8 +19,6 @@ import base64
 import hashlib
 import html as html_lib
 import re
-import threading
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import replace
 from datetime import UTC, datetime
@@ -136,35 +134,29 @@ def warm_up_pdf() -> bytes:
     )
 
 
-_PDF_CACHE: OrderedDict[str, bytes] = OrderedDict()
-_PDF_CACHE_SIZE = 32  # reports of ~0.1-0.3 MB
-_pdf_cache_lock = threading.Lock()
 _KEY_TIME = datetime(2000, 1, 1, tzinfo=UTC)
+
+
+def report_key(data: ReportData) -> str:
+    """What the report of ``data`` shows, as a SHA-256 (lower-case hex).
+
+    The report's HTML rendered at a fixed "generated on" time: two reports with
+    the same key are the same but for that time, and any change of what the
+    report shows (its result revision, a rating, the session, the visit's other
+    trials, the time zone, the template or the software) changes the key. The
+    key of the PDF report cache (:mod:`app.reports.pdf_cache`).
+    """
+    html = render_report_html(replace(data, generated_at=_KEY_TIME))
+    return hashlib.sha256(html.encode("utf-8")).hexdigest()
 
 
 def render_report_pdf(data: ReportData) -> bytes:
     """The report of one trial as PDF bytes (WeasyPrint; no URL is ever fetched).
 
-    A report whose page would be the same but for its "generated on" time is
-    served from a small in-process cache (the PDF made first, with its time):
-    the key is the report's HTML rendered at a fixed time, so any change of what
-    the report shows (the result revision, a rating, the visit's other trials,
-    the session, the template or the software) makes a new PDF.
+    Made anew at each call (about a second of CPU); the service keeps reports
+    made ahead of time in the PDF report cache (:mod:`app.reports.pdf_cache`).
     """
-    key = hashlib.sha256(
-        render_report_html(replace(data, generated_at=_KEY_TIME)).encode("utf-8")
-    ).hexdigest()
-    with _pdf_cache_lock:
-        cached = _PDF_CACHE.get(key)
-        if cached is not None:
-            _PDF_CACHE.move_to_end(key)
-            return cached
-    pdf = html_to_pdf(render_report_html(data))
-    with _pdf_cache_lock:
-        _PDF_CACHE[key] = pdf
-        while len(_PDF_CACHE) > _PDF_CACHE_SIZE:
-            _PDF_CACHE.popitem(last=False)
-    return pdf
+    return html_to_pdf(render_report_html(data))
 
 
 def visit_context(visit: VisitData) -> dict[str, Any]:

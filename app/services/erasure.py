@@ -14,7 +14,10 @@ are all kept. The erasure itself is audited.
 
 Rows go first, in one transaction; the files are removed after its commit
 (a file whose row is gone is unreachable, so a crash between the two leaves
-only unreferenced bytes, which the next erasure of anything does not need).
+only unreferenced bytes, which the next erasure of anything does not need),
+and with them the patient's PDF reports in the report cache
+(:meth:`app.reports.pdf_cache.ReportPdfCache.forget_patient`; a report being
+made at that moment removes itself when it finds its trial gone).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from app import chain
 from app.audit import AnyActor, audit
 from app.errors import NotFoundError
 from app.models import Base, Patient, RecordingSession, utcnow
+from app.reports.pdf_cache import ReportPdfCache
 from app.storage import Storage
 
 log = logging.getLogger(__name__)
@@ -156,6 +160,7 @@ def _erase(
             removed += 1
         else:
             missing += 1
+    ReportPdfCache.of(storage).forget_patient(patient_id)
     return ErasureReport(patient_id, counts, removed, missing)
 
 

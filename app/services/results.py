@@ -4,6 +4,12 @@ Each export is generated first and audited (``export``) only when it could be
 produced, in the same commit. :func:`load_report_data` gathers what a report
 shows about one trial from the database and storage into a
 :class:`~app.reports.data.ReportData`, for the page, the reports and FHIR.
+
+A trial's PDF report is made ahead of time: whatever changes what it shows
+queues a ``report_pdf`` job (:func:`app.jobs.enqueue_report_pdf`), whose
+worker makes it into the report cache (:func:`make_report_pdf`,
+:mod:`app.reports.pdf_cache`); a request finds it there, or makes it then and
+keeps it (:func:`report_pdf`, :func:`fhir_bundle`).
 """
 
 from __future__ import annotations
@@ -13,7 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from sqlalchemy.orm import Session
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
 
 from app import jobs
 from app.actors import Actor
@@ -22,7 +29,8 @@ from app.errors import ConflictError, NotFoundError
 from app.models import Calibration, Job, Patient, Result, Trial, User
 from app.reports.data import CalibrationInfo, ReportData
 from app.reports.figures import read_plots_document
-from app.reports.rendering import render_report_html, render_report_pdf
+from app.reports.pdf_cache import ReportPdfCache
+from app.reports.rendering import render_report_html, render_report_pdf, report_key
 from app.reports.result import read_result
 from app.reports.summary import SummaryColumn, neighbours
 from app.services.common import load_trial, visible_trial, visit_trials
@@ -189,6 +197,62 @@ def load_report_data(
     )
 
 
+# --------------------------------------------------------------------------- PDF reports
+
+
+def _cached_pdf(data: ReportData, cache: ReportPdfCache) -> tuple[bytes, bool]:
+    """The PDF report of ``data``: from ``cache``, or made now and kept there.
+
+    Returns the bytes and whether they were made now (then call
+    :func:`_forget_if_erased` after a commit).
+    """
+    if data.patient_id is None:
+        raise ValueError(f"the report data of trial {data.trial_id} names no patient")
+    key = report_key(data)
+    kept = cache.get(data.patient_id, data.trial_id, key)
+    if kept is not None:
+        return kept, False
+    pdf = render_report_pdf(data)
+    cache.put(data.patient_id, data.trial_id, key, pdf)
+    return pdf, True
+
+
+def _forget_if_erased(db: Session, cache: ReportPdfCache, data: ReportData) -> None:
+    """Remove the patient's cached reports if the trial was erased while its PDF was made.
+
+    Call it after :meth:`ReportPdfCache.put`, in a transaction begun after it: an
+    erasure committed before this query is seen here; one committed after it
+    removes the patient's cached files itself, the new one included.
+    """
+    if data.patient_id is None:
+        return
+    if db.scalar(select(Trial.id).where(Trial.id == data.trial_id)) is None:
+        cache.forget_patient(data.patient_id)
+
+
+def make_report_pdf(
+    sessions: sessionmaker[Session], storage: Storage, trial_id: int, *, timezone: str
+) -> bool:
+    """The worker's part of a ``report_pdf`` job: the PDF report of the trial's current
+    result, dated in ``timezone``, made into the report cache unless it is there already.
+
+    ``timezone`` must be the server's (``Settings.timezone``), or the request will
+    not find the report. Returns whether a PDF was made; nothing is made for a
+    trial that is hidden, erased or has no result.
+    """
+    with sessions() as db:
+        trial = visible_trial(db, trial_id)
+        if trial is None or trial.result is None:
+            return False
+        data = load_report_data(db, trial, storage, timezone=timezone)
+    cache = ReportPdfCache.of(storage)
+    _, made = _cached_pdf(data, cache)
+    if made:
+        with sessions() as db:
+            _forget_if_erased(db, cache, data)
+    return made
+
+
 # --------------------------------------------------------------------------- exports
 
 
@@ -249,8 +313,15 @@ def report_pdf(
     *,
     timezone: str = "UTC",
 ) -> bytes:
+    """The trial's report as PDF (the current revision, or ``revision``), from the report
+    cache when the worker (or an earlier request) made it already."""
     trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
-    return _exported(db, actor, trial, "report_pdf", render_report_pdf(data))
+    cache = ReportPdfCache.of(storage)
+    pdf, made = _cached_pdf(data, cache)
+    _exported(db, actor, trial, "report_pdf", pdf)
+    if made:
+        _forget_if_erased(db, cache, data)
+    return pdf
 
 
 def fhir_bundle(
@@ -260,8 +331,12 @@ def fhir_bundle(
     trial, data = _report_data(db, actor, trial_id, storage, None, timezone)
     from app.exports import fhir_bundle as make_fhir_bundle  # fhir.resources: ~1 s to import
 
-    bundle = make_fhir_bundle(data, render_report_pdf(data))
-    return _exported(db, actor, trial, "fhir_bundle", bundle)
+    cache = ReportPdfCache.of(storage)
+    pdf, made = _cached_pdf(data, cache)
+    bundle = _exported(db, actor, trial, "fhir_bundle", make_fhir_bundle(data, pdf))
+    if made:
+        _forget_if_erased(db, cache, data)
+    return bundle
 
 
 def trajectory_file(

@@ -17,7 +17,8 @@ why (a reason is required) and what changed; the newest is current.
   the taps of the earlier analysis and do not carry over; its result.json
   lists them (``corrections_not_carried``).
 
-Every revision is one audit event (``create revision``). The review page that
+Every revision is one audit event (``create revision``) and queues the making
+of its PDF report (:func:`app.jobs.enqueue_report_pdf`). The review page that
 shows a revision beside the videos is :mod:`app.services.review`.
 """
 
@@ -339,6 +340,7 @@ def _correct(
                 change=change,
             )
         )
+        jobs.enqueue_report_pdf(db, trial.id)
         audit(db, actor, "create", "revision", trial.id, trial.session.patient_id)
         db.commit()
     except IntegrityError as exc:
@@ -408,7 +410,8 @@ def store_analysis(
 
     ``request`` is the job's ``revision_request`` (who asked for a re-analysis,
     why and what changed), None for the analysis of an upload. ``plots_path``:
-    its plots (:func:`store_plots`).
+    its plots (:func:`store_plots`). The making of its PDF report is queued in
+    the same transaction (:func:`app.jobs.enqueue_report_pdf`).
     """
     number = _next_revision(db, trial_id)
     previous = db.scalar(
@@ -444,4 +447,5 @@ def store_analysis(
             change=change,
         )
     )
+    jobs.enqueue_report_pdf(db, trial_id)
     return number

@@ -84,7 +84,10 @@ def get_session(db: Session, actor: Actor, session_id: int) -> RecordingSession:
 def update_session(
     db: Session, actor: Actor, session_id: int, data: SessionUpdate
 ) -> RecordingSession:
-    """Change the given fields; states cannot be cleared, notes/rating/calibration can."""
+    """Change the given fields; states cannot be cleared, notes/rating/calibration can.
+
+    The PDF reports of the session's measured trials are made again by the worker.
+    """
     row = load_session(db, actor, session_id, "update")
     changes = data.model_dump(exclude_unset=True)
     for required in ("medication_state", "dbs_state"):
@@ -94,6 +97,10 @@ def update_session(
         _check_calibration(db, changes["calibration_id"], row.rig_id)
     for name, value in changes.items():
         setattr(row, name, value)
+    if changes:  # the reports of the session's measured trials show it
+        for trial in row.trials:
+            if trial.deleted_at is None and trial.result is not None:
+                jobs.enqueue_report_pdf(db, trial.id)
     audit(db, actor, "update", "session", row.id, row.patient_id)
     db.commit()
     return row

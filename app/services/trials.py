@@ -17,7 +17,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import and_, func, or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -227,7 +227,8 @@ def rate_trial(db: Session, actor: Actor, trial_id: int, data: TrialRatingUpdate
     """Set the clinician's rating (0–4) and comment of one trial; omitted fields stay.
 
     The rating belongs to the trial's hand (and task); who rated and when are
-    recorded with it. Audited as an update of the trial.
+    recorded with it. Audited as an update of the trial. The report shows the
+    rating: a measured trial's PDF report is made again by the worker.
     """
     trial = load_trial(db, actor, trial_id, "update")
     changes = data.model_dump(exclude_unset=True)
@@ -238,6 +239,8 @@ def rate_trial(db: Session, actor: Actor, trial_id: int, data: TrialRatingUpdate
     if changes:
         trial.rated_at = utcnow()
         trial.rated_by_user_id = actor.user_id
+        if trial.result is not None:
+            jobs.enqueue_report_pdf(db, trial.id)
     audit(db, actor, "update", "trial", trial.id, trial.session.patient_id)
     db.commit()
     return trial
@@ -318,12 +321,16 @@ def job_page(db: Session, actor: Actor, job_id: int) -> Job:
 
 
 def queue_position(db: Session, job: Job) -> int | None:
-    """1 for the next queued job to be claimed, 2 for the one after...; None unless queued."""
+    """1 for the next queued job to be claimed, 2 for the one after...; None unless queued.
+
+    Claimed in :data:`app.jobs.CLAIM_ORDER`: every queued report goes before an analysis.
+    """
     if job.status != "queued":
         return None
-    ahead = db.scalar(
-        select(func.count()).select_from(Job).where(Job.status == "queued", Job.id < job.id)
-    )
+    report = Job.kind == jobs.REPORT_PDF
+    earlier = Job.id < job.id
+    before = and_(report, earlier) if job.kind == jobs.REPORT_PDF else or_(report, earlier)
+    ahead = db.scalar(select(func.count()).select_from(Job).where(Job.status == "queued", before))
     return int(ahead or 0) + 1
 
 

@@ -141,7 +141,7 @@ def test_a_browser_take_with_two_clocks_and_lost_frames_measures_to_lab_accuracy
         assert take["frame_count"] == truth["cameras"][side]["frame_count"], (side, take)
         assert take["fps"] == pytest.approx(FPS, rel=0.01), (side, take)  # Hz
 
-    assert run_worker(api.settings, once=True) == 1
+    assert run_worker(api.settings, once=True) == 2  # the analysis, then its PDF report
     with api.sessions() as db:
         result = db.scalars(select(Result).where(Result.trial_id == body["id"])).one()
         doc, markers_path = result.document, result.markers_path

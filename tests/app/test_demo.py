@@ -86,9 +86,9 @@ def test_seed_demo_is_idempotent_and_its_trials_are_measured(app_settings, db_se
     assert _counts(db_sessionmaker) == first
 
     # The queued trial is a real recording: the real worker measures it.
-    assert run_worker(app_settings, once=True) == 1
+    assert run_worker(app_settings, once=True) == 2  # the analysis, then its PDF report
     with db_sessionmaker() as db:
-        job = db.scalars(select(Job)).one()
+        job = db.scalars(select(Job).where(Job.kind == "analyze_trial")).one()
         assert job.status == "succeeded", job.error
         result = db.scalars(select(Result)).one()
         metrics = result.document["metrics"]

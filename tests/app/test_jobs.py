@@ -11,6 +11,7 @@ from sqlalchemy import func, select
 from app import jobs
 from app.jobs import LeaseLostError
 from app.models import Job, Patient, RecordingSession, Result, Rig, Trial, utcnow
+from app.services import trials
 
 LEASE_S = 5.0
 
@@ -237,3 +238,44 @@ def test_cancel_a_queued_job_and_a_running_one(db_sessionmaker):
     )
     with sm() as db, db.begin():
         assert not jobs.cancel(db, running, "again")  # already ended
+
+
+def test_report_jobs_are_claimed_first_and_queued_once_per_trial(db_sessionmaker):
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        measured, other = _trial(db), _trial(db)
+        analysis = jobs.enqueue(db, "analyze_trial", trial_id=other.id).id
+        report = jobs.enqueue_report_pdf(db, measured.id)
+        assert report is not None
+        assert jobs.enqueue_report_pdf(db, measured.id) is None  # the queued one covers it
+        report_id = report.id
+    assert report_id > analysis
+    with sm() as db:
+        queued = {j.id: j for j in db.scalars(select(Job))}
+        assert [trials.queue_position(db, queued[i]) for i in (report_id, analysis)] == [1, 2]
+    assert [_claim(sm).id, _claim(sm).id] == [report_id, analysis]
+    with sm() as db, db.begin():  # running: a change now needs a job of its own
+        assert jobs.enqueue_report_pdf(db, measured.id) is not None
+
+
+def test_a_report_job_is_no_trials_latest_job_and_leaves_its_status(db_sessionmaker):
+    """A trial's status and its job on the pages follow its analyses only."""
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id = _trial(db).id
+        analysis = jobs.enqueue(db, "analyze_trial", trial_id=trial_id).id
+        report = jobs.enqueue(db, jobs.REPORT_PDF, trial_id=trial_id, max_attempts=1).id
+    with sm() as db:
+        assert jobs.latest_job(db, trial_id=trial_id).id == analysis
+        assert jobs.latest_jobs(db, trial_ids=[trial_id])[trial_id].id == analysis
+    claimed = _claim(sm, kinds=(jobs.REPORT_PDF,))
+    assert claimed.id == report
+    with sm() as db:
+        assert db.get(Trial, trial_id).status == "queued"  # its analysis has not started
+    assert jobs.fail(sm, claimed, "WeasyPrint failed", retryable=False) == "failed"
+    with sm() as db:
+        assert db.get(Trial, trial_id).status == "queued"
+    claimed = _claim(sm)
+    assert claimed.id == analysis
+    with sm() as db:
+        assert db.get(Trial, trial_id).status == "running"

@@ -99,3 +99,21 @@ def test_several_worker_processes_run_each_job_exactly_once(pg_settings, worker_
 
 def test_kill9_of_a_worker_mid_job_postgres(pg_settings, worker_script, kill9_scenario):
     kill9_scenario(pg_settings, worker_script)
+
+
+def test_report_jobs_are_claimed_before_older_analyses(pg_settings):
+    sm = get_sessionmaker(pg_settings)
+    with sm() as db, db.begin():
+        analysis = jobs.enqueue(db, "analyze_trial").id
+        report = jobs.enqueue(db, jobs.REPORT_PDF).id
+    with get_engine(pg_settings).connect() as other:
+        # Another worker is claiming the report: the next claim takes the analysis.
+        other.execute(sa.text("SELECT id FROM jobs WHERE id = :i FOR UPDATE"), {"i": report})
+        assert jobs.claim_next(sm, worker_name="w", lease_s=5.0).id == analysis
+        other.rollback()
+    assert jobs.claim_next(sm, worker_name="w", lease_s=5.0).id == report
+    with sm() as db, db.begin():
+        later_analysis = jobs.enqueue(db, "analyze_trial").id
+        later_report = jobs.enqueue(db, jobs.REPORT_PDF).id
+    claimed = [jobs.claim_next(sm, worker_name="w", lease_s=5.0).id for _ in range(2)]
+    assert claimed == [later_report, later_analysis]

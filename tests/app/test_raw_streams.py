@@ -143,7 +143,7 @@ def test_raw_h264_streams_with_timestamps_files_are_measured_by_the_service(
         assert take["frame_count"] == truth["cameras"][side]["frame_count"], take
         assert take["fps"] == pytest.approx(FPS, rel=0.01), take  # Hz
 
-    assert run_worker(api.settings, once=True) == 1
+    assert run_worker(api.settings, once=True) == 2  # the analysis, then its PDF report
     storage = Storage.from_settings(api.settings)
     with api.sessions() as db:
         result = db.scalars(select(Result).where(Result.trial_id == body["id"])).one()

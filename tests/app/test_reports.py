@@ -137,24 +137,14 @@ def test_pdf_warm_up_makes_a_pdf_with_the_reports_font(tmp_path):
     assert "DejaVu-Sans" in fonts.stdout
 
 
-def test_pdf_is_made_again_when_what_it_shows_changes(data, monkeypatch):
-    """The in-process PDF cache: the same report again is not laid out again (its
-    "generated on" time aside), and a change of what it shows makes a new PDF."""
-    import app.reports.rendering as reports
+def test_report_key_names_what_the_report_shows(data):
+    """The PDF report cache's key: the same report at another "generated on" time has the
+    same key; a change of anything the report shows, another."""
+    from app.reports.rendering import report_key
 
-    made: list[str] = []
-    convert = reports.html_to_pdf
-
-    def counting(html: str) -> bytes:
-        made.append(html)
-        return convert(html)
-
-    monkeypatch.setattr(reports, "html_to_pdf", counting)
-    monkeypatch.setattr(reports, "_PDF_CACHE", type(reports._PDF_CACHE)())
-    first = reports.render_report_pdf(data)
+    first = report_key(data)
     later = dataclasses.replace(data, generated_at=data.generated_at + timedelta(hours=3))
-    assert reports.render_report_pdf(later) == first
-    assert len(made) == 1
+    assert report_key(later) == first and re.fullmatch(r"[0-9a-f]{64}", first)
     changes = {
         "rating": dataclasses.replace(data, clinician_rating=3, rating_comment="Slower"),
         "revision": dataclasses.replace(data, revision=2),
@@ -162,11 +152,12 @@ def test_pdf_is_made_again_when_what_it_shows_changes(data, monkeypatch):
         "result": dataclasses.replace(
             data, result={**data.result, "metrics": {**data.result["metrics"], "tap_count": 9}}
         ),
+        "time zone": dataclasses.replace(data, timezone="America/New_York"),
+        "patient": dataclasses.replace(data, patient_code="PD-0043"),
     }
-    for what, changed in changes.items():
-        assert reports.render_report_pdf(changed) != first, what
-    assert len(made) == 1 + len(changes)
-    assert "Slower" in made[1] and "Tremor at rest." in made[3]
+    keys = {what: report_key(changed) for what, changed in changes.items()}
+    assert first not in keys.values()
+    assert len(set(keys.values())) == len(changes)
 
 
 def _pdf_words(pdf: Path, page: int) -> list[tuple[str, float, float, float, float]]:

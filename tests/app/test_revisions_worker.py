@@ -57,7 +57,7 @@ def test_swapped_upload_fails_and_the_swapped_retry_measures_within_1_percent(
             db, actor, trial_id, RevisionCreate(reason=REASON, swap_cameras=True), storage
         )
     assert out.revision is None and out.job_id is not None
-    assert run_worker(app_settings, once=True) == 1
+    assert run_worker(app_settings, once=True) == 2  # the re-analysis, then its PDF report
     assert _job(sm, out.job_id).status == "succeeded"
 
     truth = rec.truth

@@ -95,7 +95,7 @@ def test_every_task_through_upload_worker_result_reports_and_fhir(
         )
         assert r.status_code == 201, r.text
         ids.append(r.json())
-    assert run_worker(api.settings, once=True) == len(TRIALS)
+    assert run_worker(api.settings, once=True) == 2 * len(TRIALS)  # each analysis, its PDF
 
     for (task, _side, _, _), rec, made in zip(TRIALS, recordings, ids, strict=True):
         job = api.client.get(f"/api/v1/jobs/{made['job_id']}", headers=h).json()

@@ -16,7 +16,10 @@ from app.job_context import JobContext
 from app.jobs import LeaseLostError
 from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
 from app.reports.figures import draw_plots, read_plots_document
+from app.reports.pdf_cache import ReportPdfCache
+from app.reports.rendering import report_key
 from app.reports.result import read_result
+from app.services.results import load_report_data
 from app.worker import run_job, run_worker
 from core.errors import DetectionError
 from core.markers_csv import read_markers_csv
@@ -286,7 +289,7 @@ def test_analyze_trial_handler_measures_a_simulated_recording(
             calibrated=True,
             payload={"warnings": ["the upload's own warning"]},
         )
-    assert run_worker(app_settings, once=True) == 1
+    assert run_worker(app_settings, once=True) == 2  # the analysis, then its PDF report
     job = _job(sm, job_id)
     assert (job.status, job.error, job.attempts) == ("succeeded", None, 1)
     truth = small_recording.truth
@@ -316,6 +319,14 @@ def test_analyze_trial_handler_measures_a_simulated_recording(
     assert {k: _without_ids(v) for k, v in stored.items()} == {
         k: _without_ids(v) for k, v in drawn.items()
     }
+    # The worker made the trial's PDF report too, the one a request finds (same time zone).
+    with sm() as db:
+        report_job = db.scalars(select(Job).where(Job.kind == jobs.REPORT_PDF)).one()
+        data = load_report_data(db, db.get(Trial, trial_id), storage, timezone="UTC")
+    assert (report_job.trial_id, report_job.status) == (trial_id, "succeeded")
+    assert report_job.id > job_id
+    kept = ReportPdfCache.of(storage).get(data.patient_id, trial_id, report_key(data))
+    assert kept is not None and kept.startswith(b"%PDF")
 
 
 def _without_ids(svg: str) -> str:
