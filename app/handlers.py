@@ -8,8 +8,9 @@ The real handlers of the worker (:mod:`app.worker` runs them, each with a
   ``Result`` revision;
 - :func:`calibrate`: ``core.calibration.calibrate_stereo_from_paths`` on a
   rig's two board recordings → a ready ``Calibration``;
-- :func:`make_report_pdf`: the PDF report of a trial's current result into the
-  report cache, so that the request finds it made (``app.reports.pdf_cache``).
+- :func:`make_report_pdf`: the PDF report of a trial's current result, and of
+  the trials shown beside it, into the report cache, so that the request finds
+  it made (``app.reports.pdf_cache``).
 
 What crosses to ``core`` and back is typed:
 :class:`app.services.trials.TrialInputs` and ``core.pipeline.Analysis``,
@@ -218,7 +219,9 @@ def calibrate(ctx: JobContext) -> None:
 
 
 def make_report_pdf(ctx: JobContext) -> None:
-    """Make the PDF report of the job's trial (its current result) into the report cache.
+    """Make the PDF report of the job's trial (its current result) into the report cache,
+    and those of the trials shown beside it, whose reports show it
+    (:func:`app.services.results.make_report_pdfs`).
 
     Dated in the clinic's time zone (``BRADYSCOPE_TIMEZONE``): a worker must have the
     server's, or its reports are not the ones asked for (they are made again then).
@@ -226,9 +229,10 @@ def make_report_pdf(ctx: JobContext) -> None:
     """
     if ctx.job.trial_id is None:
         raise ValueError(f"the report job {ctx.job.id} names no trial")
-    results.make_report_pdf(
+    made = results.make_report_pdfs(
         ctx.sessions, ctx.storage, ctx.job.trial_id, timezone=ctx.settings.timezone
     )
+    log.info("job %d: PDF reports made for trials %s", ctx.job.id, made or "none (all kept)")
 
 
 HANDLERS: dict[str, Handler] = {

@@ -7,7 +7,7 @@ shows about one trial from the database and storage into a
 
 A trial's PDF report is made ahead of time: whatever changes what it shows
 queues a ``report_pdf`` job (:func:`app.jobs.enqueue_report_pdf`), whose
-worker makes it into the report cache (:func:`make_report_pdf`,
+worker makes it into the report cache (:func:`make_report_pdfs`,
 :mod:`app.reports.pdf_cache`); a request finds it there, or makes it then and
 keeps it (:func:`report_pdf`, :func:`fhir_bundle`).
 """
@@ -230,26 +230,48 @@ def _forget_if_erased(db: Session, cache: ReportPdfCache, data: ReportData) -> N
         cache.forget_patient(data.patient_id)
 
 
-def make_report_pdf(
-    sessions: sessionmaker[Session], storage: Storage, trial_id: int, *, timezone: str
-) -> bool:
-    """The worker's part of a ``report_pdf`` job: the PDF report of the trial's current
-    result, dated in ``timezone``, made into the report cache unless it is there already.
-
-    ``timezone`` must be the server's (``Settings.timezone``), or the request will
-    not find the report. Returns whether a PDF was made; nothing is made for a
-    trial that is hidden, erased or has no result.
-    """
+def _current_report_data(
+    sessions: sessionmaker[Session], storage: Storage, trial_id: int, timezone: str
+) -> ReportData | None:
+    """What the report of the trial's current result shows; None for a trial that is
+    hidden, erased or has no result."""
     with sessions() as db:
         trial = visible_trial(db, trial_id)
         if trial is None or trial.result is None:
-            return False
-        data = load_report_data(db, trial, storage, timezone=timezone)
+            return None
+        return load_report_data(db, trial, storage, timezone=timezone)
+
+
+def make_report_pdfs(
+    sessions: sessionmaker[Session], storage: Storage, trial_id: int, *, timezone: str
+) -> list[int]:
+    """The worker's part of a ``report_pdf`` job: the PDF report of the trial's current
+    result, then of the trials shown beside it (the other hand, the other medication
+    state of its visit: their reports show this trial beside them), each made into the
+    report cache unless it is there already, dated in ``timezone``.
+
+    ``timezone`` must be the server's (``Settings.timezone``), or the request will
+    not find the reports. Returns the ids of the trials whose PDF was made; nothing
+    is made for a trial that is hidden, erased or has no result.
+    """
+    data = _current_report_data(sessions, storage, trial_id, timezone)
+    if data is None:
+        return []
     cache = ReportPdfCache.of(storage)
-    _, made = _cached_pdf(data, cache)
-    if made:
-        with sessions() as db:
-            _forget_if_erased(db, cache, data)
+    made = []
+    for column in (None, *data.beside):
+        shown = (
+            data
+            if column is None
+            else _current_report_data(sessions, storage, column.trial_id, timezone)
+        )
+        if shown is None:
+            continue
+        _, new = _cached_pdf(shown, cache)
+        if new:
+            with sessions() as db:
+                _forget_if_erased(db, cache, shown)
+            made.append(shown.trial_id)
     return made
 
 

@@ -13,8 +13,16 @@ import subprocess
 from collections.abc import Iterator
 
 import pytest
-from api_support import Api, api, make_api_key, make_user, video_pair  # noqa: F401 - pytest fixtures
+from api_support import (  # noqa: F401 - pytest fixtures
+    Api,
+    api,
+    make_api_key,
+    make_user,
+    trial_files,
+    video_pair,
+)
 from fastapi.testclient import TestClient
+from sample_trial import synthetic_trial
 from sqlalchemy import select
 from test_revisions import _trial
 
@@ -27,7 +35,7 @@ from app.reports.pdf_cache import ReportPdfCache
 from app.services import revisions
 from app.storage import Storage
 from app.worker import run_worker
-from core.markers_csv import read_markers_csv
+from core.markers_csv import markers_csv_text, read_markers_csv
 
 PASSWORD = "a long clinician passphrase 42"
 
@@ -227,6 +235,46 @@ def test_every_change_of_what_the_report_shows_makes_a_new_pdf(
     assert "RESULT REVISION 3 — edited" in _text(seen[-1], tmp_path)
 
 
+def test_the_other_hand_measured_makes_the_first_hands_report_again(api: Api, video_pair, made):
+    """A trial's report shows the other hand of its visit beside it: when that one is
+    measured, the worker makes both reports, and the first hand's PDF is found made."""
+    first = _measured_trial(api, video_pair)  # the left hand
+    before = _pdf(api, first)
+    assert made == [first]
+    with api.sessions() as db:
+        session_id = db.get(Trial, first).session_id
+    r = api.client.post(
+        f"/api/v1/sessions/{session_id}/trials",
+        data={"hand": "right"},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == 201, r.text
+    second = int(r.json()["id"])
+    markers, document = synthetic_trial(amplitude0_mm=40.0)
+    storage = Storage.from_settings(api.settings)
+    stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
+    with api.sessions() as db, db.begin():  # what the worker stores after measuring it
+        job = db.get(Job, r.json()["job_id"])
+        job.status = "succeeded"
+        db.get(Trial, second).status = "succeeded"
+        revisions.store_analysis(
+            db,
+            trial_id=second,
+            job_id=job.id,
+            calibration_id=db.scalar(select(Calibration.id)),
+            document=document,
+            markers_path=stored.path,
+            overlay_path=None,
+            plots_path=revisions.store_plots(storage, document, markers),
+        )
+    assert _queued_reports(api) == [second]
+    assert run_worker(api.settings, once=True) == 1
+    assert made == [first, second, first]  # its own report, then the left hand's again
+    after = _pdf(api, first)
+    assert after != before and len(made) == 3  # found made
+
+
 def test_without_the_workers_copy_the_request_makes_the_pdf_and_keeps_it(
     api: Api, video_pair, made
 ):
@@ -296,10 +344,10 @@ def test_a_report_made_while_its_patient_is_erased_removes_itself(
         return pdf
 
     monkeypatch.setattr(results_service, "render_report_pdf", erased_meanwhile)
-    assert results_service.make_report_pdf(api.sessions, storage, trial_id, timezone="UTC")
-    assert _cache(api).files() == []
+    made = results_service.make_report_pdfs(api.sessions, storage, trial_id, timezone="UTC")
+    assert made == [trial_id] and _cache(api).files() == []
     # Once the trial is gone the job has nothing to make.
-    assert not results_service.make_report_pdf(api.sessions, storage, trial_id, timezone="UTC")
+    assert results_service.make_report_pdfs(api.sessions, storage, trial_id, timezone="UTC") == []
 
 
 def test_a_hidden_trials_report_job_makes_nothing(api: Api, video_pair, made):
