@@ -146,3 +146,101 @@ def undistort(const double[:, ::1] xy, const double[::1] dist, int max_iter, dou
                 out[i, 0] = NAN
                 out[i, 1] = NAN
     return out_arr
+
+
+def points_at_times(
+    const double[:, ::1] pts,
+    const Py_ssize_t[::1] starts,
+    const Py_ssize_t[::1] nxt,
+    const Py_ssize_t[::1] prv,
+    const double[::1] frame_t,
+    const double[::1] point_t,
+    const unsigned char[::1] gap_after,
+    const double[::1] t,
+    const Py_ssize_t[::1] j_before,
+    double exact_tol_s,
+):
+    """:func:`core.clock.points_at_times` after its ``searchsorted``: the points of each instant.
+
+    ``j_before[s]`` is the last frame at or before instant ``t[s]`` (-1 before the
+    first).  An instant within ``exact_tol_s`` of its frame's time gives that frame's
+    points as they are when every point's instant is its frame's (global shutter);
+    otherwise each point of frame ``j`` linked to one of frame ``j + 1`` is
+    interpolated with the Lagrange polynomial through ``(prv, a, b, nxt)`` of its
+    track, else the three of them it has (none across a gap, before the first frame
+    or after the last); non-finite results are left out.  The weights and sums are
+    ``_lagrange``'s: ``w_k = 1 · Π_m (t − t_m) / (t_k − t_m)``, ``p = 0 + Σ_k w_k p_k``.
+    Returns ``(points (M, 2), counts (S,))``.
+    """
+    cdef Py_ssize_t n = frame_t.shape[0], n_t = t.shape[0], s, f, jc, i, a, b, pm, c
+    cdef Py_ssize_t total = 0, m_out = 0, k, m, n_nodes
+    cdef bint global_shutter = True, exact, usable
+    cdef double tq, w, x, y
+    cdef Py_ssize_t nodes[4]
+    cdef double tn[4]
+    counts_arr = np.zeros(n_t, dtype=np.intp)
+    cdef Py_ssize_t[::1] counts = counts_arr
+    with nogil:
+        for f in range(n):
+            for i in range(starts[f], starts[f + 1]):
+                if not (point_t[i] == frame_t[f]):
+                    global_shutter = False
+        for s in range(n_t):
+            jc = min(max(j_before[s], 0), n - 1)
+            total += starts[jc + 1] - starts[jc]
+    out_arr = np.empty((total, 2), dtype=np.float64)
+    cdef double[:, ::1] out = out_arr
+    with nogil:
+        for s in range(n_t):
+            jc = min(max(j_before[s], 0), n - 1)
+            tq = t[s]
+            exact = j_before[s] >= 0 and fabs(tq - frame_t[jc]) <= exact_tol_s and global_shutter
+            usable = exact or (j_before[s] >= 0 and j_before[s] < n - 1 and not gap_after[jc])
+            if not usable:
+                continue
+            for i in range(starts[jc], starts[jc + 1]):
+                if exact:
+                    x = pts[i, 0]
+                    y = pts[i, 1]
+                else:
+                    a = i
+                    b = nxt[a]
+                    if b < 0:
+                        continue
+                    pm = prv[a]
+                    c = nxt[b]
+                    if pm >= 0 and c >= 0:
+                        nodes[0] = pm
+                        nodes[1] = a
+                        nodes[2] = b
+                        nodes[3] = c
+                        n_nodes = 4
+                    elif pm >= 0:
+                        nodes[0] = pm
+                        nodes[1] = a
+                        nodes[2] = b
+                        n_nodes = 3
+                    elif c >= 0:
+                        nodes[0] = a
+                        nodes[1] = b
+                        nodes[2] = c
+                        n_nodes = 3
+                    else:
+                        continue  # a track of two samples: nothing (NaN, left out)
+                    for k in range(n_nodes):
+                        tn[k] = point_t[nodes[k]]
+                    x = 0.0
+                    y = 0.0
+                    for k in range(n_nodes):
+                        w = 1.0
+                        for m in range(n_nodes):
+                            if m != k:
+                                w = w * ((tq - tn[m]) / (tn[k] - tn[m]))
+                        x = x + w * pts[nodes[k], 0]
+                        y = y + w * pts[nodes[k], 1]
+                if fabs(x) <= DBL_MAX and fabs(y) <= DBL_MAX:
+                    out[m_out, 0] = x
+                    out[m_out, 1] = y
+                    m_out += 1
+                    counts[s] += 1
+    return out_arr[:m_out].copy(), counts_arr

@@ -57,7 +57,6 @@ from core.sync import (
     _epipolar_costs,
     _flatten,
     _ranks,
-    _segment_indices,
     _select_frames,
     estimate_offset,
     given_offset,
@@ -171,16 +170,23 @@ def row_delay_s(cam: Camera, points_px: FloatArray) -> FloatArray:
     return cam.readout_ms * 1e-3 * (points_px[:, 1] / (h - 1) - 0.5)
 
 
-def track_table(
-    points_px: Sequence[FloatArray],
-    frame_t: FloatArray,
-    *,
-    camera: Camera,
-    links: Sequence[NDArray[np.intp]],
-    interval_s: float,
-) -> TrackTable:
-    """One camera's detections with their 2D tracks (``links``, :func:`core.sync.link_points`)
-    and their instants; tracks are cut at gaps of lost frames."""
+@dataclass(frozen=True)
+class _Tracks:
+    """One camera's detections, flat, with their 2D tracks before any gap of lost frames cuts
+    them: what a :class:`TrackTable` keeps whatever the frame times (made once per camera)."""
+
+    points: FloatArray
+    counts: NDArray[np.intp]
+    starts: NDArray[np.intp]
+    nxt: NDArray[np.intp]
+    prv: NDArray[np.intp]
+    frame: NDArray[np.intp]  # each detection's frame
+    delay_s: FloatArray  # each detection's rolling-shutter delay (row_delay_s)
+
+
+def _tracks(
+    points_px: Sequence[FloatArray], *, camera: Camera, links: Sequence[NDArray[np.intp]]
+) -> _Tracks:
     pts, counts = _flatten(points_px)
     n = len(counts)
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
@@ -193,16 +199,38 @@ def track_table(
     prv = np.full(len(pts), -1, dtype=np.intp)
     has = nxt >= 0
     prv[nxt[has]] = np.flatnonzero(has)
+    frame_of = np.repeat(np.arange(n, dtype=np.intp), counts)
+    return _Tracks(pts, counts, starts, nxt, prv, frame_of, row_delay_s(camera, pts))
+
+
+def _table_at(tracks: _Tracks, frame_t: FloatArray, interval_s: float) -> TrackTable:
+    """The :class:`TrackTable` of ``tracks`` at frame times ``frame_t``: tracks cut at gaps."""
+    n = len(tracks.counts)
+    nxt, prv = tracks.nxt.copy(), tracks.prv.copy()
+    has = nxt >= 0
     frame_t = np.asarray(frame_t, dtype=np.float64)
     gap = np.zeros(n, dtype=bool)
     if n > 1:
         gap[:-1] = np.diff(frame_t) >= 1.5 * interval_s
     # No track crosses a gap of lost frames.
-    cross = has & gap[np.repeat(np.arange(n), counts)]
+    cross = has & gap[tracks.frame]
     prv[nxt[cross]] = -1
     nxt[cross] = -1
-    point_t = np.repeat(frame_t, counts) + row_delay_s(camera, pts)
-    return TrackTable(pts, starts, nxt, prv, frame_t, point_t, gap)
+    point_t = np.repeat(frame_t, tracks.counts) + tracks.delay_s
+    return TrackTable(tracks.points, tracks.starts, nxt, prv, frame_t, point_t, gap)
+
+
+def track_table(
+    points_px: Sequence[FloatArray],
+    frame_t: FloatArray,
+    *,
+    camera: Camera,
+    links: Sequence[NDArray[np.intp]],
+    interval_s: float,
+) -> TrackTable:
+    """One camera's detections with their 2D tracks (``links``, :func:`core.sync.link_points`)
+    and their instants; tracks are cut at gaps of lost frames."""
+    return _table_at(_tracks(points_px, camera=camera, links=links), frame_t, interval_s)
 
 
 def points_at_times(
@@ -218,6 +246,9 @@ def points_at_times(
     by a millimetre at tapping accelerations). Nothing is given across a gap
     of lost frames, before the first frame or after the last. An instant that
     is a frame's time (global shutter) gives that frame's detections as they are.
+    The loop over instants and points is compiled (:func:`core._geometry.points_at_times`,
+    the numpy formulation's arithmetic: ``tests/core/geometry_reference.py`` keeps it and a
+    test compares).
 
     Parameters
     ----------
@@ -232,57 +263,24 @@ def points_at_times(
     counts : ndarray, shape (S,)
         Number of points of each instant.
     """
-    pts, starts, nxt, prv = table.points, table.starts, table.nxt, table.prv
-    ft, pt = table.frame_t, table.point_t
+    ft = table.frame_t
     n = len(ft)
-    t = np.asarray(t_s, dtype=np.float64)
+    t = np.ascontiguousarray(t_s, dtype=np.float64)
     if n == 0 or len(t) == 0:
         return np.zeros((0, 2)), np.zeros(len(t), dtype=np.intp)
-    j = np.searchsorted(ft, t, side="right") - 1
-    jc = np.clip(j, 0, n - 1)
-    global_shutter = bool(np.all(pt == np.repeat(ft, np.diff(starts))))
-    exact = (j >= 0) & (np.abs(t - ft[jc]) <= exact_tol_s) & global_shutter
-    usable = exact | ((j >= 0) & (j < n - 1) & ~table.gap_after[jc])
-    counts = np.where(usable, starts[jc + 1] - starts[jc], 0)
-    idx, which = _segment_indices(starts[jc], counts)
-    keep = exact[which] | (nxt[idx] >= 0)
-    idx, which = idx[keep], which[keep]
-    out = pts[idx].copy()
-    moving = ~exact[which]
-    a = idx[moving]
-    tq = t[which[moving]]
-    b = nxt[a]
-    pm, c = prv[a], nxt[b]
-    res = np.full((len(a), 2), np.nan)
-    # Nodes: (pm, a, b, c) when all exist; else three of them.
-    four = (pm >= 0) & (c >= 0)
-    three_l = ~four & (pm >= 0)
-    three_r = ~four & (c >= 0)
-    for mask, nodes in (
-        (four, (pm, a, b, c)),
-        (three_l, (pm, a, b)),
-        (three_r, (a, b, c)),
-    ):
-        if not np.any(mask):
-            continue
-        sel = [v[mask] for v in nodes]
-        res[mask] = _lagrange([pt[v] for v in sel], [pts[v] for v in sel], tq[mask])
-    out[moving] = res
-    ok = np.all(np.isfinite(out), axis=1)
-    out, which = out[ok], which[ok]
-    return out, np.bincount(which, minlength=len(t)).astype(np.intp)
-
-
-def _lagrange(ts: list[FloatArray], ps: list[FloatArray], t: FloatArray) -> FloatArray:
-    """Lagrange interpolation through nodes ``(ts[k], ps[k])`` (each ``(M,)``, ``(M, 2)``) at ``t``."""
-    out = np.zeros((len(t), 2))
-    for k in range(len(ts)):
-        w = np.ones(len(t))
-        for m in range(len(ts)):
-            if m != k:
-                w *= (t - ts[m]) / (ts[k] - ts[m])
-        out += w[:, None] * ps[k]
-    return out
+    j = (np.searchsorted(ft, t, side="right") - 1).astype(np.intp)
+    return _geometry.points_at_times(
+        table.points,
+        table.starts,
+        table.nxt,
+        table.prv,
+        ft,
+        table.point_t,
+        table.gap_after.view(np.uint8),
+        t,
+        j,
+        exact_tol_s,
+    )
 
 
 def _split(points: FloatArray, counts: NDArray[np.intp]) -> list[FloatArray]:
@@ -597,17 +595,13 @@ class _Estimator:
         )
         self.right_flat = _flatten(right_norm, MAX_POINTS_PER_FRAME)
         self.right_links = link_points(right_px, max_step_px=max_step_px)
+        # The right tracks, whatever lost frames the scenes put back (only their times change).
+        self.right_tracks = _tracks(right_px, camera=rig.right, links=self.right_links)
 
     def scene(self, dropped_left: Sequence[int], dropped_right: Sequence[int]) -> _Scene:
         left_t = corrected_times(self.left_times, dropped_left)
         right_t = corrected_times(self.right_times, dropped_right)
-        table = track_table(
-            self.right_px,
-            right_t,
-            camera=self.rig.right,
-            links=self.right_links,
-            interval_s=self.right_times.interval_s,
-        )
+        table = _table_at(self.right_tracks, right_t, self.right_times.interval_s)
         return _Scene(
             self.rig, self.left_flat, left_t, table, _focal(self.rig.left), _focal(self.rig.right)
         )

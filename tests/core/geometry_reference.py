@@ -5,8 +5,11 @@ test can compare the compiled results with them bit for bit."""
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from core.camera import FloatArray, _full_dist, distort_normalized, tilt_matrix
+from core.clock import TrackTable
+from core.sync import _segment_indices
 
 
 def undistort_normalized_reference(
@@ -58,4 +61,61 @@ def undistort_normalized_reference(
     bad = ~np.all(np.abs(check - np.asarray(xy_distorted)) < 1e-9, axis=1)
     out = np.column_stack([x, y])
     out[bad] = np.nan
+    return out
+
+
+def points_at_times_reference(
+    table: TrackTable, t_s: FloatArray, *, exact_tol_s: float = 1e-9
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """``core.clock.points_at_times`` as numpy computed it before ``core._geometry``."""
+    pts, starts, nxt, prv = table.points, table.starts, table.nxt, table.prv
+    ft, pt = table.frame_t, table.point_t
+    n = len(ft)
+    t = np.asarray(t_s, dtype=np.float64)
+    if n == 0 or len(t) == 0:
+        return np.zeros((0, 2)), np.zeros(len(t), dtype=np.intp)
+    j = np.searchsorted(ft, t, side="right") - 1
+    jc = np.clip(j, 0, n - 1)
+    global_shutter = bool(np.all(pt == np.repeat(ft, np.diff(starts))))
+    exact = (j >= 0) & (np.abs(t - ft[jc]) <= exact_tol_s) & global_shutter
+    usable = exact | ((j >= 0) & (j < n - 1) & ~table.gap_after[jc])
+    counts = np.where(usable, starts[jc + 1] - starts[jc], 0)
+    idx, which = _segment_indices(starts[jc], counts)
+    keep = exact[which] | (nxt[idx] >= 0)
+    idx, which = idx[keep], which[keep]
+    out = pts[idx].copy()
+    moving = ~exact[which]
+    a = idx[moving]
+    tq = t[which[moving]]
+    b = nxt[a]
+    pm, c = prv[a], nxt[b]
+    res = np.full((len(a), 2), np.nan)
+    # Nodes: (pm, a, b, c) when all exist; else three of them.
+    four = (pm >= 0) & (c >= 0)
+    three_l = ~four & (pm >= 0)
+    three_r = ~four & (c >= 0)
+    for mask, nodes in (
+        (four, (pm, a, b, c)),
+        (three_l, (pm, a, b)),
+        (three_r, (a, b, c)),
+    ):
+        if not np.any(mask):
+            continue
+        sel = [v[mask] for v in nodes]
+        res[mask] = _lagrange_reference([pt[v] for v in sel], [pts[v] for v in sel], tq[mask])
+    out[moving] = res
+    ok = np.all(np.isfinite(out), axis=1)
+    out, which = out[ok], which[ok]
+    return out, np.bincount(which, minlength=len(t)).astype(np.intp)
+
+
+def _lagrange_reference(ts: list[FloatArray], ps: list[FloatArray], t: FloatArray) -> FloatArray:
+    """Lagrange interpolation through nodes ``(ts[k], ps[k])`` (each ``(M,)``, ``(M, 2)``) at ``t``."""
+    out = np.zeros((len(t), 2))
+    for k in range(len(ts)):
+        w = np.ones(len(t))
+        for m in range(len(ts)):
+            if m != k:
+                w *= (t - ts[m]) / (ts[k] - ts[m])
+        out += w[:, None] * ps[k]
     return out

@@ -291,3 +291,49 @@ def test_nearest_epipolar_px_all_candidates_at_once_is_the_per_candidate_loop() 
         assert np.array_equal(
             _nearest_epipolar_px(rig, l_pts, (r_pts, r_counts), rows[0]), want[0], equal_nan=True
         )
+
+
+@pytest.mark.parametrize("readout_ms", [0.0, 12.0])
+def test_points_at_times_compiled_gives_the_numpy_formulation_bit_for_bit(readout_ms) -> None:
+    # The right markers at the left instants (and every time-model candidate) come from
+    # core._geometry.points_at_times: the former numpy formulation's bits
+    # (tests/core/geometry_reference.py), at frame times (exact) and between them, across
+    # gaps of lost frames, before the first frame and after the last, with tracks of 2, 3
+    # and 4+ samples, NaN detections and frames without any.
+    from geometry_reference import points_at_times_reference
+
+    from core.clock import points_at_times, track_table
+    from core.sync import link_points
+
+    cam = replace(default_rig(image_size=SIZE).right, readout_ms=readout_ms)
+    rng = np.random.default_rng(int(readout_ms))
+    for trial in range(40):
+        n = int(rng.integers(1, 40))
+        frames = []
+        for _ in range(n):
+            k = int(rng.integers(0, 5))
+            frames.append(rng.uniform([0, 0], [SIZE.width, SIZE.height], (k, 2)))
+        if trial % 4 == 0 and sum(len(f) for f in frames):
+            f = next(f for f in frames if len(f))
+            f[0] = np.nan
+        interval = 1 / 60
+        frame_t = np.arange(n) * interval
+        if n > 3 and trial % 2:
+            frame_t[n // 2 :] += interval  # a lost frame
+        links = link_points(frames, max_step_px=2 * SIZE.width)
+        table = track_table(frames, frame_t, camera=cam, links=links, interval_s=interval)
+        t = np.concatenate(
+            [
+                rng.uniform(-2 * interval, frame_t[-1] + 2 * interval, 60),
+                frame_t[rng.integers(0, n, 10)],
+                frame_t[rng.integers(0, n, 5)] + 1e-10,
+                [np.nan] if trial % 5 == 0 else [],
+            ]
+        )
+        want = points_at_times_reference(table, t)
+        got = points_at_times(table, t)
+        assert np.array_equal(got[1], want[1])
+        assert got[0].shape == want[0].shape
+        assert np.array_equal(got[0], want[0])
+        assert got[1].dtype == want[1].dtype
+    assert len(want[0])  # the last trial interpolated something
