@@ -75,7 +75,7 @@ CALIBRATION_SOURCES = ("rig_file", "board_videos")
 CALIBRATION_STATUSES = ("pending", "ready", "failed")
 CALIBRATION_VERDICTS = ("good", "acceptable", "poor")
 TRIAL_STATUSES = ("queued", "running", "succeeded", "failed")
-JOB_KINDS = ("analyze_trial", "calibrate")
+JOB_KINDS = ("analyze_trial", "calibrate", "report_pdf")
 JOB_STATUSES = ("queued", "running", "succeeded", "failed")
 RESULT_KINDS = ("analysis", "correction")
 """A result revision measured from the videos (``analysis``) or a clinician's correction of one."""
@@ -533,7 +533,7 @@ class Job(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     kind: Mapped[str] = mapped_column(String(32))
-    """``analyze_trial`` or ``calibrate`` (``JOB_KINDS``)."""
+    """``analyze_trial``, ``calibrate`` or ``report_pdf`` (``JOB_KINDS``)."""
     status: Mapped[str] = mapped_column(String(16), default="queued")
     trial_id: Mapped[int | None] = mapped_column(ForeignKey("trials.id"), index=True)
     calibration_id: Mapped[int | None] = mapped_column(ForeignKey("calibrations.id"), index=True)

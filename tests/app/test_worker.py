@@ -492,7 +492,12 @@ def test_kill9_of_bradyscope_worker_during_a_real_analysis(
         if second.poll() is None:
             second.kill()
     assert second.returncode == 0, err
-    assert "stopped after 1 job(s)" in err
+    # The analysis enqueues its PDF report; the second worker may have made it before SIGTERM.
+    with sm() as db:
+        finished = db.scalars(select(Job).where(Job.status == "succeeded")).all()
+    kinds = sorted(j.kind for j in finished)
+    assert kinds in (["analyze_trial"], ["analyze_trial", "report_pdf"]), kinds
+    assert f"stopped after {len(finished)} job(s)" in err
     job = _job(sm, job_id)
     assert (job.status, job.attempts, job.error) == ("succeeded", 2, None)
     with sm() as db:
