@@ -181,6 +181,14 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
                 q.frames is not None and n > 0.05 * q.frames,
             )
         )
+    if q.merged_measured_frames:
+        rows.append(
+            QualityRow(
+                "Touching marker images measured as two discs (camera frames)",
+                str(q.merged_measured_frames),
+                False,  # measured along the other camera's rays, to within 0.1 px (docs/markers.md)
+            )
+        )
     rows.extend(sync_rows(result.sync, result.fps))
     return rows
 

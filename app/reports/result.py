@@ -93,6 +93,9 @@ class ResultQuality:
     #: frames where the two markers' images touched in a camera (not measured there)
     set_aside_frames: int | None = None
     overlap_frames: int | None = None
+    #: camera frames whose merged or touching marker images were measured as two discs
+    #: along the rays from the other camera (core.merged)
+    merged_measured_frames: int | None = None
     frames: int | None = None
 
 
@@ -260,6 +263,9 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
             warnings=tuple(str(w) for w in _list(warnings)),
             set_aside_frames=_count(quality, "set_aside_frames_left", "set_aside_frames_right"),
             overlap_frames=_count(quality, "overlap_frames"),
+            merged_measured_frames=_count(
+                quality, "merged_measured_frames_left", "merged_measured_frames_right"
+            ),
             frames=_count(quality, "frames_left"),
         ),
     )

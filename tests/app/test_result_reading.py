@@ -57,10 +57,13 @@ def test_marker_images_set_aside_and_overlaps_reach_the_quality_panel() -> None:
             "set_aside_frames_left": 3,
             "set_aside_frames_right": 140,
             "overlap_frames": 12,
+            "merged_measured_frames_left": 0,
+            "merged_measured_frames_right": 97,
         },
     }
     q = read_result(doc).quality
     assert (q.set_aside_frames, q.overlap_frames, q.frames) == (143, 12, 1000)
+    assert q.merged_measured_frames == 97
 
     class _Data:  # the two fields quality_rows reads
         calibration = None
@@ -71,12 +74,16 @@ def test_marker_images_set_aside_and_overlaps_reach_the_quality_panel() -> None:
     assert aside.value == "143" and aside.warn  # more than 5 % of the 2000 camera frames
     overlap = rows["Frames with the two markers overlapping in a camera (not measured there)"]
     assert overlap.value == "12" and not overlap.warn
+    merged = rows["Touching marker images measured as two discs (camera frames)"]
+    assert merged.value == "97" and not merged.warn  # measured, not a loss
     # older results without the fields show no such rows
     old = {
         r.label
         for r in quality_rows(type("D", (), {"calibration": None, "analysis": read_result({})})())
     }  # type: ignore[arg-type]
-    assert not any("set aside" in label or "overlapping" in label for label in old)
+    assert not any(
+        "set aside" in label or "overlapping" in label or "two discs" in label for label in old
+    )
 
 
 def test_frames_measured_counts_measured_only() -> None:
