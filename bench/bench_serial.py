@@ -75,8 +75,8 @@ def run(d: Path, repeat: int, profile: bool) -> Any:
             for k in (0, 1):
                 stamps[k].extend(cached["stamps"][k])
         mark["cpu"], mark["wall"] = _cpu_s(), time.perf_counter()
-        left_px, right_px, info = cached["out"]
-        return list(left_px), list(right_px), dict(info)
+        left_px, right_px, info, patches = copy.deepcopy(cached["out"])
+        return left_px, right_px, info, patches
 
     pipeline._detect_videos = detect_once  # type: ignore[assignment]
     try:
