@@ -311,6 +311,19 @@ cdef void mark_core(const Frame* f, const Core* c, unsigned char* taken,
 
 
 
+cdef bint in_core(const Frame* f, int x, int y) noexcept nogil:
+    """Whether pixel ``(x, y)`` lies in the core of a blob measured before."""
+    cdef const Core* cores = <const Core*>f.cores.p
+    cdef size_t i
+    for i in range(f.cores.n // sizeof(Core)):
+        if (cores[i].x0 <= x < cores[i].x0 + cores[i].w
+                and cores[i].y0 <= y < cores[i].y0 + cores[i].h
+                and f.core_bits.p[cores[i].off + <size_t>(y - cores[i].y0) * cores[i].w
+                                  + x - cores[i].x0]):
+            return True
+    return False
+
+
 # ------------------------------------------------------------------ one blob
 
 cdef int measure(Frame* f, int sx, int sy, int* has_core) except -1 nogil:
@@ -425,6 +438,12 @@ cdef int measure(Frame* f, int sx, int sy, int* has_core) except -1 nogil:
         if (mx_l != lx or my_l != ly) and reseeds < 2:
             sx = mx_l + wx0
             sy = my_l + wy0
+            if in_core(f, sx, sy):
+                # a seed on the flank of a blob measured before (its halo on lit skin)
+                # would measure it again: a duplicate row and core. Counted as found,
+                # as that measurement was (the region's max_seeds)
+                has_core[0] = 2
+                return 0
             reseeds += 1
             continue
         # moments of the core (cv2.moments' formulas, origin at the box corner)
@@ -720,8 +739,9 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
             measure(f, seeds[i].x, seeds[i].y, &has_core)
             taken[(seeds[i].y - y0) * rw + seeds[i].x - x0] = 1
             if has_core:
-                cores = <const Core*>f.cores.p  # the buffer may have moved
-                mark_core(f, &cores[f.cores.n // sizeof(Core) - 1], taken, x0, y0, x1, y1)
+                if has_core == 1:  # a new core (2: one measured before)
+                    cores = <const Core*>f.cores.p  # the buffer may have moved
+                    mark_core(f, &cores[f.cores.n // sizeof(Core) - 1], taken, x0, y0, x1, y1)
                 n_found += 1
                 if n_found >= f.prm.max_seeds:
                     break

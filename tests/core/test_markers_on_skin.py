@@ -179,3 +179,29 @@ def test_a_soft_glint_beside_another_blob_is_still_fitted() -> None:
     det = detect_markers(img, search_xy_px=np.array([a, b]))
     assert len(det) == 2
     assert np.all(np.isfinite(det.fit_residual))  # both fitted, as before the wider test
+
+
+def test_a_marker_on_lit_skin_is_measured_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seeds on a marker's flank over lit skin climb to its peak: the compiled search
+    skips them instead of measuring the blob again (a duplicate row per seed, up to the
+    region's seed limit, that cost ~1.8 ms a frame on the skin recording and, passed to
+    the disc fit as other blobs' centres, hid a moving marker's own pixels from it)."""
+    searched: list[np.ndarray] = []
+    search = _blobs.search
+
+    def recording_search(*args: object) -> tuple[np.ndarray, object]:
+        rows, supports = search(*args)
+        searched.append(rows)
+        return rows, supports
+
+    monkeypatch.setattr(_blobs, "search", recording_search)
+    centre = [0.3, 0.2, MARKER_Z_MM]
+    for axis_mm in (0.2, 3.0):  # on the nail: lit skin all round the marker
+        img, truth, _ = _image(centre, [_finger(axis_mm)], seed=7)
+        searched.clear()
+        det = detect_markers(img)  # the full-frame search
+        assert len(det) == 1 and np.linalg.norm(det.xy_px[0] - truth) < 0.1  # px
+        (rows,) = searched
+        xy = rows[:, :2]
+        near = np.linalg.norm(xy[:, None] - xy[None], axis=2) < 1.0  # px
+        assert np.count_nonzero(near) == len(rows), f"{len(rows)} rows for one blob"
