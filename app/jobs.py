@@ -52,7 +52,7 @@ from typing import Any
 from sqlalchemy import and_, case, exists, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import JOB_KINDS, Calibration, Job, Result, Trial, utcnow
+from app.models import Calibration, Job, Result, Trial, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +81,8 @@ class ClaimedJob:
         return self.max_attempts - self.attempts
 
 
-REPORT_PDF = JOB_KINDS[2]
-"""``report_pdf``: the kind of job that makes a trial's PDF report ahead (``app.handlers``)."""
+REPORT_PDF = "report_pdf"
+"""The kind of job that makes a trial's PDF report ahead of time (``app.handlers``)."""
 
 
 def new_lease_owner(worker_name: str) -> str:

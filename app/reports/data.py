@@ -186,7 +186,7 @@ def quality_rows(data: ReportData) -> list[QualityRow]:
             QualityRow(
                 "Touching marker images measured as two discs (camera frames)",
                 str(q.merged_measured_frames),
-                False,  # measured along the other camera's rays, to within 0.1 px (docs/markers.md)
+                False,  # measured along the other camera's rays (0.04 px RMS, docs/markers.md)
             )
         )
     rows.extend(sync_rows(result.sync, result.fps))

@@ -279,3 +279,11 @@ def test_a_report_job_is_no_trials_latest_job_and_leaves_its_status(db_sessionma
     assert claimed.id == analysis
     with sm() as db:
         assert db.get(Trial, trial_id).status == "running"
+
+
+def test_every_kind_the_worker_runs_is_a_listed_job_kind() -> None:
+    from app.handlers import HANDLERS
+    from app.models import JOB_KINDS
+
+    assert sorted(HANDLERS) == sorted(JOB_KINDS)
+    assert jobs.REPORT_PDF in JOB_KINDS
