@@ -26,6 +26,7 @@ the truth's trajectories at ``i / fps``).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -38,7 +39,7 @@ sys.path.insert(0, str(ROOT / "tests" / "core"))
 
 
 def _report(  # type: ignore[no-untyped-def]
-    name: str, session, analysis, seconds: float, *, label: str | None = None
+    name: str, session, analysis, seconds: float, *, label: str | None = None, what: str = "analyze"
 ) -> None:
     import test_free_running as cases
 
@@ -47,7 +48,7 @@ def _report(  # type: ignore[no-untyped-def]
 
     rms, d_rms, both = cases._errors(session, analysis)
     truth, sync = session.truth, analysis.sync
-    print(f"{label or name}: analyze {seconds:.0f} s (wall, loaded machine)")
+    print(f"{label or name}: {what} {seconds:.0f} s (wall, load average {os.getloadavg()[0]:.1f})")
     print(
         f"  3D RMS {rms:.3f} mm, thumb-index distance RMS {d_rms:.3f} mm,"
         f" measured by both cameras {100 * both:.1f} % of the frames"
@@ -120,6 +121,7 @@ def main() -> None:
             out = base / name
             if (out / "truth.json").exists():
                 session = _session(out)
+                what = "analyze"
                 t0 = time.perf_counter()
                 analysis = analyze_recording(
                     read_rig(session.rig_path), session.left_video, session.right_video
@@ -129,7 +131,8 @@ def main() -> None:
                 print(f"simulating {name} into {out} ...", flush=True)
                 t0 = time.perf_counter()
                 session, analysis = cases._simulate_and_analyze(name, out)
-            _report(name, session, analysis, time.perf_counter() - t0)
+                what = "simulate and analyze"
+            _report(name, session, analysis, time.perf_counter() - t0, what=what)
             if name == "rolling":
                 rig = read_rig(session.rig_path)
                 plain = StereoRig(
