@@ -16,23 +16,40 @@ process's CPU time (all threads), the CPU time of the two browser proxies
   separate ``bradyscope worker`` processes that share nothing but the
   database and the data directory).
 
+With ``--workers N --postgres URL`` (a PostgreSQL server the bench may create
+a database on, e.g. ``postgresql+psycopg://postgres@127.0.0.1:5432/postgres``)
+the trials go into a new database there instead, and N ``bradyscope worker``
+processes measure them, as a hospital's workers would: it prints the wall time
+from their start until every analysis has succeeded, trials per hour with N
+workers, and their CPU (the database is dropped afterwards). Run it with N = 1
+and N = 2 on the same trials to see what a second worker adds on this machine.
+
 Usage::
 
     python bench/bench_analyze.py --kind all --no-memory --repeat 1 --keep /tmp/abench
     python bench/bench_throughput.py --sessions /tmp/abench [--trials 3]
     python bench/bench_throughput.py --sessions /tmp/abench --compare-proxy-sizes
+    python bench/bench_throughput.py --dir SESSION --trials 4 --workers 2 \\
+        --postgres postgresql+psycopg://postgres@127.0.0.1:5432/postgres
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
+import signal
+import subprocess
+import sys
 import tempfile
 import time
+import uuid
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 
 def _cpu_s() -> float:
@@ -63,7 +80,86 @@ def _upload(settings, actor, session_id: int, left: Path, right: Path) -> None:
         upload.close()
 
 
-def bench(session_dir: Path, n_trials: int) -> None:
+@contextlib.contextmanager
+def _postgres_database(server_url: str) -> Iterator[str]:
+    """A new, empty database on ``server_url``'s server (dropped afterwards); its URL."""
+    import sqlalchemy as sa
+
+    name = f"bradyscope_bench_{uuid.uuid4().hex[:12]}"
+    admin = sa.create_engine(server_url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as conn:
+        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield f"{server_url.rsplit('/', 1)[0]}/{name}"
+    finally:
+        with admin.connect() as conn:
+            conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+def _run_worker_processes(settings: Any, n_workers: int, n_trials: int) -> tuple[float, float]:
+    """Start ``n_workers`` ``bradyscope worker`` processes on ``settings``' database and
+    data directory; wall s until every ``analyze_trial`` job succeeded, and their CPU s."""
+    from sqlalchemy import func, select
+
+    from app.db import get_sessionmaker
+    from app.models import Job
+
+    env = {
+        **os.environ,
+        "BRADYSCOPE_DATA_DIR": str(settings.data_dir),
+        "BRADYSCOPE_DATABASE_URL": settings.database_url,
+        "BRADYSCOPE_WORKER_POLL_S": "0.2",
+        "BRADYSCOPE_LOG_LEVEL": "WARNING",
+    }
+    command = [str(Path(sys.executable).with_name("bradyscope")), "worker"]
+    sessions = get_sessionmaker(settings)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    workers = [subprocess.Popen(command, env=env) for _ in range(n_workers)]
+    try:
+        while True:
+            with sessions() as db:
+                states = dict(
+                    db.execute(
+                        select(Job.status, func.count())
+                        .where(Job.kind == "analyze_trial")
+                        .group_by(Job.status)
+                    )
+                    .tuples()
+                    .all()
+                )
+            if states.get("failed"):
+                raise SystemExit(f"{states['failed']} analysis job(s) failed: {states}")
+            if states.get("succeeded", 0) == n_trials:
+                break
+            if any(w.poll() is not None for w in workers):
+                raise SystemExit("a worker process exited before the trials were measured")
+            time.sleep(0.1)
+        wall = time.perf_counter() - t0
+    finally:
+        for w in workers:
+            w.send_signal(signal.SIGTERM)
+        for w in workers:
+            w.wait(timeout=120)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    return wall, cpu
+
+
+def bench(
+    session_dir: Path, n_trials: int, n_workers: int = 0, postgres: str | None = None
+) -> None:
+    with contextlib.ExitStack() as stack:
+        database_url = None
+        if n_workers:
+            if postgres is None:
+                raise SystemExit("--workers needs --postgres (a server the bench may use)")
+            database_url = stack.enter_context(_postgres_database(postgres))
+        _bench(session_dir, n_trials, n_workers, database_url)
+
+
+def _bench(session_dir: Path, n_trials: int, n_workers: int, database_url: str | None) -> None:
     from app.actors import ROLE_SCOPES, Actor
     from app.db import get_sessionmaker, migrate
     from app.models import Calibration, Patient, RecordingSession, Rig, User
@@ -73,7 +169,7 @@ def bench(session_dir: Path, n_trials: int) -> None:
     left = next(iter(sorted(session_dir.glob("left.*"))))
     right = next(iter(sorted(session_dir.glob("right.*"))))
     with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
-        settings = settings_with(data_dir=Path(tmp))
+        settings = settings_with(data_dir=Path(tmp), database_url=database_url)
         migrate(settings)
         doc = json.loads((session_dir / "rig.json").read_text())
         with get_sessionmaker(settings)() as db:
@@ -112,6 +208,16 @@ def bench(session_dir: Path, n_trials: int) -> None:
         for _ in range(n_trials):
             _upload(settings, actor, session_id, left, right)
         up_wall, up_cpu = (time.perf_counter() - t0) / n_trials, (_cpu_s() - c0) / n_trials
+        if n_workers:
+            wall, cpu = _run_worker_processes(settings, n_workers, n_trials)
+            print(
+                f"{session_dir.name}: {n_trials} trials measured by {n_workers} worker"
+                f" process(es) on PostgreSQL in {wall:.1f} s ({cpu / n_trials:.1f} s of their"
+                f" CPU a trial, reports included): {3600 * n_trials / wall:.0f} trials/hour;"
+                f" upload check {up_cpu:.1f} s of CPU a trial, not counted;"
+                f" load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+            )
+            return
         c0, t0 = _cpu_s(), time.perf_counter()
         done = run_worker(settings, once=True)
         wall, cpu = (time.perf_counter() - t0) / done, (_cpu_s() - c0) / done
@@ -168,6 +274,13 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, action="append", default=[], help="one session folder")
     ap.add_argument("--trials", type=int, default=3)
     ap.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="measure with this many `bradyscope worker` processes on PostgreSQL (--postgres)",
+    )
+    ap.add_argument("--postgres", help="a PostgreSQL server URL the bench may create a database on")
+    ap.add_argument(
         "--compare-proxy-sizes",
         action="store_true",
         help="only time write_proxy of each left video at full size and reduced (alternating)",
@@ -182,7 +295,7 @@ def main() -> None:
         if args.compare_proxy_sizes:
             compare_proxy_sizes(d)
         else:
-            bench(d, args.trials)
+            bench(d, args.trials, args.workers, args.postgres)
 
 
 if __name__ == "__main__":
