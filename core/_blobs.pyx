@@ -981,6 +981,7 @@ def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] p
 # ------------------------------------------------------------------ disc over a planar background
 
 DEF NPAR = 8   # cx, cy, R, s, A, B0, Bx, By
+DEF NE = 11   # cx, cy, R, s, A, B0, Bx, By, theta, c, F: a disc and a straight skin edge
 DEF FIT_COLS = 14
 DEF HALO_PX = 3  # the second, wider border of the dark-room test (see fit_one)
 FIT_COLUMNS = (
@@ -1049,39 +1050,40 @@ cdef double disc_pass(const double* xs, const double* ys, const double* zs, int 
     return cost
 
 
-cdef int solve_damped(const double* jtj, const double* jtr, double lam, double* delta) noexcept nogil:
-    """``(JtJ + lam diag(JtJ)) delta = Jtr`` by Cholesky; 0 when it is not positive definite."""
-    cdef double L[NPAR * NPAR]
-    cdef double y[NPAR]
+cdef int solve_damped(const double* jtj, const double* jtr, double lam, double* delta,
+                      int n) noexcept nogil:
+    """``(JtJ + lam diag(JtJ)) delta = Jtr`` for ``n`` (at most ``NE``) unknowns, by
+    Cholesky; 0 when it is not positive definite."""
+    cdef double L[NE * NE]
+    cdef double y[NE]
     cdef int a, b, k
     cdef double s
-    for a in range(NPAR):
+    for a in range(n):
         for b in range(a + 1):
-            s = jtj[b * NPAR + a]
+            s = jtj[b * n + a]
             if a == b:
-                s += lam * jtj[a * NPAR + a] + 1e-9
+                s += lam * jtj[a * n + a] + 1e-9
             for k in range(b):
-                s -= L[a * NPAR + k] * L[b * NPAR + k]
+                s -= L[a * n + k] * L[b * n + k]
             if a == b:
                 if s <= 0:
                     return 0
-                L[a * NPAR + a] = sqrt(s)
+                L[a * n + a] = sqrt(s)
             else:
-                L[a * NPAR + b] = s / L[b * NPAR + b]
-    for a in range(NPAR):
+                L[a * n + b] = s / L[b * n + b]
+    for a in range(n):
         s = jtr[a]
         for k in range(a):
-            s -= L[a * NPAR + k] * y[k]
-        y[a] = s / L[a * NPAR + a]
-    for a in range(NPAR - 1, -1, -1):
+            s -= L[a * n + k] * y[k]
+        y[a] = s / L[a * n + a]
+    for a in range(n - 1, -1, -1):
         s = y[a]
-        for k in range(a + 1, NPAR):
-            s -= L[k * NPAR + a] * delta[k]
-        delta[a] = s / L[a * NPAR + a]
+        for k in range(a + 1, n):
+            s -= L[k * n + a] * delta[k]
+        delta[a] = s / L[a * n + a]
     return 1
 
 
-DEF NE = 11   # cx, cy, R, s, A, B0, Bx, By, theta, c, F: a disc and a straight skin edge
 #: Edge models of :func:`edge_pass`
 DEF EDGE_FRONT = 1   # skin in front of the marker beyond the edge (a finger hides part of it)
 DEF EDGE_BEHIND = 2  # the background steps at the edge, under the marker
@@ -1170,38 +1172,6 @@ cdef double edge_pass(const double* xs, const double* ys, const double* zs, int 
     return cost
 
 
-cdef int solve_damped_ne(const double* jtj, const double* jtr, double lam, double* delta) noexcept nogil:
-    """:func:`solve_damped` for the ``NE`` parameters of :func:`edge_pass`."""
-    cdef double L[NE * NE]
-    cdef double y[NE]
-    cdef int a, b, k
-    cdef double s
-    for a in range(NE):
-        for b in range(a + 1):
-            s = jtj[b * NE + a]
-            if a == b:
-                s += lam * jtj[a * NE + a] + 1e-9
-            for k in range(b):
-                s -= L[a * NE + k] * L[b * NE + k]
-            if a == b:
-                if s <= 0:
-                    return 0
-                L[a * NE + a] = sqrt(s)
-            else:
-                L[a * NE + b] = s / L[b * NE + b]
-    for a in range(NE):
-        s = jtr[a]
-        for k in range(a):
-            s -= L[a * NE + k] * y[k]
-        y[a] = s / L[a * NE + a]
-    for a in range(NE - 1, -1, -1):
-        s = y[a]
-        for k in range(a + 1, NE):
-            s -= L[k * NE + a] * delta[k]
-        delta[a] = s / L[a * NE + a]
-    return 1
-
-
 cdef double fit_edge(const double* xs, const double* ys, const double* zs, int n, double* p,
                      double xc0, double yc0, int mode, int max_iter) noexcept nogil:
     """Levenberg-Marquardt on :func:`edge_pass` from ``p`` (``NE`` values, in place);
@@ -1219,7 +1189,7 @@ cdef double fit_edge(const double* xs, const double* ys, const double* zs, int n
         it += 1
         ok = 0
         for tries in range(6):
-            if not solve_damped_ne(jtj, jtr, lam, delta):
+            if not solve_damped(jtj, jtr, lam, delta, NE):
                 lam *= 10.0
                 continue
             for a in range(NE):
@@ -1353,7 +1323,7 @@ cdef int fit_one(const unsigned char* img, int W, int H, double cx, double cy, d
         it += 1
         ok = 0
         for tries in range(6):
-            if not solve_damped(jtj, jtr, lam, delta):
+            if not solve_damped(jtj, jtr, lam, delta, NPAR):
                 lam *= 10.0
                 continue
             for a in range(NPAR):
