@@ -44,6 +44,7 @@ from app.db import current_revision, dispose_engines, get_engine, migrate
 from app.errors import AppError, ConflictError, InvalidRequestError, ServiceUnavailableError
 from app.models import Base, utcnow
 from app.reports.pdf_cache import ReportPdfCache
+from app.reports.trend_cache import TrendSvgCache
 from app.settings import Settings
 from app.storage import Storage
 from app.storage import file_sha256 as _sha256
@@ -380,7 +381,9 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
     if force and files_dir.is_dir():
         shutil.rmtree(files_dir)
     count, total = _restore_files(settings, source, manifest, skip=db_file.name, force=force)
-    ReportPdfCache.of(Storage.from_settings(settings)).clear()
+    storage = Storage.from_settings(settings)
+    ReportPdfCache.of(storage).clear()
+    TrendSvgCache.of(storage).clear()
     count, total = count + 1, total + int(db_file.stat().st_size)
     (settings.data_dir / "tmp").mkdir(parents=True, exist_ok=True)
     migrate(settings)  # a backup of an older version is brought forward

@@ -10,7 +10,8 @@ The real handlers of the worker (:mod:`app.worker` runs them, each with a
   rig's two board recordings → a ready ``Calibration``;
 - :func:`make_report_pdf`: the PDF report of a trial's current result, and of
   the trials shown beside it, into the report cache, so that the request finds
-  it made (``app.reports.pdf_cache``).
+  it made (``app.reports.pdf_cache``); and the trend plots of the patient's page
+  (``app.reports.trend_cache``).
 
 What crosses to ``core`` and back is typed:
 :class:`app.services.trials.TrialInputs` and ``core.pipeline.Analysis``,
@@ -31,7 +32,7 @@ from sqlalchemy.orm import Session
 
 from app import jobs
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
-from app.services import calibrations, results, revisions, trials
+from app.services import calibrations, patients, results, revisions, trials
 from core.calibration import calibrate_stereo_from_paths
 from core.errors import InputError
 from core.markers_csv import read_markers_csv
@@ -221,7 +222,8 @@ def calibrate(ctx: JobContext) -> None:
 def make_report_pdf(ctx: JobContext) -> None:
     """Make the PDF report of the job's trial (its current result) into the report cache,
     and those of the trials shown beside it, whose reports show it
-    (:func:`app.services.results.make_report_pdfs`).
+    (:func:`app.services.results.make_report_pdfs`); then the trend plots of its patient's
+    page that are not kept yet (:func:`app.services.patients.draw_trend_plots`).
 
     Dated in the clinic's time zone (``BRADYSCOPE_TIMEZONE``): a worker must have the
     server's, or its reports are not the ones asked for (they are made again then).
@@ -233,6 +235,10 @@ def make_report_pdf(ctx: JobContext) -> None:
         ctx.sessions, ctx.storage, ctx.job.trial_id, timezone=ctx.settings.timezone
     )
     log.info("job %d: PDF reports made for trials %s", ctx.job.id, made or "none (all kept)")
+    drawn = patients.draw_trend_plots(
+        ctx.sessions, ctx.storage, ctx.job.trial_id, timezone=ctx.settings.timezone
+    )
+    log.info("job %d: %d trend plots drawn for the patient page", ctx.job.id, drawn)
 
 
 HANDLERS: dict[str, Handler] = {

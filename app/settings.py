@@ -127,7 +127,8 @@ class Settings(BaseSettings):
         default=256,
         ge=1,
         description="The most the trials' PDF reports made ahead of time may take on disk "
-        "(<data_dir>/cache/reports; about 0.1 MB a report).",
+        "(<data_dir>/cache/reports; about 0.1 MB a report), and apart from them the patients'"
+        " trend plots (<data_dir>/cache/trends).",
     )
     timezone: str = Field(
         default="UTC",

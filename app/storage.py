@@ -8,6 +8,8 @@ Layout (``data_dir`` from the settings)::
       tmp/                      partial uploads and writes; never referenced by the DB
       cache/reports/            trials' PDF reports made ahead (app.reports.pdf_cache):
                                 derived, bounded, never backed up, emptied by a restore
+      cache/trends/             patients' trend plots drawn once (app.reports.trend_cache):
+                                the same
 
 Paths stored in the database are **relative to data_dir** and always produced
 here (never from a client's file name), e.g.
@@ -80,7 +82,8 @@ class Storage:
         The service's data directory (``Settings.data_dir``); created if missing.
     report_cache_bytes
         The most the PDF report cache (:attr:`report_cache_dir`) may hold
-        (``Settings.report_cache_mb``).
+        (``Settings.report_cache_mb``), and apart from it the trend plot cache
+        (:attr:`trend_cache_dir`).
     """
 
     def __init__(self, data_dir: Path | str, *, report_cache_bytes: int) -> None:
@@ -88,6 +91,7 @@ class Storage:
         self.files_dir = self.data_dir / "files"
         self.tmp_dir = self.data_dir / "tmp"
         self.report_cache_dir = self.data_dir / "cache" / "reports"
+        self.trend_cache_dir = self.data_dir / "cache" / "trends"
         self.report_cache_bytes = int(report_cache_bytes)
         self.files_dir.mkdir(parents=True, exist_ok=True)
         self.tmp_dir.mkdir(parents=True, exist_ok=True)

@@ -8,10 +8,14 @@ shows one trend per key metric (:mod:`app.services.patients` gathers the
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import date, datetime, timedelta
+from pathlib import Path
 from typing import Any
 
 from app.plots import COLOURS, draw_empty, new_figure, plot_rc, to_svg
@@ -53,6 +57,7 @@ def trend_plot(
     unit: str,
     integer: bool = False,
     limb: str = "hand",
+    id_prefix: str | None = None,
 ) -> str:
     """One metric over sessions, per side, with medication on and off drawn apart.
 
@@ -62,13 +67,14 @@ def trend_plot(
     of one visit are spread slightly sideways (:data:`DODGE_FRACTION` of the
     axis per series) so that none hides another; resting the pointer on a
     point shows its date, hand, medication state and value. ``integer`` puts
-    ticks on whole numbers only (counts); ``limb`` names the side (hand, foot) on hover.
+    ticks on whole numbers only (counts); ``limb`` names the side (hand, foot) on hover;
+    ``id_prefix`` as in :func:`app.plots.to_svg`.
     """
     fig = new_figure(3.6, 2.3)
     usable = [p for p in points if p.value is not None and math.isfinite(float(p.value))]
     if not usable:
         draw_empty(fig, f"No {label.lower()} measured yet.")
-        return to_svg(fig, title=f"{label} over time: no data", name="trend")
+        return to_svg(fig, title=f"{label} over time: no data", name="trend", id_prefix=id_prefix)
     styles: dict[str, dict[str, Any]] = {
         "on": {"ls": "-", "marker": "o", "mfc": None},
         "off": {"ls": "--", "marker": "o", "mfc": "white"},
@@ -124,8 +130,52 @@ def trend_plot(
                 mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
             )
     return to_svg(
-        fig, title=f"{label} per session over time, per {limb}", name="trend", hover=hover
+        fig,
+        title=f"{label} per session over time, per {limb}",
+        name="trend",
+        hover=hover,
+        id_prefix=id_prefix,
     )
+
+
+def trend_key(
+    points: Sequence[TrendPoint], *, label: str, unit: str, integer: bool, limb: str
+) -> str:
+    """What :func:`trend_plot` of these arguments shows, as a SHA-256 (lower-case hex): its
+    points, words and units, and the plotting code (this module's and :mod:`app.plots`'
+    source, matplotlib's version). The key of the trend cache (:mod:`app.reports.trend_cache`).
+    """
+    shown = {
+        "points": [
+            [
+                _as_datetime(p.recorded_at).isoformat(),
+                p.hand,
+                p.medication_state,
+                None if p.value is None else repr(float(p.value)),
+            ]
+            for p in points
+        ],
+        "label": label,
+        "unit": unit,
+        "integer": integer,
+        "limb": limb,
+        "code": _code_fingerprint(),
+    }
+    return hashlib.sha256(json.dumps(shown, sort_keys=True).encode("utf-8")).hexdigest()
+
+
+@functools.cache
+def _code_fingerprint() -> str:
+    from importlib import metadata
+
+    from app import plots
+
+    # the version from the package's metadata: importing matplotlib would cost a page
+    # whose plots are all kept ~0.3 s
+    digest = hashlib.sha256(metadata.version("matplotlib").encode())
+    for module_file in (__file__, plots.__file__):
+        digest.update(Path(module_file).read_bytes())
+    return digest.hexdigest()
 
 
 def _as_datetime(value: date | datetime) -> datetime:

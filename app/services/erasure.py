@@ -17,7 +17,8 @@ Rows go first, in one transaction; the files are removed after its commit
 only unreferenced bytes, which the next erasure of anything does not need),
 and with them the patient's PDF reports in the report cache
 (:meth:`app.reports.pdf_cache.ReportPdfCache.forget_patient`; a report being
-made at that moment removes itself when it finds its trial gone).
+made at that moment removes itself when it finds its trial gone) and their trend
+plots (:mod:`app.reports.trend_cache`; the same).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from app.audit import AnyActor, audit
 from app.errors import NotFoundError
 from app.models import Base, Patient, RecordingSession, utcnow
 from app.reports.pdf_cache import ReportPdfCache
+from app.reports.trend_cache import TrendSvgCache
 from app.storage import Storage
 
 log = logging.getLogger(__name__)
@@ -161,6 +163,7 @@ def _erase(
         else:
             missing += 1
     ReportPdfCache.of(storage).forget_patient(patient_id)
+    TrendSvgCache.of(storage).forget_patient(patient_id)
     return ErasureReport(patient_id, counts, removed, missing)
 
 

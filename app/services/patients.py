@@ -9,11 +9,11 @@ code stays reserved so that it cannot be given to somebody else by mistake.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, date, datetime
 
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app import jobs
 from app.actors import Actor
@@ -22,11 +22,20 @@ from app.errors import ConflictError, NotFoundError
 from app.models import Patient, RecordingSession, Trial, utcnow
 from app.reports.result import read_result
 from app.reports.task_metrics import trend_metrics
+from app.reports.trend_cache import TrendSvgCache, cached_trend_plot
 from app.schemas import PatientCreate, PatientUpdate
-from app.services.common import cancel_trial_jobs, load_patient, paginate, visible_patient
+from app.services.common import (
+    cancel_trial_jobs,
+    load_patient,
+    paginate,
+    visible_patient,
+    visible_trial,
+)
 from app.services.erasure import tombstone_code
+from app.storage import Storage
+from app.timezones import local_date
 from app.trends import TrendPoint
-from core.tasks import TASKS
+from core.tasks import TASKS, parse_task
 
 
 def _code_taken(db: Session, code: str, *, exclude_id: int | None = None) -> Patient | None:
@@ -240,6 +249,65 @@ def trend_points(patient: Patient) -> dict[str, dict[str, list[TrendPoint]]]:
                     )
                 )
     return {task: points[task] for task in TASKS if task in points}
+
+
+def _aware(value: date | datetime) -> datetime:
+    if isinstance(value, datetime):
+        return value
+    return datetime(value.year, value.month, value.day, tzinfo=UTC)
+
+
+def plots_trends(task: str, points: dict[str, list[TrendPoint]], tz: str) -> bool:
+    """Whether the patient page draws the task's trends as plots: its measured trials are
+    from more than one visit (day in the clinic's time zone ``tz``); one visit is a table."""
+    measured = [p for key, _, _ in trend_metrics(task) for p in points[key] if p.value is not None]
+    return len({local_date(_aware(p.recorded_at), tz) for p in measured}) > 1
+
+
+def trend_plot_of(
+    storage: Storage, patient_id: int, task: str, key: str, points: list[TrendPoint]
+) -> str:
+    """The patient's plot of one trend metric (``key`` of :func:`trend_metrics` of ``task``):
+    kept in the trend cache (:mod:`app.reports.trend_cache`), or drawn now and kept."""
+    label, unit = next((lb, un) for k, lb, un in trend_metrics(task) if k == key)
+    cache = TrendSvgCache.of(storage)
+    limb = parse_task(task).limb
+    svg, _ = cached_trend_plot(cache, patient_id, points, label=label, unit=unit, limb=limb)
+    return svg
+
+
+def draw_trend_plots(
+    sessions: sessionmaker[Session], storage: Storage, trial_id: int, timezone: str
+) -> int:
+    """Draw the trend plots of the trial's patient page into the trend cache (the worker,
+    after a result changed); returns how many were drawn (not kept already).
+
+    ``timezone`` is the server's (``Settings.timezone``): it decides which tasks show
+    plots. Nothing is drawn for a trial hidden or erased; a patient erased meanwhile
+    loses the plots drawn for them (as :func:`app.services.results.make_report_pdfs`).
+    """
+    with sessions() as db:
+        trial = visible_trial(db, trial_id)
+        if trial is None:
+            return 0
+        patient_id = trial.session.patient_id
+        trends = trend_points(trial.session.patient)
+    cache = TrendSvgCache.of(storage)
+    drawn = 0
+    for task, points in trends.items():
+        if not plots_trends(task, points, timezone):
+            continue
+        limb = parse_task(task).limb
+        for key, label, unit in trend_metrics(task):
+            _, new = cached_trend_plot(
+                cache, patient_id, points[key], label=label, unit=unit, limb=limb
+            )
+            drawn += new
+    if drawn:
+        with sessions() as db:  # an erasure removes the trial's row (the patient's stays)
+            if db.scalar(select(Trial.id).where(Trial.id == trial_id)) is None:
+                cache.forget_patient(patient_id)
+    return drawn
 
 
 def patient_overview(db: Session, actor: Actor, patient_id: int) -> PatientOverview:

@@ -7,8 +7,7 @@ session form (``read patient``) and the creations (through the services).
 
 from __future__ import annotations
 
-import functools
-from datetime import UTC, date, datetime
+from datetime import UTC, datetime
 from typing import Annotated, Any
 from zoneinfo import ZoneInfo
 
@@ -27,8 +26,9 @@ from app.schemas import PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient
 from app.services.rigs import all_rigs
-from app.timezones import from_local, local_date
-from app.trends import TrendPoint, trend_plot
+from app.storage import Storage
+from app.timezones import from_local
+from app.trends import TrendPoint
 from app.web.common import (
     CSRF_MESSAGE,
     SESSION_LABELS,
@@ -133,27 +133,24 @@ def _list_with_error(
     )
 
 
-@functools.lru_cache(maxsize=64)
-def _trend_svg(points: tuple[TrendPoint, ...], label: str, unit: str, limb: str) -> str:
-    """A trend plot, drawn once per set of points (the page is opened far more often
-    than a trial is measured; drawing the plots took most of its time)."""
-    return trend_plot(points, label=label, unit=unit, integer=unit == "count", limb=limb)
-
-
-def _trend_group(task: str, points: dict[str, list[TrendPoint]], tz: str) -> dict[str, Any]:
-    """One task's trends: a plot per trend metric (its keys, words and units), or a table
-    when all its trials are from one visit."""
+def _trend_group(
+    storage: Storage, patient_id: int, task: str, points: dict[str, list[TrendPoint]], tz: str
+) -> dict[str, Any]:
+    """One task's trends: a plot per trend metric (its keys, words and units; kept in the
+    trend cache), or a table when all its trials are from one visit."""
     metrics = trend_metrics(task)
     limb = parse_task(task).limb
-    measured = [p for key, _, _ in metrics for p in points[key] if p.value is not None]
-    visits = {local_date(_aware(p.recorded_at), tz) for p in measured}
     group: dict[str, Any] = {"task": task, "trends": [], "table": None, "limb": limb}
-    if len(visits) > 1:
+    if patients.plots_trends(task, points, tz):
         group["trends"] = [
-            {"key": key, "label": label, "svg": _trend_svg(tuple(points[key]), label, unit, limb)}
-            for key, label, unit in metrics
+            {
+                "key": key,
+                "label": label,
+                "svg": patients.trend_plot_of(storage, patient_id, task, key, points[key]),
+            }
+            for key, label, _ in metrics
         ]
-    elif measured:
+    elif any(p.value is not None for key, _, _ in metrics for p in points[key]):
         group["table"] = _single_visit_table(task, points)
     return group
 
@@ -165,7 +162,11 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
     except NotFoundError as exc:
         return not_found_page(request, user, exc)
     tz = settings_of(request).timezone
-    groups = [_trend_group(task, points, tz) for task, points in overview.trends.items()]
+    storage = request.app.state.storage
+    groups = [
+        _trend_group(storage, patient_id, task, points, tz)
+        for task, points in overview.trends.items()
+    ]
     return render(
         request,
         "patient.html",
@@ -178,12 +179,6 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
         job_ids=overview.job_ids,
         format_metric=format_metric,
     )
-
-
-def _aware(value: date | datetime) -> datetime:
-    if isinstance(value, datetime):
-        return value
-    return datetime(value.year, value.month, value.day, tzinfo=UTC)
 
 
 def _single_visit_table(task: str, points: dict[str, list[TrendPoint]]) -> dict[str, Any]:
