@@ -19,7 +19,7 @@ from app import jobs
 from app.actors import Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, NotFoundError
-from app.models import Patient, RecordingSession, Trial, utcnow
+from app.models import Job, Patient, RecordingSession, Trial, utcnow
 from app.reports.result import read_result
 from app.reports.task_metrics import trend_metrics
 from app.reports.trend_cache import TrendSvgCache, cached_trend_plot
@@ -276,6 +276,22 @@ def trend_plot_of(
     return svg
 
 
+def _analyses_pending(db: Session, patient_id: int) -> bool:
+    """Whether an analysis of one of the patient's trials is queued or running."""
+    pending = db.scalar(
+        select(func.count())
+        .select_from(Job)
+        .join(Trial, Job.trial_id == Trial.id)
+        .join(RecordingSession, Trial.session_id == RecordingSession.id)
+        .where(
+            Job.kind == "analyze_trial",
+            Job.status.in_(("queued", "running")),
+            RecordingSession.patient_id == patient_id,
+        )
+    )
+    return bool(pending)
+
+
 def draw_trend_plots(
     sessions: sessionmaker[Session], storage: Storage, trial_id: int, timezone: str
 ) -> int:
@@ -283,14 +299,18 @@ def draw_trend_plots(
     after a result changed); returns how many were drawn (not kept already).
 
     ``timezone`` is the server's (``Settings.timezone``): it decides which tasks show
-    plots. Nothing is drawn for a trial hidden or erased; a patient erased meanwhile
-    loses the plots drawn for them (as :func:`app.services.results.make_report_pdfs`).
+    plots. Nothing is drawn for a trial hidden or erased, nor while another analysis of
+    the patient is queued or running (a batch of recordings is drawn once, after its
+    last); a patient erased meanwhile loses the plots drawn for them (as
+    :func:`app.services.results.make_report_pdfs`).
     """
     with sessions() as db:
         trial = visible_trial(db, trial_id)
         if trial is None:
             return 0
         patient_id = trial.session.patient_id
+        if _analyses_pending(db, patient_id):
+            return 0  # they change the trends; the last one's report job draws them
         trends = trend_points(trial.session.patient)
     cache = TrendSvgCache.of(storage)
     drawn = 0

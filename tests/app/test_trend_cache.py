@@ -19,7 +19,7 @@ from sqlalchemy import select
 from test_pages import client, login, seeded  # noqa: F401 - pytest fixtures
 
 import app.reports.trend_cache as trend_cache_module
-from app.models import RecordingSession, Trial
+from app.models import Job, RecordingSession, Trial
 from app.reports.trend_cache import KEEP_PER_PATIENT, TrendSvgCache, cached_trend_plot
 from app.services import patients
 from app.storage import Storage
@@ -205,3 +205,20 @@ def test_plots_drawn_while_their_patient_is_erased_remove_themselves(
     trial_id = seeded["trials"][(1, "right")]
     assert patients.draw_trend_plots(db_sessionmaker, storage, trial_id, "UTC") == 5
     assert _cache(app_settings).files() == []
+
+
+def test_nothing_is_drawn_while_another_analysis_of_the_patient_is_pending(
+    seeded, app_settings, db_sessionmaker, drawn
+):
+    """A batch of recordings: the plots are drawn once, by the last analysis's report job."""
+    from app import jobs
+
+    storage = Storage.from_settings(app_settings)
+    trial_id = seeded["trials"][(1, "right")]
+    with db_sessionmaker() as db, db.begin():
+        job = jobs.enqueue(db, "analyze_trial", trial_id=seeded["trials"][(1, "left")])
+    assert patients.draw_trend_plots(db_sessionmaker, storage, trial_id, "UTC") == 0
+    assert drawn == []
+    with db_sessionmaker() as db, db.begin():
+        db.get(Job, job.id).status = "succeeded"
+    assert patients.draw_trend_plots(db_sessionmaker, storage, trial_id, "UTC") == 5
