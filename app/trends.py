@@ -117,25 +117,25 @@ def trend_plot(
 
             ax.yaxis.set_major_locator(MaxNLocator(integer=True))
             ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))
-        # matplotlib.dates has no type hints: its three calls are the untyped ones here.
-        import matplotlib.dates as mdates
+        _date_axis(ax, days)
+    title = f"{label} per session over time, per {limb}"
+    return to_svg(fig, title=title, name="trend", hover=hover, id_prefix=id_prefix)
 
-        locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
-        ax.xaxis.set_major_locator(locator)
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
-        if max(days) - min(days) < timedelta(days=60):
-            centre = min(days) + (max(days) - min(days)) / 2
-            ax.set_xlim(
-                mdates.date2num(centre - timedelta(days=45)),  # type: ignore[no-untyped-call]
-                mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
-            )
-    return to_svg(
-        fig,
-        title=f"{label} per session over time, per {limb}",
-        name="trend",
-        hover=hover,
-        id_prefix=id_prefix,
-    )
+
+def _date_axis(ax: Any, days: list[datetime]) -> None:
+    """Dates on the x axis: 2-5 concise ticks; a span under 60 days widened to 90 around its middle."""
+    # matplotlib.dates has no type hints: its three calls are the untyped ones here.
+    import matplotlib.dates as mdates
+
+    locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
+    ax.xaxis.set_major_locator(locator)
+    ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
+    if max(days) - min(days) < timedelta(days=60):
+        centre = min(days) + (max(days) - min(days)) / 2
+        ax.set_xlim(
+            mdates.date2num(centre - timedelta(days=45)),  # type: ignore[no-untyped-call]
+            mdates.date2num(centre + timedelta(days=45)),  # type: ignore[no-untyped-call]
+        )
 
 
 def trend_key(
