@@ -509,6 +509,7 @@ def analyze_recording(
     task = parse_task(task)
     if side not in ("right", "left"):
         raise ValueError(f"side must be 'right' or 'left', got {side!r}")
+
     def probe(video: str | Path, csv: str | Path | None) -> VideoInfo:
         # A raw stream states no rate: its timestamps file's (which gives its frame times)
         # stands in.
