@@ -266,14 +266,25 @@ def plots_trends(task: str, points: dict[str, list[TrendPoint]], tz: str) -> boo
 
 def trend_plot_of(
     storage: Storage, patient_id: int, task: str, key: str, points: list[TrendPoint]
-) -> str:
+) -> tuple[str, bool]:
     """The patient's plot of one trend metric (``key`` of :func:`trend_metrics` of ``task``):
-    kept in the trend cache (:mod:`app.reports.trend_cache`), or drawn now and kept."""
+    kept in the trend cache (:mod:`app.reports.trend_cache`), or drawn now and kept; and
+    whether it was drawn now (then call :func:`forget_trends_if_erased`)."""
     label, unit = next((lb, un) for k, lb, un in trend_metrics(task) if k == key)
     cache = TrendSvgCache.of(storage)
     limb = parse_task(task).limb
-    svg, _ = cached_trend_plot(cache, patient_id, points, label=label, unit=unit, limb=limb)
-    return svg
+    return cached_trend_plot(cache, patient_id, points, label=label, unit=unit, limb=limb)
+
+
+def forget_trends_if_erased(db: Session, storage: Storage, patient_id: int) -> None:
+    """Remove the patient's kept trend plots if the patient was erased while they were drawn.
+
+    Call it after the plots were kept, in a transaction begun after that: an erasure
+    committed before this query is seen here; one committed after it removes the
+    patient's kept files itself, the new ones included.
+    """
+    if db.scalar(select(Patient.erased_at).where(Patient.id == patient_id)) is not None:
+        TrendSvgCache.of(storage).forget_patient(patient_id)
 
 
 def _analyses_pending(db: Session, patient_id: int) -> bool:
@@ -324,9 +335,8 @@ def draw_trend_plots(
             )
             drawn += new
     if drawn:
-        with sessions() as db:  # an erasure removes the trial's row (the patient's stays)
-            if db.scalar(select(Trial.id).where(Trial.id == trial_id)) is None:
-                cache.forget_patient(patient_id)
+        with sessions() as db:
+            forget_trends_if_erased(db, storage, patient_id)
     return drawn
 
 

@@ -135,24 +135,22 @@ def _list_with_error(
 
 def _trend_group(
     storage: Storage, patient_id: int, task: str, points: dict[str, list[TrendPoint]], tz: str
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], bool]:
     """One task's trends: a plot per trend metric (its keys, words and units; kept in the
-    trend cache), or a table when all its trials are from one visit."""
+    trend cache), or a table when all its trials are from one visit; and whether a plot
+    was drawn now."""
     metrics = trend_metrics(task)
     limb = parse_task(task).limb
     group: dict[str, Any] = {"task": task, "trends": [], "table": None, "limb": limb}
+    drawn = False
     if patients.plots_trends(task, points, tz):
-        group["trends"] = [
-            {
-                "key": key,
-                "label": label,
-                "svg": patients.trend_plot_of(storage, patient_id, task, key, points[key]),
-            }
-            for key, label, _ in metrics
-        ]
+        for key, label, _ in metrics:
+            svg, new = patients.trend_plot_of(storage, patient_id, task, key, points[key])
+            group["trends"].append({"key": key, "label": label, "svg": svg})
+            drawn |= new
     elif any(p.value is not None for key, _, _ in metrics for p in points[key]):
         group["table"] = _single_visit_table(task, points)
-    return group
+    return group, drawn
 
 
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
@@ -163,10 +161,13 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: i
         return not_found_page(request, user, exc)
     tz = settings_of(request).timezone
     storage = request.app.state.storage
-    groups = [
+    drawn = [
         _trend_group(storage, patient_id, task, points, tz)
         for task, points in overview.trends.items()
     ]
+    groups = [group for group, _ in drawn]
+    if any(new for _, new in drawn):
+        patients.forget_trends_if_erased(db, storage, patient_id)
     return render(
         request,
         "patient.html",

@@ -222,3 +222,30 @@ def test_nothing_is_drawn_while_another_analysis_of_the_patient_is_pending(
     with db_sessionmaker() as db, db.begin():
         db.get(Job, job.id).status = "succeeded"
     assert patients.draw_trend_plots(db_sessionmaker, storage, trial_id, "UTC") == 5
+
+
+def test_plots_the_page_draws_while_its_patient_is_erased_remove_themselves(
+    client, seeded, app_settings, db_sessionmaker, monkeypatch
+):
+    from app.models import Patient
+    from app.services.erasure import erase_patient
+
+    storage = Storage.from_settings(app_settings)
+    with db_sessionmaker() as db:
+        code = db.get(Patient, seeded["patient_id"]).code
+    draw = trend_cache_module.trend_plot
+    erased = []
+
+    def erased_meanwhile(points, **kw):
+        svg = draw(points, **kw)
+        if not erased:
+            with db_sessionmaker() as db:
+                erase_patient(db, storage, None, code)
+            erased.append(True)
+        return svg
+
+    monkeypatch.setattr(trend_cache_module, "trend_plot", erased_meanwhile)
+    login(client)
+    r = client.get(f"/patients/{seeded['patient_id']}")
+    assert r.status_code == 200 and erased
+    assert _cache(app_settings).files() == []
