@@ -127,20 +127,11 @@ def _escape(text: str) -> str:
     )
 
 
-def to_svg(
-    fig: Figure,
-    *,
-    title: str,
-    name: str,
-    hover: Mapping[str, str] | None = None,
-    id_prefix: str | None = None,
-) -> str:
+def to_svg(fig: Figure, *, title: str, name: str, hover: Mapping[str, str] | None = None) -> str:
     """Serialise ``fig`` as an inline ``<svg>`` with unique ids and an accessible title.
 
     ``hover`` maps an artist's gid to the text a browser shows when the pointer
-    rests on it (an SVG ``<title>`` inside that artist's group). The ids start
-    with ``id_prefix``, by default ``name`` and a number unique in this process;
-    a plot kept on disk for other processes' pages passes one unique to its content.
+    rests on it (an SVG ``<title>`` inside that artist's group).
     """
     buf = io.StringIO()
     with plot_rc():
@@ -152,7 +143,7 @@ def to_svg(
     if start < 0:  # pragma: no cover - matplotlib always writes an <svg>
         raise ValueError("matplotlib did not produce an SVG document")
     svg = svg[start:]
-    prefix = id_prefix if id_prefix is not None else f"{name}{next(_counter)}-"
+    prefix = f"{name}{next(_counter)}-"
     ids = set(_ID_RE.findall(svg))
     for old in sorted(ids, key=len, reverse=True):
         svg = svg.replace(f'id="{old}"', f'id="{prefix}{old}"')

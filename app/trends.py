@@ -57,7 +57,6 @@ def trend_plot(
     unit: str,
     integer: bool = False,
     limb: str = "hand",
-    id_prefix: str | None = None,
 ) -> str:
     """One metric over sessions, per side, with medication on and off drawn apart.
 
@@ -67,14 +66,13 @@ def trend_plot(
     of one visit are spread slightly sideways (:data:`DODGE_FRACTION` of the
     axis per series) so that none hides another; resting the pointer on a
     point shows its date, hand, medication state and value. ``integer`` puts
-    ticks on whole numbers only (counts); ``limb`` names the side (hand, foot) on hover;
-    ``id_prefix`` as in :func:`app.plots.to_svg`.
+    ticks on whole numbers only (counts); ``limb`` names the side (hand, foot) on hover.
     """
     fig = new_figure(3.6, 2.3)
     usable = [p for p in points if p.value is not None and math.isfinite(float(p.value))]
     if not usable:
         draw_empty(fig, f"No {label.lower()} measured yet.")
-        return to_svg(fig, title=f"{label} over time: no data", name="trend", id_prefix=id_prefix)
+        return to_svg(fig, title=f"{label} over time: no data", name="trend")
     styles: dict[str, dict[str, Any]] = {
         "on": {"ls": "-", "marker": "o", "mfc": None},
         "off": {"ls": "--", "marker": "o", "mfc": "white"},
@@ -119,7 +117,7 @@ def trend_plot(
             ax.set_ylim(bottom=min(0.0, ax.get_ylim()[0]))
         _date_axis(ax, days)
     title = f"{label} per session over time, per {limb}"
-    return to_svg(fig, title=title, name="trend", hover=hover, id_prefix=id_prefix)
+    return to_svg(fig, title=title, name="trend", hover=hover)
 
 
 def _date_axis(ax: Any, days: list[datetime]) -> None:

@@ -83,7 +83,8 @@ def test_a_plot_is_drawn_once_and_its_ids_are_its_own(tmp_path, drawn):
     assert not new and again == svg and drawn == ["Amplitude"]
     (kept,) = cache.files()
     assert kept.name == f"7-{trend_key(POINTS, integer=False, **WORDS)}.svg"
-    # Plots kept by different processes share a page: their ids come from their content.
+    # Plots kept by different processes share a page: each process numbers its plots'
+    # ids from a random start (app.plots.to_svg), so two kept plots have no id in common.
     other, _ = cached_trend_plot(cache, 7, POINTS[:1], **WORDS)
     ids = set(re.findall(r'id="([^"]+)"', svg))
     other_ids = set(re.findall(r'id="([^"]+)"', other))
