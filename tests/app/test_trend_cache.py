@@ -182,9 +182,10 @@ def test_erasing_the_patient_removes_their_plots(
     assert cache.files() == [other]
 
 
-def test_plots_drawn_while_their_patient_is_erased_remove_themselves(
-    seeded, app_settings, db_sessionmaker, monkeypatch
-):
+@pytest.fixture
+def erased_while_drawing(seeded, app_settings, db_sessionmaker, monkeypatch) -> list[bool]:
+    """The seeded patient is erased while the first trend plot is drawn (after it is drawn,
+    before it is kept); the list holds True once that happened."""
     from app.models import Patient
     from app.services.erasure import erase_patient
 
@@ -192,7 +193,7 @@ def test_plots_drawn_while_their_patient_is_erased_remove_themselves(
     with db_sessionmaker() as db:
         code = db.get(Patient, seeded["patient_id"]).code
     draw = trend_cache_module.trend_plot
-    erased = []
+    erased: list[bool] = []
 
     def erased_meanwhile(points, **kw):
         svg = draw(points, **kw)
@@ -203,9 +204,16 @@ def test_plots_drawn_while_their_patient_is_erased_remove_themselves(
         return svg
 
     monkeypatch.setattr(trend_cache_module, "trend_plot", erased_meanwhile)
+    return erased
+
+
+def test_plots_drawn_while_their_patient_is_erased_remove_themselves(
+    seeded, app_settings, db_sessionmaker, erased_while_drawing
+):
+    storage = Storage.from_settings(app_settings)
     trial_id = seeded["trials"][(1, "right")]
     assert patients.draw_trend_plots(db_sessionmaker, storage, trial_id, "UTC") == 5
-    assert _cache(app_settings).files() == []
+    assert erased_while_drawing and _cache(app_settings).files() == []
 
 
 def test_nothing_is_drawn_while_another_analysis_of_the_patient_is_pending(
@@ -226,27 +234,9 @@ def test_nothing_is_drawn_while_another_analysis_of_the_patient_is_pending(
 
 
 def test_plots_the_page_draws_while_its_patient_is_erased_remove_themselves(
-    client, seeded, app_settings, db_sessionmaker, monkeypatch
+    client, seeded, app_settings, erased_while_drawing
 ):
-    from app.models import Patient
-    from app.services.erasure import erase_patient
-
-    storage = Storage.from_settings(app_settings)
-    with db_sessionmaker() as db:
-        code = db.get(Patient, seeded["patient_id"]).code
-    draw = trend_cache_module.trend_plot
-    erased = []
-
-    def erased_meanwhile(points, **kw):
-        svg = draw(points, **kw)
-        if not erased:
-            with db_sessionmaker() as db:
-                erase_patient(db, storage, None, code)
-            erased.append(True)
-        return svg
-
-    monkeypatch.setattr(trend_cache_module, "trend_plot", erased_meanwhile)
     login(client)
     r = client.get(f"/patients/{seeded['patient_id']}")
-    assert r.status_code == 200 and erased
+    assert r.status_code == 200 and erased_while_drawing
     assert _cache(app_settings).files() == []
