@@ -14,6 +14,8 @@ built from the task's definition; the default is finger tapping's. The set-up sh
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 import io
 import itertools
 import math
@@ -22,6 +24,7 @@ import secrets
 from collections.abc import Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -125,6 +128,19 @@ def _escape(text: str) -> str:
     return (
         text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
     )
+
+
+def code_key(modules: Sequence[ModuleType]) -> str:
+    """SHA-256 (hex) of what plots drawn by ``modules`` depend on besides their data: the
+    modules' source and matplotlib's version (from the package's metadata: importing
+    matplotlib would cost a page whose plots are all kept ~0.3 s). Kept plots whose key
+    differs were drawn by other code, and are drawn again."""
+    from importlib.metadata import version
+
+    digest = hashlib.sha256(version("matplotlib").encode())
+    for module in modules:
+        digest.update(inspect.getsource(module).encode())
+    return digest.hexdigest()
 
 
 def to_svg(fig: Figure, *, title: str, name: str, hover: Mapping[str, str] | None = None) -> str:

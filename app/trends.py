@@ -12,10 +12,10 @@ import functools
 import hashlib
 import json
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import date, datetime, timedelta
-from pathlib import Path
 from typing import Any
 
 from app.plots import COLOURS, draw_empty, new_figure, plot_rc, to_svg
@@ -164,16 +164,9 @@ def trend_key(
 
 @functools.cache
 def _code_fingerprint() -> str:
-    from importlib import metadata
-
     from app import plots
 
-    # the version from the package's metadata: importing matplotlib would cost a page
-    # whose plots are all kept ~0.3 s
-    digest = hashlib.sha256(metadata.version("matplotlib").encode())
-    for module_file in (__file__, plots.__file__):
-        digest.update(Path(module_file).read_bytes())
-    return digest.hexdigest()
+    return plots.code_key((plots, sys.modules[__name__]))
 
 
 def _as_datetime(value: date | datetime) -> datetime:

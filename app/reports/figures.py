@@ -11,7 +11,6 @@ on demand and kept in a small in-process cache.
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 import math
 import sys
@@ -75,12 +74,7 @@ def _plots_style() -> str:
 
     A stored plots document drawn by other code (an upgrade) is drawn again.
     """
-    from importlib.metadata import version
-
-    digest = hashlib.sha256(version("matplotlib").encode())
-    for module in (plots, quantities, sys.modules[__name__]):
-        digest.update(inspect.getsource(module).encode())
-    return digest.hexdigest()[:16]
+    return plots.code_key((plots, quantities, sys.modules[__name__]))[:16]
 
 
 _STYLE: list[str] = []  # computed once, on first use
