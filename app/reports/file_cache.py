@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import time
 import uuid
 from collections.abc import Iterable
 from pathlib import Path
 from typing import ClassVar
 
+_KEY = re.compile(r"^[0-9a-f]{64}$")
 _STALE_PART_S = 3600.0  # a temporary file this old was left by a crashed process
 
 
@@ -46,6 +48,12 @@ class PatientFileCache:
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
         return value
+
+    @staticmethod
+    def check_key(key: str) -> str:
+        if not isinstance(key, str) or not _KEY.match(key):
+            raise ValueError(f"key must be a SHA-256 in lower-case hex, got {key!r}")
+        return key
 
     def read(self, path: Path) -> bytes | None:
         """The file's bytes, or None; a file found counts as just used (kept longest)."""

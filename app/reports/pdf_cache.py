@@ -23,7 +23,6 @@ report and a few older revisions or time zones), the whole cache at most
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 from app.reports.file_cache import PatientFileCache
@@ -31,8 +30,6 @@ from app.storage import Storage
 
 KEEP_PER_TRIAL = 3
 """Files a trial keeps: its current report and a few older revisions or time zones."""
-
-_KEY = re.compile(r"^[0-9a-f]{64}$")
 
 
 class ReportPdfCache(PatientFileCache):
@@ -57,8 +54,7 @@ class ReportPdfCache(PatientFileCache):
         """Where the report of ``trial_id`` with content ``key`` is kept."""
         self.check_id("patient_id", patient_id)
         self.check_id("trial_id", trial_id)
-        if not isinstance(key, str) or not _KEY.match(key):
-            raise ValueError(f"key must be a SHA-256 in lower-case hex, got {key!r}")
+        self.check_key(key)
         return self.directory / f"{patient_id}-{trial_id}-{key}.pdf"
 
     def get(self, patient_id: int, trial_id: int, key: str) -> bytes | None:

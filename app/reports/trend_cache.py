@@ -20,7 +20,6 @@ Bounds, erasure, restore and several processes as in :mod:`app.reports.file_cach
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -33,8 +32,6 @@ log = logging.getLogger(__name__)
 KEEP_PER_PATIENT = 64
 """Files a patient keeps: the plots of their page (up to 5 tasks x 4 trend metrics) and
 those of a few earlier states of it."""
-
-_KEY = re.compile(r"^[0-9a-f]{64}$")
 
 
 class TrendSvgCache(PatientFileCache):
@@ -50,8 +47,7 @@ class TrendSvgCache(PatientFileCache):
     def path(self, patient_id: int, key: str) -> Path:
         """Where the plot of ``patient_id`` with content ``key`` is kept."""
         self.check_id("patient_id", patient_id)
-        if not isinstance(key, str) or not _KEY.match(key):
-            raise ValueError(f"key must be a SHA-256 in lower-case hex, got {key!r}")
+        self.check_key(key)
         return self.directory / f"{patient_id}-{key}.svg"
 
     def get(self, patient_id: int, key: str) -> str | None:
