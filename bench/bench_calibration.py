@@ -44,7 +44,7 @@ from core.simulation.boards import (
     write_board_recordings,
 )
 from core.simulation.timing import CameraTiming
-from core.video import iter_frames
+from core.video import decoder_threads_for, iter_frames
 
 
 def _rotation_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -248,7 +248,15 @@ def main() -> None:
     load = os.getloadavg()[0]
     try:
         t0, c0 = time.perf_counter(), time.process_time()
-        n = sum(1 for _ in zip(iter_frames(left), iter_frames(right), strict=False))
+        threads = decoder_threads_for(2)  # as calibration decodes the pair
+        n = sum(
+            1
+            for _ in zip(
+                iter_frames(left, decoder_threads=threads),
+                iter_frames(right, decoder_threads=threads),
+                strict=False,
+            )
+        )
         t_decode, c_decode = time.perf_counter() - t0, time.process_time() - c0
 
         t0 = time.perf_counter()

@@ -192,8 +192,9 @@ def _sample_indices(n_frames: int, max_candidates: int) -> list[int]:
 def _sampled_frames(
     kind: str, src: Any, indices: Sequence[int], times_out: list[float] | None
 ) -> Iterator[tuple[int, NDArray[np.uint8]]]:
-    """``(frame number, gray frame)`` of the searched frames of one input, in order."""
-    from core.video import iter_frames, read_image
+    """``(frame number, gray frame)`` of the searched frames of one input, in order (the
+    left and right inputs are decoded at once)."""
+    from core.video import decoder_threads_for, iter_frames, read_image
 
     if kind == "images":
         for i in indices:
@@ -202,7 +203,13 @@ def _sampled_frames(
     if not indices:
         return
     wanted = set(indices)
-    frames: Any = iter_frames(src.path, gray=True, stop=max(indices) + 1, times_out=times_out)
+    frames: Any = iter_frames(
+        src.path,
+        gray=True,
+        stop=max(indices) + 1,
+        times_out=times_out,
+        decoder_threads=decoder_threads_for(2),
+    )
     try:
         for i, frame in enumerate(frames):
             if i in wanted:

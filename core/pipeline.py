@@ -270,9 +270,10 @@ def _detect_videos(
     cost ~0.3 s of CPU to start and ~190 MB of memory; a custom ``detect``
     written in Python shares the GIL).
     """
-    from core.video import iter_frames
+    from core.video import decoder_threads_for, iter_frames
 
     detector = detect if detect is not None else _default_detector(marker_params)
+    decoder_threads = decoder_threads_for(2)
     states = [_CameraDetections(detector), _CameraDetections(detector)]
     errors: list[BaseException] = []
     halt = threading.Event()
@@ -281,7 +282,11 @@ def _detect_videos(
         try:
             times = None if timestamps is None else timestamps[k]
             for image in iter_frames(
-                paths[k], gray=True, expected_count=expected_counts[k], times_out=times
+                paths[k],
+                gray=True,
+                expected_count=expected_counts[k],
+                times_out=times,
+                decoder_threads=decoder_threads,
             ):
                 if halt.is_set():
                     return

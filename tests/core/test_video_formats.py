@@ -281,3 +281,47 @@ def test_a_raw_stream_has_no_frame_rate_unless_its_timestamps_file_gives_one(
         probe_video(path)
     info = probe_video(path, fps_if_none=FPS)
     assert info.fps == FPS and info.frame_count == N and not info.has_timestamps
+
+
+@pytest.mark.parametrize(
+    ("codec", "suffix"),
+    [("lossless", ".mkv"), ("mp4v", ".mp4"), ("h264", ".mp4"), ("av1", ".webm")],
+)
+def test_one_decoder_thread_reads_the_same_frames_and_times(tmp_path, codec, suffix):
+    """Videos decoded side by side get one decoder thread each on 2 cores (faster there:
+    docs/performance.md); the frames and timestamps are those of FFmpeg's own threading,
+    to the bit, through OpenCV and through PyAV (AV1)."""
+    import cv2
+
+    from core.video import video_capture
+
+    path = tmp_path / f"clip{suffix}"
+    with VideoWriter(path, fps=FPS, image_size=SIZE, codec=codec) as w:
+        for f in _frames():
+            w.write(f)
+    times_auto: list[float] = []
+    times_one: list[float] = []
+    auto = list(iter_frames(path, times_out=times_auto))
+    one = list(iter_frames(path, times_out=times_one, decoder_threads=1))
+    assert len(one) == len(auto) == N
+    for a, b in zip(auto, one, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert times_one == times_auto
+    if codec != "av1":
+        cap = video_capture(path, threads=1)
+        try:
+            assert cap.get(cv2.CAP_PROP_N_THREADS) == 1
+        finally:
+            cap.release()
+
+
+def test_decoder_threads_share_out_the_cores(monkeypatch):
+    import core.video as video
+
+    for cores, n_videos, want in ((2, 2, 1), (1, 2, 1), (8, 2, 4), (8, 1, 8), (3, 2, 1)):
+        monkeypatch.setattr(video.os, "sched_getaffinity", lambda _pid, c=cores: set(range(c)))
+        assert video.decoder_threads_for(n_videos) == want
+    with pytest.raises(ValueError, match="n_videos"):
+        video.decoder_threads_for(0)
+    with pytest.raises(ValueError, match="decoder_threads"):
+        next(iter_frames("unused.mp4", decoder_threads=0))
