@@ -12,8 +12,9 @@ Usage::
 Each kind simulates a 5-s and a 10-s pair (``--keep DIR`` keeps them for the
 next run) and prints, measured in the same run on the same files:
 
-- the floor: both videos decoded in parallel (one thread each, as analyze
-  does), and nothing else;
+- the floor: both videos decoded in parallel (one thread each, and the
+  decoders' own threads as analyze sets them: ``core.video.decoder_threads_for``),
+  and nothing else;
 - analyze: ``core.pipeline.analyze_recording`` (detection, sync, triangulation,
   tracking, metrics) and its ratio to the floor (issue 17's target: <= 1.15 as
   the median of 5 alternating runs on an idle 2-core machine); both also as CPU
@@ -24,6 +25,9 @@ next run) and prints, measured in the same run on the same files:
   centroids, the two largest blobs sorted by image row, ``cv2.undistortPoints``,
   ``cv2.triangulatePoints``), its ratio to decoding, and both pipelines' 3D RMS
   error against the simulator's truth when a ``truth.json`` is there;
+- with ``--breakdown``, where analyze's time above the floor goes: decoding with
+  the per-frame bookkeeping (the detector's answers replayed), the marker detector,
+  and the stages after detection (time model, triangulation, tracking, metrics);
 - peak memory (max RSS of a fresh process running analyze) for the 5-s and
   the 10-s clip: it must not grow with the length of the video.
 """
@@ -40,6 +44,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,11 +97,17 @@ def simulate(out: Path, seconds: float, kind: str) -> Path:
 
 
 def decode_only(left: Path, right: Path) -> float:
-    from core.video import iter_frames
+    from core.video import decoder_threads_for, iter_frames
+
+    decoder_threads = decoder_threads_for(2)  # as analyze: faster on 2 cores (docs/performance.md)
+    errors: list[BaseException] = []
 
     def run(path: Path) -> None:
-        for _ in iter_frames(path, gray=True):
-            pass
+        try:
+            for _ in iter_frames(path, gray=True, decoder_threads=decoder_threads):
+                pass
+        except BaseException as exc:  # re-raised below: a failed decode is no floor
+            errors.append(exc)
 
     t0 = time.perf_counter()
     threads = [threading.Thread(target=run, args=(p,)) for p in (left, right)]
@@ -104,6 +115,8 @@ def decode_only(left: Path, right: Path) -> float:
         t.start()
     for t in threads:
         t.join()
+    if errors:
+        raise errors[0]
     return time.perf_counter() - t0
 
 
@@ -112,14 +125,15 @@ def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
     import cv2
 
     from core.camera import read_rig
-    from core.video import iter_frames
+    from core.video import decoder_threads_for, iter_frames
 
     rig = read_rig(d / "rig.json")
     left, right = _videos(d)
     results: dict[int, list[np.ndarray]] = {0: [], 1: []}
+    decoder_threads = decoder_threads_for(2)
 
     def run(k: int, path: Path) -> None:
-        for img in iter_frames(path, gray=True):
+        for img in iter_frames(path, gray=True, decoder_threads=decoder_threads):
             _, binary = cv2.threshold(img, 100, 255, cv2.THRESH_BINARY)
             _n, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
             order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:2] + 1
@@ -184,6 +198,69 @@ def _cpu_s() -> float:
     """CPU time (s) of this process, all threads."""
     me = resource.getrusage(resource.RUSAGE_SELF)
     return me.ru_utime + me.ru_stime
+
+
+def breakdown(d: Path, repeat: int) -> None:
+    """Where analyze's time above the floor goes, median of ``repeat`` alternating runs:
+
+    - decoding with the per-frame bookkeeping (search windows, set-aside blobs, image
+      patches) but no marker search: the detector's answers, recorded in a first run,
+      are replayed;
+    - the marker detector itself (analyze minus the replay, to the end of detection);
+    - the stages after detection (time model, triangulation, tracking, metrics), which
+      run on one core.
+    """
+    from core.camera import read_rig
+    from core.markers import _default_detector
+    from core.pipeline import analyze_recording
+
+    left, right = _videos(d)
+    rig = read_rig(d / "rig.json")
+    real = _default_detector(None)
+    answers: dict[str, list[Any]] = {}
+
+    def recording(image: Any, pts: Any, radius: Any) -> Any:
+        out = real(image, pts, radius)
+        answers.setdefault(threading.current_thread().name, []).append(out)
+        return out
+
+    def replaying() -> Any:
+        done: dict[str, int] = {}
+
+        def detect(image: Any, pts: Any, radius: Any) -> Any:
+            name = threading.current_thread().name  # detect-0, detect-1 (core.pipeline)
+            done[name] = done.get(name, 0) + 1
+            return answers[name][done[name] - 1]
+
+        return detect
+
+    analyze_recording(rig, left, right, detector=recording)
+    rows: dict[str, list[float]] = {"floor": [], "replay": [], "detector": [], "after": []}
+    for _ in range(repeat):
+        rows["floor"].append(decode_only(left, right))
+        ends = {}
+        for name, detector in (("replay", replaying()), ("real", None)):
+            marks: list[float] = []
+
+            def progress(stage: str, done: int, total: int, marks: list[float] = marks) -> None:
+                if stage == "detection" and done == total and not marks:
+                    marks.append(time.perf_counter())
+
+            t0 = time.perf_counter()
+            analyze_recording(rig, left, right, detector=detector, progress=progress)
+            ends[name] = (marks[0] - t0, time.perf_counter() - marks[0])
+        rows["replay"].append(ends["replay"][0])
+        rows["detector"].append(ends["real"][0] - ends["replay"][0])
+        rows["after"].append(ends["real"][1])
+    med = {k: float(np.median(v)) for k, v in rows.items()}
+    floor = med["floor"]
+    print(
+        f"  where the time goes (median of {repeat}, share of the floor):"
+        f" floor {floor:.2f} s; decoding + per-frame bookkeeping, detector replayed"
+        f" {med['replay']:.2f} s ({med['replay'] / floor:.2f}); + the marker detector"
+        f" {med['detector']:.2f} s ({med['detector'] / floor:.2f}); + the stages after detection"
+        f" {med['after']:.2f} s ({med['after'] / floor:.2f})"
+    )
 
 
 def bench(d: Path, repeat: int) -> None:
@@ -260,11 +337,18 @@ def main() -> None:
     )
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory runs")
     ap.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also time the parts above the floor (per-frame bookkeeping, detector, later stages)",
+    )
+    ap.add_argument(
         "--keep", type=Path, help="simulate into this folder (default: a temporary one)"
     )
     args = ap.parse_args()
     if args.dir is not None:
         bench(args.dir, args.repeat)
+        if args.breakdown:
+            breakdown(args.dir, args.repeat)
         t, rss = analyze_in_child(args.dir)
         print(f"  peak RSS of a fresh analyze process: {rss:.0f} MB ({t:.1f} s)")
         return
@@ -282,6 +366,8 @@ def main() -> None:
                 dirs[seconds] = d
             print(f"{kind}:")
             bench(dirs[args.seconds], args.repeat)
+            if args.breakdown:
+                breakdown(dirs[args.seconds], args.repeat)
             if not args.no_memory:
                 for seconds, d in dirs.items():
                     t, rss = analyze_in_child(d)
