@@ -13,8 +13,8 @@ Each kind simulates a 5-s and a 10-s pair (``--keep DIR`` keeps them for the
 next run) and prints, measured in the same run on the same files:
 
 - the floor: both videos decoded in parallel (one thread each, and the
-  decoders' own threads as analyze sets them: ``core.video.decoder_threads_for``),
-  and nothing else;
+  decoders' own threads and background reading as analyze sets them:
+  ``core.video.decoder_threads_for``, ``decode_in_background``), and nothing else;
 - analyze: ``core.pipeline.analyze_recording`` (detection, sync, triangulation,
   tracking, metrics) and its ratio to the floor (issue 17's target: <= 1.15 as
   the median of 5 alternating runs on an idle 2-core machine); both also as CPU
@@ -97,14 +97,18 @@ def simulate(out: Path, seconds: float, kind: str) -> Path:
 
 
 def decode_only(left: Path, right: Path) -> float:
-    from core.video import decoder_threads_for, iter_frames
+    from core.video import decode_in_background, decoder_threads_for, iter_frames
 
-    decoder_threads = decoder_threads_for(2)  # as analyze: faster on 2 cores (docs/performance.md)
+    # as analyze decodes: the fastest on 2 cores (docs/performance.md)
+    decoder_threads = decoder_threads_for(2)
+    background = decode_in_background(2)
     errors: list[BaseException] = []
 
     def run(path: Path) -> None:
         try:
-            for _ in iter_frames(path, gray=True, decoder_threads=decoder_threads):
+            for _ in iter_frames(
+                path, gray=True, decoder_threads=decoder_threads, background=background
+            ):
                 pass
         except BaseException as exc:  # re-raised below: a failed decode is no floor
             errors.append(exc)
@@ -125,15 +129,15 @@ def peer_pipeline(d: Path) -> tuple[float, np.ndarray]:
     import cv2
 
     from core.camera import read_rig
-    from core.video import decoder_threads_for, iter_frames
+    from core.video import decode_in_background, decoder_threads_for, iter_frames
 
     rig = read_rig(d / "rig.json")
     left, right = _videos(d)
     results: dict[int, list[np.ndarray]] = {0: [], 1: []}
-    decoder_threads = decoder_threads_for(2)
+    decoding = {"decoder_threads": decoder_threads_for(2), "background": decode_in_background(2)}
 
     def run(k: int, path: Path) -> None:
-        for img in iter_frames(path, gray=True, decoder_threads=decoder_threads):
+        for img in iter_frames(path, gray=True, **decoding):
             _, binary = cv2.threshold(img, 100, 255, cv2.THRESH_BINARY)
             _n, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
             order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:2] + 1

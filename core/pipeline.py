@@ -268,12 +268,15 @@ def _detect_videos(
     One thread per camera: decoding and the compiled search release the GIL,
     so the two cameras use two cores without a worker process each (which
     cost ~0.3 s of CPU to start and ~190 MB of memory; a custom ``detect``
-    written in Python shares the GIL).
+    written in Python shares the GIL). Each camera's thread decodes its own
+    frames, unless cores are spare for a decoding thread each
+    (``core.video.decode_in_background``).
     """
-    from core.video import decoder_threads_for, iter_frames
+    from core.video import decode_in_background, decoder_threads_for, iter_frames
 
     detector = detect if detect is not None else _default_detector(marker_params)
     decoder_threads = decoder_threads_for(2)
+    background = decode_in_background(2)
     states = [_CameraDetections(detector), _CameraDetections(detector)]
     errors: list[BaseException] = []
     halt = threading.Event()
@@ -287,6 +290,7 @@ def _detect_videos(
                 expected_count=expected_counts[k],
                 times_out=times,
                 decoder_threads=decoder_threads,
+                background=background,
             ):
                 if halt.is_set():
                     return

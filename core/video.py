@@ -3,7 +3,8 @@
 Frames are streamed: :func:`iter_frames` decodes in a background thread into a
 small bounded queue, so memory does not grow with the length of a video and
 decoding overlaps with whatever the caller does with each frame (OpenCV
-releases the GIL while it decodes).
+releases the GIL while it decodes), or, where no core is spare, in the
+caller's own thread.
 
 Gray frames come straight from the decoder's luma plane when the stream is
 planar YUV or gray (no colour conversion at all). For YUV streams that plane
@@ -26,7 +27,7 @@ import functools
 import os
 import queue
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -128,6 +129,17 @@ def decoder_threads_for(n_videos: int) -> int:
     if n_videos < 1:
         raise ValueError(f"n_videos must be >= 1, got {n_videos}")
     return max(1, len(os.sched_getaffinity(0)) // n_videos)
+
+
+def decode_in_background(n_videos: int) -> bool:
+    """Whether each of ``n_videos`` videos, decoded side by side by one thread each that
+    also works on its frames, should be decoded ahead in a background thread: only when
+    cores are left over. On 2 cores, decoding in the working thread saves the hand-over
+    between threads: analyze on a 10-s 1280x1024 100 fps MPEG-4 pair, 1.34 s instead of
+    1.44 s; 1080p60 H.264, 7.74 s instead of 7.98 s (docs/performance.md)."""
+    if n_videos < 1:
+        raise ValueError(f"n_videos must be >= 1, got {n_videos}")
+    return len(os.sched_getaffinity(0)) > n_videos
 
 
 def video_capture(path: str | Path, *, threads: int | None = None) -> cv2.VideoCapture:
@@ -533,36 +545,20 @@ def decodes_frame(path: str | Path, index: int) -> bool:
     return read_frame(path, index) is not None
 
 
-def _reader(
-    path: Path,
-    gray: bool,
-    start: int,
-    stop: int | None,
-    out: queue.Queue[Any],
-    halt: threading.Event,
-    times: list[float] | None,
-    threads: int | None,
-) -> None:
-    """Decode frames into ``out``; ends with ``None`` (done) or an exception instance."""
+#: Decoded frames: a generator, closed to release its decoder.
+_Frames = Generator[NDArray[np.uint8], None, None]
+
+
+def _reader(frames: _Frames, out: queue.Queue[Any], halt: threading.Event) -> None:
+    """Hand ``frames`` to ``out``; ends with ``None`` (done) or an exception instance."""
     try:
-        if not _opencv_decodes(path):
-            _decode_loop_av(path, gray, start, stop, out, halt, times, threads)
-            out.put(None)
-            return
-        cap = _open_capture(path, threads)
         try:
-            luma = False
-            if gray:
-                pix = _fourcc_to_str(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
-                if pix in _LUMA_FIRST_FORMATS:
-                    luma = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
-            if luma:
-                with _quiet_opencv:
-                    _decode_loop(cap, path, gray, luma, start, stop, out, halt, times)
-            else:
-                _decode_loop(cap, path, gray, luma, start, stop, out, halt, times)
+            for frame in frames:
+                if halt.is_set():
+                    break
+                _hand_over(out, halt, frame)
         finally:
-            cap.release()
+            frames.close()  # releases the decoder
         out.put(None)
     except BaseException as exc:  # handed to the consumer, which re-raises it
         out.put(exc)
@@ -571,17 +567,43 @@ def _reader(
             _live_readers.pop(threading.current_thread(), None)
 
 
-def _decode_loop(
+def _decoded(
+    path: Path,
+    gray: bool,
+    start: int,
+    stop: int | None,
+    times: list[float] | None,
+    threads: int | None,
+) -> _Frames:
+    """The frames ``[start, stop)`` of ``path``, decoded in the thread that iterates."""
+    if not _opencv_decodes(path):
+        yield from _decoded_av(path, gray, start, stop, times, threads)
+        return
+    cap = _open_capture(path, threads)
+    try:
+        luma = False
+        if gray:
+            pix = _fourcc_to_str(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
+            if pix in _LUMA_FIRST_FORMATS:
+                luma = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
+        if luma:
+            with _quiet_opencv:
+                yield from _decoded_cv(cap, path, gray, luma, start, stop, times)
+        else:
+            yield from _decoded_cv(cap, path, gray, luma, start, stop, times)
+    finally:
+        cap.release()
+
+
+def _decoded_cv(
     cap: cv2.VideoCapture,
     path: Path,
     gray: bool,
     luma: bool,
     start: int,
     stop: int | None,
-    out: queue.Queue[Any],
-    halt: threading.Event,
     times: list[float] | None,
-) -> None:
+) -> Generator[Any, None, None]:
     if start > 0:
         # Seeking is not frame-exact in every container: grab instead.
         for _ in range(start):
@@ -590,7 +612,7 @@ def _decode_loop(
     index = start
     width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
     height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-    while not halt.is_set() and (stop is None or index < stop):
+    while stop is None or index < stop:
         ok, frame = cap.read()
         if not ok or frame is None:
             break
@@ -608,7 +630,7 @@ def _decode_loop(
                 frame = frame[:height]
             elif frame.ndim == 3:
                 frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-        _hand_over(out, halt, frame)
+        yield frame
         index += 1
 
 
@@ -622,17 +644,15 @@ def _hand_over(out: queue.Queue[Any], halt: threading.Event, item: Any) -> None:
             continue
 
 
-def _decode_loop_av(
+def _decoded_av(
     path: Path,
     gray: bool,
     start: int,
     stop: int | None,
-    out: queue.Queue[Any],
-    halt: threading.Event,
     times: list[float] | None,
     threads: int | None,
-) -> None:
-    """:func:`_decode_loop` through PyAV, for codecs OpenCV's FFmpeg cannot decode (AV1)."""
+) -> _Frames:
+    """:func:`_decoded_cv` through PyAV, for codecs OpenCV's FFmpeg cannot decode (AV1)."""
     import av
 
     try:
@@ -647,19 +667,46 @@ def _decode_loop_av(
         index = 0
         try:
             for frame in container.decode(stream):
-                if halt.is_set() or (stop is not None and index >= stop):
+                if stop is not None and index >= stop:
                     break
                 if index >= start:
                     image = frame.to_ndarray(format="gray" if gray else "bgr24")
                     image = np.asarray(_upright(image, frame), dtype=np.uint8)
                     if times is not None:
                         times.append(float(frame.time) if frame.time is not None else np.nan)
-                    _hand_over(out, halt, image)
+                    yield image
                 index += 1
         except av.FFmpegError:
             pass  # a damaged stream ends here, as with OpenCV; expected_count tells
     finally:
         container.close()
+
+
+def _from_reader(frames: _Frames, name: str, prefetch: int) -> _Frames:
+    """``frames`` decoded ahead in a background thread, at most ``prefetch`` of them."""
+    out: queue.Queue[Any] = queue.Queue(maxsize=prefetch)
+    halt = threading.Event()
+    thread = threading.Thread(target=_reader, args=(frames, out, halt), name=name, daemon=True)
+    with _live_lock:
+        _live_readers[thread] = halt
+    thread.start()
+    try:
+        while True:
+            item = out.get()
+            if item is None:
+                break
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        halt.set()
+        # Drain so the reader can see the halt flag and exit.
+        while thread.is_alive():
+            try:
+                out.get(timeout=0.05)
+            except queue.Empty:
+                pass
+        thread.join()
 
 
 def iter_frames(
@@ -672,8 +719,9 @@ def iter_frames(
     expected_count: int | None = None,
     times_out: list[float] | None = None,
     decoder_threads: int | None = None,
+    background: bool = True,
 ) -> Iterator[NDArray[np.uint8]]:
-    """Stream the frames of a video, decoded in a background thread.
+    """Stream the frames of a video, decoded in a background thread (or in the caller's).
 
     Parameters
     ----------
@@ -684,16 +732,20 @@ def iter_frames(
     start, stop : int
         Frame range ``[start, stop)`` of the video.
     prefetch : int
-        Frames decoded ahead (bounded memory).
+        Frames decoded ahead by the background thread (bounded memory).
     expected_count : int, optional
         If given, raise :class:`InputError` when the video ends more than two
         frames before ``min(stop, expected_count)``: it is truncated.
     times_out : list, optional
         Receives the presentation timestamp (s) of every yielded frame, in
-        order (appended by the decoder thread before the frame is queued).
+        order (appended by the decoding thread before the frame is handed out).
     decoder_threads : int, optional
         The decoder's own threads (default: FFmpeg's, one per core). Videos
         decoded side by side take :func:`decoder_threads_for` their number.
+    background : bool
+        Decode in a background thread, ahead of the caller's work on each frame
+        (which then runs on another core). False: decode in the caller's thread,
+        the faster when every core is busy already (:func:`decode_in_background`).
 
     Yields
     ------
@@ -707,36 +759,16 @@ def iter_frames(
     if decoder_threads is not None and decoder_threads < 1:
         raise ValueError(f"decoder_threads must be >= 1, got {decoder_threads}")
     p = Path(path)
-    out: queue.Queue[Any] = queue.Queue(maxsize=prefetch)
-    halt = threading.Event()
-    thread = threading.Thread(
-        target=_reader,
-        args=(p, gray, start, stop, out, halt, times_out, decoder_threads),
-        name=f"decode-{p.name}",
-        daemon=True,
-    )
-    with _live_lock:
-        _live_readers[thread] = halt
-    thread.start()
+    frames = _decoded(p, gray, start, stop, times_out, decoder_threads)
+    if background:
+        frames = _from_reader(frames, f"decode-{p.name}", prefetch)
     n = 0
     try:
-        while True:
-            item = out.get()
-            if item is None:
-                break
-            if isinstance(item, BaseException):
-                raise item
+        for image in frames:
             n += 1
-            yield item
+            yield image
     finally:
-        halt.set()
-        # Drain so the reader can see the halt flag and exit.
-        while thread.is_alive():
-            try:
-                out.get(timeout=0.05)
-            except queue.Empty:
-                pass
-        thread.join()
+        frames.close()
     if expected_count is not None:
         wanted = (expected_count if stop is None else min(stop, expected_count)) - start
         if n < wanted - _FRAME_COUNT_SLACK:

@@ -47,21 +47,27 @@ def lossless(tmp_path_factory):
     return _write(path, _frames(40))
 
 
-def test_lossless_round_trip_is_exact(lossless):
+# Decoded in a background thread, and in the caller's (core.pipeline on 2 cores).
+BOTH_WAYS = pytest.mark.parametrize("background", [True, False], ids=["background", "in-thread"])
+
+
+@BOTH_WAYS
+def test_lossless_round_trip_is_exact(lossless, background):
     info = probe_video(lossless)
     assert info.fps == pytest.approx(100.0)
     assert info.frame_count == 40
     assert info.image_size == SIZE
-    frames = list(iter_frames(lossless, expected_count=info.frame_count))
+    frames = list(iter_frames(lossless, expected_count=info.frame_count, background=background))
     assert len(frames) == 40
     for got, want in zip(frames, _frames(40), strict=True):
         assert got.shape == (SIZE.height, SIZE.width) and got.dtype == np.uint8
         np.testing.assert_array_equal(got, want)
 
 
-def test_mp4v_gray_frames_keep_geometry(tmp_path):
+@BOTH_WAYS
+def test_mp4v_gray_frames_keep_geometry(tmp_path, background):
     path = _write(tmp_path / "clip.mp4", _frames(10), codec="mp4v")
-    frames = list(iter_frames(path))
+    frames = list(iter_frames(path, background=background))
     assert len(frames) == 10
     # The square's left edge is at column 10 + i; compression may change levels, not positions.
     for i, f in enumerate(frames):
@@ -69,26 +75,35 @@ def test_mp4v_gray_frames_keep_geometry(tmp_path):
         assert cols[0] == 10 + i and cols[-1] == 29 + i
 
 
-def test_color_and_range(lossless):
-    frames = list(iter_frames(lossless, gray=False, start=5, stop=8))
+@BOTH_WAYS
+def test_color_and_range(lossless, background):
+    frames = list(iter_frames(lossless, gray=False, start=5, stop=8, background=background))
     assert len(frames) == 3 and frames[0].shape == (SIZE.height, SIZE.width, 3)
     np.testing.assert_array_equal(frames[0][..., 0], _frames(40)[5])
 
 
-def test_early_close_stops_the_decoder(lossless):
-    it = iter_frames(lossless, prefetch=2)
+@BOTH_WAYS
+def test_early_close_stops_the_decoder(lossless, background):
+    import threading
+
+    it = iter_frames(lossless, prefetch=2, background=background)
     next(it)
+    readers = [t for t in threading.enumerate() if t.name == f"decode-{lossless.name}"]
+    assert len(readers) == (1 if background else 0)  # in-thread: no thread of its own
     it.close()  # must not hang or leak the thread
-    assert list(iter_frames(lossless, start=39)) and len(list(iter_frames(lossless, start=39))) == 1
+    assert not any(t.is_alive() for t in readers)
+    last = list(iter_frames(lossless, start=39, background=background))
+    assert len(last) == 1
 
 
-def test_truncated_lossless_video_is_reported(tmp_path, lossless):
+@BOTH_WAYS
+def test_truncated_lossless_video_is_reported(tmp_path, lossless, background):
     data = lossless.read_bytes()
     cut = tmp_path / f"cut{lossless.suffix}"
     cut.write_bytes(data[: len(data) // 2])
     info = probe_video(cut)  # the header still claims 40 frames (or the file is unreadable)
     with pytest.raises(InputError, match="truncated"):
-        list(iter_frames(cut, expected_count=40))
+        list(iter_frames(cut, expected_count=40, background=background))
     assert info.image_size == SIZE
 
 
@@ -172,7 +187,8 @@ def _empty(tmp_path):
     return d
 
 
-def test_abandoned_reader_exits_cleanly_and_quietly(tmp_path):
+@BOTH_WAYS
+def test_abandoned_reader_exits_cleanly_and_quietly(tmp_path, background):
     """A script that stops reading early and exits must neither abort nor spam OpenCV warnings."""
     import subprocess
     import sys
@@ -180,7 +196,7 @@ def test_abandoned_reader_exits_cleanly_and_quietly(tmp_path):
     path = _write(tmp_path / "clip.mp4", _frames(60), codec="mp4v")
     script = (
         "from core.video import iter_frames\n"
-        f"it = iter_frames({str(path)!r}, prefetch=2)\n"
+        f"it = iter_frames({str(path)!r}, prefetch=2, background={background})\n"
         "for i, f in enumerate(it):\n"
         "    if i == 3:\n"
         "        break\n"

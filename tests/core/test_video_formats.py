@@ -288,9 +288,10 @@ def test_a_raw_stream_has_no_frame_rate_unless_its_timestamps_file_gives_one(
     [("lossless", ".mkv"), ("mp4v", ".mp4"), ("h264", ".mp4"), ("av1", ".webm")],
 )
 def test_one_decoder_thread_reads_the_same_frames_and_times(tmp_path, codec, suffix):
-    """Videos decoded side by side get one decoder thread each on 2 cores (faster there:
-    docs/performance.md); the frames and timestamps are those of FFmpeg's own threading,
-    to the bit, through OpenCV and through PyAV (AV1)."""
+    """Videos decoded side by side get one decoder thread each on 2 cores, in the thread
+    that works on their frames (faster there: docs/performance.md); the frames and
+    timestamps are those of FFmpeg's own threading in a background thread, to the bit,
+    through OpenCV and through PyAV (AV1)."""
     import cv2
 
     from core.video import video_capture
@@ -300,13 +301,15 @@ def test_one_decoder_thread_reads_the_same_frames_and_times(tmp_path, codec, suf
         for f in _frames():
             w.write(f)
     times_auto: list[float] = []
-    times_one: list[float] = []
     auto = list(iter_frames(path, times_out=times_auto))
-    one = list(iter_frames(path, times_out=times_one, decoder_threads=1))
-    assert len(one) == len(auto) == N
-    for a, b in zip(auto, one, strict=True):
-        np.testing.assert_array_equal(a, b)
-    assert times_one == times_auto
+    assert len(auto) == N
+    for background in (True, False):  # the decoder in a thread of its own, or the caller's
+        times_one: list[float] = []
+        one = list(iter_frames(path, times_out=times_one, decoder_threads=1, background=background))
+        assert len(one) == N
+        for a, b in zip(auto, one, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert times_one == times_auto
     if codec != "av1":
         cap = video_capture(path, threads=1)
         try:
@@ -318,10 +321,18 @@ def test_one_decoder_thread_reads_the_same_frames_and_times(tmp_path, codec, suf
 def test_decoder_threads_share_out_the_cores(monkeypatch):
     import core.video as video
 
-    for cores, n_videos, want in ((2, 2, 1), (1, 2, 1), (8, 2, 4), (8, 1, 8), (3, 2, 1)):
+    for cores, n_videos, threads, background in (
+        (2, 2, 1, False),
+        (1, 2, 1, False),
+        (8, 2, 4, True),
+        (8, 1, 8, True),
+        (3, 2, 1, True),
+    ):
         monkeypatch.setattr(video.os, "sched_getaffinity", lambda _pid, c=cores: set(range(c)))
-        assert video.decoder_threads_for(n_videos) == want
-    with pytest.raises(ValueError, match="n_videos"):
-        video.decoder_threads_for(0)
+        assert video.decoder_threads_for(n_videos) == threads
+        assert video.decode_in_background(n_videos) is background
+    for fn in (video.decoder_threads_for, video.decode_in_background):
+        with pytest.raises(ValueError, match="n_videos"):
+            fn(0)
     with pytest.raises(ValueError, match="decoder_threads"):
         next(iter_frames("unused.mp4", decoder_threads=0))
