@@ -24,10 +24,14 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import uuid
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
 from sqlalchemy.orm import Session
 
 from app import jobs
@@ -37,8 +41,8 @@ from core.calibration import calibrate_stereo_from_paths
 from core.errors import InputError
 from core.markers_csv import read_markers_csv
 from core.overlay import overlay_document
-from core.pipeline import Analysis, analyze_recording, write_markers_csv
-from core.video import VideoInfo, probe_video, write_proxy
+from core.pipeline import Analysis, FrameSink, analyze_recording, write_markers_csv
+from core.video import ProxyWriter, probe_video
 
 log = logging.getLogger(__name__)
 
@@ -64,52 +68,102 @@ def _upload_warnings(ctx: JobContext, document: dict[str, Any]) -> dict[str, Any
     return {**document, "quality": quality}
 
 
-def _make_proxies(
-    ctx: JobContext, needed: dict[str, Path], fps: dict[str, float]
-) -> tuple[dict[str, str], list[str]]:
-    """Browser proxies (``core.video.write_proxy``) of the videos that have none yet.
+class _ProxiesAlongside:
+    """Browser proxies (``core.video.ProxyWriter``) of the videos that have none yet,
+    written from the frames the analysis decodes (``analyze_recording(frame_sinks=...)``):
+    each video is decoded once, not once more for its proxy.
 
-    ``fps`` holds each video's rate as checked at upload (by side), used for a
-    raw stream that states none. Returns the stored paths by side, and a
-    warning per video whose proxy could not be made (the measurement stands
-    without it; the review view says so).
+    ``fps`` holds each video's rate as checked at upload (by side), used for a raw
+    stream that states none. A proxy that cannot be written (its video cannot be
+    probed, the encoder fails, the disk is full) gives a warning, not a failure: the
+    measurement stands without it and the review view says so. The files are written
+    in the storage's temporary folder and published by :meth:`publish`; :meth:`discard`
+    removes them (an analysis that failed).
     """
-    made: dict[str, str] = {}
-    warnings: list[str] = []
 
-    def cannot(side: str, exc: InputError) -> None:
-        log.warning("job %d: no proxy of the %s video: %s", ctx.job.id, side, exc)
-        warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
-
-    infos: dict[str, VideoInfo] = {}
-    for side, source in sorted(needed.items()):
+    def __init__(self, ctx: JobContext, needed: dict[str, Path], fps: dict[str, float]) -> None:
+        self._ctx = ctx
+        self.warnings: list[str] = []
+        self._writers: dict[str, ProxyWriter] = {}
+        # An earlier attempt of this job, whose worker was killed, left its proxies
+        # half-written: removed here (Storage.cleanup_tmp removes any other after a day).
+        prefix = f"proxy-job{ctx.job.id}-"
+        mine = f"{prefix}a{ctx.job.attempts}-"
+        for old in ctx.storage.tmp_dir.glob(f"{prefix}*.part"):
+            if not old.name.startswith(mine):
+                old.unlink(missing_ok=True)
         try:
-            infos[side] = probe_video(source, fps_if_none=fps.get(side))
-        except InputError as exc:
-            cannot(side, exc)
-    total = sum(max(1, info.frame_count) for info in infos.values())
-    done = 0
-    for side, info in infos.items():
-        try:
-            base = done
+            for side, source in sorted(needed.items()):
+                try:
+                    info = probe_video(source, fps_if_none=fps.get(side))
+                    temp = ctx.storage.tmp_dir / f"{mine}{side}-{uuid.uuid4().hex[:8]}.mp4.part"
+                    self._writers[side] = ProxyWriter(
+                        temp, info.image_size, info.fps, name=info.path.name
+                    )
+                except InputError as exc:
+                    self._cannot(side, exc)
+        except BaseException:
+            self.discard()
+            raise
 
-            def step(n: int, base: int = base) -> None:
-                ctx.progress("proxy", base + n, total)
+    def _cannot(self, side: str, exc: InputError) -> None:
+        log.warning("job %d: no proxy of the %s video: %s", self._ctx.job.id, side, exc)
+        self.warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
 
-            with ctx.storage.writing("proxies", ".mp4") as (tmp, path):
-                write_proxy(info.path, tmp, fps_if_none=info.fps, progress=step)
-        except InputError as exc:
-            cannot(side, exc)
-            continue
-        done += info.frame_count
-        made[side] = path
-    return made, warnings
+    def sink(self, side: str) -> FrameSink | None:
+        """What the analysis calls with each frame of the stored ``side`` video."""
+        writer = self._writers.get(side)
+        if writer is None:
+            return None
+
+        def write(frame: NDArray[np.uint8]) -> None:
+            if side not in self._writers:
+                return  # failed before: the rest of the video is not written
+            try:
+                writer.write(frame)
+            except InputError as exc:  # the file is removed; the analysis goes on
+                del self._writers[side]
+                self._cannot(side, exc)
+
+        return write
+
+    def publish(self, written: list[str]) -> dict[str, str]:
+        """Finish the proxies and move them into storage; the stored paths by side, each
+        also appended to ``written`` as soon as it is there (to remove it again if the
+        result is not stored)."""
+        made: dict[str, str] = {}
+        for side in sorted(self._writers):
+            writer = self._writers.pop(side)
+            try:
+                try:
+                    writer.close()
+                except InputError as exc:  # the file is removed
+                    self._cannot(side, exc)
+                    continue
+                with self._ctx.storage.writing("proxies", ".mp4") as (tmp, path):
+                    os.replace(writer.path, tmp)
+            except BaseException:
+                writer.abort()
+                raise
+            written.append(path)
+            made[side] = path
+        return made
+
+    def discard(self) -> None:
+        """Remove the proxies not published (idempotent)."""
+        for writer in self._writers.values():
+            writer.abort()
+        self._writers.clear()
 
 
-def _measure(ctx: JobContext, inputs: trials.TrialInputs, *, swap: bool) -> Analysis:
-    """``core.pipeline.analyze_recording`` on the trial; ``swap``: the stored right video
-    (and its timestamps) measured as the rig's left camera, and the other way round."""
+def _measure(
+    ctx: JobContext, inputs: trials.TrialInputs, *, swap: bool, proxies: _ProxiesAlongside
+) -> Analysis:
+    """``core.pipeline.analyze_recording`` on the trial, the ``proxies`` written from its
+    frames; ``swap``: the stored right video (and its timestamps) measured as the rig's
+    left camera, and the other way round."""
     left, right = (inputs.right, inputs.left) if swap else (inputs.left, inputs.right)
+    sides = ("right", "left") if swap else ("left", "right")
     left_times, right_times = (
         (inputs.right_times, inputs.left_times) if swap else (inputs.left_times, inputs.right_times)
     )
@@ -123,6 +177,7 @@ def _measure(ctx: JobContext, inputs: trials.TrialInputs, *, swap: bool) -> Anal
         right_times=right_times,
         task=inputs.task,
         side=inputs.side,
+        frame_sinks=(proxies.sink(sides[0]), proxies.sink(sides[1])),
     )
 
 
@@ -158,27 +213,26 @@ def analyze_trial(ctx: JobContext) -> None:
             offset_frames=float(offset) if offset is not None else None,
         )
     _require_files(ctx, inputs.files, what=f"trial {inputs.trial_id}")
-    analysis = _measure(ctx, inputs, swap=swap)
-    document = dict(analysis.result_document())
-    document.setdefault("calibration", inputs.calibration.document())
-    if swap:
-        document["cameras_swapped"] = True
-    document = _upload_warnings(ctx, document)
-    overlay = _review_overlay(analysis, inputs, swap=swap)
-
+    proxy_files = _ProxiesAlongside(ctx, inputs.proxies_needed, inputs.video_fps)
     written: list[str] = []
     try:
+        analysis = _measure(ctx, inputs, swap=swap, proxies=proxy_files)
+        document = dict(analysis.result_document())
+        document.setdefault("calibration", inputs.calibration.document())
+        if swap:
+            document["cameras_swapped"] = True
+        document = _upload_warnings(ctx, document)
+        overlay = _review_overlay(analysis, inputs, swap=swap)
         with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
             write_markers_csv(analysis, tmp_path)
         written.append(markers_path)
         with ctx.storage.writing("overlays", ".json") as (tmp_path, overlay_path):
             tmp_path.write_text(json.dumps(overlay, allow_nan=False), encoding="utf-8")
         written.append(overlay_path)
-        proxies, proxy_warnings = _make_proxies(ctx, inputs.proxies_needed, inputs.video_fps)
-        written.extend(proxies.values())
-        if proxy_warnings:
+        proxies = proxy_files.publish(written)
+        if proxy_files.warnings:
             quality = dict(document.get("quality") or {})
-            quality["warnings"] = [*(quality.get("warnings") or []), *proxy_warnings]
+            quality["warnings"] = [*(quality.get("warnings") or []), *proxy_files.warnings]
             document["quality"] = quality
         # Drawn once here, so that the result page and the reports only read them.
         table = read_markers_csv(ctx.storage.absolute(markers_path), fps=analysis.fps)
@@ -201,6 +255,7 @@ def analyze_trial(ctx: JobContext) -> None:
 
         ctx.finish(write)
     except BaseException:
+        proxy_files.discard()
         for path in written:
             ctx.storage.delete(path)
         raise
@@ -256,7 +311,6 @@ STAGES: dict[str, tuple[tuple[str, float], ...]] = {
         ("triangulation", 0.04),
         ("tracking", 0.04),
         ("metrics", 0.03),
-        ("proxy", 0.15),
     ),
     # core.calibration.calibrate_stereo_from_paths's stages.
     "calibrate": (("detection", 0.7), ("calibration", 0.3)),

@@ -5,10 +5,11 @@ simulated, or ``--dir`` sessions), a fresh data directory gets a rig with that
 session's calibration, a patient and a session; the pair is uploaded
 ``--trials`` times through the trial use case (``app.services.trials.create_trial``,
 which checks the videos by decoding them) and one worker (``run_worker``)
-measures the queued trials: analysis, ``markers.csv``, overlay, browser
-proxies, plots, result. Prints per trial the worker's wall time and this
-process's CPU time (all threads), the CPU time of the two browser proxies
-(``write_proxy`` of both videos, timed alone after the worker), and from them:
+measures the queued trials: analysis with the browser proxies written from
+the frames it decodes, ``markers.csv``, overlay, plots, result, then each
+trial's PDF report (its own job). Prints per trial the worker's wall time and
+this process's CPU time (all threads), of the analysis job and of the report
+job, and from them:
 
 - trials per hour for one worker (3600 / wall s per trial) on this machine now;
 - trials per hour per core (3600 / CPU s per trial): what N workers on N
@@ -51,10 +52,32 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this tree's app and core, not another checkout's
+
 
 def _cpu_s() -> float:
     me = resource.getrusage(resource.RUSAGE_SELF)
     return me.ru_utime + me.ru_stime
+
+
+def _timed_handlers() -> dict[str, list[float]]:
+    """The worker's handlers wrapped to record the CPU (s, this process) each job took."""
+    from app import handlers, jobs
+
+    spent: dict[str, list[float]] = {"analyze_trial": [], jobs.REPORT_PDF: []}
+    for kind in spent:
+        handler = handlers.HANDLERS[kind]
+
+        def timed(ctx: Any, handler: Any = handler, kind: str = kind) -> None:
+            c0 = _cpu_s()
+            try:
+                handler(ctx)
+            finally:
+                spent[kind].append(_cpu_s() - c0)
+
+        handlers.HANDLERS[kind] = timed
+    return spent
 
 
 def _upload(settings, actor, session_id: int, left: Path, right: Path) -> None:
@@ -218,20 +241,19 @@ def _bench(session_dir: Path, n_trials: int, n_workers: int, database_url: str |
                 f" load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
             )
             return
+        spent = _timed_handlers()
         c0, t0 = _cpu_s(), time.perf_counter()
         done = run_worker(settings, once=True)
-        wall, cpu = (time.perf_counter() - t0) / done, (_cpu_s() - c0) / done
-        from core.video import write_proxy
-
-        c0 = _cpu_s()
-        for video in (left, right):
-            write_proxy(video, Path(tmp) / "proxy.mp4")
-        proxies_cpu = _cpu_s() - c0
+        wall, cpu = (time.perf_counter() - t0) / n_trials, (_cpu_s() - c0) / n_trials
+        if done != 2 * n_trials or len(spent["analyze_trial"]) != n_trials:
+            raise SystemExit(f"the worker ran {done} jobs, not an analysis and a report each")
+    analysis_cpu = sum(spent["analyze_trial"]) / n_trials
+    report_cpu = sum(spent["report_pdf"]) / n_trials
     total_wall, total_cpu = up_wall + wall, up_cpu + cpu
     print(
-        f"{session_dir.name}: {done} trials; per trial: upload check {up_wall:.1f} s"
-        f" (CPU {up_cpu:.1f} s), worker {wall:.1f} s (CPU {cpu:.1f} s),"
-        f" of which the two browser proxies about {proxies_cpu:.1f} s of CPU (timed alone after)"
+        f"{session_dir.name}: {n_trials} trials; per trial: upload check {up_wall:.1f} s"
+        f" (CPU {up_cpu:.1f} s), worker {wall:.1f} s (CPU {cpu:.1f} s: the analysis with its"
+        f" proxies, plots and files {analysis_cpu:.1f} s, the PDF report {report_cpu:.1f} s)"
     )
     print(
         f"  one worker: {3600 / total_wall:.0f} trials/hour here now;"

@@ -38,6 +38,7 @@ import io
 import json
 import math
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,6 +82,9 @@ from core.version import software_document
 from core.video import VideoInfo
 
 FloatArray = NDArray[np.float64]
+
+#: Receives each decoded frame of one video (``analyze_recording(frame_sinks=...)``).
+FrameSink = Callable[[NDArray[np.uint8]], None]
 
 RESULT_FORMAT = "bradyscope.result/1"
 CSV_HEADER = MARKERS_CSV_HEADER  # the columns of markers.csv (core.markers_csv)
@@ -258,6 +262,7 @@ def _detect_videos(
     *,
     marker_params: MarkerParams | None = None,
     timestamps: tuple[list[float], list[float]] | None = None,
+    frame_sinks: tuple[FrameSink | None, FrameSink | None] | None = None,
 ) -> tuple[
     list[FloatArray], list[FloatArray], dict[str, float], tuple[dict[int, list[ImagePatch]], ...]
 ]:
@@ -277,6 +282,7 @@ def _detect_videos(
     detector = detect if detect is not None else _default_detector(marker_params)
     decoder_threads = decoder_threads_for(2)
     background = decode_in_background(2)
+    sinks = frame_sinks if frame_sinks is not None else (None, None)
     states = [_CameraDetections(detector), _CameraDetections(detector)]
     errors: list[BaseException] = []
     halt = threading.Event()
@@ -284,6 +290,7 @@ def _detect_videos(
     def work(k: int) -> None:
         try:
             times = None if timestamps is None else timestamps[k]
+            sink = sinks[k]
             for image in iter_frames(
                 paths[k],
                 gray=True,
@@ -295,6 +302,8 @@ def _detect_videos(
                 if halt.is_set():
                     return
                 states[k].process(image)
+                if sink is not None:
+                    sink(image)
         except BaseException as exc:  # re-raised in the calling thread
             errors.append(exc)
             halt.set()
@@ -465,6 +474,7 @@ def analyze_recording(
     right_times: str | Path | None = None,
     task: str | Task = Task.FINGER_TAPPING,
     side: str = "right",
+    frame_sinks: tuple[FrameSink | None, FrameSink | None] | None = None,
 ) -> Analysis:
     """Measure thumb and index trajectories (and tapping metrics) from a stereo recording.
 
@@ -499,6 +509,12 @@ def analyze_recording(
     side : {"right", "left"}
         The side examined (the trial's hand or foot): the direction of
         supination of pronation–supination; the other tasks do not use it.
+    frame_sinks : (callable or None, callable or None), optional
+        Called with every frame decoded from the left and the right video, in order,
+        in the thread that decodes it (``(H, W)`` uint8 gray, not to be kept or
+        changed): a caller that needs the frames too (the worker's browser proxies,
+        ``core.video.ProxyWriter``) gets them without decoding the video again. An
+        exception a sink raises stops the analysis.
 
     Returns
     -------
@@ -539,6 +555,7 @@ def analyze_recording(
         (left_info.frame_count, right_info.frame_count),
         detector,
         progress,
+        frame_sinks=frame_sinks,
         marker_params=marker_params,
         timestamps=stamps,
     )

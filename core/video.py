@@ -23,6 +23,7 @@ encoders nor per-frame timestamps.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import functools
 import os
 import queue
@@ -30,7 +31,7 @@ import threading
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import cv2
 import numpy as np
@@ -950,6 +951,127 @@ def proxy_size(image_size: ImageSize) -> ImageSize:
     return ImageSize(width - width % 2, height - height % 2)
 
 
+class ProxyWriter:
+    """A browser-playable copy of a video written frame by frame: H.264 in MP4 with the
+    index first (faststart), gray (the luma plane, what the analysis measured).
+
+    Frame ``i`` written is frame ``i`` of the proxy, at ``i / fps`` (constant frame
+    rate), so a player's frame number is the analysis's. A video wider than
+    :data:`PROXY_MAX_WIDTH_PX` is reduced by a whole factor (pixel areas averaged,
+    :func:`proxy_size`); the review view draws its overlay in the video's own pixels
+    over whatever size the player shows. An odd width or height loses its last column
+    or row (H.264 4:2:0 needs even sizes), which keeps every pixel coordinate.
+
+    Use it as a context manager (:meth:`close` on success, :meth:`abort` on an
+    exception), or call those yourself. ``core.pipeline.analyze_recording`` feeds it
+    the frames it decodes (``frame_sinks``), so a video is decoded once for both.
+
+    Raises
+    ------
+    InputError
+        The proxy cannot be written (:meth:`write`, :meth:`close`, or opening the
+        file); the file is removed then.
+    """
+
+    def __init__(self, target: str | Path, image_size: ImageSize, fps: float, *, name: str) -> None:
+        import fractions
+
+        import av
+
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        self.path = Path(target)
+        self.name = name
+        self.fps = float(fps)
+        self.image_size = image_size
+        size = proxy_size(image_size)
+        self._width, self._height = size.width, size.height
+        self._factor = -(-image_size.width // PROXY_MAX_WIDTH_PX)
+        self._tb = fractions.Fraction(1, 90000)
+        self.frames = 0
+        self._av = av
+        self._container: Any = None
+        try:
+            self._container = av.open(
+                str(self.path), "w", format="mp4", options={"movflags": "+faststart"}
+            )
+            stream: Any = self._container.add_stream(
+                "libx264", rate=fractions.Fraction(self.fps).limit_denominator(1001)
+            )
+            stream.width, stream.height = self._width, self._height
+            stream.pix_fmt = "yuv420p"
+            stream.time_base = self._tb
+            stream.codec_context.time_base = self._tb
+            stream.options = dict(PROXY_OPTIONS)
+        except (av.FFmpegError, OSError) as exc:
+            self._failed(exc)
+        self._stream = stream
+
+    def _failed(self, exc: BaseException) -> NoReturn:
+        self.abort()
+        raise InputError(f"cannot write a browser copy of {self.name}: {exc}") from exc
+
+    def write(self, gray: NDArray[np.uint8]) -> None:
+        """Append one gray ``(H, W)`` frame of the video (``image_size``)."""
+        if self._container is None:
+            raise RuntimeError(f"the browser copy of {self.name} is closed")
+        if gray.shape != (self.image_size.height, self.image_size.width):
+            raise ValueError(
+                f"frame {self.frames} of {self.name} is {gray.shape[1]}x{gray.shape[0]},"
+                f" not {self.image_size.width}x{self.image_size.height}"
+            )
+        width, height, factor = self._width, self._height, self._factor
+        shown = gray[:height, :width]
+        if factor > 1:  # pixel areas averaged; cv2 returns the input's dtype
+            shown = np.asarray(
+                cv2.resize(
+                    gray[: height * factor, : width * factor],
+                    (width, height),
+                    interpolation=cv2.INTER_AREA,
+                ),
+                dtype=np.uint8,
+            )
+        image = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(shown), format="gray")
+        image.pts = round(self.frames / self.fps / self._tb)
+        image.time_base = self._tb
+        try:
+            for packet in self._stream.encode(image):
+                self._container.mux(packet)
+        except (self._av.FFmpegError, OSError) as exc:
+            self._failed(exc)
+        self.frames += 1
+
+    def close(self) -> int:
+        """Flush the encoder and close the file; the number of frames written."""
+        if self._container is None:
+            raise RuntimeError(f"the browser copy of {self.name} is closed")
+        try:
+            for packet in self._stream.encode():
+                self._container.mux(packet)
+            self._container.close()
+        except (self._av.FFmpegError, OSError) as exc:
+            self._failed(exc)
+        self._container = None
+        return self.frames
+
+    def abort(self) -> None:
+        """Close without finishing and remove the file (idempotent)."""
+        container, self._container = self._container, None
+        if container is not None:
+            with contextlib.suppress(self._av.FFmpegError, OSError):
+                container.close()
+        self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> ProxyWriter:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif self._container is not None:
+            self.close()
+
+
 def write_proxy(
     source: str | Path,
     target: str | Path,
@@ -957,16 +1079,8 @@ def write_proxy(
     fps_if_none: float | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> int:
-    """Write a browser-playable copy of a video: H.264 in MP4 with the index first (faststart).
-
-    Every decoded frame of ``source`` becomes frame ``i`` of the proxy at
-    ``i / fps`` (constant frame rate), so a player's frame number is the
-    analysis's; gray (the luma plane, what the analysis measured). A video
-    wider than :data:`PROXY_MAX_WIDTH_PX` is reduced by a whole factor (pixel
-    areas averaged, :func:`proxy_size`); the review view draws its overlay in
-    the video's own pixels over whatever size the player shows. An odd width or
-    height loses its last column or row (H.264 4:2:0 needs even sizes), which
-    keeps every pixel coordinate. ``source`` is only read.
+    """Write a browser-playable copy of a video (:class:`ProxyWriter`) from every frame
+    decoded from ``source``, which is only read.
 
     Parameters
     ----------
@@ -988,52 +1102,13 @@ def write_proxy(
     InputError
         The video cannot be read or the proxy cannot be written.
     """
-    import fractions
-
-    import av
-
     info = probe_video(source, fps_if_none=fps_if_none)
-    size = proxy_size(info.image_size)
-    width, height = size.width, size.height
-    factor = -(-info.image_size.width // PROXY_MAX_WIDTH_PX)
-    out = Path(target)
-    tb = fractions.Fraction(1, 90000)
-    n = 0
-    try:
-        with av.open(str(out), "w", format="mp4", options={"movflags": "+faststart"}) as container:
-            stream: Any = container.add_stream(
-                "libx264", rate=fractions.Fraction(info.fps).limit_denominator(1001)
-            )
-            stream.width, stream.height = width, height
-            stream.pix_fmt = "yuv420p"
-            stream.time_base = tb
-            stream.codec_context.time_base = tb
-            stream.options = dict(PROXY_OPTIONS)
-            for gray in iter_frames(info.path, gray=True, expected_count=info.frame_count):
-                shown = gray[:height, :width]
-                if factor > 1:  # pixel areas averaged; cv2 returns the input's dtype
-                    shown = np.asarray(
-                        cv2.resize(
-                            gray[: height * factor, : width * factor],
-                            (width, height),
-                            interpolation=cv2.INTER_AREA,
-                        ),
-                        dtype=np.uint8,
-                    )
-                image = av.VideoFrame.from_ndarray(np.ascontiguousarray(shown), format="gray")
-                image.pts = round(n / info.fps / tb)
-                image.time_base = tb
-                for packet in stream.encode(image):
-                    container.mux(packet)
-                n += 1
-                if progress is not None:
-                    progress(n)
-            for packet in stream.encode():
-                container.mux(packet)
-    except (av.FFmpegError, OSError) as exc:
-        out.unlink(missing_ok=True)
-        raise InputError(f"cannot write a browser copy of {info.path.name}: {exc}") from exc
-    return n
+    with ProxyWriter(target, info.image_size, info.fps, name=info.path.name) as writer:
+        for gray in iter_frames(info.path, gray=True, expected_count=info.frame_count):
+            writer.write(gray)
+            if progress is not None:
+                progress(writer.frames)
+    return writer.frames
 
 
 def video_suffix(codec: str) -> str:

@@ -8,7 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from sqlalchemy import select
-from test_worker import _job, _trial_with_videos, small_recording  # noqa: F401 - a fixture
+from test_worker import (  # noqa: F401 - a fixture
+    _assert_own_proxies,
+    _job,
+    _trial_with_videos,
+    small_recording,
+)
 
 from app.actors import ROLE_SCOPES, Actor
 from app.models import Result, Trial, User, Video
@@ -87,6 +92,8 @@ def test_swapped_upload_fails_and_the_swapped_retry_measures_within_1_percent(
     for side, path in proxies.items():
         info = probe_video(path)
         assert info.fourcc == "h264" and info.frame_count == videos[side].frame_count
+    # Written from the frames of the swapped analysis: each still shows its stored video.
+    _assert_own_proxies(sm, storage, trial_id, swapped)
     # Tracked markers are drawn where the detector found them, in the right video.
     cam = overlay["cameras"][0]
     errors = [

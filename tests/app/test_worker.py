@@ -327,6 +327,105 @@ def test_analyze_trial_handler_measures_a_simulated_recording(
     assert report_job.id > job_id
     kept = ReportPdfCache.of(storage).get(data.patient_id, trial_id, report_key(data))
     assert kept is not None and kept.startswith(b"%PDF")
+    _assert_own_proxies(sm, storage, trial_id, small_recording)
+
+
+def _assert_own_proxies(sm, storage, trial_id, recording) -> None:
+    """Each stored video's browser proxy, written from the frames the analysis decoded,
+    shows that video frame for frame: as ``write_proxy`` makes it from the video alone
+    (gray levels within 1 on average), and not the other camera's; nothing is left in
+    the storage's temporary folder."""
+    from core.video import iter_frames, write_proxy
+
+    with sm() as db:
+        videos = {v.side: v for v in db.get(Trial, trial_id).videos}
+    alone = {}
+    for side, source in (("left", recording.left_video), ("right", recording.right_video)):
+        out = storage.tmp_dir.parent / f"alone-{side}.mp4"
+        write_proxy(source, out)
+        alone[side] = list(iter_frames(out))
+        out.unlink()
+    for side, video in videos.items():
+        assert video.proxy_path is not None
+        frames = list(iter_frames(storage.absolute(video.proxy_path)))
+        assert len(frames) == len(alone[side]) == video.frame_count
+        other = alone["right" if side == "left" else "left"]
+        for k in (0, len(frames) // 2, len(frames) - 1):
+            own = np.abs(frames[k].astype(float) - alone[side][k]).mean()
+            assert own < 1.0, (side, k, own)  # gray levels
+            assert np.abs(frames[k].astype(float) - other[k]).mean() > 2 * own + 0.5
+    assert list(storage.tmp_dir.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_a_proxy_that_cannot_be_written_leaves_the_measurement_and_a_warning(
+    app_settings, db_sessionmaker, storage, small_recording, monkeypatch
+):
+    """The right video's proxy fails half way (the encoder or the disk): the analysis
+    stands, the result warns that the review view cannot show that video, the left
+    proxy is stored, and no half-written file stays behind."""
+    from app import handlers
+    from core.errors import InputError
+
+    real_write = handlers.ProxyWriter.write
+
+    def write(self, frame):
+        if "-right-" in self.path.name and self.frames == 5:
+            self.abort()
+            raise InputError(f"cannot write a browser copy of {self.name}: No space left")
+        real_write(self, frame)
+
+    monkeypatch.setattr(handlers.ProxyWriter, "write", write)
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+    run_worker(app_settings, once=True)
+    assert _job(sm, job_id).status == "succeeded"
+    with sm() as db:
+        trial = db.get(Trial, trial_id)
+        doc = db.scalars(select(Result).where(Result.trial_id == trial_id)).one().document
+        proxies = {v.side: v.proxy_path for v in trial.videos}
+    assert doc["metrics"]["tap_count"] == small_recording.truth["tap_count"]
+    warned = [w for w in doc["quality"]["warnings"] if "review view" in w]
+    assert len(warned) == 1 and warned[0].startswith("the right video cannot be shown"), warned
+    assert proxies["right"] is None and proxies["left"] is not None
+    assert storage.absolute(proxies["left"]).stat().st_size > 0
+    assert list(storage.tmp_dir.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_a_proxy_that_cannot_be_stored_fails_the_attempt_and_leaves_no_file(
+    app_settings, db_sessionmaker, storage, small_recording, monkeypatch
+):
+    """Moving the second proxy into storage fails (the disk): that attempt stores nothing,
+    the first proxy it had already moved in is removed, and the retry stores the result
+    with exactly its two proxies."""
+    from app.storage import Storage
+
+    calls = []
+    real_writing = Storage.writing
+
+    def writing(self, category, suffix=""):
+        if category == "proxies":
+            calls.append(category)
+            if len(calls) == 2:
+                raise OSError(28, "No space left on device")
+        return real_writing(self, category, suffix)
+
+    monkeypatch.setattr(Storage, "writing", writing)
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+    run_worker(app_settings, once=True)
+    job = _job(sm, job_id)
+    assert (job.status, job.attempts) == ("succeeded", 2) and len(calls) == 4
+    with sm() as db:
+        proxies = sorted(v.proxy_path for v in db.get(Trial, trial_id).videos)
+    stored = sorted(
+        str(p.relative_to(storage.data_dir)) for p in (storage.files_dir / "proxies").rglob("*")
+    )
+    assert [p for p in stored if p.endswith(".mp4")] == proxies
+    assert list(storage.tmp_dir.iterdir()) == []
 
 
 def _without_ids(svg: str) -> str:
@@ -390,6 +489,9 @@ def test_a_pair_that_cannot_be_measured_fails_with_its_sentence_and_keeps_the_tr
         assert db.scalars(select(Result)).all() == []
         videos = db.scalars(select(Video).where(Video.trial_id == trial_id)).all()
         assert sorted(v.side for v in videos) == ["left", "right"]
+        # the proxies begun alongside the failed analysis are gone, none half-written
+        assert all(v.proxy_path is None for v in videos)
+        assert list(storage.tmp_dir.iterdir()) == []
         for video in videos:
             assert (
                 storage.absolute(video.path).read_bytes()
