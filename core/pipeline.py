@@ -511,8 +511,8 @@ def analyze_recording(
         supination of pronation–supination; the other tasks do not use it.
     frame_sinks : (callable or None, callable or None), optional
         Called with every frame decoded from the left and the right video, in order,
-        in the thread that decodes it (``(H, W)`` uint8 gray, not to be kept or
-        changed): a caller that needs the frames too (the worker's browser proxies,
+        in the thread that searches that video's frames (``(H, W)`` uint8 gray, not to
+        be kept or changed): a caller that needs the frames too (the worker's browser proxies,
         ``core.video.ProxyWriter``) gets them without decoding the video again. An
         exception a sink raises stops the analysis.
 
