@@ -447,39 +447,99 @@ def _live_detection_threads() -> list[str]:
     return [t.name for t in threading.enumerate() if t.name.startswith(("detect-", "decode-"))]
 
 
+# The cores the process may use: 2 (each camera's thread decodes its own frames, one
+# decoder thread each) or 8 (a background reader per video, 4 decoder threads each).
+CORES = pytest.mark.parametrize("cores", [2, 8])
+
+
+def _with_cores(monkeypatch: pytest.MonkeyPatch, cores: int) -> None:
+    import core.video
+
+    monkeypatch.setattr(core.video.os, "sched_getaffinity", lambda _pid: set(range(cores)))
+    assert core.video.decode_in_background(2) is (cores > 2)
+
+
+@CORES
 def test_concurrent_cameras_give_the_one_at_a_time_detections(
-    small_session: SimulatedSession,
+    small_session: SimulatedSession, monkeypatch: pytest.MonkeyPatch, cores: int
 ) -> None:
     """The two camera threads (compiled search without the GIL, at the same time)
-    return exactly what searching one camera after the other returns."""
+    return exactly what searching one camera after the other returns, however the
+    videos are decoded; the frame sinks get every decoded frame, in order."""
     from core.markers import _CameraDetections, _default_detector
     from core.pipeline import _detect_videos
     from core.video import iter_frames, probe_video
 
+    _with_cores(monkeypatch, cores)
     info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
     paths = (info[0].path, info[1].path)
     counts = (info[0].frame_count, info[1].frame_count)
     stages: list[tuple[int, int]] = []
-    together = _detect_videos(paths, counts, None, lambda s, d, t: stages.append((d, t)))
+    sunk: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    together = _detect_videos(
+        paths,
+        counts,
+        None,
+        lambda s, d, t: stages.append((d, t)),
+        frame_sinks=(lambda f: sunk[0].append(f.copy()), lambda f: sunk[1].append(f.copy())),
+    )
     for k in (0, 1):
         alone = _CameraDetections(_default_detector(None))
-        for image in iter_frames(paths[k], gray=True):
+        frames = list(iter_frames(paths[k], gray=True))
+        for image in frames:
             alone.process(image)
         assert len(together[k]) == len(alone.frames) == counts[k]
         assert all(np.array_equal(a, b) for a, b in zip(together[k], alone.frames, strict=True))
         assert sum(len(f) for f in alone.frames) >= 2 * counts[k]  # the markers were found
+        assert len(sunk[k]) == len(frames)
+        assert all(np.array_equal(a, b) for a, b in zip(sunk[k], frames, strict=True))
     assert stages[-1] == (sum(counts), sum(counts))  # progress reaches the end
     assert _live_detection_threads() == []
 
 
-def test_detection_error_stops_both_cameras(small_session: SimulatedSession) -> None:
+@CORES
+def test_detection_error_stops_both_cameras(
+    small_session: SimulatedSession, monkeypatch: pytest.MonkeyPatch, cores: int
+) -> None:
     """A truncated video: one-sentence InputError, and no decoder or search thread left."""
     from core.pipeline import _detect_videos
     from core.video import probe_video
+
+    _with_cores(monkeypatch, cores)
 
     info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
     paths = (info[0].path, info[1].path)
     too_many = (info[0].frame_count + 40, info[1].frame_count)  # the left one looks truncated
     with pytest.raises(InputError, match="truncated"):
         _detect_videos(paths, too_many, None, None)
+    assert _live_detection_threads() == []
+
+
+@CORES
+def test_a_failing_frame_sink_stops_both_cameras(
+    small_session: SimulatedSession, monkeypatch: pytest.MonkeyPatch, cores: int
+) -> None:
+    """A frame sink's exception (the caller's code) stops the analysis with that exception,
+    and no decoder or search thread is left."""
+    from core.pipeline import _detect_videos
+    from core.video import probe_video
+
+    _with_cores(monkeypatch, cores)
+    info = [probe_video(small_session.left_video), probe_video(small_session.right_video)]
+    seen: list[int] = []
+
+    def sink(frame: np.ndarray) -> None:
+        seen.append(1)
+        if len(seen) == 5:
+            raise RuntimeError("the sink's own failure")
+
+    with pytest.raises(RuntimeError, match="the sink's own failure"):
+        _detect_videos(
+            (info[0].path, info[1].path),
+            (info[0].frame_count, info[1].frame_count),
+            None,
+            None,
+            frame_sinks=(None, sink),
+        )
+    assert len(seen) == 5
     assert _live_detection_threads() == []
