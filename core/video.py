@@ -11,10 +11,15 @@ planar YUV or gray (no colour conversion at all). For YUV streams that plane
 is in video range (16–235), a fixed affine change of intensity that marker
 and board detection do not depend on.
 
-Decoding is OpenCV's (it hands out the luma plane without a copy and releases
-the GIL). What OpenCV cannot tell reliably, PyAV reads from the container:
-the number of frames of a Matroska/WebM file (browsers write none), and
-whether the packets carry timestamps at all (a raw H.264 stream has none).
+Decoding is OpenCV's for colour frames and for what PyAV does not hand out as
+a luma plane; gray frames of 8-bit YUV and gray streams are read-only views of
+the luma plane of PyAV's decoder. Both use FFmpeg and release the GIL while
+they decode, and give the same pixels and timestamps to the bit; OpenCV
+copies every raw frame, which cost a sixth of decoding a 1280x1024 MPEG-4
+video (docs/performance.md). What OpenCV cannot tell reliably, PyAV reads
+from the container: the number of frames of a Matroska/WebM file (browsers
+write none), and whether the packets carry timestamps at all (a raw H.264
+stream has none).
 Writing H.264, HEVC, VP8 and VP9 with per-frame timestamps (variable frame
 rate) is PyAV's too (:class:`VideoWriter`); OpenCV's writer has neither the
 encoders nor per-frame timestamps.
@@ -580,6 +585,11 @@ def _decoded(
     if not _opencv_decodes(path):
         yield from _decoded_av(path, gray, start, stop, times, threads)
         return
+    if gray:
+        container = _luma_container(path)
+        if container is not None:
+            yield from _decoded_luma(container, start, stop, times, threads)
+            return
     cap = _open_capture(path, threads)
     try:
         luma = False
@@ -633,6 +643,97 @@ def _decoded_cv(
                 frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         yield frame
         index += 1
+
+
+# FFmpeg's names of the 8-bit pixel formats whose first plane is the luma (or gray) image:
+# those that OpenCV's raw frames name by one of _LUMA_FIRST_FORMATS (yuvj* are JPEG's
+# full-range twins; tests/core/test_video_formats.py checks the list against OpenCV).
+_LUMA_FIRST_PIX_FMTS = frozenset(
+    {"gray", "yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "nv12", "nv21"}
+)
+
+
+def _luma_container(path: Path) -> Any | None:
+    """``path`` opened by PyAV when its video's first plane is the 8-bit luma image (the
+    plane OpenCV would hand out raw, see :func:`_decoded`), else None."""
+    import av
+
+    try:
+        container = av.open(str(path))
+    except (av.FFmpegError, OSError, ValueError):
+        return None  # OpenCV opens it (checked before): its path says what fails
+    try:
+        if container.streams.video and (
+            container.streams.video[0].codec_context.pix_fmt in _LUMA_FIRST_PIX_FMTS
+        ):
+            return container
+    except (av.FFmpegError, ValueError):
+        pass  # no known pixel format before decoding: OpenCV's path
+    container.close()
+    return None
+
+
+def _decoded_luma(
+    container: Any,
+    start: int,
+    stop: int | None,
+    times: list[float] | None,
+    threads: int | None,
+) -> _Frames:
+    """:func:`_decoded_cv`'s gray frames from the luma plane of PyAV's decoder, without
+    copying it: the same pixels and timestamps (to the bit) as OpenCV's raw frames, whose
+    copy of each frame cost a sixth of decoding a 1280x1024 MPEG-4 video.
+
+    The frames are read-only views of the decoder's picture (a frame changed in place would
+    be the reference of the next ones); one that must change is copied first.
+    """
+    try:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        if threads is not None:
+            stream.thread_count = threads
+        # OpenCV's CAP_PROP_POS_MSEC: (pts - the stream's start) x time base, in ms
+        origin = stream.start_time or 0
+        tick_s = stream.time_base.numerator / stream.time_base.denominator
+        index = 0
+        for frame in _frames_of(container, stream):
+            if stop is not None and index >= stop:
+                break
+            if index >= start:
+                if times is not None:
+                    pts = frame.pts if frame.pts is not None else frame.dts
+                    times.append(
+                        np.nan if pts is None else (pts - origin) * tick_s * 1000.0 / 1000.0
+                    )
+                yield _luma_plane(frame)
+            index += 1
+    finally:
+        container.close()
+
+
+def _frames_of(container: Any, stream: Any) -> Generator[Any, None, None]:
+    """The decoded frames of ``stream``, up to the first packet that cannot be read or
+    decoded: where OpenCV's reader ends a damaged video too."""
+    import av
+
+    with contextlib.suppress(av.FFmpegError):
+        yield from container.decode(stream)
+
+
+def _luma_plane(frame: Any) -> NDArray[np.uint8]:
+    """The upright luma plane of a decoded PyAV frame, a read-only view where it can be."""
+    if frame.format.name not in _LUMA_FIRST_PIX_FMTS:  # the stream changed format (rare)
+        image = frame.to_ndarray(format="gray")
+    else:
+        plane = frame.planes[0]
+        width, height, line = frame.width, frame.height, plane.line_size
+        rows = np.frombuffer(plane, np.uint8, count=line * height).reshape(height, line)
+        if line == width:
+            image = rows
+            image.flags.writeable = False
+        else:  # rows padded for alignment: a C-contiguous copy, as the detector needs
+            image = np.ascontiguousarray(rows[:, :width])
+    return _upright(image, frame)
 
 
 def _hand_over(out: queue.Queue[Any], halt: threading.Event, item: Any) -> None:
@@ -751,7 +852,8 @@ def iter_frames(
     Yields
     ------
     ndarray
-        One frame at a time; frame ``i`` is at ``i / fps`` seconds.
+        One frame at a time; frame ``i`` is at ``i / fps`` seconds. A gray frame may
+        be read-only (a view of the decoder's picture): copy it to change it.
     """
     if start < 0 or (stop is not None and stop < start):
         raise ValueError(f"need 0 <= start <= stop, got start={start}, stop={stop}")

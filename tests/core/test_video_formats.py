@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from core.camera import ImageSize, StereoRig
+from core.errors import InputError
 from core.timing import FROM_FPS, frame_times_from_timestamps
 from core.video import VideoWriter, iter_frames, probe_video
 
@@ -336,3 +337,160 @@ def test_decoder_threads_share_out_the_cores(monkeypatch):
             fn(0)
     with pytest.raises(ValueError, match="decoder_threads"):
         next(iter_frames("unused.mp4", decoder_threads=0))
+
+
+def _gray_both_ways(monkeypatch, path) -> tuple[list, list, list, list]:
+    """Gray frames and times of ``path``: as read (PyAV's luma plane where it has one), and
+    OpenCV's raw frames (the luma path switched off); one decoder thread, as analyze on 2
+    cores."""
+    import core.video as video
+
+    times_read: list[float] = []
+    read = list(iter_frames(path, times_out=times_read, decoder_threads=1, background=False))
+    with monkeypatch.context() as m:
+        m.setattr(video, "_luma_container", lambda path: None)
+        times_cv: list[float] = []
+        cv = list(iter_frames(path, times_out=times_cv, decoder_threads=1, background=False))
+    return read, times_read, cv, times_cv
+
+
+@pytest.mark.parametrize(
+    ("codec", "suffix", "rotation", "width"),
+    [
+        ("lossless", ".mkv", 0, 320),
+        ("mjpg", ".avi", 0, 320),
+        ("mp4v", ".mp4", 0, 1280),  # the lab cameras' width
+        ("mp4v", ".mp4", 0, 330),  # rows padded by the decoder: copied to be C-contiguous
+        ("h264", ".mp4", 0, 1920),  # consumer cameras'
+        ("h264", ".mov", 90, 320),  # a phone held upright: turned, so a copy
+        ("hevc", ".mp4", 0, 320),
+        ("vp8", ".webm", 0, 320),
+        ("vp9", ".webm", 270, 320),
+    ],
+)
+def test_gray_frames_are_the_luma_plane_opencv_would_copy(
+    tmp_path, monkeypatch, codec, suffix, rotation, width
+):
+    """Gray frames are views of the luma plane of PyAV's decoder, not OpenCV's copy of each
+    raw frame (a sixth of decoding a 1280x1024 MPEG-4 video, docs/performance.md): the
+    same pixels and the same timestamps, to the bit; read-only, so that no caller changes
+    the picture the decoder refers to for the next frames."""
+    import core.video as video
+
+    size = ImageSize(width, SIZE.height)
+    path = tmp_path / f"clip{suffix}"
+    with VideoWriter(path, fps=FPS, image_size=size, codec=codec, rotation_deg=rotation) as w:
+        for f in _frames():
+            w.write(np.ascontiguousarray(np.pad(f, ((0, 0), (0, width - SIZE.width)), "edge")))
+    opened = video._luma_container(path)
+    assert opened is not None  # 8-bit YUV or gray: the luma path
+    opened.close()
+    read, times_read, cv, times_cv = _gray_both_ways(monkeypatch, path)
+    assert len(read) == len(cv) == N
+    for a, b in zip(read, cv, strict=True):
+        assert a.flags.c_contiguous and a.dtype == np.uint8
+        np.testing.assert_array_equal(a, b)
+    assert times_read == times_cv
+    for a in read:  # a view of the decoder's picture, or a copy of its own
+        assert a.flags.writeable == a.flags.owndata
+    if width in (1280, 1920) or codec == "lossless":  # rows not padded by these decoders
+        assert not read[0].flags.owndata
+        with pytest.raises(ValueError, match="read-only"):
+            read[0][0, 0] = 0
+    if rotation or width == 330:
+        assert read[0].flags.owndata
+
+
+def test_timestamps_from_a_late_start_are_opencvs(tmp_path, monkeypatch):
+    """A camera's file whose first frame is stamped 1.5 s (variable frame rate): the times
+    are counted from the stream's start as OpenCV counts them, to the bit."""
+    path = tmp_path / "late.mp4"
+    stamps = 1.5 + np.arange(N) / FPS + np.random.default_rng(3).uniform(0, 0.004, N)
+    with VideoWriter(path, fps=FPS, image_size=SIZE, codec="h264") as w:
+        for f, t in zip(_frames(), stamps, strict=True):
+            w.write(f, time_s=float(t))
+    read, times_read, cv, times_cv = _gray_both_ways(monkeypatch, path)
+    assert times_read == times_cv and len(times_read) == N
+    np.testing.assert_allclose(np.diff(times_read), np.diff(stamps), atol=2e-5)  # s
+    for a, b in zip(read, cv, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    ("codec", "pix_fmt", "suffix"),
+    [
+        ("mjpeg", "yuvj420p", ".avi"),
+        ("mjpeg", "yuvj422p", ".avi"),
+        ("mjpeg", "yuvj444p", ".avi"),
+        ("ffv1", "gray", ".mkv"),
+        ("ffv1", "yuv420p", ".mkv"),
+        ("libx264", "yuv422p", ".mp4"),
+        ("libx264", "yuv444p", ".mp4"),
+        ("rawvideo", "nv12", ".avi"),
+        ("rawvideo", "nv21", ".avi"),
+        ("libx264", "yuv420p10le", ".mp4"),  # 16 bits a sample: OpenCV's BGR, then gray
+        ("ffv1", "gray16le", ".mkv"),
+        ("ffv1", "bgr0", ".mkv"),
+    ],
+)
+def test_the_luma_formats_are_those_opencv_hands_out_raw(
+    tmp_path, monkeypatch, codec, pix_fmt, suffix
+):
+    """``_LUMA_FIRST_PIX_FMTS`` (FFmpeg's names) holds exactly the formats whose raw frames
+    OpenCV names by a luma-first code; the others are read as before, through OpenCV."""
+    import av
+    import cv2
+
+    import core.video as video
+
+    path = tmp_path / f"clip{suffix}"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream(codec, rate=int(FPS))
+        stream.width, stream.height, stream.pix_fmt = SIZE.width, SIZE.height, pix_fmt
+        for f in _frames():
+            frame = av.VideoFrame.from_ndarray(np.dstack([f, f, f]), format="bgr24")
+            for packet in stream.encode(frame.reformat(format=pix_fmt)):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        code = video._fourcc_to_str(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
+    finally:
+        cap.release()
+    luma = pix_fmt in video._LUMA_FIRST_PIX_FMTS
+    assert (code in video._LUMA_FIRST_FORMATS) == luma, code
+    opened = video._luma_container(path)
+    assert (opened is not None) == luma
+    if opened is not None:
+        opened.close()
+    read, times_read, cv, times_cv = _gray_both_ways(monkeypatch, path)
+    assert len(read) == len(cv) == N and times_read == times_cv
+    for a, b in zip(read, cv, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_damaged_video_ends_where_opencv_ends_it(tmp_path, monkeypatch):
+    """A packet in the middle of an MPEG-4 file overwritten: the decoder refuses it, and the
+    luma path stops at the same frame as OpenCV, with the same frames before it
+    (iter_frames' expected_count then reports the file cut short)."""
+    import av
+
+    path = tmp_path / "clip.mp4"
+    with VideoWriter(path, fps=FPS, image_size=SIZE, codec="mp4v") as w:
+        for f in _frames() * 4:
+            w.write(f)
+    with av.open(str(path)) as container:
+        packets = [(p.pos, p.size) for p in container.demux(video=0) if p.size]
+    assert len(packets) == 4 * N
+    pos, size = packets[2 * N]
+    data = bytearray(path.read_bytes())
+    data[pos : pos + size] = np.random.default_rng(1).integers(0, 256, size, np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+    read, times_read, cv, times_cv = _gray_both_ways(monkeypatch, path)
+    assert len(read) == len(cv) == 2 * N
+    assert times_read == times_cv
+    for a, b in zip(read, cv, strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(InputError, match="truncated"):
+        list(iter_frames(path, expected_count=4 * N, background=False))
