@@ -315,10 +315,12 @@ def _detect_videos(
     for t in threads:
         t.start()
     report(progress, "detection", 0, total)
-    while any(t.is_alive() for t in threads):
+    while True:  # reported once more when both are done, however soon that is
         for t in threads:
             t.join(timeout=0.25)
         report(progress, "detection", min(total, sum(len(s.frames) for s in states)), total)
+        if not any(t.is_alive() for t in threads):
+            break
     if errors:
         raise errors[0]
     info = {
