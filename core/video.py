@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import functools
 import os
 import queue
 import threading
@@ -334,9 +333,11 @@ def probe_video(path: str | Path, *, fps_if_none: float | None = None) -> VideoI
         raise InputError(f"the video {p.name} does not exist; check the path.")
     if p.stat().st_size == 0:
         raise InputError(f"the video {p.name} is empty (0 bytes); record or upload it again.")
+    version = _file_version(p)
     try:
         cap = _open_capture(p)
     except InputError:
+        _remember_opencv_decodes(version, False)
         if not _pyav_decodes(p):
             raise
         cap = None
@@ -350,6 +351,8 @@ def probe_video(path: str | Path, *, fps_if_none: float | None = None) -> VideoI
             rotation = round(cap.get(cv2.CAP_PROP_ORIENTATION_META)) % 360
         finally:
             cap.release()
+        # what iter_frames asks before it decodes: no second open and first frame
+        _remember_opencv_decodes(version, bool(ok and frame is not None))
     if not ok or frame is None:
         # OpenCV's FFmpeg lacks some decoders (AV1): PyAV's has them.
         first = _pyav_first_frame(p)
@@ -451,19 +454,39 @@ def _undecodable_message(path: Path) -> str:
     )
 
 
-@functools.lru_cache(maxsize=64)
-def _opencv_decodes_file(path: str, mtime_ns: int, size: int) -> bool:
-    cap = video_capture(path)
-    try:
-        return bool(cap.isOpened() and cap.read()[0])
-    finally:
-        cap.release()
+# Whether OpenCV's FFmpeg decodes the first frame, per file version (path, mtime, size):
+# probe_video finds out as it reads the first frame, and iter_frames asks again.
+_opencv_decodes_known: dict[tuple[str, int, int], bool] = {}
+_opencv_decodes_lock = threading.Lock()
+_OPENCV_DECODES_KEPT = 64
+
+
+def _file_version(path: Path) -> tuple[str, int, int]:
+    st = path.stat()
+    return str(path), st.st_mtime_ns, st.st_size
+
+
+def _remember_opencv_decodes(version: tuple[str, int, int], decodes: bool) -> None:
+    with _opencv_decodes_lock:
+        _opencv_decodes_known.pop(version, None)
+        _opencv_decodes_known[version] = decodes
+        while len(_opencv_decodes_known) > _OPENCV_DECODES_KEPT:
+            del _opencv_decodes_known[next(iter(_opencv_decodes_known))]  # the oldest
 
 
 def _opencv_decodes(path: Path) -> bool:
     """Whether OpenCV's FFmpeg decodes the first frame of the file (cached per file version)."""
-    st = path.stat()
-    return _opencv_decodes_file(str(path), st.st_mtime_ns, st.st_size)
+    version = _file_version(path)
+    with _opencv_decodes_lock:
+        known = _opencv_decodes_known.get(version)
+    if known is None:
+        cap = video_capture(path)
+        try:
+            known = bool(cap.isOpened() and cap.read()[0])
+        finally:
+            cap.release()
+        _remember_opencv_decodes(version, known)
+    return known
 
 
 def _pyav_decodes(path: Path) -> bool:

@@ -296,3 +296,27 @@ def test_proxy_of_a_broken_file_is_an_input_error(tmp_path):
     with pytest.raises(InputError):
         write_proxy(bad, tmp_path / "out.mp4")
     assert not (tmp_path / "out.mp4").exists()
+
+
+def test_probe_tells_iter_frames_that_opencv_decodes_the_file(tmp_path, monkeypatch):
+    """analyze probes each video, reading its first frame through OpenCV, then decodes it:
+    the decoding asks no second time whether OpenCV decodes it (an open and a first
+    frame: 15 ms for a 1280x1024 MPEG-4 video, 100 ms for 1080p H.264), unless the file
+    changed since."""
+    import core.video as video
+
+    path = _write(tmp_path / "clip.mp4", _frames(6), codec="mp4v")
+    probe_video(path)
+    opened: list[str] = []
+    real = video.video_capture
+
+    def counting(p, **kw):
+        opened.append(str(p))
+        return real(p, **kw)
+
+    monkeypatch.setattr(video, "video_capture", counting)
+    assert len(list(iter_frames(path, background=False))) == 6
+    assert opened == []  # the gray frames came from PyAV's luma plane, unasked
+    _write(path, _frames(8), codec="mp4v")  # the same name, another recording
+    assert len(list(iter_frames(path, background=False))) == 8
+    assert opened == [str(path)]  # asked again for the new file
