@@ -9,10 +9,10 @@ A frame's time is its capture time on that camera's own clock (INTERFACES.md):
 - otherwise ``i / fps`` from the first frame.
 
 The decoder hands out the presentation timestamp of every frame it decodes
-(``core.video.iter_frames(times_out=...)``; OpenCV's ``CAP_PROP_POS_MSEC``
-agrees with the container's own timestamps read by PyAV to the time base's
-resolution, which ``tests/core/test_timing.py`` checks), so timestamps cost
-nothing extra.
+(``core.video.iter_frames(times_out=...)``; OpenCV's ``CAP_PROP_POS_MSEC``,
+which gray frames from PyAV's decoder reproduce to the bit, agrees with the
+container's own timestamps read by PyAV to the time base's resolution, which
+``tests/core/test_timing.py`` checks), so timestamps cost nothing extra.
 
 Lost frames show in timestamps that carry information as intervals of about
 two or more nominal intervals (:attr:`FrameTimes.dropped_after`). With
