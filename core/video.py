@@ -605,13 +605,13 @@ def _decoded(
     threads: int | None,
 ) -> _Frames:
     """The frames ``[start, stop)`` of ``path``, decoded in the thread that iterates."""
-    if not _opencv_decodes(path):
-        yield from _decoded_av(path, gray, start, stop, times, threads)
+    if not _opencv_decodes(path):  # AV1: PyAV's FFmpeg decodes it, OpenCV's cannot
+        yield from _decoded_av(_pyav_container(path), gray, start, stop, times, threads)
         return
     if gray:
         container = _luma_container(path)
         if container is not None:
-            yield from _decoded_luma(container, start, stop, times, threads)
+            yield from _decoded_av(container, gray, start, stop, times, threads)
             return
     cap = _open_capture(path, threads)
     try:
@@ -696,20 +696,37 @@ def _luma_container(path: Path) -> Any | None:
     return None
 
 
-def _decoded_luma(
+def _pyav_container(path: Path) -> Any:
+    """``path`` opened by PyAV, or :class:`InputError` saying that it does not decode."""
+    import av
+
+    try:
+        return av.open(str(path))
+    except (av.FFmpegError, OSError, ValueError) as exc:
+        raise InputError(_undecodable_message(path)) from exc
+
+
+def _decoded_av(
     container: Any,
+    gray: bool,
     start: int,
     stop: int | None,
     times: list[float] | None,
     threads: int | None,
 ) -> _Frames:
-    """:func:`_decoded_cv`'s gray frames from the luma plane of PyAV's decoder, without
-    copying it: the same pixels and timestamps (to the bit) as OpenCV's raw frames, whose
-    copy of each frame cost a sixth of decoding a 1280x1024 MPEG-4 video.
+    """:func:`_decoded_cv`'s frames through PyAV's decoder, from an open container (closed
+    at the end): gray frames are the luma plane (:func:`_luma_plane`), colour frames BGR.
 
-    The frames are read-only views of the decoder's picture (a frame changed in place would
-    be the reference of the next ones); one that must change is copied first.
+    Gray frames of the codecs OpenCV decodes too are the same pixels and timestamps (to the
+    bit) as OpenCV's raw frames, without OpenCV's copy of each frame, which cost a sixth of
+    decoding a 1280x1024 MPEG-4 video. Those of AV1, which OpenCV cannot decode, are its
+    luma plane as well, as for every other codec (before algorithm 2026.3: swscale's gray,
+    which stretches video range to full range). The frames are read-only views of the
+    decoder's picture where they can be (a frame changed in place would be the reference
+    of the next ones); one that must change is copied first.
     """
+    import av
+
     try:
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"
@@ -728,7 +745,15 @@ def _decoded_luma(
                     times.append(
                         np.nan if pts is None else (pts - origin) * tick_s * 1000.0 / 1000.0
                     )
-                yield _luma_plane(frame)
+                try:
+                    image = _luma_plane(frame) if gray else _bgr(frame)
+                except av.FFmpegError as exc:
+                    raise InputError(
+                        f"frame {index} of {Path(container.name).name} decodes but cannot be"
+                        f" converted from {frame.format.name}: {exc}; re-encode the video"
+                        " (for example as MP4)."
+                    ) from exc
+                yield image
             index += 1
     finally:
         container.close()
@@ -759,6 +784,11 @@ def _luma_plane(frame: Any) -> NDArray[np.uint8]:
     return _upright(image, frame)
 
 
+def _bgr(frame: Any) -> NDArray[np.uint8]:
+    """The upright BGR image of a decoded PyAV frame."""
+    return np.asarray(_upright(frame.to_ndarray(format="bgr24"), frame), dtype=np.uint8)
+
+
 def _hand_over(out: queue.Queue[Any], halt: threading.Event, item: Any) -> None:
     """Queue ``item`` for the consumer, waiting while the queue is full, unless halted."""
     while not halt.is_set():
@@ -767,44 +797,6 @@ def _hand_over(out: queue.Queue[Any], halt: threading.Event, item: Any) -> None:
             return
         except queue.Full:
             continue
-
-
-def _decoded_av(
-    path: Path,
-    gray: bool,
-    start: int,
-    stop: int | None,
-    times: list[float] | None,
-    threads: int | None,
-) -> _Frames:
-    """:func:`_decoded_cv` through PyAV, for codecs OpenCV's FFmpeg cannot decode (AV1)."""
-    import av
-
-    try:
-        container = av.open(str(path))
-    except (av.FFmpegError, OSError, ValueError) as exc:
-        raise InputError(_undecodable_message(path)) from exc
-    try:
-        stream = container.streams.video[0]
-        stream.thread_type = "AUTO"
-        if threads is not None:
-            stream.thread_count = threads
-        index = 0
-        try:
-            for frame in container.decode(stream):
-                if stop is not None and index >= stop:
-                    break
-                if index >= start:
-                    image = frame.to_ndarray(format="gray" if gray else "bgr24")
-                    image = np.asarray(_upright(image, frame), dtype=np.uint8)
-                    if times is not None:
-                        times.append(float(frame.time) if frame.time is not None else np.nan)
-                    yield image
-                index += 1
-        except av.FFmpegError:
-            pass  # a damaged stream ends here, as with OpenCV; expected_count tells
-    finally:
-        container.close()
 
 
 def _from_reader(frames: _Frames, name: str, prefetch: int) -> _Frames:

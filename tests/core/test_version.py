@@ -16,6 +16,8 @@ PINNED = {
     "2026.1": "bf61c45b3ab9",
     # metrics at the frames' real capture times (core.resample): even frames unchanged
     "2026.2": "bf61c45b3ab9",
+    # gray frames of AV1 videos: their luma plane, as for every other codec
+    "2026.3": "bf61c45b3ab9",
 }
 
 

@@ -401,6 +401,62 @@ def test_gray_frames_are_the_luma_plane_opencv_would_copy(
         assert read[0].flags.owndata
 
 
+@pytest.mark.parametrize("suffix", [".webm", ".mp4"])
+def test_av1_gray_frames_are_its_luma_plane_as_every_codecs(tmp_path, suffix):
+    """AV1, which OpenCV cannot decode, is read by PyAV: its gray frames are the luma plane
+    in video range, as every other codec's. Before algorithm 2026.3 they were swscale's
+    gray, which stretches video range to full range: a marker brighter against its
+    background by ~17 gray levels than in the same scene recorded in H.264."""
+    import av
+
+    frames = _frames()
+    path = tmp_path / f"clip{suffix}"
+    same_in_h264 = tmp_path / "clip-h264.mp4"
+    for p, codec in ((path, "av1"), (same_in_h264, "h264")):
+        with VideoWriter(p, fps=FPS, image_size=SIZE, codec=codec) as w:
+            for f in frames:
+                w.write(f)
+    with av.open(str(path)) as container:
+        planes = []
+        for frame in container.decode(video=0):
+            plane = frame.planes[0]
+            rows = np.frombuffer(plane, np.uint8, count=plane.line_size * frame.height)
+            planes.append(rows.reshape(frame.height, plane.line_size)[:, : frame.width])
+    read = list(iter_frames(path))
+    assert len(read) == len(planes) == N
+    for a, b in zip(read, planes, strict=True):
+        np.testing.assert_array_equal(a, b)
+    h264 = next(iter(iter_frames(same_in_h264)))
+    square = frames[0] == 230
+    for part in (square, ~square):  # the marker and its background, in gray levels
+        assert abs(float(np.median(read[0][part])) - float(np.median(h264[part]))) <= 3
+
+
+def test_a_frame_that_cannot_be_converted_is_reported_not_taken_for_the_end(tmp_path, monkeypatch):
+    """A frame PyAV decodes but cannot convert stops the reading with an error that names
+    the frame and what to do, not silently, as if the video had ended there."""
+    import av
+
+    import core.video as video
+
+    path = tmp_path / "clip.webm"
+    with VideoWriter(path, fps=FPS, image_size=SIZE, codec="av1") as w:
+        for f in _frames():
+            w.write(f)
+    real = video._luma_plane
+    seen = []
+
+    def failing(frame):
+        seen.append(frame)
+        if len(seen) == 5:
+            raise av.FFmpegError(22, "Invalid argument")
+        return real(frame)
+
+    monkeypatch.setattr(video, "_luma_plane", failing)
+    with pytest.raises(InputError, match=r"frame 4 of clip\.webm .*re-encode"):
+        list(iter_frames(path, background=False))
+
+
 def test_timestamps_from_a_late_start_are_opencvs(tmp_path, monkeypatch):
     """A camera's file whose first frame is stamped 1.5 s (variable frame rate): the times
     are counted from the stream's start as OpenCV counts them, to the bit."""
