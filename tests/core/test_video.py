@@ -163,6 +163,31 @@ def test_writer_rejects_wrong_frames(tmp_path):
         VideoWriter(tmp_path / "a.mkv", fps=30, image_size=SIZE, codec="h265")
 
 
+def test_writer_encoder_options_reach_the_encoder(tmp_path):
+    """Options of a PyAV encoder go over the codec's own: x264's ultrafast preset writes
+    Constrained Baseline H.264 where the default (superfast) writes High; an OpenCV codec
+    takes none."""
+    import av
+
+    for options, profile in ((None, "High"), ({"preset": "ultrafast"}, "Constrained Baseline")):
+        path = tmp_path / "clip.mp4"
+        with VideoWriter(
+            path, fps=30.0, image_size=ImageSize(64, 48), codec="h264", encoder_options=options
+        ) as w:
+            for i in range(5):
+                w.write(np.full((48, 64), 40 + 10 * i, np.uint8))
+        with av.open(str(path)) as container:
+            assert container.streams.video[0].codec_context.profile == profile
+    with pytest.raises(ValueError, match="need a PyAV codec"):
+        VideoWriter(
+            tmp_path / "x.mp4",
+            fps=30.0,
+            image_size=ImageSize(64, 48),
+            codec="mp4v",
+            encoder_options={"preset": "ultrafast"},
+        )
+
+
 def test_images_folder(tmp_path):
     import cv2
 
