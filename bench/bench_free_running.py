@@ -9,7 +9,8 @@ Usage::
 The cases are those of ``tests/core/test_free_running.py`` (10-s 1920x1080
 60-fps H.264 recordings from the simulator, hesitation and halt included, seed
 11; here with the simulator's own x264 preset, ``superfast``, about 50 Mbit/s,
-where the tests use ``ultrafast``, about 16 Mbit/s): ``drift`` (the right camera 0.237 s late, 300 ppm fast), ``drops`` (three
+where the tests use ``ultrafast``, about 16 Mbit/s): ``drift`` (the right
+camera 0.237 s late, 300 ppm fast), ``drops`` (three
 frames lost in the right camera, constant timestamps), ``vfr`` (variable frame
 rate timestamps with 0.5-ms jitter, a lost left frame and two lost right
 frames, -150 ppm), ``rolling`` (15-ms readout in both cameras, the right one
