@@ -13,7 +13,8 @@ and board detection do not depend on.
 
 Decoding is OpenCV's for colour frames and for what PyAV does not hand out as
 a luma plane; gray frames of 8-bit YUV and gray streams are read-only views of
-the luma plane of PyAV's decoder. Both use FFmpeg and release the GIL while
+the luma plane of PyAV's decoder. AV1, which OpenCV's FFmpeg cannot decode, is
+PyAV's in colour and gray alike. Both use FFmpeg and release the GIL while
 they decode, and give the same pixels and timestamps to the bit; OpenCV
 copies every raw frame, which cost a sixth of decoding a 1280x1024 MPEG-4
 video (docs/performance.md). What OpenCV cannot tell reliably, PyAV reads
@@ -770,7 +771,9 @@ def _frames_of(container: Any, stream: Any) -> Generator[Any, None, None]:
 
 def _luma_plane(frame: Any) -> NDArray[np.uint8]:
     """The upright luma plane of a decoded PyAV frame, a read-only view where it can be."""
-    if frame.format.name not in _LUMA_FIRST_PIX_FMTS:  # the stream changed format (rare)
+    if frame.format.name not in _LUMA_FIRST_PIX_FMTS:
+        # not 8-bit luma first (10-bit AV1, or a stream that changed format): swscale's
+        # gray, stretched to full range as OpenCV's gray of such streams is
         image = frame.to_ndarray(format="gray")
     else:
         plane = frame.planes[0]
