@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import re
 import shutil
 import subprocess
@@ -124,6 +125,14 @@ def test_pdf_renderer_fetches_no_url(data, monkeypatch):
     assert sum(url.startswith("data:image/svg+xml;base64,") for url in fetched) == 4
     with pytest.raises(ValueError, match="does not fetch"):
         original().fetch("http://example.org/x.css")
+
+
+def test_weasyprint_reads_every_rule_of_the_report(data, caplog):
+    """WeasyPrint logs a warning for each CSS declaration it cannot read and drops it: one
+    per report made, in the server's and the worker's logs, and a rule lost from the PDF."""
+    with caplog.at_level(logging.WARNING, logger="weasyprint"):
+        assert render_report_pdf(data).startswith(b"%PDF")
+    assert [r.getMessage() for r in caplog.records if r.name.startswith("weasyprint")] == []
 
 
 def test_pdf_warm_up_makes_a_pdf_with_the_reports_font(tmp_path):
