@@ -143,17 +143,26 @@ class Seeded:
     session_id: int
 
 
-def seed_recording_target(api: Api) -> Seeded:
-    """Patient, rig with a rig-file calibration of the test video size, and a session."""
+def seed_recording_target(
+    api: Api,
+    *,
+    rig_json: bytes | None = None,
+    patient_code: str = "PD-0042",
+    rig_name: str = "clinic-A",
+) -> Seeded:
+    """Patient, rig with a rig-file calibration (``rig_json``, default one of the test
+    video size), and a session (off medication, 2026-03-01 09:30 UTC)."""
     import json
 
+    if rig_json is None:
+        rig_json = json.dumps(rig_document()).encode()
     h = api.headers
-    patient = api.client.post("/api/v1/patients", json={"code": "PD-0042"}, headers=h)
-    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-A"}, headers=h)
+    patient = api.client.post("/api/v1/patients", json={"code": patient_code}, headers=h)
+    rig = api.client.post("/api/v1/rigs", json={"name": rig_name}, headers=h)
     assert patient.status_code == 201 and rig.status_code == 201, (patient.text, rig.text)
     cal = api.client.post(
         f"/api/v1/rigs/{rig.json()['id']}/calibrations",
-        files={"rig_json": ("rig.json", json.dumps(rig_document()).encode(), "application/json")},
+        files={"rig_json": ("rig.json", rig_json, "application/json")},
         headers=h,
     )
     assert cal.status_code == 201, cal.text

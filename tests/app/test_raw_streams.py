@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from api_support import Api, api  # noqa: F401 - fixtures
+from api_support import Api, api, seed_recording_target  # noqa: F401 - fixtures
 from sqlalchemy import select
 
 from app.models import Result, Video
@@ -79,28 +79,10 @@ def _times_csv(truth: dict[str, Any], side: str) -> bytes:
 
 def _seed_target(api: Api, rig_path: Path) -> int:
     """A patient, a rig calibrated with the simulated rig file, and a session; its id."""
-    h = api.headers
-    patient = api.client.post("/api/v1/patients", json={"code": "RAW-H264"}, headers=h)
-    rig = api.client.post("/api/v1/rigs", json={"name": "raw-streams"}, headers=h)
-    assert patient.status_code == 201 and rig.status_code == 201, (patient.text, rig.text)
-    cal = api.client.post(
-        f"/api/v1/rigs/{rig.json()['id']}/calibrations",
-        files={"rig_json": ("rig.json", rig_path.read_bytes(), "application/json")},
-        headers=h,
+    seeded = seed_recording_target(
+        api, rig_json=rig_path.read_bytes(), patient_code="RAW-H264", rig_name="raw-streams"
     )
-    assert cal.status_code == 201, cal.text
-    session = api.client.post(
-        "/api/v1/sessions",
-        json={
-            "patient_id": patient.json()["id"],
-            "rig_id": rig.json()["id"],
-            "recorded_at": "2026-03-01T09:30:00Z",
-            "medication_state": "off",
-        },
-        headers=h,
-    )
-    assert session.status_code == 201, session.text
-    return int(session.json()["id"])
+    return seeded.session_id
 
 
 def test_raw_h264_streams_with_timestamps_files_are_measured_by_the_service(
