@@ -84,21 +84,15 @@ def _page_times_csv(truth: dict[str, Any], side: str, rng: np.random.Generator) 
     return ("\n".join(lines) + "\n").encode()
 
 
-def _seed_target(api: Api, rig_path: Path) -> int:
-    """A patient, a rig calibrated with the simulated rig file, and a session; its id."""
-    seeded = seed_recording_target(
-        api, rig_json=rig_path.read_bytes(), patient_code="CAP-WEBM", rig_name="two-webcams"
-    )
-    return seeded.session_id
-
-
 def test_a_browser_take_with_two_clocks_and_lost_frames_measures_to_lab_accuracy(
     api: Api, run_once
 ) -> None:
     sim: SimulatedSession = run_once("browser-take/vp9-1080p60", _browser_take)
     truth = sim.truth
     rng = np.random.default_rng(4)
-    session_id = _seed_target(api, sim.rig_path)
+    session_id = seed_recording_target(
+        api, rig_json=sim.rig_path.read_bytes(), patient_code="CAP-WEBM", rig_name="two-webcams"
+    ).session_id
 
     # The upload, field for field as the capture page sends it.
     files = {

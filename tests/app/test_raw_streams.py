@@ -77,14 +77,6 @@ def _times_csv(truth: dict[str, Any], side: str) -> bytes:
     return ("\n".join(lines) + "\n").encode()
 
 
-def _seed_target(api: Api, rig_path: Path) -> int:
-    """A patient, a rig calibrated with the simulated rig file, and a session; its id."""
-    seeded = seed_recording_target(
-        api, rig_json=rig_path.read_bytes(), patient_code="RAW-H264", rig_name="raw-streams"
-    )
-    return seeded.session_id
-
-
 def test_raw_h264_streams_with_timestamps_files_are_measured_by_the_service(
     api: Api, tmp_path: Path
 ) -> None:
@@ -94,7 +86,9 @@ def test_raw_h264_streams_with_timestamps_files_are_measured_by_the_service(
     for side, video in (("left", sim.left_video), ("right", sim.right_video)):
         n = _raw_h264(video, raw[side])
         assert n == truth["cameras"][side]["frame_count"]
-    session_id = _seed_target(api, sim.rig_path)
+    session_id = seed_recording_target(
+        api, rig_json=sim.rig_path.read_bytes(), patient_code="RAW-H264", rig_name="raw-streams"
+    ).session_id
 
     def upload(with_times: bool):
         files = {f"{s}_video": (f"{s}.h264", raw[s].read_bytes(), "video/h264") for s in raw}
