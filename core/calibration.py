@@ -248,6 +248,8 @@ def collect_views(
     *,
     max_candidates: int = 240,
     progress: ProgressCallback | None = None,
+    left_times: str | Path | None = None,
+    right_times: str | Path | None = None,
 ) -> ViewCollection:
     """Search evenly spaced frames of two recordings for the board and pair the views in time.
 
@@ -262,16 +264,22 @@ def collect_views(
         Frames searched at most in each recording (evenly spaced over it).
     progress : callable, optional
         ``progress("detection", done, total)``.
+    left_times, right_times : str or Path, optional
+        Timestamps files (``frame,time_s``, :func:`core.timing.read_times_csv`) of the
+        videos: each frame's capture time, which stands in for the video's own rate and
+        timestamps (as in ``analyze``). A browser take's WebM files carry the recorder's
+        times, which a loaded machine can squeeze; the capture page writes these.
 
     Raises
     ------
     InputError
-        Unreadable input, a folder and a video mixed, or different numbers
-        of images.
+        Unreadable input, a folder and a video mixed, different numbers of
+        images, or a timestamps file that does not fit its video (or is given
+        for a folder of images).
     """
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be >= 1, got {max_candidates}")
-    from core.timing import frame_times_from_timestamps, uniform_times
+    from core.timing import frame_times_from_timestamps, read_times_csv, uniform_times
 
     kind_l, src_l = _frame_source(left, "left")
     kind_r, src_r = _frame_source(right, "right")
@@ -291,6 +299,14 @@ def collect_views(
     else:
         n_left, n_right = src_l.frame_count, src_r.frame_count
         fps_l, fps_r = src_l.fps, src_r.fps
+    if kind_l == "images" and (left_times is not None or right_times is not None):
+        raise InputError("timestamps files belong to videos, not to folders of images.")
+    given = [
+        None if path is None else read_times_csv(path, n_frames=n)
+        for path, n in ((left_times, n_left), (right_times, n_right))
+    ]
+    fps_l = given[0].fps if given[0] is not None else fps_l
+    fps_r = given[1].fps if given[1] is not None else fps_r
     same_rate = abs(fps_l - fps_r) <= 1e-3 * max(fps_l, fps_r)
     note = _length_warning(kind_l, n_left, n_right, (fps_l, fps_r))
     if note:
@@ -346,14 +362,16 @@ def collect_views(
     if len(checked) >= 2:
         _check_board_size(checked, board)
     tracks = []
-    for side, times, fps, src in (
-        ("left", times_l, fps_l, src_l),
-        ("right", times_r, fps_r, src_r),
+    for side, times, fps, src, csv in (
+        ("left", times_l, fps_l, src_l, given[0]),
+        ("right", times_r, fps_r, src_r, given[1]),
     ):
         rows = found[side]
         frames = np.array([r[0] for r in rows], dtype=np.int64)
         if times is None or kind_l == "images":
             t_all = uniform_times(int(frames.max()) + 1 if len(frames) else 0, fps).t_s
+        elif csv is not None and len(csv.t_s) > (int(frames.max()) if len(frames) else -1):
+            t_all = csv.t_s
         else:
             t_all = frame_times_from_timestamps(times, fps=fps, name=src.path.name).t_s
             if len(t_all) <= (int(frames.max()) if len(frames) else -1):
@@ -1364,6 +1382,8 @@ def calibrate_stereo_from_paths(
     max_views: int = 40,
     max_candidates: int = 240,
     progress: ProgressCallback | None = None,
+    left_times: str | Path | None = None,
+    right_times: str | Path | None = None,
 ) -> CalibrationResult:
     """Calibrate a stereo rig from two board recordings.
 
@@ -1381,6 +1401,8 @@ def calibrate_stereo_from_paths(
         Frame pairs searched for the board at most (evenly spaced).
     progress : callable, optional
         ``progress(stage, done, total)`` with stages ``"detection"`` and ``"calibration"``.
+    left_times, right_times : str or Path, optional
+        The videos' timestamps files (:func:`collect_views`).
 
     Returns
     -------
@@ -1392,7 +1414,15 @@ def calibrate_stereo_from_paths(
     InputError, DetectionError, CalibrationError
         With one sentence that says what to do.
     """
-    collection = collect_views(left, right, board, max_candidates=max_candidates, progress=progress)
+    collection = collect_views(
+        left,
+        right,
+        board,
+        max_candidates=max_candidates,
+        progress=progress,
+        left_times=left_times,
+        right_times=right_times,
+    )
     return calibrate_stereo(collection, board, max_views=max_views, progress=progress)
 
 

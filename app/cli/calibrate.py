@@ -51,6 +51,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--max-views", type=int, default=40, help="stereo views used in the fit at most (40)"
     )
+    p.add_argument(
+        "--left-times",
+        type=Path,
+        metavar="CSV",
+        help="capture time of each left frame (frame,time_s), e.g. from the capture page",
+    )
+    p.add_argument(
+        "--right-times",
+        type=Path,
+        metavar="CSV",
+        help="capture time of each right frame (frame,time_s)",
+    )
     p.add_argument("-o", "--output", required=True, type=Path, help="rig file to write (JSON)")
     p.set_defaults(func=run)
 
@@ -94,7 +106,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"the folder of the output file {out} does not exist; create it first.")
     with progress_bar() as progress:
         result = calibrate_stereo_from_paths(
-            args.left, args.right, board, max_views=args.max_views, progress=progress
+            args.left,
+            args.right,
+            board,
+            max_views=args.max_views,
+            progress=progress,
+            left_times=args.left_times,
+            right_times=args.right_times,
         )
     write_rig(result.rig, out)
     q = result.quality

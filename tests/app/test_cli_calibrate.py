@@ -299,6 +299,32 @@ def test_free_running_videos_calibrate_and_print_the_offset(late_start_recording
     assert abs(rig.baseline_mm - true.baseline_mm) < 1.0  # mm, at 640x512
 
 
+def test_timestamps_files_reach_the_calibration(late_start_recording, tmp_path, capsys):
+    """--left-times/--right-times as for analyze: a file that does not fit its video is one
+    sentence naming it (core.timing reads it; the squeezed-clock case is in
+    tests/core/test_calibration.py)."""
+    times = tmp_path / "right_times.csv"
+    times.write_text("frame,time_s\n" + "".join(f"{i},{i / 10:.3f}\n" for i in range(5)))
+    code = main(
+        [
+            "calibrate",
+            "--left",
+            str(late_start_recording / "chessboard_left.mkv"),
+            "--right",
+            str(late_start_recording / "chessboard_right.mkv"),
+            "--right-times",
+            str(times),
+            *CHESSBOARD_ARGS,
+            "-o",
+            str(tmp_path / "rig.json"),
+        ]
+    )
+    assert code == 2
+    err = _one_sentence_error(capsys)
+    assert "right_times.csv" in err and "frames" in err, err
+    assert not (tmp_path / "rig.json").exists()
+
+
 def test_videos_of_different_lengths_get_a_warning(late_start_recording, tmp_path, capsys):
     """Before, the longer video was cut to the shorter one without a word."""
     from core.video import iter_frames

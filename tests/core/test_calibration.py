@@ -565,6 +565,48 @@ def test_videos_of_different_sessions_are_refused(tmp_path):
         )
 
 
+def test_timestamps_files_stand_in_for_a_squeezed_container_clock(tmp_path):
+    """A browser take's WebM can carry the recorder's squeezed times (on a loaded machine one
+    camera's file spanned half its take): the capture page's timestamps files give each
+    frame's real capture time, and the calibration pairs the views by them."""
+    from core.simulation.timing import CameraTiming
+    from core.video import VideoWriter, iter_frames, probe_video
+
+    rig = example_rig(image_size=ImageSize(640, 512))
+    write_board_recordings(
+        rig,
+        tmp_path,
+        seed=7,
+        board="chessboard",
+        duration_s=5.0,
+        fps=15.0,
+        pose_interval_s=0.6,
+        supersample=2,
+        timing=(CameraTiming(), CameraTiming(fps=30.0, start_s=0.25)),
+    )
+    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
+    left, right = tmp_path / "chessboard_left.mkv", tmp_path / "chessboard_right.mkv"
+    squeezed = tmp_path / "squeezed_right.mkv"  # the same frames, stamped at twice the rate
+    with VideoWriter(squeezed, fps=60.0, image_size=rig.right.image_size) as writer:
+        for frame in iter_frames(right):
+            writer.write(frame)
+    n_right = probe_video(squeezed).frame_count
+    times = tmp_path / "right_times.csv"  # on the camera's own clock: any origin
+    times.write_text(
+        "frame,time_s\n" + "".join(f"{i},{1000.0 + i / 30.0:.6f}\n" for i in range(n_right))
+    )
+
+    with pytest.raises(CalibrationError, match="same moment"):  # paired by the container's clock
+        calibrate_stereo_from_paths(left, squeezed, board)
+    result = calibrate_stereo_from_paths(left, squeezed, board, right_times=times)
+    sync = result.quality["sync"]
+    assert sync["method"] == "estimated" and abs(sync["fps_right"] - 30.0) < 0.01  # Hz
+    assert abs(sync["offset_s"] - 0.25) < 0.003  # s, as with the true container clock
+    assert abs(result.rig.baseline_mm - rig.baseline_mm) < 0.5  # mm
+    with pytest.raises(InputError, match="frames"):
+        calibrate_stereo_from_paths(left, squeezed, board, left_times=times)  # not its file
+
+
 def test_free_running_cameras_at_different_frame_rates(tmp_path):
     """A 15-fps and a 30-fps camera, the faster starting 0.25 s later: paired in time."""
     from core.simulation.timing import CameraTiming
