@@ -267,9 +267,17 @@ def calibrate(ctx: JobContext) -> None:
         inputs = calibrations.calibration_inputs(
             db, ctx.storage, ctx.job.calibration_id, board=ctx.job.payload.get("board")
         )
-    _require_files(ctx, (inputs.left, inputs.right), what=f"calibration {inputs.calibration_id}")
+    stored = (inputs.left, inputs.right, inputs.left_times, inputs.right_times)
+    _require_files(
+        ctx, [p for p in stored if p is not None], what=f"calibration {inputs.calibration_id}"
+    )
     outcome = calibrate_stereo_from_paths(
-        inputs.left, inputs.right, inputs.board, progress=ctx.progress
+        inputs.left,
+        inputs.right,
+        inputs.board,
+        progress=ctx.progress,
+        left_times=inputs.left_times,
+        right_times=inputs.right_times,
     )
     ctx.finish(lambda db: calibrations.store_calibration(db, inputs.calibration_id, outcome))
 

@@ -35,7 +35,7 @@ from app.models import (
     utcnow,
 )
 from app.services.common import load_rig
-from app.services.videos import add_videos, check_video_pair
+from app.services.videos import add_videos, check_video_pair, times_file
 from app.storage import Storage
 from app.upload_checks import validate_rig_file
 from app.uploads import InvalidUpload, ParsedUpload
@@ -45,7 +45,14 @@ from core.camera import StereoRig, rig_from_dict, rig_to_dict
 if TYPE_CHECKING:  # OpenCV and SciPy: imported by the worker that calibrates
     from core.calibration import CalibrationResult
 
-CALIBRATION_FILE_FIELDS = {"rig_json": ".json", "left_video": ".video", "right_video": ".video"}
+CALIBRATION_FILE_FIELDS = {
+    "rig_json": ".json",
+    "left_video": ".video",
+    "right_video": ".video",
+    # each frame's capture time (as a trial's): the capture page sends them with a take
+    "left_times": ".csv",
+    "right_times": ".csv",
+}
 CALIBRATION_TEXT_FIELDS = frozenset(
     {"board", "cols", "rows", "square_mm", "marker_mm", "dictionary", "legacy", "valid_from"}
 )
@@ -402,6 +409,8 @@ class CalibrationInputs:
     left: Path
     right: Path
     board: BoardSpec
+    left_times: Path | None = None
+    right_times: Path | None = None
 
 
 def calibration_inputs(
@@ -440,6 +449,8 @@ def calibration_inputs(
         right=storage.absolute(videos["right"].path),
         # Reads both stored forms (BoardSpec.to_dict()'s "kind" and the upload form's "board").
         board=BoardSpec.from_dict(dict(board_doc)),
+        left_times=times_file(storage, videos["left"]),
+        right_times=times_file(storage, videos["right"]),
     )
 
 

@@ -35,7 +35,7 @@ from app.services.common import (
     trial_is_visible,
     visible_session,
 )
-from app.services.videos import add_videos, check_video_pair
+from app.services.videos import add_videos, check_video_pair, times_file
 from app.storage import Storage
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig, rig_from_dict
@@ -464,15 +464,11 @@ def analysis_inputs(
             if not v.proxy_path or not storage.exists(v.proxy_path)
         },
         video_fps={side: float(v.fps) for side, v in videos.items()},
-        left_times=_times_file(storage, videos["left"]),
-        right_times=_times_file(storage, videos["right"]),
+        left_times=times_file(storage, videos["left"]),
+        right_times=times_file(storage, videos["right"]),
         task=trial.task,
         side=trial.hand,
     )
-
-
-def _times_file(storage: Storage, video: Video) -> Path | None:
-    return storage.absolute(video.times_path) if video.times_path else None
 
 
 def store_proxies(db: Session, trial_id: int, proxies: dict[str, str]) -> None:

@@ -11,11 +11,13 @@ frames, stored beside it and referenced by the video's row.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from sqlalchemy.orm import Session
 
 from app.models import Video
+from app.storage import Storage
 from app.upload_checks import validate_stereo_pair, validate_times, validate_video
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig
@@ -149,6 +151,11 @@ def _video_row(upload: ParsedUpload, side: str, checked: CheckedVideo) -> Video:
         video.times_path = times.path
         video.times_sha256 = times.sha256
     return video
+
+
+def times_file(storage: Storage, video: Video) -> Path | None:
+    """The stored timestamps file of a video (absolute), or None when it came without one."""
+    return storage.absolute(video.times_path) if video.times_path else None
 
 
 def add_videos(

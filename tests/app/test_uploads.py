@@ -267,6 +267,47 @@ def test_calibration_from_board_videos_queues_a_calibrate_job(api: Api, video_pa
     assert len(api.stored_files()) == 2
 
 
+def test_board_videos_with_timestamps_files_are_timed_by_them(api: Api, tmp_path: Path) -> None:
+    """A browser take sends each frame's capture time (as with a trial): a right WebM whose
+    recorder squeezed its times (here: 90 frames stamped at 60 fps, 1.5 s, beside a 3-s
+    left video) is refused as another recording without them, and with them is stored
+    and handed to the calibration job at its real 30 fps."""
+    from app.services.calibrations import calibration_inputs
+    from app.storage import Storage
+
+    h = api.headers
+    rig = api.client.post("/api/v1/rigs", json={"name": "browser-boards"}, headers=h).json()
+    left = write_video(tmp_path / "left.mp4", n_frames=90, fps=30.0)
+    right = write_video(tmp_path / "right.mp4", n_frames=90, fps=60.0, shift_px=2)
+    board = {"board": "chessboard", "cols": "9", "rows": "6", "square_mm": "25"}
+    url = f"/api/v1/rigs/{rig['id']}/calibrations"
+    refused = api.client.post(url, data=board, files=trial_files(left, right), headers=h)
+    assert refused.status_code == 422, refused.text
+    assert "cannot be recordings of the same test" in refused.json()["detail"]
+
+    def times_csv(origin_s: float) -> bytes:
+        return (
+            "frame,time_s\n" + "".join(f"{i},{origin_s + i / 30:.6f}\n" for i in range(90))
+        ).encode()
+
+    files = {
+        **trial_files(left, right),
+        "left_times": ("left_times.csv", times_csv(12.0), "text/csv"),
+        "right_times": ("right_times.csv", times_csv(40.5), "text/csv"),
+    }
+    r = api.client.post(url, data=board, files=files, headers=h)
+    assert r.status_code == 201, r.text
+    with api.sessions() as db:
+        videos = {v.side: v for v in db.scalars(select(Video))}
+        assert {side: v.fps for side, v in videos.items()} == pytest.approx(
+            {"left": 30.0, "right": 30.0}, abs=0.01
+        )
+        inputs = calibration_inputs(db, Storage.from_settings(api.settings), r.json()["id"])
+    assert inputs.right_times is not None and inputs.right_times.read_bytes() == times_csv(40.5)
+    assert inputs.left_times is not None and inputs.left_times.read_bytes() == times_csv(12.0)
+    assert len(api.stored_files()) == 4
+
+
 @pytest.mark.parametrize(
     ("fields", "words"),
     [
