@@ -233,6 +233,15 @@ class Page:
         box.wait_for(state="visible")
         return box.inner_text()
 
+    def job(self) -> None:
+        """Wait (up to 2 minutes: upload, then the server's quick check) for the take's job
+        box; an upload the server refused fails the test at once with the page's sentence."""
+        self.page.wait_for_selector(
+            "[data-job]:not([hidden]), [data-capture-error]:not([hidden])", timeout=120_000
+        )
+        refused = self.page.locator("[data-capture-error]")
+        assert refused.is_hidden(), f"the take was not stored: {refused.inner_text()}"
+
     def check(self, what: str) -> None:
         assert self.page.evaluate(UNLABELLED_JS) == [], f"{what}: form fields without a label"
         assert not self.problems, (what, self.problems)
@@ -306,7 +315,7 @@ def test_record_a_trial_with_two_cameras_upload_and_measure(
     _wait_recording(page)
     page.wait_for_selector("[data-take]:not([hidden])", timeout=60_000)
     # Upload with a progress bar, then the quick check from the server and the analysis.
-    page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    p.job()
     assert page.locator("[data-upload-progress]").get_attribute("value") == "100"
     rows = page.locator("[data-take-rows] tr")
     assert rows.count() == 2
@@ -504,7 +513,7 @@ def test_an_interrupted_upload_stores_nothing_twice_and_can_be_sent_again(
     # 3. Sent again, the same take (its take_id) is the stored trial, not a second one.
     proxy.cut_after = None
     page.get_by_role("button", name="Upload again").click()
-    page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    p.job()
     assert "not stored twice" in page.locator("[data-upload-text]").inner_text()
     trials = api.trials(target.session_id)
     assert len(trials) == 1 and all(v["has_times"] for v in trials[0]["videos"]), trials
@@ -548,7 +557,7 @@ def test_calibration_mode_records_a_board_pair_and_starts_the_calibration(
     )
     assert page.evaluate("() => document.activeElement.hasAttribute('data-stop')")
     page.keyboard.press("Enter")
-    page.wait_for_selector("[data-job]:not([hidden])", timeout=120_000)
+    p.job()
     lengths = page.locator("[data-take-rows] td:nth-child(3)").all_inner_texts()
     assert len(lengths) == 2 and all(2 <= float(t.split()[0]) < 10 for t in lengths), lengths
     cals = api.client.get(f"/api/v1/rigs/{target.rig_id}/calibrations").json()

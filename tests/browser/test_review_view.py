@@ -260,6 +260,11 @@ def test_review_view_draws_on_a_reduced_proxy(browser, served, wide_recording):
     page.wait_for_function(
         f"() => document.querySelector('[data-review-player]').dataset.frame === '{frame}'"
     )
+    # The player follows the left video's seek; the right video seeks after it, and shows
+    # its frame (read back below) once that seek has landed.
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('video')].every(v => !v.seeking && v.readyState >= 2)"
+    )
     for cam in data["overlay"]["cameras"]:
         side = cam["video"]
         boxes = page.evaluate(BOXES_JS, side)
