@@ -9,6 +9,23 @@ from pathlib import Path
 from core.tasks import TASKS
 
 
+def add_times_arguments(p: argparse.ArgumentParser) -> None:
+    """``--left-times`` and ``--right-times``: each frame's capture time (``analyze``,
+    ``calibrate``)."""
+    p.add_argument(
+        "--left-times",
+        type=Path,
+        metavar="CSV",
+        help="capture time of each left frame (frame,time_s), e.g. from the capture page",
+    )
+    p.add_argument(
+        "--right-times",
+        type=Path,
+        metavar="CSV",
+        help="capture time of each right frame (frame,time_s)",
+    )
+
+
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "analyze",
@@ -35,18 +52,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="estimate the frame offset from the marker motion (the default)",
     )
-    p.add_argument(
-        "--left-times",
-        type=Path,
-        metavar="CSV",
-        help="capture time of each left frame (frame,time_s), e.g. from the capture page",
-    )
-    p.add_argument(
-        "--right-times",
-        type=Path,
-        metavar="CSV",
-        help="capture time of each right frame (frame,time_s)",
-    )
+    add_times_arguments(p)
     p.add_argument(
         "--task",
         choices=TASKS,

@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from app.cli.analyze import add_times_arguments
+
 if TYPE_CHECKING:
     from core.boards import BoardSpec
 
@@ -51,18 +53,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--max-views", type=int, default=40, help="stereo views used in the fit at most (40)"
     )
-    p.add_argument(
-        "--left-times",
-        type=Path,
-        metavar="CSV",
-        help="capture time of each left frame (frame,time_s), e.g. from the capture page",
-    )
-    p.add_argument(
-        "--right-times",
-        type=Path,
-        metavar="CSV",
-        help="capture time of each right frame (frame,time_s)",
-    )
+    add_times_arguments(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="rig file to write (JSON)")
     p.set_defaults(func=run)
 

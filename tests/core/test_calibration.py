@@ -565,17 +565,17 @@ def test_videos_of_different_sessions_are_refused(tmp_path):
         )
 
 
-def test_timestamps_files_stand_in_for_a_squeezed_container_clock(tmp_path):
-    """A browser take's WebM can carry the recorder's squeezed times (on a loaded machine one
-    camera's file spanned half its take): the capture page's timestamps files give each
-    frame's real capture time, and the calibration pairs the views by them."""
+@pytest.fixture(scope="module")
+def two_rate_boards(tmp_path_factory):
+    """The true rig and a folder of chessboard videos from a 15-fps and a 30-fps camera, the
+    faster starting 0.25 s later."""
     from core.simulation.timing import CameraTiming
-    from core.video import VideoWriter, iter_frames, probe_video
 
     rig = example_rig(image_size=ImageSize(640, 512))
+    folder = tmp_path_factory.mktemp("two-rate-boards")
     write_board_recordings(
         rig,
-        tmp_path,
+        folder,
         seed=7,
         board="chessboard",
         duration_s=5.0,
@@ -584,8 +584,18 @@ def test_timestamps_files_stand_in_for_a_squeezed_container_clock(tmp_path):
         supersample=2,
         timing=(CameraTiming(), CameraTiming(fps=30.0, start_s=0.25)),
     )
-    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
-    left, right = tmp_path / "chessboard_left.mkv", tmp_path / "chessboard_right.mkv"
+    return rig, folder
+
+
+def test_timestamps_files_stand_in_for_a_squeezed_container_clock(two_rate_boards, tmp_path):
+    """A browser take's WebM can carry the recorder's squeezed times (on a loaded machine one
+    camera's file spanned half its take): the capture page's timestamps files give each
+    frame's real capture time, and the calibration pairs the views by them."""
+    from core.video import VideoWriter, iter_frames, probe_video
+
+    rig, folder = two_rate_boards
+    board = BoardSpec.from_dict(json.loads((folder / "chessboard.json").read_text()))
+    left, right = folder / "chessboard_left.mkv", folder / "chessboard_right.mkv"
     squeezed = tmp_path / "squeezed_right.mkv"  # the same frames, stamped at twice the rate
     with VideoWriter(squeezed, fps=60.0, image_size=rig.right.image_size) as writer:
         for frame in iter_frames(right):
@@ -607,25 +617,12 @@ def test_timestamps_files_stand_in_for_a_squeezed_container_clock(tmp_path):
         calibrate_stereo_from_paths(left, squeezed, board, left_times=times)  # not its file
 
 
-def test_free_running_cameras_at_different_frame_rates(tmp_path):
+def test_free_running_cameras_at_different_frame_rates(two_rate_boards):
     """A 15-fps and a 30-fps camera, the faster starting 0.25 s later: paired in time."""
-    from core.simulation.timing import CameraTiming
-
-    rig = example_rig(image_size=ImageSize(640, 512))
-    write_board_recordings(
-        rig,
-        tmp_path,
-        seed=7,
-        board="chessboard",
-        duration_s=5.0,
-        fps=15.0,
-        pose_interval_s=0.6,
-        supersample=2,
-        timing=(CameraTiming(), CameraTiming(fps=30.0, start_s=0.25)),
-    )
-    board = BoardSpec.from_dict(json.loads((tmp_path / "chessboard.json").read_text()))
+    rig, folder = two_rate_boards
+    board = BoardSpec.from_dict(json.loads((folder / "chessboard.json").read_text()))
     result = calibrate_stereo_from_paths(
-        tmp_path / "chessboard_left.mkv", tmp_path / "chessboard_right.mkv", board
+        folder / "chessboard_left.mkv", folder / "chessboard_right.mkv", board
     )
     sync = result.quality["sync"]
     assert sync["method"] == "estimated" and sync["fps_right"] == 30.0
