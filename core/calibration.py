@@ -32,7 +32,7 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -44,6 +44,9 @@ from core.boards import BoardDetection, BoardSpec, chessboard_extends, detect_bo
 from core.camera import Camera, ImageSize, StereoRig
 from core.errors import CalibrationError, DetectionError, InputError
 from core.progress import ProgressCallback, report
+
+if TYPE_CHECKING:
+    from core.timing import FrameTimes
 
 FloatArray = NDArray[np.float64]
 
@@ -169,18 +172,21 @@ class CalibrationResult:
 # -- input ----------------------------------------------------------------------
 
 
-def _frame_source(path: str | Path, side: str) -> tuple[str, Any]:
-    """``("images", [paths])`` or ``("video", VideoInfo)`` for a calibrate input."""
+def _frame_source(path: str | Path, side: str, times: FrameTimes | None) -> tuple[str, Any]:
+    """``("images", [paths])`` or ``("video", VideoInfo)`` for a calibrate input; a raw
+    stream states no rate, and its timestamps file's (``times``) stands in."""
     from core.video import list_images, probe_video
 
     p = Path(path)
     if p.is_dir():
+        if times is not None:
+            raise InputError("timestamps files belong to videos, not to folders of images.")
         return "images", list_images(p)
     if not p.exists():
         raise InputError(
             f"the {side} input {p} does not exist; give a video file or a folder of images."
         )
-    return "video", probe_video(p)
+    return "video", probe_video(p, fps_if_none=None if times is None else times.fps)
 
 
 def _sample_indices(n_frames: int, max_candidates: int) -> list[int]:
@@ -279,10 +285,16 @@ def collect_views(
     """
     if max_candidates < 1:
         raise ValueError(f"max_candidates must be >= 1, got {max_candidates}")
-    from core.timing import frame_times_from_timestamps, read_times_csv, uniform_times
+    from core.timing import (
+        check_frame_count,
+        frame_times_from_timestamps,
+        read_times_csv,
+        uniform_times,
+    )
 
-    kind_l, src_l = _frame_source(left, "left")
-    kind_r, src_r = _frame_source(right, "right")
+    given = [None if p is None else read_times_csv(p) for p in (left_times, right_times)]
+    kind_l, src_l = _frame_source(left, "left", given[0])
+    kind_r, src_r = _frame_source(right, "right", given[1])
     if kind_l != kind_r:
         raise InputError(
             "one input is a video and the other a folder of images; give two videos or two folders."
@@ -299,12 +311,9 @@ def collect_views(
     else:
         n_left, n_right = src_l.frame_count, src_r.frame_count
         fps_l, fps_r = src_l.fps, src_r.fps
-    if kind_l == "images" and (left_times is not None or right_times is not None):
-        raise InputError("timestamps files belong to videos, not to folders of images.")
-    given = [
-        None if path is None else read_times_csv(path, n_frames=n)
-        for path, n in ((left_times, n_left), (right_times, n_right))
-    ]
+    for file_times, path, n in ((given[0], left_times, n_left), (given[1], right_times, n_right)):
+        if file_times is not None:
+            check_frame_count(file_times, n, Path(str(path)).name)
     fps_l = given[0].fps if given[0] is not None else fps_l
     fps_r = given[1].fps if given[1] is not None else fps_r
     same_rate = abs(fps_l - fps_r) <= 1e-3 * max(fps_l, fps_r)

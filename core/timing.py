@@ -222,13 +222,20 @@ def read_times_csv(path: str | Path, *, n_frames: int | None = None) -> FrameTim
     t = np.array(times)
     if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
         raise InputError(f"the times of {p.name} must be finite and increase from frame to frame.")
-    if n_frames is not None and abs(len(t) - n_frames) > 2:
+    out = FrameTimes(t, 1.0 / float(np.median(np.diff(t))), FROM_FILE)
+    if n_frames is not None:
+        check_frame_count(out, n_frames, p.name)
+    return out
+
+
+def check_frame_count(times: FrameTimes, n_frames: int, name: str) -> None:
+    """Refuse a timestamps file (``name``) whose frames are not its video's ``n_frames``,
+    two frames of slack for a damaged container (:func:`read_times_csv`)."""
+    if abs(len(times.t_s) - n_frames) > 2:
         raise InputError(
-            f"{p.name} gives the times of {len(t)} frames but its video has {n_frames};"
+            f"{name} gives the times of {len(times.t_s)} frames but its video has {n_frames};"
             " give the timestamps file recorded with this video."
         )
-    dt = float(np.median(np.diff(t)))
-    return FrameTimes(t, 1.0 / dt, FROM_FILE)
 
 
 def fit_to_frames(times: FrameTimes, n_frames: int) -> FrameTimes:

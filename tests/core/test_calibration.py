@@ -616,6 +616,27 @@ def test_timestamps_files_stand_in_for_a_squeezed_container_clock(two_rate_board
     with pytest.raises(InputError, match="frames"):
         calibrate_stereo_from_paths(left, squeezed, board, left_times=times)  # not its file
 
+    # A raw H.264 stream (no container, so no rate of its own) is timed by its file too.
+    import av
+
+    raw = tmp_path / "right.h264"
+    with av.open(str(raw), "w", format="h264") as c:
+        stream = c.add_stream("libx264", rate=30, options={"preset": "ultrafast", "crf": "12"})
+        stream.width, stream.height = rig.right.image_size
+        stream.pix_fmt = "yuv420p"
+        for i, image in enumerate(iter_frames(right)):
+            frame = av.VideoFrame.from_ndarray(image, format="gray")
+            frame.pts = i
+            for packet in stream.encode(frame):
+                c.mux(packet)
+        for packet in stream.encode():
+            c.mux(packet)
+    with pytest.raises(InputError, match="neither frame timestamps nor a frame rate"):
+        calibrate_stereo_from_paths(left, raw, board)
+    from_raw = calibrate_stereo_from_paths(left, raw, board, right_times=times)
+    assert abs(from_raw.quality["sync"]["offset_s"] - 0.25) < 0.003  # s
+    assert abs(from_raw.rig.baseline_mm - rig.baseline_mm) < 0.5  # mm
+
 
 def test_free_running_cameras_at_different_frame_rates(two_rate_boards):
     """A 15-fps and a 30-fps camera, the faster starting 0.25 s later: paired in time."""
