@@ -287,6 +287,7 @@ def collect_views(
         raise ValueError(f"max_candidates must be >= 1, got {max_candidates}")
     from core.timing import (
         check_frame_count,
+        fit_to_frames,
         frame_times_from_timestamps,
         read_times_csv,
         uniform_times,
@@ -379,8 +380,8 @@ def collect_views(
         frames = np.array([r[0] for r in rows], dtype=np.int64)
         if times is None or kind_l == "images":
             t_all = uniform_times(int(frames.max()) + 1 if len(frames) else 0, fps).t_s
-        elif csv is not None and len(csv.t_s) > (int(frames.max()) if len(frames) else -1):
-            t_all = csv.t_s
+        elif csv is not None:  # within two frames of the video's count: cut or continued
+            t_all = fit_to_frames(csv, src.frame_count).t_s
         else:
             t_all = frame_times_from_timestamps(times, fps=fps, name=src.path.name).t_s
             if len(t_all) <= (int(frames.max()) if len(frames) else -1):

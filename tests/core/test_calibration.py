@@ -615,6 +615,11 @@ def test_timestamps_files_stand_in_for_a_squeezed_container_clock(two_rate_board
     assert abs(result.rig.baseline_mm - rig.baseline_mm) < 0.5  # mm
     with pytest.raises(InputError, match="frames"):
         calibrate_stereo_from_paths(left, squeezed, board, left_times=times)  # not its file
+    # A file two frames short (a damaged container's slack) is continued at its rate.
+    short = tmp_path / "short_times.csv"
+    short.write_text("".join(times.read_text().splitlines(keepends=True)[:-2]))
+    cut = calibrate_stereo_from_paths(left, squeezed, board, right_times=short)
+    assert abs(cut.quality["sync"]["offset_s"] - 0.25) < 0.003  # s
 
     # A raw H.264 stream (no container, so no rate of its own) is timed by its file too.
     import av
