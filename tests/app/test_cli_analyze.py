@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from stream_support import write_raw_h264
 
 from app.cli import main
 from core.camera import ImageSize
@@ -156,20 +157,11 @@ def _raw_h264(src: Path, dst: Path) -> int:
     """``src`` re-encoded as a raw H.264 stream (no container: no rate, no timestamps)."""
     import av
 
-    n = 0
-    with av.open(str(src)) as inp, av.open(str(dst), "w", format="h264") as out:
-        stream = out.add_stream("libx264", rate=100)
-        stream.width, stream.height, stream.pix_fmt = 640, 512, "yuv420p"
-        stream.options = {"crf": "12", "preset": "veryfast"}
-        for frame in inp.decode(video=0):
-            image = av.VideoFrame.from_ndarray(frame.to_ndarray(format="gray"), format="gray")
-            image.pts = n
-            n += 1
-            for packet in stream.encode(image):
-                out.mux(packet)
-        for packet in stream.encode():
-            out.mux(packet)
-    return n
+    with av.open(str(src)) as inp:
+        frames = (frame.to_ndarray(format="gray") for frame in inp.decode(video=0))
+        return write_raw_h264(
+            dst, frames, size=(640, 512), rate=100, options={"crf": "12", "preset": "veryfast"}
+        )
 
 
 def test_free_running_bad_input_is_one_sentence_and_exit_2(

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from api_support import Api, api, seed_recording_target  # noqa: F401 - fixtures
 from sqlalchemy import select
+from stream_support import write_raw_h264
 
 from app.models import Result, Video
 from app.storage import Storage
@@ -54,20 +55,11 @@ def _raw_h264(src: Path, dst: Path) -> int:
     """``src`` re-encoded by PyAV as a raw H.264 stream (no container: no rate, no timestamps)."""
     import av
 
-    n = 0
-    with av.open(str(src)) as inp, av.open(str(dst), "w", format="h264") as out:
-        stream: Any = out.add_stream("libx264", rate=25)
-        stream.width, stream.height, stream.pix_fmt = SIZE.width, SIZE.height, "yuv420p"
-        stream.options = {"crf": "10", "preset": "veryfast"}
-        for frame in inp.decode(video=0):
-            image = av.VideoFrame.from_ndarray(frame.to_ndarray(format="gray"), format="gray")
-            image.pts = n
-            n += 1
-            for packet in stream.encode(image):
-                out.mux(packet)
-        for packet in stream.encode():
-            out.mux(packet)
-    return n
+    with av.open(str(src)) as inp:
+        frames = (frame.to_ndarray(format="gray") for frame in inp.decode(video=0))
+        return write_raw_h264(
+            dst, frames, size=SIZE, rate=25, options={"crf": "10", "preset": "veryfast"}
+        )
 
 
 def _times_csv(truth: dict[str, Any], side: str) -> bytes:

@@ -622,20 +622,16 @@ def test_timestamps_files_stand_in_for_a_squeezed_container_clock(two_rate_board
     assert abs(cut.quality["sync"]["offset_s"] - 0.25) < 0.003  # s
 
     # A raw H.264 stream (no container, so no rate of its own) is timed by its file too.
-    import av
+    from stream_support import write_raw_h264
 
     raw = tmp_path / "right.h264"
-    with av.open(str(raw), "w", format="h264") as c:
-        stream = c.add_stream("libx264", rate=30, options={"preset": "ultrafast", "crf": "12"})
-        stream.width, stream.height = rig.right.image_size
-        stream.pix_fmt = "yuv420p"
-        for i, image in enumerate(iter_frames(right)):
-            frame = av.VideoFrame.from_ndarray(image, format="gray")
-            frame.pts = i
-            for packet in stream.encode(frame):
-                c.mux(packet)
-        for packet in stream.encode():
-            c.mux(packet)
+    write_raw_h264(
+        raw,
+        iter_frames(right),
+        size=rig.right.image_size,
+        rate=30,
+        options={"preset": "ultrafast", "crf": "12"},
+    )
     with pytest.raises(InputError, match="neither frame timestamps nor a frame rate"):
         calibrate_stereo_from_paths(left, raw, board)
     from_raw = calibrate_stereo_from_paths(left, raw, board, right_times=times)
