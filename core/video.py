@@ -210,7 +210,7 @@ def _stated_duration_s(container: Any, stream: Any) -> float | None:
 
 def _count_packets(
     container: Any, stream: Any, *, fps: float | None
-) -> tuple[int, bool, float | None, tuple[float, float] | None]:
+) -> tuple[int, bool, float | None, tuple[float, float, float] | None]:
     """Demux every packet of ``stream`` (no decoding).
 
     Returns the number of packets holding a frame, whether any carries a
@@ -218,8 +218,10 @@ def _count_packets(
     timestamp to the end of the last frame (its packet duration, or one
     frame period when the packet states none), None without timestamps; and
     the longest stretch between two consecutive frames (start, end in s from
-    the first frame), None with fewer than two timestamps. A damaged file
-    counts what demuxed before the damage.
+    the first frame) with the median interval between frames (s), None with
+    fewer than two timestamps. The median interval is the packets' own rate:
+    a browser's WebM states none (FFmpeg guesses 1000 fps from its 1-ms time
+    base). A damaged file counts what demuxed before the damage.
     """
     import av
 
@@ -247,8 +249,13 @@ def _count_packets(
     hole = None
     if len(pts) > 1:
         ordered = np.sort(np.asarray(pts, dtype=np.int64))
-        k = int(np.argmax(np.diff(ordered)))
-        hole = (float((ordered[k] - first) * tb), float((ordered[k + 1] - first) * tb))
+        steps = np.diff(ordered)
+        k = int(np.argmax(steps))
+        hole = (
+            float((ordered[k] - first) * tb),
+            float((ordered[k + 1] - first) * tb),
+            float(np.median(steps) * tb),
+        )
     return counted, True, covered, hole
 
 
@@ -297,12 +304,17 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
             return int(stream.frames), has_pts, fps
         stated_s = _stated_duration_s(container, stream)
         count, has_pts, covered_s, hole = _count_packets(container, stream, fps=fps)
-        if hole is not None and fps and hole[1] - hole[0] > max(_HOLE_S, _HOLE_FRAMES / fps):
-            raise InputError(
-                f"{path.name} has no frames between {hole[0]:.2f} s and {hole[1]:.2f} s"
-                f" ({round((hole[1] - hole[0]) * fps) - 1} frames at {fps:g} fps): the file is"
-                " damaged or the camera stopped recording; copy or export the recording again."
-            )
+        if hole is not None:
+            start, stop, interval = hole
+            if interval > 0 and stop - start > max(_HOLE_S, _HOLE_FRAMES * interval):
+                raise InputError(
+                    f"{path.name} has no frames between {start:.2f} s and {stop:.2f} s (about"
+                    f" {round((stop - start) / interval) - 1} frames missing at its"
+                    f" {1 / interval:.0f} frames per second): the camera delivered no frames"
+                    " for that long (a computer too busy to take them, or a camera that"
+                    " paused) or the file is damaged; record it again, or copy or export it"
+                    " again."
+                )
         if stated_s is not None and covered_s is not None and fps:
             missing = round((stated_s - covered_s) * fps)
             if missing > _FRAME_COUNT_SLACK:

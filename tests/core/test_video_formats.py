@@ -284,6 +284,29 @@ def test_a_raw_stream_has_no_frame_rate_unless_its_timestamps_file_gives_one(
     assert info.fps == FPS and info.frame_count == N and not info.has_timestamps
 
 
+@pytest.mark.parametrize(("gap_s", "refused"), [(0.7, True), (0.4, False)])
+def test_a_browser_take_with_a_hole_is_refused_in_its_own_frames(tmp_path, gap_s, refused):
+    """A browser's WebM (1-ms time base; FFmpeg states 1000 fps) whose camera delivered
+    nothing for 0.73 s (0.7 s more than a frame interval) is refused naming the stretch and
+    the frames it lost at the packets' own 30 fps (it said "732 frames at 1000 fps"); a
+    stretch of 0.43 s is lost frames that the time model bridges, and is read."""
+    path = tmp_path / "left.webm"
+    times = np.arange(60) / FPS  # s
+    times[3:] += gap_s
+    with VideoWriter(path, fps=1000.0, image_size=SIZE, codec="vp9") as w:
+        for i, t in enumerate(times):
+            w.write(_frames()[i % N], time_s=float(t))
+    if not refused:
+        assert probe_video(path).frame_count == 60
+        return
+    with pytest.raises(InputError) as caught:
+        probe_video(path)
+    message = str(caught.value)
+    assert "no frames between 0.07 s and 0.80 s" in message, message  # s
+    assert "about 21 frames missing at its 30 frames per second" in message, message
+    assert "record it again" in message, message
+
+
 @pytest.mark.parametrize(
     ("codec", "suffix"),
     [("lossless", ".mkv"), ("mp4v", ".mp4"), ("h264", ".mp4"), ("av1", ".webm")],
