@@ -45,6 +45,13 @@ class Settings(BaseSettings):
     job_max_attempts: int = Field(default=3, ge=1, description="Attempts before a job fails.")
     job_retry_delay_s: float = Field(default=5.0, ge=0, description="Back-off before a retry.")
     worker_poll_s: float = Field(default=1.0, gt=0, description="Idle worker polling period.")
+    worker_nice: int = Field(
+        default=10,
+        ge=0,
+        le=19,
+        description="CPU priority the job workers of `serve` and `worker` give up (Linux nice"
+        " steps), so that pages and a recording on the same machine come first; 0 keeps it.",
+    )
     secure_cookies: bool = Field(
         default=False, description="Set the Secure flag on cookies (enable behind HTTPS)."
     )

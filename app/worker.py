@@ -23,6 +23,8 @@ The job's view of itself (progress, lease, finish) is
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import threading
 from collections.abc import Mapping
 
@@ -142,6 +144,24 @@ def _fail(
         return "lost"
 
 
+def lower_thread_priority(steps: int) -> int | None:
+    """Give up ``steps`` of CPU priority (nice) in the calling thread; returns its niceness
+    now, or None where that cannot be done for one thread.
+
+    Linux keeps a niceness per thread, and a thread starts with its creator's: the
+    worker's video decoders, started for each job, run at the worker's. The threads that
+    answer pages, in the same ``serve`` process, keep theirs, and so does a browser
+    recording on the same machine. Elsewhere a process's threads share one niceness: the
+    web server's would drop with the worker's, so nothing is changed there.
+    """
+    if not sys.platform.startswith("linux"):
+        return None
+    tid = threading.get_native_id()
+    now = min(19, os.getpriority(os.PRIO_PROCESS, tid) + steps)
+    os.setpriority(os.PRIO_PROCESS, tid, now)
+    return now
+
+
 def run_worker(
     settings: Settings,
     *,
@@ -150,6 +170,7 @@ def run_worker(
     handlers: Mapping[str, Handler] | None = None,
     worker_name: str | None = None,
     max_jobs: int | None = None,
+    nice: int = 0,
 ) -> int:
     """Run jobs until stopped; returns the number of jobs run.
 
@@ -168,7 +189,12 @@ def run_worker(
         Shown in ``Job.lease_owner`` (default ``host:pid``).
     max_jobs
         Return after this many jobs.
+    nice
+        CPU priority this thread gives up first (:func:`lower_thread_priority`;
+        ``serve`` and ``worker`` pass ``settings.worker_nice``).
     """
+    if nice:
+        lower_thread_priority(nice)
     handlers = dict(HANDLERS if handlers is None else handlers)
     stop_event = stop_event or threading.Event()
     worker_name = worker_name or default_worker_name()

@@ -76,7 +76,11 @@ def start_embedded_workers(
         thread = threading.Thread(
             target=run_worker,
             args=(settings,),
-            kwargs={"stop_event": stop_event, "worker_name": f"{default_worker_name()}:w{i}"},
+            kwargs={
+                "stop_event": stop_event,
+                "worker_name": f"{default_worker_name()}:w{i}",
+                "nice": settings.worker_nice,
+            },
             name=f"bradyscope-worker-{i}",
             daemon=True,
         )

@@ -68,7 +68,13 @@ def run(args: argparse.Namespace) -> int:
     from app.cli.serve import exit_if_threads_linger
 
     try:
-        count = run_worker(settings, once=args.once, stop_event=stop_event, worker_name=args.name)
+        count = run_worker(
+            settings,
+            once=args.once,
+            stop_event=stop_event,
+            worker_name=args.name,
+            nice=settings.worker_nice,
+        )
     except KeyboardInterrupt:
         # Second signal: stop now. The job's lease expires and another worker resumes it.
         print("bradyscope worker: interrupted.", file=sys.stderr)

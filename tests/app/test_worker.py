@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import sys
 import threading
 from datetime import UTC, datetime
 
@@ -20,7 +21,7 @@ from app.reports.pdf_cache import ReportPdfCache
 from app.reports.rendering import report_key
 from app.reports.result import read_result
 from app.services.results import load_report_data
-from app.worker import run_job, run_worker
+from app.worker import lower_thread_priority, run_job, run_worker
 from core.errors import DetectionError
 from core.markers_csv import read_markers_csv
 
@@ -176,6 +177,47 @@ def test_stop_event_stops_an_idle_worker(app_settings):
     stop.set()
     thread.join(timeout=10)
     assert not thread.is_alive()
+
+
+def _niceness(thread_id: int) -> int:
+    import os
+
+    return os.getpriority(os.PRIO_PROCESS, thread_id)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness: Linux")
+def test_embedded_workers_give_up_cpu_priority_and_the_server_keeps_its(app_settings, wait_for):
+    """``serve``'s worker threads drop by ``worker_nice`` steps, the threads they start (the
+    video decoders, the heartbeat) with them; the thread that started them (the server's)
+    keeps its priority."""
+    from app.cli.serve import start_embedded_workers
+
+    own = _niceness(threading.get_native_id())
+    stop = threading.Event()
+    workers = start_embedded_workers(app_settings.model_copy(update={"worker_nice": 7}), 1, stop)
+    try:
+        worker = workers[0].native_id
+        assert worker is not None
+        wait_for(lambda: _niceness(worker) == min(19, own + 7), timeout_s=10, what="the nice")
+    finally:
+        stop.set()
+        workers[0].join(timeout=10)
+    assert _niceness(threading.get_native_id()) == own
+
+    seen: dict[str, int] = {}
+
+    def worker_thread() -> None:
+        seen["worker"] = lower_thread_priority(3) or -1
+        child = threading.Thread(
+            target=lambda: seen.update(child=_niceness(threading.get_native_id()))
+        )
+        child.start()
+        child.join()
+
+    thread = threading.Thread(target=worker_thread)
+    thread.start()
+    thread.join()
+    assert seen == {"worker": min(19, own + 3), "child": min(19, own + 3)}, seen
 
 
 def test_kill9_of_a_worker_mid_job_sqlite(app_settings, worker_script, kill9_scenario):
@@ -576,9 +618,12 @@ def test_kill9_of_bradyscope_worker_during_a_real_analysis(
             timeout_s=120,
             what="the first worker to be measuring",
         )
+        # It measures at BRADYSCOPE_WORKER_NICE's lower priority (10 steps by default).
+        nice = _niceness(first.pid), _niceness(threading.get_native_id())
     finally:
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=30)
+    assert nice[0] == min(19, nice[1] + 10), nice
     assert _job(sm, job_id).status == "running"  # orphaned: its lease will expire
 
     second = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, text=True)
