@@ -242,6 +242,53 @@ class Page:
         refused = self.page.locator("[data-capture-error]")
         assert refused.is_hidden(), f"the take was not stored: {refused.inner_text()}"
 
+    def record_until_stored(self, seconds: int, takes: int = 3) -> int:
+        """Record takes of ``seconds`` until the server stores one; returns how many it took.
+
+        On a loaded machine a camera can deliver nothing for most of a second: Chromium's
+        recorder keeps no frame while the page cannot run (docs/capture.md), and CI's run
+        at b0aaa70 lost 0.76 s at the start of this test's take. The server refuses such a
+        take and stores nothing of it, and the page says to record again: so does the test,
+        up to ``takes`` takes. Any other refusal fails the test at once.
+        """
+        take = 1
+        while True:
+            message = self.take(seconds)
+            if message is None:
+                return take
+            assert "has no frames between" in message and take < takes, (
+                f"the take was not stored: {message}"
+            )
+            print(f"take {take} lost frames and was refused: {message}")
+            self.page.get_by_role("button", name="Retake").click()
+            take += 1
+
+    def take(self, seconds: int, *, stall_ms: int = 0) -> str | None:
+        """Record a take of ``seconds`` and wait for its upload's answer: None once it is
+        stored (its job box shows), else the page's sentence of the refusal. With
+        ``stall_ms``, the page's main thread is kept busy that long once recording runs."""
+        page = self.page
+        _record(page, seconds)
+        _wait_recording(page)
+        if stall_ms:
+            page.evaluate(
+                "(ms) => { const t = performance.now(); while (performance.now() - t < ms) {} }",
+                stall_ms,
+            )
+        page.wait_for_selector("[data-take]:not([hidden])", timeout=60_000)
+        page.wait_for_selector(
+            "[data-job]:not([hidden]), [data-capture-error]:not([hidden])", timeout=120_000
+        )
+        refused = page.locator("[data-capture-error]")
+        if refused.is_hidden():
+            return None
+        # The refused upload's answer (415: not a usable video) is the console error a
+        # refusal logs; the sentence returned is what the test holds it to.
+        answer = "the server responded with a status of 415"
+        self.expected_failures.append(answer)
+        self.problems = [q for q in self.problems if answer not in q]
+        return refused.inner_text()
+
     def check(self, what: str) -> None:
         assert self.page.evaluate(UNLABELLED_JS) == [], f"{what}: form fields without a label"
         assert not self.problems, (what, self.problems)
@@ -311,11 +358,8 @@ def test_record_a_trial_with_two_cameras_upload_and_measure(
         assert view.locator("[data-fact=clipped]").inner_text() == "0"
     assert "sees" not in p.gate(), p.gate()  # no view lacks a marker
 
-    _record(page, RECORD_S)
-    _wait_recording(page)
-    page.wait_for_selector("[data-take]:not([hidden])", timeout=60_000)
     # Upload with a progress bar, then the quick check from the server and the analysis.
-    p.job()
+    p.record_until_stored(RECORD_S)
     assert page.locator("[data-upload-progress]").get_attribute("value") == "100"
     rows = page.locator("[data-take-rows] tr")
     assert rows.count() == 2
@@ -358,6 +402,38 @@ def test_record_a_trial_with_two_cameras_upload_and_measure(
         .startswith("Simulated camera (left")
     )
     p.check("capture page, reloaded")
+    p.close()
+
+
+def test_a_take_that_lost_most_of_a_second_is_refused_and_recorded_again(
+    pattern_cameras, served, api
+) -> None:
+    """The page cannot run for 0.8 s during a take, as on a machine too busy: the recorder
+    keeps no frame of most of it. The page's quick check counts the lost frames, the server
+    refuses the take with a sentence that says what happened and what to do, nothing is
+    stored, and the take recorded again is."""
+    target = api.target(_rig_document(640, 480), "stalled-rig")
+    before = api.stored_files()
+    p = Page(pattern_cameras, served)
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_1")
+    message = p.take(3, stall_ms=800)
+    assert message is not None, "a take with 0.8 s lost was stored"
+    lost = p.page.locator("[data-take-rows] td:nth-child(5)").all_inner_texts()
+    assert len(lost) == 2 and all(int(n) >= 15 for n in lost), lost  # frames, at 30 fps
+    assert "Consider a retake" in p.page.locator("[data-take-verdict]").inner_text()
+    assert re.search(r"has no frames between [\d.]+ s and [\d.]+ s", message), message
+    found = re.search(r"about (\d+) frames missing at its (\d+) frames per second", message)
+    assert found, message
+    # At the cameras' 30 fps (the median of 33- and 34-ms steps), 0.8 s less the recorder's
+    # last ~0.1 s; more when a loaded machine stalls longer.
+    assert 15 <= int(found[1]) <= 45 and 29 <= int(found[2]) <= 31, message  # frames, fps
+    assert "record it again" in message and "Nothing of this take was stored." in message
+    assert api.trials(target.session_id) == [] and api.stored_files() == before
+    p.page.get_by_role("button", name="Retake").click()
+    p.record_until_stored(3)
+    assert len(api.trials(target.session_id)) == 1
+    p.check("capture page after a refused take")
     p.close()
 
 
