@@ -103,7 +103,9 @@
             if (lead.video.paused) follow.video.currentTime = (j + 0.25) / follow.fps;
             else if (Math.abs(frameOf(follow.video.currentTime, follow.fps) - j) > 2) follow.video.currentTime = (j + 0.25) / follow.fps;
           }
-          if (follow.video.paused) draw(follow, j);
+          // A follow video that was just asked to seek still shows its old frame: its
+          // overlay is drawn when the seek lands ("seeked" below), not ahead of its picture.
+          if (follow.video.paused && !follow.video.seeking) draw(follow, j);
         }
       }
       var t = frame / fps;

@@ -28,6 +28,26 @@ pytestmark = pytest.mark.browser
 # Centroid of the thumb's disc (exact fill colour, so antialiased edges and the labels
 # do not count), in OpenCV pixels: a canvas pixel i covers [i, i + 1) and the script
 # draws a point x at x + 0.5, so the mean pixel index is x itself.
+# Each overlay drawn by the script that has just asked its video to seek (so before the
+# new frame can be on screen) is logged: the player must draw it once the seek lands.
+DRAWN_AHEAD_OF_SEEK_JS = """() => {
+  window.drawnAheadOfSeek = [];
+  const time = Object.getOwnPropertyDescriptor(HTMLMediaElement.prototype, 'currentTime');
+  document.querySelectorAll('video[data-video]').forEach((v) => {
+    let seekAsked = false;  // by the script now running: cleared once it has run
+    Object.defineProperty(v, 'currentTime', {
+      configurable: true,
+      get() { return time.get.call(v); },
+      set(t) { seekAsked = true; queueMicrotask(() => { seekAsked = false; }); time.set.call(v, t); },
+    });
+    const setAttribute = v.setAttribute.bind(v);
+    v.setAttribute = (name, value) => {
+      if (name === 'data-frame' && seekAsked) window.drawnAheadOfSeek.push([v.dataset.video, value]);
+      setAttribute(name, value);
+    };
+  });
+}"""
+
 THUMB_DISC_JS = """(side) => {
   const c = document.querySelector(`canvas[data-overlay="${side}"]`);
   const img = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
@@ -137,6 +157,7 @@ def test_review_view(browser, served, recording, screenshot_dir):
     # Step to the peak of a tap (markers far apart) with the keyboard and read the drawing back.
     tap = data["taps"][2]
     frame = round(tap["t_max_aperture_s"] * fps)
+    page.evaluate(DRAWN_AHEAD_OF_SEEK_JS)
     page.evaluate("(f) => window.bradyscopeReview.seekFrame(f - 3)", frame)
     page.wait_for_function(
         f"() => document.querySelector('[data-review-player]').dataset.frame === '{frame - 3}'"
@@ -149,6 +170,11 @@ def test_review_view(browser, served, recording, screenshot_dir):
     )
     cursor = float(page.locator("canvas[data-aperture]").get_attribute("data-cursor-s"))
     assert cursor == pytest.approx(frame / fps, abs=1e-3)
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('video')].every(v => !v.seeking && v.readyState >= 2)"
+    )
+    # Each overlay was drawn with its own video's frame on screen, never ahead of it.
+    assert page.evaluate("() => window.drawnAheadOfSeek") == []
     for cam in data["overlay"]["cameras"]:
         side = cam["video"]
         own = int(page.locator(f"video[data-video={side}]").get_attribute("data-frame"))
