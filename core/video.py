@@ -182,8 +182,9 @@ def _open_capture(path: Path, threads: int | None = None) -> cv2.VideoCapture:
 _AVFMT_NOTIMESTAMPS = 0x0080
 #: A stretch without frames longer than both of these (s, frame intervals) is a hole that
 #: no measurement crosses: a damaged file (a demuxer skips what it cannot read) or a stop.
-_HOLE_S = 0.5
-_HOLE_FRAMES = 10
+#: The capture page applies the same rule to a take before sending it (app/web/capture.py).
+HOLE_S = 0.5
+HOLE_FRAMES = 10
 
 
 def _stated_duration_s(container: Any, stream: Any) -> float | None:
@@ -306,7 +307,7 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
         count, has_pts, covered_s, hole = _count_packets(container, stream, fps=fps)
         if hole is not None:
             start, stop, interval = hole
-            if interval > 0 and stop - start > max(_HOLE_S, _HOLE_FRAMES * interval):
+            if interval > 0 and stop - start > max(HOLE_S, HOLE_FRAMES * interval):
                 raise InputError(
                     f"{path.name} has no frames between {start:.2f} s and {stop:.2f} s (about"
                     f" {round((stop - start) / interval) - 1} frames missing at its"

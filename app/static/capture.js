@@ -38,6 +38,8 @@
     this.csrf = root.getAttribute("data-csrf");
     this.markersExpected = Number(root.getAttribute("data-markers") || 0);
     this.countdownS = Number(root.getAttribute("data-countdown-s") || 3);
+    this.holeS = Number(root.getAttribute("data-hole-s") || 0.5); // the server's rule (core.video)
+    this.holeFrames = Number(root.getAttribute("data-hole-frames") || 10);
     this.needed = {
       left: parseSize(root.getAttribute("data-left-size")),
       right: parseSize(root.getAttribute("data-right-size")),
@@ -686,7 +688,22 @@
         SIDES.forEach(function (side) { take.logs[side] = self.cams[side].log || []; self.cams[side].log = null; });
         return self.finishTake(take);
       })
-      .then(function () { if (self.take === take) self.upload(); })
+      .then(function () {
+        if (self.take !== take) return;
+        // A stretch without frames that the server would refuse: said now, not after the upload.
+        var hole = null;
+        SIDES.forEach(function (side) {
+          if (!hole && take.timedByFile[side]) hole = C.holeSentence(side, take.facts[side], self.holeS, self.holeFrames);
+        });
+        if (hole) {
+          self.phase = "done";
+          self.afterBox.hidden = false;
+          self.uploadAgainButton.hidden = true; // nothing to send: only "Retake"
+          self.showError(hole, false);
+          return;
+        }
+        self.upload();
+      })
       .catch(function (error) {
         if (self.take !== take) return;
         self.phase = "done";
@@ -702,6 +719,7 @@
     var ext = take.mime.indexOf("mp4") >= 0 ? ".mp4" : ".webm";
     take.files = {};
     take.facts = {};
+    take.timedByFile = {}; // facts from the recorded file's own frame times, not the page's log
     return Promise.all(SIDES.map(function (side) {
       var blob = new Blob(take.chunks[side], { type: take.mime || "video/webm" });
       take.files[side + "_video"] = new File([blob], side + ext, { type: blob.type });
@@ -715,8 +733,10 @@
         if (aligned) {
           take.files[side + "_times"] = new File([C.timesCsv(aligned.times_s)], side + "_times.csv", { type: "text/csv" });
           take.facts[side] = C.takeFacts(aligned.times_s);
+          take.timedByFile[side] = true;
         } else if (stamps && stamps.length) {
           take.facts[side] = C.takeFacts(stamps.map(function (ms) { return ms / 1000; }));
+          take.timedByFile[side] = true;
         } else {
           take.facts[side] = C.takeFacts(take.logs[side]);
         }

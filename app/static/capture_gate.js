@@ -241,16 +241,35 @@
   }
 
   /** Frames, length (s), rate (Hz) and frames lost (gaps of 1.5 intervals or more) of a take. */
+  /** Frames, length, rate and frames lost of one camera's take from its frame times (s),
+   * and its longest stretch without frames: ``gap`` {start_s, end_s} from the first frame. */
   function takeFacts(times) {
     var n = times.length;
-    if (n < 2) return { frame_count: n, duration_s: 0, fps: 0, dropped_frames: 0 };
+    if (n < 2) return { frame_count: n, duration_s: 0, fps: 0, dropped_frames: 0, gap: null };
     var steps = [];
     for (var k = 1; k < n; k += 1) steps.push(times[k] - times[k - 1]);
-    var interval = median(steps), lost = 0;
+    var interval = median(steps), lost = 0, longest = 0;
     for (k = 0; k < steps.length; k += 1) {
       if (steps[k] >= 1.5 * interval) lost += Math.max(1, Math.round(steps[k] / interval) - 1);
+      if (steps[k] > steps[longest]) longest = k;
     }
-    return { frame_count: n, duration_s: times[n - 1] - times[0] + interval, fps: 1 / interval, dropped_frames: lost };
+    return {
+      frame_count: n, duration_s: times[n - 1] - times[0] + interval, fps: 1 / interval, dropped_frames: lost,
+      gap: { start_s: times[longest] - times[0], end_s: times[longest + 1] - times[0] },
+    };
+  }
+
+  /** The sentence refusing a take whose camera delivered no frames for longer than
+   * ``holeS`` and ``holeFrames`` intervals (the server's rule, core.video.HOLE_S), or null. */
+  function holeSentence(side, facts, holeS, holeFrames) {
+    if (!facts || !facts.gap || !(facts.fps > 0)) return null;
+    var gap = facts.gap, interval = 1 / facts.fps, length = gap.end_s - gap.start_s;
+    if (!(length > Math.max(holeS, holeFrames * interval))) return null;
+    return "The " + side + " camera's recording has no frames between " + gap.start_s.toFixed(2) + " s and "
+      + gap.end_s.toFixed(2) + " s (about " + (Math.round(length / interval) - 1) + " frames missing at its "
+      + facts.fps.toFixed(0) + " frames per second): the camera delivered no frames for that long (a computer"
+      + " too busy to take them, or a camera that paused). The take was not sent and nothing was stored;"
+      + " record it again.";
   }
 
   root.BradyscopeCapture = {
@@ -260,6 +279,7 @@
     alignFrameTimes: alignFrameTimes,
     timesCsv: timesCsv,
     takeFacts: takeFacts,
+    holeSentence: holeSentence,
     median: median,
   };
 })(typeof window !== "undefined" ? window : globalThis);

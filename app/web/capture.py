@@ -24,6 +24,7 @@ from app.web.common import PageUser, error_page, render
 from core.errors import InputError
 from core.protocols import protocol_for
 from core.tasks import DEFAULT_TASK, Task, parse_task
+from core.video import HOLE_FRAMES, HOLE_S
 
 router = APIRouter()
 
@@ -94,6 +95,8 @@ def session_capture_page(
             tasks=_task_choices(),
             task=chosen.value,
             countdown_s=COUNTDOWN_S,
+            hole_s=HOLE_S,
+            hole_frames=HOLE_FRAMES,
             duration_s=DEFAULT_DURATION_S,
             sizes=(),
         )
@@ -125,6 +128,8 @@ def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: i
             tasks=(),
             task="",
             countdown_s=COUNTDOWN_S,
+            hole_s=HOLE_S,
+            hole_frames=HOLE_FRAMES,
             duration_s=30,
             sizes=[f"{w}x{h}" for w, h in CALIBRATION_SIZES],
         )

@@ -12,6 +12,7 @@ from sqlalchemy import func, select
 from test_pages import _new_session, client, login, seeded, tiny_videos  # noqa: F401 - fixtures
 
 from app.models import AuditEvent, Job, RecordingSession, Rig, Trial, Video
+from core.video import HOLE_FRAMES, HOLE_S
 
 
 def test_the_capture_pages_need_a_login(client, seeded) -> None:
@@ -35,6 +36,8 @@ def test_the_session_capture_page_asks_for_the_rigs_resolution(
     # The calibrated size of each camera (640 x 512 px, the seeded rig) goes to the script.
     assert 'data-left-size="640x512"' in html and 'data-right-size="640x512"' in html
     assert 'data-upload-url="/sessions/1/trials"' in html
+    # The server's rule for a stretch without frames, which the page applies before sending.
+    assert f'data-hole-s="{HOLE_S}" data-hole-frames="{HOLE_FRAMES}"' in " ".join(html.split())
     assert re.search(r'<label for="camera-left">Left camera</label>', html)
     assert re.search(r'<label for="camera-right">Right camera</label>', html)
     assert ">Start recording</button>" in html and ">Stop recording</button>" in html
