@@ -240,9 +240,9 @@
     return lines.join("\n") + "\n";
   }
 
-  /** Frames, length (s), rate (Hz) and frames lost (gaps of 1.5 intervals or more) of a take. */
-  /** Frames, length, rate and frames lost of one camera's take from its frame times (s),
-   * and its longest stretch without frames: ``gap`` {start_s, end_s} from the first frame. */
+  /** Frames, length (s), rate (Hz) and frames lost (gaps of 1.5 intervals or more) of one
+   * camera's take from its frame times (s), and its longest stretch without frames: ``gap``
+   * {start_s, end_s} from the first frame. */
   function takeFacts(times) {
     var n = times.length;
     if (n < 2) return { frame_count: n, duration_s: 0, fps: 0, dropped_frames: 0, gap: null };
