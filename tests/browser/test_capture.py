@@ -268,8 +268,9 @@ class Page:
             take += 1
 
     def take(self, seconds: int, *, stall_ms: int = 0, stop_after_s: int = 0) -> str | None:
-        """Record a take of ``seconds`` and wait for its upload's answer: None once it is
-        stored (its job box shows), else the page's sentence of the refusal.
+        """Record a take of ``seconds`` and wait until it is stored or refused: None once it
+        is stored (its job box shows), else the page's sentence of why not (refused by the
+        page before sending, or by the server).
 
         With ``stall_ms``, the page's main thread is kept busy that long once recording
         runs. With ``stop_after_s``, the take is stopped with the keyboard after that long
@@ -297,8 +298,8 @@ class Page:
         refused = page.locator("[data-capture-error]")
         if refused.is_hidden():
             return None
-        # The refused upload's answer (415: not a usable video) is the console error a
-        # refusal logs; the sentence returned is what the test holds it to.
+        # A refused upload's answer (415: not a usable video) is the console error the
+        # server's refusal logs; the sentence returned is what the test holds it to.
         answer = "the server responded with a status of 415"
         self.expected_failures.append(answer)
         self.problems = [q for q in self.problems if answer not in q]
