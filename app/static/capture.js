@@ -695,13 +695,7 @@
         SIDES.forEach(function (side) {
           if (!hole && take.timedByFile[side]) hole = C.holeSentence(side, take.facts[side], self.holeS, self.holeFrames);
         });
-        if (hole) {
-          self.phase = "done";
-          self.afterBox.hidden = false;
-          self.uploadAgainButton.hidden = true; // nothing to send: only "Retake"
-          self.showError(hole, false);
-          return;
-        }
+        if (hole) { self.endTake(hole, false); return; } // nothing to send: only "Retake"
         self.upload();
       })
       .catch(function (error) {
@@ -807,6 +801,15 @@
     return data;
   };
 
+  /** The take is not stored: ``message`` says why; ``again`` offers "Upload again" beside "Retake". */
+  Station.prototype.endTake = function (message, again) {
+    this.phase = "done";
+    this.uploadBlock.hidden = true;
+    this.afterBox.hidden = false;
+    this.uploadAgainButton.hidden = !again;
+    this.showError(message, false);
+  };
+
   Station.prototype.upload = function () {
     var self = this;
     var take = this.take;
@@ -834,14 +837,7 @@
       sent = true;
       self.uploadText.textContent = "Sent. The server checks the videos…";
     });
-    var failed = function (message, again) {
-      if (self.take !== take) return;
-      self.phase = "done";
-      self.uploadBlock.hidden = true;
-      self.afterBox.hidden = false;
-      self.uploadAgainButton.hidden = !again;
-      self.showError(message, false);
-    };
+    var failed = function (message, again) { if (self.take === take) self.endTake(message, again); };
     xhr.addEventListener("load", function () {
       var body = null;
       try { body = JSON.parse(xhr.responseText); } catch (e) { body = null; }
