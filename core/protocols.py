@@ -21,12 +21,19 @@ cycles are found on (:mod:`core.cycles`), in the unit of the task's amplitude.
   Signal: the toe's lift (mm): the rotation of the heel–toe line since its
   mean direction, in the plane of the foot and the shin, times the heel–toe
   length (the arc the toe marker travels); positive towards the shin.
+- **Leg agility** (3.8): ``knee`` (lateral femoral epicondyle), ``thigh``
+  (lateral thigh, on the line from the knee marker to the greater trochanter,
+  ~20 cm up), ``ankle`` (lateral malleolus). Signal: the rise of the thigh
+  (degrees): the rotation of the thigh–knee line since its mean direction, in
+  the plane of the thigh and the shank, positive as the knee rises; 0 at the
+  lowest position of the recording.
 
 Labelling rules (from stereo chains of tracklets, :mod:`core.tracks`): the
 fastest chain is the distal marker (``finger``, ``toe``); the other labels
 follow from distances, which rigid body parts keep and the room's reflections
 do not. The cluster of 3.6 is labelled by matching its three distances to
-the cluster's known ones.
+the cluster's known ones; the leg of 3.8 by its two rigid segments (thigh–knee,
+knee–ankle), the thigh marker being the slowest of the three (nearest the hip).
 """
 
 from __future__ import annotations
@@ -66,6 +73,13 @@ HM_DISTANCE_RANGE_MM = (40.0, 250.0)
 TT_TOE_HEEL_RANGE_MM = (100.0, 320.0)
 #: The shin marker lies this far from the heel marker (median, mm).
 TT_HEEL_SHIN_RANGE_MM = (60.0, 400.0)
+#: The knee marker lies this far from the thigh marker (median, mm).
+LA_THIGH_KNEE_RANGE_MM = (100.0, 350.0)
+#: The ankle marker lies this far from the knee marker (median, mm).
+LA_KNEE_ANKLE_RANGE_MM = (250.0, 550.0)
+#: A leg segment's two markers keep their distance within this SD (mm): skin moves over
+#: the bone, a reflection in the room does not keep step.
+LA_SEGMENT_SD_MM = 8.0
 #: A chain moves when its 3D spread is at least this (mm) (as ``core.tracks``).
 MIN_SPREAD_MM = 1.0
 
@@ -113,7 +127,24 @@ PROTOCOLS: dict[Task, MarkerProtocol] = {
         " distance; the shin the nearest other marker 60-400 mm from the heel among those seen"
         " with it at least half as often as the most seen",
     ),
+    Task.LEG_AGILITY: MarkerProtocol(
+        Task.LEG_AGILITY,
+        ("knee", "thigh", "ankle"),
+        "the three moving markers that form two segments of steady length (SD under 8 mm):"
+        " thigh-knee 100-350 mm and knee-ankle 250-550 mm, the thigh marker the slowest of"
+        " the three",
+    ),
 }
+
+
+#: The markers' diameter the protocols ask for (mm): 5 mm on hands and feet, filmed from
+#: 500-800 mm; 10 mm on the leg, filmed from 1 m (docs/protocols.md).
+MARKER_DIAMETER_MM = {Task.LEG_AGILITY: 10.0}
+
+
+def marker_diameter_mm(task: Task | str) -> float:
+    """The marker diameter of ``task``'s protocol (mm): 10 for leg agility, else 5."""
+    return MARKER_DIAMETER_MM.get(Task(task), 5.0)
 
 
 def marker_columns(labels: Sequence[str], task: Task | str) -> list[int]:
@@ -187,6 +218,8 @@ def label_chains(
     tracks = [np.asarray(t, dtype=np.float64) for t in tracks]
     if task is Task.PRONATION_SUPINATION:
         return _label_cluster(tracks)
+    if task is Task.LEG_AGILITY:
+        return _label_leg(tracks, fps)
     labels = protocol_for(task).labels
     if not tracks:
         return [None] * len(labels), [
@@ -253,6 +286,48 @@ def _label_foot(tracks: list[FloatArray], toe: int) -> tuple[list[int | None], l
             " is in view of both cameras"
         ]
     return [toe, heel[1], shin[1]], []
+
+
+def _segment(a: FloatArray, b: FloatArray, span: tuple[float, float]) -> float | None:
+    """The SD of the distance of two chains (mm) when they form a rigid segment of a length
+    within ``span``; None when they do not."""
+    d = _distances(a, b)
+    if len(d) < MIN_COMMON_FRAMES or not span[0] <= float(np.median(d)) <= span[1]:
+        return None
+    sd = float(np.std(d))
+    return sd if sd <= LA_SEGMENT_SD_MM else None
+
+
+def _label_leg(tracks: list[FloatArray], fps: float) -> tuple[list[int | None], list[str]]:
+    """(knee, thigh, ankle): the triple whose thigh and shank segments are the steadiest."""
+    seen = [int(np.count_nonzero(np.all(np.isfinite(t), axis=1))) for t in tracks]
+    moving = [k for k in range(len(tracks)) if _spread(tracks[k]) >= MIN_SPREAD_MM]
+    candidates = sorted(moving, key=lambda k: -seen[k])[:10]
+    speeds = {k: _speed(tracks[k], fps) for k in candidates}
+    best: tuple[float, tuple[int, int, int]] | None = None
+    thigh_found = False
+    for thigh, knee in itertools.permutations(candidates, 2):
+        sd_thigh = _segment(tracks[thigh], tracks[knee], LA_THIGH_KNEE_RANGE_MM)
+        if sd_thigh is None or speeds[thigh] >= speeds[knee]:
+            continue
+        thigh_found = True
+        for ankle in candidates:
+            if ankle in (thigh, knee) or speeds[thigh] >= speeds[ankle]:
+                continue
+            sd_shank = _segment(tracks[knee], tracks[ankle], LA_KNEE_ANKLE_RANGE_MM)
+            if sd_shank is not None and (best is None or sd_thigh + sd_shank < best[0]):
+                best = (sd_thigh + sd_shank, (knee, thigh, ankle))
+    if best is not None:
+        return list(best[1]), []
+    if not thigh_found:
+        return [None, None, None], [
+            "no thigh and knee markers were found 100-350 mm apart at a steady distance; check"
+            " that both sit on the lateral side of the thigh, in view of both cameras"
+        ]
+    return [None, None, None], [
+        "no ankle marker was found 250-550 mm from the knee marker at a steady distance; check"
+        " that it sits on the lateral malleolus, in view of both cameras"
+    ]
 
 
 def _cluster_distances() -> dict[tuple[str, str], float]:
@@ -345,6 +420,8 @@ def cycle_signal(
         return CycleSignal(np.linalg.norm(pos[:, 1] - pos[:, 0], axis=1), "mm")
     if task is Task.TOE_TAPPING:
         return toe_lift_mm(pos)
+    if task is Task.LEG_AGILITY:
+        return thigh_lift_deg(pos)
     return supination_deg(pos, side=side)
 
 
@@ -379,6 +456,40 @@ def toe_lift_mm(positions_mm: FloatArray) -> CycleSignal:
     lift = length * (theta - float(np.min(theta)))
     out[ok] = lift
     return CycleSignal(out, "mm", {"heel_toe_mm": length})
+
+
+def thigh_lift_deg(positions_mm: FloatArray) -> CycleSignal:
+    """Rise of the thigh (degrees) from knee, thigh and ankle markers ``(T, 3, 3)``.
+
+    ``f = knee - thigh`` rotates with the thigh. Its mean direction ``f0`` and
+    the shank's direction up from the ankle, ``g = knee - ankle``, span the
+    leg's sagittal plane, with normal ``n = f0 x g`` (mean over frames). ``f``
+    is projected onto that plane and ``theta = atan2((f0 x f) . n, f0 . f)``
+    grows as the knee rises (hip flexion). The signal is ``theta - min theta``
+    in degrees: 0 at the lowest position of the recording. A rotation of the
+    thigh about any axis across the plane (the hip's flexion axis) changes
+    ``theta`` by exactly its angle when the thigh and knee markers sit at the
+    same depth across the leg (docs/protocols.md: a mismatch of ``d`` mm over
+    the ``L`` mm between them reads the angle short by about ``(d / L)^2 / 2``
+    of its value at 30 degrees).
+    """
+    knee, thigh, ankle = positions_mm[:, 0], positions_mm[:, 1], positions_mm[:, 2]
+    f = knee - thigh
+    g = knee - ankle
+    ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(g), axis=1)
+    out = np.full(len(f), np.nan)
+    if np.count_nonzero(ok) < 3:
+        return CycleSignal(out, "deg", {"thigh_knee_mm": None})
+    length = float(np.median(np.linalg.norm(f[ok], axis=1)))
+    unit_f = f[ok] / np.linalg.norm(f[ok], axis=1)[:, None]
+    f0 = np.mean(unit_f, axis=0)
+    f0 /= np.linalg.norm(f0)
+    n = np.mean(np.cross(f0[None], g[ok]), axis=0)
+    n /= np.linalg.norm(n)
+    in_plane = unit_f - np.outer(unit_f @ n, n)
+    theta = np.arctan2(np.cross(f0[None], in_plane) @ n, in_plane @ f0)
+    out[ok] = np.rad2deg(theta - float(np.min(theta)))
+    return CycleSignal(out, "deg", {"thigh_knee_mm": length})
 
 
 def _kabsch(ref: FloatArray, cur: FloatArray) -> FloatArray:
@@ -478,7 +589,9 @@ __all__ = [
     "cycle_signal",
     "label_chains",
     "marker_columns",
+    "marker_diameter_mm",
     "protocol_for",
     "supination_deg",
+    "thigh_lift_deg",
     "toe_lift_mm",
 ]

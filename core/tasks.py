@@ -1,8 +1,8 @@
-"""The examination tasks a trial can record (MDS-UPDRS part III items 3.4–3.7).
+"""The examination tasks a trial can record (MDS-UPDRS part III items 3.4–3.8).
 
 A trial records one task on one side. Finger tapping (3.4) is the default, as
-before tasks existed; hand movements (3.5), pronation–supination (3.6) and toe
-tapping (3.7) have their own marker protocols (``docs/protocols.md``) and cycle
+before tasks existed; hand movements (3.5), pronation–supination (3.6), toe
+tapping (3.7) and leg agility (3.8) have their own marker protocols (``docs/protocols.md``) and cycle
 signals, and share the cycle metrics (``docs/metrics.md``). The values are the
 strings of the command line (``--task``), the REST API (``task``) and
 result.json (``task``), docs/interfaces.md.
@@ -22,10 +22,11 @@ class Task(StrEnum):
     HAND_MOVEMENTS = "hand_movements"
     PRONATION_SUPINATION = "pronation_supination"
     TOE_TAPPING = "toe_tapping"
+    LEG_AGILITY = "leg_agility"
 
     @property
     def updrs_item(self) -> str:
-        """The MDS-UPDRS item number, ``"3.4"`` … ``"3.7"``."""
+        """The MDS-UPDRS item number, ``"3.4"`` … ``"3.8"``."""
         return _ITEMS[self]
 
     @property
@@ -40,13 +41,14 @@ class Task(StrEnum):
 
     @property
     def amplitude_unit(self) -> str:
-        """Unit of the cycle amplitude: ``"deg"`` for pronation–supination, else ``"mm"``."""
-        return "deg" if self is Task.PRONATION_SUPINATION else "mm"
+        """Unit of the cycle amplitude: ``"deg"`` for pronation–supination and leg agility
+        (rotations), else ``"mm"``."""
+        return "deg" if self in (Task.PRONATION_SUPINATION, Task.LEG_AGILITY) else "mm"
 
     @property
     def limb(self) -> str:
-        """``"foot"`` for toe tapping, else ``"hand"``."""
-        return "foot" if self is Task.TOE_TAPPING else "hand"
+        """``"foot"`` for toe tapping, ``"leg"`` for leg agility, else ``"hand"``."""
+        return _LIMBS.get(self, "hand")
 
     @property
     def signal(self) -> str:
@@ -70,19 +72,23 @@ _ITEMS = {
     Task.HAND_MOVEMENTS: "3.5",
     Task.PRONATION_SUPINATION: "3.6",
     Task.TOE_TAPPING: "3.7",
+    Task.LEG_AGILITY: "3.8",
 }
 _NAMES = {
     Task.FINGER_TAPPING: "Finger tapping",
     Task.HAND_MOVEMENTS: "Hand movements",
     Task.PRONATION_SUPINATION: "Pronation–supination",
     Task.TOE_TAPPING: "Toe tapping",
+    Task.LEG_AGILITY: "Leg agility",
 }
+_LIMBS = {Task.TOE_TAPPING: "foot", Task.LEG_AGILITY: "leg"}
 
 _SIGNALS = {
     Task.FINGER_TAPPING: "thumb–index distance",
     Task.HAND_MOVEMENTS: "finger–wrist distance",
     Task.PRONATION_SUPINATION: "rotation of the hand about the forearm",
     Task.TOE_TAPPING: "toe lift",
+    Task.LEG_AGILITY: "rise of the thigh about the hip",
 }
 
 #: The words for the two halves of a cycle: (towards the turn, back).
@@ -91,6 +97,7 @@ PHASE_WORDS = {
     Task.HAND_MOVEMENTS: ("opening", "closing"),
     Task.PRONATION_SUPINATION: ("supination", "pronation"),
     Task.TOE_TAPPING: ("lift", "lowering"),
+    Task.LEG_AGILITY: ("lift", "lowering"),
 }
 
 TASKS: tuple[str, ...] = tuple(t.value for t in Task)

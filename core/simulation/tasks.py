@@ -1,4 +1,4 @@
-"""Kinematic models of hand movements, pronation–supination and toe tapping, with ground truth.
+"""Kinematic models of hand movements, pronation–supination, toe tapping and leg agility, with ground truth.
 
 The same cycle timeline as finger tapping (:func:`core.simulation.kinematics.build_timeline`:
 cycles with rhythm jitter, amplitude decrement and jitter, hesitations and halts
@@ -18,6 +18,10 @@ inserted before a cycle at its resting end) drives each task's geometry
   lateral axis) by ``o(t) / L`` radians, ``L`` the heel–toe marker distance,
   so the toe marker travels an arc of exactly ``o(t)`` mm; the ``shin`` marker
   stays with the leg.
+- **leg agility**: the thigh turns up about the hip's flexion axis (lateral,
+  through the hip joint) by ``o(t)`` degrees, carrying the ``thigh`` and
+  ``knee`` markers; the knee opens as the foot rises (the shank turns by
+  ``(1 - LA_KNEE_OPENING) o(t)``), carrying the ``ankle`` marker.
 
 Every model drifts slowly as a whole (translations; a small rotation of the
 hand for hand movements, none that would change the measured angle for the
@@ -29,8 +33,8 @@ finger marker away, the turning hand carries the cluster round).
 
 World frame: the rig's (left camera: x right, y down, z forward, mm). A left
 hand is a right one mirrored in its own frame (radial and ulnar exchanged; it
-still points at the rig); a left foot is the scene mirrored about the centre's
-x (the rig films its lateral side from the patient's left).
+still points at the rig); a left foot or leg is the scene mirrored about the
+centre's x (the rig films its lateral side from the patient's left).
 """
 
 from __future__ import annotations
@@ -75,6 +79,15 @@ PS_CLUSTER_AT_U_MM = 70.0  # the cluster's origin, distal of the wrist along the
 TT_TOE_LOCAL_MM = np.array([185.0, -35.0, 40.0])  # lateral forefoot, over the 5th metatarsal head
 TT_HEEL_LOCAL_MM = np.array([-5.0, -35.0, 35.0])  # lateral heel
 TT_SHIN_LOCAL_MM = np.array([60.0, -35.0, 230.0])  # lateral lower leg
+# Leg agility (leg frame: origin at the hip joint, u forwards along the thigh of the
+# seated patient, w up, lateral -v as for the foot). The thigh and knee markers sit at
+# the same depth across the leg (docs/protocols.md).
+LA_KNEE_JOINT_MM = np.array([430.0, 0.0, 0.0])
+LA_KNEE_LOCAL_MM = np.array([430.0, -60.0, 0.0])  # lateral femoral epicondyle
+LA_THIGH_LOCAL_MM = np.array([200.0, -60.0, 15.0])  # lateral thigh, towards the trochanter
+LA_ANKLE_FROM_KNEE_MM = np.array([30.0, -45.0, -410.0])  # lateral malleolus, shank hanging
+#: The knee opens by this fraction of the thigh's rise (the foot comes up and forwards).
+LA_KNEE_OPENING = 0.6
 
 _DEFAULTS: dict[Task, dict[str, Any]] = {
     Task.HAND_MOVEMENTS: {
@@ -95,15 +108,33 @@ _DEFAULTS: dict[Task, dict[str, Any]] = {
         "closed": 0.0,
         "centre": (0.0, 60.0, 800.0),
     },
+    Task.LEG_AGILITY: {
+        "amplitude": 30.0,
+        "frequency_hz": 1.6,
+        "closed": 0.0,
+        "centre": (50.0, 60.0, 1000.0),
+    },
 }
+#: The largest first amplitude a scenario may ask for (task unit).
+_LIMITS = {
+    Task.HAND_MOVEMENTS: 45.0,
+    Task.PRONATION_SUPINATION: 200.0,
+    Task.TOE_TAPPING: 80.0,
+    Task.LEG_AGILITY: 50.0,
+}
+#: Tasks filmed from the limb's lateral side: a left limb is the whole scene mirrored.
+_LATERAL_VIEW = (Task.TOE_TAPPING, Task.LEG_AGILITY)
 
 
 def rig_geometry(task: Task | str) -> RigGeometry:
     """The simulated rig's ``baseline_mm`` and ``convergence_mm`` for ``task``
     (:func:`core.simulation.rig.default_rig`): toe tapping films the foot from 800 mm with
-    a 400-mm baseline (lower and wider, docs/protocols.md); the hand tasks as finger tapping."""
+    a 400-mm baseline (lower and wider, docs/protocols.md), leg agility the seated leg from
+    1000 mm with a 700-mm baseline; the hand tasks as finger tapping."""
     if Task(task) is Task.TOE_TAPPING:
         return RigGeometry(400.0, 800.0)
+    if Task(task) is Task.LEG_AGILITY:
+        return RigGeometry(700.0, 1000.0)
     return RigGeometry(250.0, 500.0)
 
 
@@ -125,9 +156,10 @@ class TaskScenario:
         Length (s) and frame rate (Hz) of the truth.
     amplitude : float, optional (NaN: the task's default)
         The first cycle's amplitude in the task's unit (mm; degrees for
-        pronation–supination); default 40 mm, 150 degrees, 40 mm.
+        pronation–supination and leg agility); default 40 mm, 150 degrees, 40 mm,
+        30 degrees.
     frequency_hz : float, optional
-        Cycles per second while moving; default 1.5, 1.2, 2.5 Hz.
+        Cycles per second while moving; default 1.5, 1.2, 2.5, 1.6 Hz.
     decrement_per_cycle : float
         Planned change of the amplitude per cycle (task unit, negative = shrinking).
     rhythm_jitter, amplitude_jitter : float
@@ -187,11 +219,7 @@ class TaskScenario:
             raise ValueError(
                 f"frequency_hz must be in (0, 6] and at most fps / 4, got {self.frequency_hz}"
             )
-        limit = {
-            Task.HAND_MOVEMENTS: 45.0,
-            Task.PRONATION_SUPINATION: 200.0,
-            Task.TOE_TAPPING: 80.0,
-        }
+        limit = _LIMITS
         if not 0 < self.amplitude <= limit[task]:
             raise ValueError(
                 f"amplitude must be in (0, {limit[task]:g}] {task.amplitude_unit} for {task.value},"
@@ -254,8 +282,8 @@ class TaskModel:
     @property
     def _mirror_body(self) -> bool:
         """A left hand is a right one mirrored in its own frame (it keeps pointing at the rig);
-        a left foot is the whole scene mirrored (the rig films its lateral side)."""
-        return self.scenario.side == "left" and self.scenario.task is not Task.TOE_TAPPING
+        a left foot or leg is the whole scene mirrored (the rig films its lateral side)."""
+        return self.scenario.side == "left" and self.scenario.task not in _LATERAL_VIEW
 
     def opening(self, t_s: ArrayLike) -> FloatArray:
         """``o(t)`` in the task's unit (0 at the resting end), same shape as ``t_s``."""
@@ -335,6 +363,8 @@ class TaskModel:
             radial /= np.linalg.norm(radial, axis=1, keepdims=True)
             normals = np.einsum("nij,mj->nmi", R, radial)
             return pts, normals
+        if s.task is Task.LEG_AGILITY:
+            return _leg(o)
         # Toe tapping: the foot turns up about the lateral axis v through the origin.
         length = float(np.linalg.norm(TT_TOE_LOCAL_MM - TT_HEEL_LOCAL_MM))
         phi = o / length
@@ -368,6 +398,21 @@ class TaskModel:
                 world[..., 0] = 2 * self.scenario.centre_mm[0] - world[..., 0]
         result: FloatArray = world
         return result
+
+
+def _leg(o_deg: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Leg agility's markers (knee, thigh, ankle) and normals in the leg frame: the thigh
+    turned up by ``o_deg`` about the hip's lateral axis, the shank by a part of it."""
+    n = len(o_deg)
+    up = np.array([0.0, -1.0, 0.0])[None]  # about -v: u turns towards w (the knee rises)
+    R_thigh = _rotations(np.deg2rad(o_deg)[:, None] * up)
+    R_shank = _rotations(np.deg2rad((1.0 - LA_KNEE_OPENING) * o_deg)[:, None] * up)
+    knee = R_thigh @ LA_KNEE_LOCAL_MM
+    thigh = R_thigh @ LA_THIGH_LOCAL_MM
+    ankle = R_thigh @ LA_KNEE_JOINT_MM + R_shank @ LA_ANKLE_FROM_KNEE_MM
+    lateral = np.broadcast_to(np.array([0.0, -1.0, 0.0]), (n, 3))  # the axis: unturned
+    normals = np.stack([lateral, lateral, lateral], axis=1)
+    return np.stack([knee, thigh, ankle], axis=1), normals
 
 
 @dataclass(frozen=True)
@@ -481,8 +526,8 @@ def _body_rotation(task: Task) -> FloatArray:
         u = _unit([0.25, 0.0, -0.97])  # at the middle of the two cameras
         w_hint = np.array([0.0, -1.0, 0.0])
     else:
-        # The foot filmed from its lateral side, by a rig low and wide: toes to the
-        # image's right, slightly away; up is -y.
+        # The foot (or the seated leg) filmed from its lateral side: toes (the knee) to
+        # the image's right, slightly away; up is -y.
         u = _unit([1.0, 0.0, 0.15])
         w_hint = np.array([0.0, -1.0, 0.0])
     w = w_hint - (w_hint @ u) * u
@@ -500,7 +545,8 @@ def _sampled_amplitudes(signal: FloatArray, frames: list[tuple[int, int]]) -> Fl
 
 def true_signal(model: TaskModel, t_s: ArrayLike) -> FloatArray:
     """The task's cycle signal from the model alone (task unit): finger–wrist distance
-    (hand movements), supination angle (pronation–supination), toe arc (toe tapping)."""
+    (hand movements), supination angle (pronation–supination), toe arc (toe tapping), rise
+    of the thigh (leg agility)."""
     t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
     s = model.scenario
     if s.task is Task.HAND_MOVEMENTS:
@@ -538,7 +584,7 @@ def simulate_task(scenario: TaskScenario, *, seed: int) -> TaskTruth:
         amps[3:] = np.deg2rad(1.0) * scenario.drift_mm / 3.0  # wrist wobble: distances unchanged
     R = _body_rotation(scenario.task)
     # A scene mirrored as a whole (left foot) is placed as the right one, then mirrored.
-    placed = replace(scenario, side="right") if scenario.task is Task.TOE_TAPPING else scenario
+    placed = replace(scenario, side="right") if scenario.task in _LATERAL_VIEW else scenario
     probe = TaskModel(placed, timeline, R, np.zeros(3), freqs, phases, np.zeros(6))
     rest = probe.positions_mm(np.array([-10.0]))[0]  # before the first cycle: at rest
     origin = np.asarray(scenario.centre_mm, dtype=np.float64) - rest.mean(axis=0)

@@ -1,6 +1,7 @@
-"""Hand movements, pronation–supination and toe tapping measured on simulated ground truth.
+"""Hand movements, pronation–supination, toe tapping and leg agility measured on simulated
+ground truth.
 
-The acceptance of issue 16 on noise-free trajectories (the simulator's
+The acceptance of issue 16 (held by leg agility too) on noise-free trajectories (the simulator's
 ``core.simulation.tasks``, sampled at the frames): cycle count exact, amplitude
 within 1 % (0.5 degree), frequency within 1 %, decrement slope within 10 %,
 hesitations and halts at the right cycle, and the pronation–supination angle
@@ -19,9 +20,19 @@ from core.protocols import cycle_signal, label_chains, protocol_for
 from core.simulation.tasks import TaskScenario, TaskTruth, simulate_task
 from core.tasks import Task
 
-NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING)
-DURATION_S = {Task.HAND_MOVEMENTS: 9.0, Task.PRONATION_SUPINATION: 11.0, Task.TOE_TAPPING: 6.0}
-DECREMENT = {Task.HAND_MOVEMENTS: -1.0, Task.PRONATION_SUPINATION: -3.0, Task.TOE_TAPPING: -1.0}
+NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING, Task.LEG_AGILITY)
+DURATION_S = {
+    Task.HAND_MOVEMENTS: 9.0,
+    Task.PRONATION_SUPINATION: 11.0,
+    Task.TOE_TAPPING: 6.0,
+    Task.LEG_AGILITY: 9.0,
+}
+DECREMENT = {
+    Task.HAND_MOVEMENTS: -1.0,
+    Task.PRONATION_SUPINATION: -3.0,
+    Task.TOE_TAPPING: -1.0,
+    Task.LEG_AGILITY: -1.0,
+}
 
 
 def _truth(task: Task, side: str = "right", *, seed: int = 3, **kw: object) -> TaskTruth:
@@ -50,7 +61,7 @@ def _check_acceptance(truth: TaskTruth, task: Task, side: str, positions: np.nda
     assert metrics["cycle_count"] == len(truth.cycles)  # exact
     true_amp = np.array([c.amplitude for c in truth.cycles])
     amp = _amplitudes(m.cycles, task)
-    if task is Task.PRONATION_SUPINATION:
+    if task.amplitude_unit == "deg":
         assert np.max(np.abs(amp - true_amp)) <= 0.5  # degrees
     else:
         assert np.max(np.abs(amp / true_amp - 1)) <= 0.01  # 1 %
@@ -111,6 +122,34 @@ def test_toe_lift_is_the_arc_of_the_toe_and_ignores_where_the_foot_is() -> None:
     np.testing.assert_allclose(cycle_signal(Task.TOE_TAPPING, moved).values, lift, atol=1e-9)
 
 
+def test_the_rise_of_the_thigh_is_its_turn_about_the_hip_wherever_the_leg_is() -> None:
+    truth = _truth(Task.LEG_AGILITY)
+    rise = cycle_signal(Task.LEG_AGILITY, truth.positions_mm).values
+    # The ankle marker sits 15 mm off the plane of the thigh markers (as on a real leg):
+    # the plane tilts by 2 degrees about the thigh, and the angle reads 0.07 % short.
+    np.testing.assert_allclose(rise, truth.signal - truth.signal.min(), atol=0.03)  # degrees
+    moved = truth.positions_mm + np.array([300.0, -40.0, 120.0])  # mm: anywhere in the room
+    np.testing.assert_allclose(cycle_signal(Task.LEG_AGILITY, moved).values, rise, atol=1e-9)
+
+
+@pytest.mark.parametrize(("offset_mm", "short_by"), [(0.0, 0.0006), (20.0, 0.0046), (40.0, 0.0160)])
+def test_thigh_and_knee_markers_at_different_depths_read_the_rise_short(
+    offset_mm: float, short_by: float
+) -> None:
+    """docs/protocols.md: a thigh marker ``offset_mm`` further out than the knee marker
+    (across the 230 mm between them) reads a 30-degree rise short by about
+    ``(offset / 230)^2 / 2``, besides the 0.06 % of the ankle marker's own offset."""
+    truth = simulate_task(TaskScenario(task=Task.LEG_AGILITY, duration_s=3.0), seed=4)
+    hip_axis = truth.model.R_world_from_body[:, 1]  # v: across the leg, what the thigh turns about
+    moved = np.array(truth.positions_mm)
+    moved[:, 1] -= offset_mm * hip_axis  # further out (lateral is -v); the turn leaves it there
+    rise = cycle_signal(Task.LEG_AGILITY, moved).values
+    top = int(np.argmax(truth.signal))
+    assert truth.signal[top] == pytest.approx(30.0, abs=1.0)  # degrees
+    ratio = rise[top] / (truth.signal[top] - truth.signal.min())
+    assert ratio == pytest.approx(1.0 - short_by, abs=0.0005)
+
+
 def test_task_keys_carry_the_unit_and_the_movement() -> None:
     ps, hm, tt = Task.PRONATION_SUPINATION, Task.HAND_MOVEMENTS, Task.TOE_TAPPING
     assert task_key("amplitude_mm_mean", ps) == "amplitude_deg_mean"
@@ -121,6 +160,10 @@ def test_task_keys_carry_the_unit_and_the_movement() -> None:
     assert task_key("opening_velocity_mm_s_max", tt) == "lift_velocity_mm_s_max"
     assert task_key("tap_count", hm) == "cycle_count"
     assert task_key("tap_count", Task.FINGER_TAPPING) == "tap_count"
+    la = Task.LEG_AGILITY
+    assert task_key("amplitude_mm_mean", la) == "amplitude_deg_mean"
+    assert task_key("opening_velocity_mm_s_max", la) == "lift_velocity_deg_s_max"
+    assert task_key("max_aperture_mm", la) == "max_angle_deg"
 
 
 def _chains(truth: TaskTruth, order: list[int], *, with_reflections: bool) -> list[np.ndarray]:
@@ -156,6 +199,12 @@ def test_a_missing_marker_is_said_not_guessed() -> None:
     two = [truth.positions_mm[:, 0], truth.positions_mm[:, 1]]
     picks, warnings = label_chains(Task.PRONATION_SUPINATION, two, fps=truth.fps)
     assert picks == [None, None, None] and "cluster" in warnings[0]
+    truth = _truth(Task.LEG_AGILITY)
+    two = [truth.positions_mm[:, 0], truth.positions_mm[:, 1]]  # knee and thigh: no ankle
+    picks, warnings = label_chains(Task.LEG_AGILITY, two, fps=truth.fps)
+    assert picks == [None, None, None] and "ankle" in warnings[0]
+    picks, warnings = label_chains(Task.LEG_AGILITY, two[:1], fps=truth.fps)
+    assert picks == [None, None, None] and "thigh and knee" in warnings[0]
 
 
 def test_shapes_and_errors() -> None:

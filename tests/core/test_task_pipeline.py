@@ -11,6 +11,7 @@ Recordings are short (4.5-7 s) with brisk rhythms, to keep the test time modest.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import pytest
 from core.camera import ImageSize, read_rig
 from core.cycles import task_key
 from core.pipeline import Analysis, analyze_recording
+from core.protocols import marker_diameter_mm
 from core.simulation.session import ImagingScenario, SimulatedSession, simulate_session
 from core.simulation.tasks import TaskScenario
 from core.tasks import Task
@@ -56,6 +58,15 @@ SCENARIOS = {
         hesitations=(3,),
         halts=((6, 0.5),),
     ),
+    Task.LEG_AGILITY: TaskScenario(
+        task=Task.LEG_AGILITY,
+        duration_s=6.0,
+        frequency_hz=2.0,
+        decrement_per_cycle=-1.0,
+        hesitations=(3,),
+        halts=((6, 0.5),),
+        side="left",
+    ),
 }
 
 
@@ -66,7 +77,10 @@ def measured(
     task: Task = request.param
     scenario = SCENARIOS[task]
     session = simulate_session(
-        tmp_path_factory.mktemp(task.value), seed=17, task=scenario, imaging=REALISTIC
+        tmp_path_factory.mktemp(task.value),
+        seed=17,
+        task=scenario,
+        imaging=replace(REALISTIC, marker_diameter_mm=marker_diameter_mm(task)),
     )
     analysis = analyze_recording(
         read_rig(session.rig_path),
@@ -104,7 +118,7 @@ def test_cycles_amplitude_rhythm_decrement_and_pauses(
     assert m["cycle_count"] == truth["cycle_count"] == len(doc["cycles"])  # exact
     true_amp = np.array([c["amplitude"] for c in truth["cycles"]])
     amp = np.array([c[task_key("amplitude_mm", task)] for c in doc["cycles"]])
-    if task is Task.PRONATION_SUPINATION:
+    if task.amplitude_unit == "deg":
         assert np.max(np.abs(amp - true_amp)) <= 0.5  # degrees
     else:
         assert np.max(np.abs(amp / true_amp - 1)) <= 0.01  # 1 %
