@@ -429,18 +429,18 @@ class Trial(Base):
     """The capture page's id of the take (unique in the session): a take sent again after
     a lost connection is not stored twice. NULL for other uploads."""
     hand: Mapped[str] = mapped_column(String(8))
-    """The side: left or right hand (or foot, for toe tapping)."""
+    """The side: left or right hand (or foot, for toe tapping; leg, for leg agility)."""
     task: Mapped[str] = mapped_column(
         String(32), default="finger_tapping", server_default="finger_tapping"
     )
     """The MDS-UPDRS item recorded (``core.tasks.Task``): finger_tapping, hand_movements,
-    pronation_supination or toe_tapping."""
+    pronation_supination, toe_tapping or leg_agility."""
     status: Mapped[str] = mapped_column(String(16), default="queued")
     """Mirrors the analysis job: queued, running, succeeded, failed."""
     offset_frames: Mapped[float | None] = mapped_column(Float)
     """Known camera offset (right frame j ~ left frame j + K); NULL = estimate it."""
     clinician_rating: Mapped[int | None] = mapped_column(Integer)
-    """The clinician's own MDS-UPDRS rating of this side's item (3.4–3.7 by the task), 0–4."""
+    """The clinician's own MDS-UPDRS rating of this side's item (3.4–3.8 by the task), 0–4."""
     rating_comment: Mapped[str | None] = mapped_column(Text)
     rated_at: Mapped[datetime | None]
     rated_by_user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"))

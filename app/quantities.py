@@ -3,7 +3,7 @@
 Finger tapping's plots show the aperture (the thumb–index distance, mm) with
 its taps; another task's show its cycle signal (:mod:`core.protocols`: the
 finger–wrist distance, the rotation of the hand about the forearm in degrees,
-the toe lift) with its cycles, in its own words and unit, read from its
+the toe lift, the rise of the thigh in degrees) with its cycles, in its own words and unit, read from its
 result.json keys (:func:`core.tasks.task_key`). The plots (:mod:`app.plots`)
 and the templates' words (:mod:`app.templating`) both take a
 :class:`CycleQuantity`, so that no task needs plots or captions of its own.
@@ -17,7 +17,10 @@ from core.tasks import Task, parse_task, task_key
 
 #: Shorter words for a signal axis where the task's own (:attr:`core.tasks.Task.signal`)
 #: would not fit beside the plot (a 2.6-inch axis holds about 25 characters at 9 pt).
-_AXIS_WORDS = {Task.PRONATION_SUPINATION: "hand rotation angle"}
+_AXIS_WORDS = {
+    Task.PRONATION_SUPINATION: "hand rotation angle",
+    Task.LEG_AGILITY: "thigh rise angle",
+}
 
 
 @dataclass(frozen=True)

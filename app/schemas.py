@@ -304,10 +304,12 @@ class TrialCreated(BaseModel):
 class TrialRead(_Out):
     id: int
     session_id: int
-    hand: Literal["left", "right"] = Field(description="The side: hand, or foot for toe tapping.")
-    task: Literal["finger_tapping", "hand_movements", "pronation_supination", "toe_tapping"] = (
-        Field(default="finger_tapping", description="The MDS-UPDRS item recorded (3.4-3.7).")
+    hand: Literal["left", "right"] = Field(
+        description="The side: hand, or foot for toe tapping, or leg for leg agility."
     )
+    task: Literal[
+        "finger_tapping", "hand_movements", "pronation_supination", "toe_tapping", "leg_agility"
+    ] = Field(default="finger_tapping", description="The MDS-UPDRS item recorded (3.4-3.8).")
     status: JobStatus
     offset_frames: float | None
     created_at: datetime
@@ -331,7 +333,7 @@ class TrialRatingUpdate(_In):
         default=None,
         ge=0,
         le=4,
-        description="MDS-UPDRS rating of the trial's item (3.4-3.7 by its task), 0-4;"
+        description="MDS-UPDRS rating of the trial's item (3.4-3.8 by its task), 0-4;"
         " null clears it.",
     )
     comment: ShortText | None = None

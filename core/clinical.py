@@ -1,7 +1,7 @@
 """The measurements set against the MDS-UPDRS wording, and compared within a visit.
 
-The MDS-UPDRS part III items 3.4–3.7 (finger tapping, hand movements,
-pronation–supination, toe tapping) anchor their ratings on the same words
+The MDS-UPDRS part III items 3.4–3.8 (finger tapping, hand movements,
+pronation–supination, toe tapping, leg agility) anchor their ratings on the same words
 (Goetz et al. 2008): "slight" (1) is *one or two interruptions or
 hesitations* or an amplitude that *decrements near the end of the 10
 repetitions*; "mild" (2) *3 to 5 interruptions* or a decrement *midway*;
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-#: Number of repetitions the MDS-UPDRS items 3.4–3.7 ask for.
+#: Number of repetitions the MDS-UPDRS items 3.4–3.8 ask for.
 ITEM_REPETITIONS = 10
 
 #: Interruptions (hesitations + halts) up to this count: "one or two interruptions" (slight).

@@ -137,13 +137,14 @@ PROTOCOLS: dict[Task, MarkerProtocol] = {
 }
 
 
-#: The markers' diameter the protocols ask for (mm): 5 mm on hands and feet, filmed from
-#: 500-800 mm; 10 mm on the leg, filmed from 1 m (docs/protocols.md).
-MARKER_DIAMETER_MM = {Task.LEG_AGILITY: 10.0}
+#: The markers' diameter the protocols ask for (mm): 5 mm on the hand, filmed from 500 mm;
+#: 10 mm on the foot and leg, filmed from 800 mm and 1 m (docs/protocols.md).
+MARKER_DIAMETER_MM = {Task.TOE_TAPPING: 10.0, Task.LEG_AGILITY: 10.0}
 
 
 def marker_diameter_mm(task: Task | str) -> float:
-    """The marker diameter of ``task``'s protocol (mm): 10 for leg agility, else 5."""
+    """The marker diameter of ``task``'s protocol (mm): 10 for toe tapping and leg agility,
+    else 5."""
     return MARKER_DIAMETER_MM.get(Task(task), 5.0)
 
 

@@ -27,14 +27,16 @@ TRIAL_BODY = multipart_body(
         "hand": {
             "type": "string",
             "enum": ["left", "right"],
-            "description": "The side: the hand, or the foot for toe tapping.",
+            "description": "The side: the hand, or the foot for toe tapping, or the leg for"
+            " leg agility.",
         },
         "task": {
             "type": "string",
             "enum": list(TASKS),
             "default": "finger_tapping",
             "description": "The MDS-UPDRS item recorded: finger_tapping (3.4, the default),"
-            " hand_movements (3.5), pronation_supination (3.6) or toe_tapping (3.7).",
+            " hand_movements (3.5), pronation_supination (3.6), toe_tapping (3.7) or"
+            " leg_agility (3.8).",
         },
         "left_video": {**BINARY, "description": "Video of the left camera."},
         "right_video": {**BINARY, "description": "Video of the right camera."},

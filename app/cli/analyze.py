@@ -57,7 +57,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--task",
         choices=TASKS,
         default=TASKS[0],
-        help="the examination task recorded (MDS-UPDRS 3.4-3.7; default finger_tapping):"
+        help="the examination task recorded (MDS-UPDRS 3.4-3.8; default finger_tapping):"
         " its marker protocol and cycle metrics (docs/protocols.md)",
     )
     p.add_argument(

@@ -135,14 +135,15 @@ def _tapping_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="MM",
         help="opening of the first tap (mm, default 50); another task's first cycle in its unit"
-        " (degrees for pronation_supination; default 40 mm, 150 deg, 40 mm)",
+        " (degrees for pronation_supination and leg_agility; default 40 mm, 150 deg, 40 mm,"
+        " 30 deg)",
     )
     g.add_argument(
         "--frequency",
         type=float,
         default=None,
         metavar="HZ",
-        help="taps (cycles) per second while moving (default 3; 1.5, 1.2, 2.5 for the other tasks)",
+        help="taps (cycles) per second while moving (default 3; 1.5, 1.2, 2.5, 1.6 for the other tasks)",
     )
     g.add_argument(
         "--decrement",
@@ -204,7 +205,13 @@ def _imaging_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--size", type=_size, default=(1280, 1024), metavar="WxH", help="image size, e.g. 1280x1024"
     )
-    g.add_argument("--marker-mm", type=float, default=5.0, help="marker diameter (mm)")
+    g.add_argument(
+        "--marker-mm",
+        type=float,
+        default=None,
+        help="marker diameter (mm; default the task's protocol: 5, or 10 for toe_tapping and"
+        " leg_agility)",
+    )
     g.add_argument(
         "--noise", type=float, default=2.0, metavar="SIGMA", help="sensor noise (gray levels)"
     )
@@ -336,12 +343,15 @@ def _task(args: argparse.Namespace) -> TaskScenario:
 
 def _imaging(args: argparse.Namespace) -> ImagingScenario:
     from core.camera import ImageSize
+    from core.protocols import marker_diameter_mm
     from core.simulation.session import ImagingScenario
     from core.simulation.timing import CameraTiming
 
     return ImagingScenario(
         image_size=ImageSize(*args.size),
-        marker_diameter_mm=args.marker_mm,
+        marker_diameter_mm=marker_diameter_mm(args.task)
+        if args.marker_mm is None
+        else args.marker_mm,
         noise_sigma=args.noise,
         exposure_s=args.exposure_ms / 1000.0,
         distractors_static=args.distractors_static,

@@ -59,7 +59,7 @@ class ReportData:
     clinician : str or None
     notes : str or None
     task : str
-        ``finger_tapping`` (the tasks of MDS-UPDRS 3.4–3.7, INTERFACES.md).
+        ``finger_tapping`` (the tasks of MDS-UPDRS 3.4–3.8, INTERFACES.md).
     time_since_levodopa_min : int or None
     more_affected_side, dominant_hand : str or None
     timezone : str

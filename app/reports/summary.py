@@ -39,8 +39,15 @@ TASK_TITLES = {
     "hand_movements": "Hand movements (MDS-UPDRS 3.5)",
     "pronation_supination": "Pronation–supination (MDS-UPDRS 3.6)",
     "toe_tapping": "Toe tapping (MDS-UPDRS 3.7)",
+    "leg_agility": "Leg agility (MDS-UPDRS 3.8)",
 }
-TASK_ORDER = (FINGER_TAPPING, "hand_movements", "pronation_supination", "toe_tapping")
+TASK_ORDER = (
+    FINGER_TAPPING,
+    "hand_movements",
+    "pronation_supination",
+    "toe_tapping",
+    "leg_agility",
+)
 """Row groups of the visit summary, finger tapping first."""
 
 #: The key metrics compared within a visit (asymmetry, medication response), first 10 taps.

@@ -56,7 +56,7 @@ def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
 
 
 def _task_grid(trials: list[Trial]) -> list[dict[str, Any]]:
-    """One row per task (MDS-UPDRS 3.4–3.7): the newest trial of each side, and the
+    """One row per task (MDS-UPDRS 3.4–3.8): the newest trial of each side, and the
     right–left comparison of the task when both sides have a result."""
     rows = []
     for task in Task:

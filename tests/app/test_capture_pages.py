@@ -52,10 +52,11 @@ def test_the_session_capture_page_asks_for_the_rigs_resolution(
         "hand_movements",
         "pronation_supination",
         "toe_tapping",
+        "leg_agility",
     ]
     assert options[0] == ("finger_tapping", "2", " selected")
     # The other tasks' marker protocols (docs/protocols.md): finger and wrist; three markers.
-    assert [markers for _, markers, _ in options[1:]] == ["2", "3", "3"]
+    assert [markers for _, markers, _ in options[1:]] == ["2", "3", "3", "3"]
     assert '<script src="/static/capture.js" defer></script>' in html
     assert "<script>" not in html  # no inline script (the CSP forbids them)
     # Only the capture pages may use the camera.

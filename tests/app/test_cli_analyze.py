@@ -101,9 +101,9 @@ def test_bad_input_is_one_sentence(
     with pytest.raises(SystemExit):
         main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
               "--offset-frames", "1", "--auto-sync"])  # fmt: skip
-    with pytest.raises(SystemExit):  # leg agility (3.8) is not measured
+    with pytest.raises(SystemExit):  # gait is not an MDS-UPDRS 3.4-3.8 task
         main(["analyze", "--rig", "r", "--left", "l", "--right", "r", "-o", "o",
-              "--task", "leg_agility"])  # fmt: skip
+              "--task", "gait"])  # fmt: skip
 
 
 def _one_sentence(capsys: pytest.CaptureFixture[str]) -> str:

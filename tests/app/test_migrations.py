@@ -283,3 +283,49 @@ def test_signatures_table_on_upgrade_refuses_updates(tmp_path, make_settings):
     command.downgrade(alembic_config(url), "0008")
     assert "signatures" not in _tables(url)
     dispose_engines()
+
+
+@pytest.mark.parametrize(
+    "backend", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
+)
+def test_leg_agility_trials_can_be_stored_and_block_going_back(
+    backend: str, tmp_path: Path, make_settings, request: pytest.FixtureRequest
+):
+    """Revision 0014 widens ``ck_trials_task`` to leg agility; going back to 0013 refuses
+    while a leg agility trial is stored (it would not hold), and works once none is."""
+    url = None if backend == "sqlite" else request.getfixturevalue("pg_empty_url")
+    settings = make_settings(tmp_path / "data", database_url=url)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.effective_database_url
+    migrate(settings)
+    dispose_engines()
+    engine = sa.create_engine(url)
+    insert = (
+        "INSERT INTO trials (id, session_id, hand, task, status, created_at)"
+        " VALUES ({id}, 1, 'left', '{task}', 'succeeded', '2026-02-01')"
+    )
+    with engine.begin() as conn:
+        run = conn.exec_driver_sql
+        run("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
+        run("INSERT INTO rigs (id, name, created_at) VALUES (1, 'r', '2026-01-01')")
+        run(
+            "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
+            " dbs_state, created_at) VALUES (1, 1, 1, '2026-02-01 10:00:00', 'off', 'none',"
+            " '2026-02-01 10:05:00')"
+        )
+        run(insert.format(id=1, task="leg_agility"))
+    with pytest.raises(sa.exc.IntegrityError), engine.begin() as conn:
+        conn.exec_driver_sql(insert.format(id=2, task="gait"))  # the constraint still holds
+    engine.dispose()
+    with pytest.raises(RuntimeError, match="1 leg agility trial"):
+        command.downgrade(alembic_config(url), "0013")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("DELETE FROM trials")
+    engine.dispose()
+    command.downgrade(alembic_config(url), "0013")
+    engine = sa.create_engine(url)
+    with pytest.raises(sa.exc.IntegrityError), engine.begin() as conn:
+        conn.exec_driver_sql(insert.format(id=3, task="leg_agility"))
+    engine.dispose()
+    dispose_engines()

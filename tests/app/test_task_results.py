@@ -28,20 +28,27 @@ from app.models import Job, RecordingSession, Result, Trial
 from core.markers_csv import markers_csv_text
 from core.tasks import Task, task_key
 
-NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING)
+NEW_TASKS = (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING, Task.LEG_AGILITY)
 # What each task's plots must say: (signal axis label, unit, the two halves of a cycle), and
 # the signal in the plot's title and the page's heading.
 EXPECTED = {
     Task.HAND_MOVEMENTS: ("finger–wrist distance", "mm", ("opening", "closing")),
     Task.PRONATION_SUPINATION: ("hand rotation angle", "deg", ("supination", "pronation")),
     Task.TOE_TAPPING: ("toe lift", "mm", ("lift", "lowering")),
+    Task.LEG_AGILITY: ("thigh rise angle", "deg", ("lift", "lowering")),
 }
 TITLE = {
     Task.HAND_MOVEMENTS: "Finger–wrist distance",
     Task.PRONATION_SUPINATION: "Rotation of the hand about the forearm",
     Task.TOE_TAPPING: "Toe lift",
+    Task.LEG_AGILITY: "Rise of the thigh about the hip",
 }
-DURATION_S = {Task.HAND_MOVEMENTS: 9.0, Task.PRONATION_SUPINATION: 11.0, Task.TOE_TAPPING: 6.0}
+DURATION_S = {
+    Task.HAND_MOVEMENTS: 9.0,
+    Task.PRONATION_SUPINATION: 11.0,
+    Task.TOE_TAPPING: 6.0,
+    Task.LEG_AGILITY: 9.0,
+}
 
 
 def store_task_trial(
@@ -154,7 +161,7 @@ def test_the_cycles_are_marked_where_the_signal_turns(task: Task) -> None:
     amp = np.array([c[task_key("amplitude_mm", task)] for c in doc["cycles"]])
     starts = np.interp([c["t_start_s"] for c in doc["cycles"]], t, values)
     # The raw signal's peak minus its start is the measured amplitude (filtering aside).
-    tolerance = 0.5 if task is Task.PRONATION_SUPINATION else 0.01 * amp  # degrees / 1 %
+    tolerance = 0.5 if task.amplitude_unit == "deg" else 0.01 * amp  # degrees / 1 %
     assert np.all(np.abs((peaks - starts) - amp) <= tolerance + 0.2)  # + raw-sample noise
 
 
@@ -181,7 +188,7 @@ def test_a_correction_of_a_task_is_measured_again_and_matches_the_truth(
     true_amp = np.array([c.amplitude for c in kept])
     mean = m[task_key("amplitude_mm_mean", task)]
     assert m["amplitude_mean"] == mean and m["amplitude_unit"] == task.amplitude_unit
-    if task is Task.PRONATION_SUPINATION:
+    if task.amplitude_unit == "deg":
         assert np.max(np.abs(amp - true_amp)) <= 0.5  # degrees
         assert abs(mean - np.mean(true_amp)) <= 0.5  # degrees
     else:

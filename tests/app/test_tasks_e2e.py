@@ -1,8 +1,8 @@
 # ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
 """Each task end to end through the service (issue 16).
 
-Simulated trials of hand movements (both hands), pronation–supination and toe
-tapping are uploaded through the REST API with their ``task``, measured by the
+Simulated trials of hand movements (both hands), pronation–supination, toe
+tapping and leg agility are uploaded through the REST API with their ``task``, measured by the
 real worker, and read back: result.json (task, protocol labels, common keys,
 the simulator's cycle count), the trial report, the visit report (each task
 with its own rows, the right–left asymmetry of hand movements) and the FHIR
@@ -18,6 +18,7 @@ from api_support import Api, api  # noqa: F401 - fixture
 
 from app.worker import run_worker
 from core.camera import ImageSize, write_rig
+from core.protocols import marker_diameter_mm
 from core.simulation.rig import default_rig
 from core.simulation.session import ImagingScenario, SimulatedSession, simulate_session
 from core.simulation.tasks import TaskScenario
@@ -29,15 +30,21 @@ TRIALS = (  # (task, side, duration_s, frequency_hz)
     (Task.HAND_MOVEMENTS, "left", 4.0, 1.8),
     (Task.PRONATION_SUPINATION, "right", 4.0, 1.6),
     (Task.TOE_TAPPING, "right", 3.0, 3.0),
+    (Task.LEG_AGILITY, "left", 4.0, 1.8),
 )
 
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[SimulatedSession]:
-    rig = default_rig(image_size=SIZE)  # one rig for the visit (the foot 800 mm away)
+    # One rig for the visit (the foot 800 mm away, the leg 1 m).
+    rig = default_rig(image_size=SIZE)
     out = []
     for k, (task, side, duration, freq) in enumerate(TRIALS):
-        scenario = TaskScenario(task=task, side=side, duration_s=duration, frequency_hz=freq)
+        # The left leg 120 mm left of the axes' crossing: all of it in both cameras' view.
+        where = {"centre_mm": (-120.0, 60.0, 1000.0)} if task is Task.LEG_AGILITY else {}
+        scenario = TaskScenario(
+            task=task, side=side, duration_s=duration, frequency_hz=freq, **where
+        )
         out.append(
             simulate_session(
                 tmp_path_factory.mktemp(f"{task.value}-{side}"),
@@ -47,9 +54,9 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[SimulatedSessio
                 imaging=ImagingScenario(
                     image_size=SIZE,
                     codec="mp4v",  # small files
-                    # the foot's markers are 10 mm (docs/protocols.md): 5 mm at 800 mm is
-                    # under 4 px at this size
-                    marker_diameter_mm=10.0 if task is Task.TOE_TAPPING else 5.0,
+                    # the foot's and leg's markers are 10 mm (docs/protocols.md): 5 mm at
+                    # 800 mm is under 4 px at this size
+                    marker_diameter_mm=marker_diameter_mm(task),
                 ),
             )
         )
@@ -125,7 +132,8 @@ def test_every_task_through_upload_worker_result_reports_and_fhir(
         assert groups[0]["resource"]["code"]["coding"][0]["code"] == task.value.replace("_", "-")
 
     visit = api.client.get(f"/api/v1/sessions/{session['id']}/report.html", headers=h).text
-    for task in (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING):
+    la = Task.LEG_AGILITY
+    for task in (Task.HAND_MOVEMENTS, Task.PRONATION_SUPINATION, Task.TOE_TAPPING, la):
         assert f'data-task="{task.value}"' in visit and task.heading in visit
     assert "Peak supination velocity" in visit  # the task's own words
     hm = visit.split('data-task="hand_movements"')[1].split('data-task="pronation')[0]

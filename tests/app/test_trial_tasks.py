@@ -19,7 +19,9 @@ from test_pages import client, login, seeded  # noqa: F401 - fixtures
 from app.models import Job, Trial
 
 
-@pytest.mark.parametrize("task", ["hand_movements", "pronation_supination", "toe_tapping"])
+@pytest.mark.parametrize(
+    "task", ["hand_movements", "pronation_supination", "toe_tapping", "leg_agility"]
+)
 def test_the_upload_stores_the_task_and_the_api_reads_it_back(
     api: Api, video_pair, task: str
 ) -> None:
@@ -59,7 +61,7 @@ def test_an_unknown_task_is_refused_and_leaves_nothing(api: Api, video_pair) -> 
     seeded = seed_recording_target(api)
     r = api.client.post(
         f"/api/v1/sessions/{seeded.session_id}/trials",
-        data={"hand": "right", "task": "leg_agility"},
+        data={"hand": "right", "task": "gait"},
         files=trial_files(*video_pair),
         headers=api.headers,
     )
@@ -79,6 +81,7 @@ def test_the_openapi_document_offers_the_tasks(api: Api) -> None:
         "hand_movements",
         "pronation_supination",
         "toe_tapping",
+        "leg_agility",
     ]
 
 
@@ -98,6 +101,7 @@ def test_the_session_page_shows_every_task_by_side_and_offers_the_task(
         "Hand movements (MDS-UPDRS 3.5)",
         "Pronation–supination (MDS-UPDRS 3.6)",
         "Toe tapping (MDS-UPDRS 3.7)",
+        "Leg agility (MDS-UPDRS 3.8)",
     ):
         assert title in page
     assert '<select id="task-left" name="task">' in page

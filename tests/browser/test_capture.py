@@ -362,7 +362,7 @@ def test_record_a_trial_with_two_cameras_upload_and_measure(
     _no_overflow(page, "capture page")
     task = page.get_by_label("Task")
     assert task.locator("option:checked").inner_text() == "Finger tapping (MDS-UPDRS 3.4)"
-    assert task.locator("option").count() == 4
+    assert task.locator("option").count() == 5  # MDS-UPDRS 3.4-3.8
     p.choose(
         "Simulated camera (left half of the file)", "Simulated camera (right half of the file)"
     )
