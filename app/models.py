@@ -430,6 +430,10 @@ class Trial(Base):
     a lost connection is not stored twice. NULL for other uploads."""
     hand: Mapped[str] = mapped_column(String(8))
     """The side: left or right hand (or foot, for toe tapping; leg, for leg agility)."""
+    rig_id: Mapped[int | None] = mapped_column(ForeignKey("rigs.id"))
+    """The rig that recorded this trial when it is not the session's: toe tapping and leg
+    agility film the foot and leg from another placement of the cameras, calibrated as a
+    rig of its own (docs/protocols.md). NULL: the session's rig."""
     task: Mapped[str] = mapped_column(
         String(32), default="finger_tapping", server_default="finger_tapping"
     )
@@ -454,6 +458,8 @@ class Trial(Base):
     """Who hid it (user e-mail or API client name)."""
 
     session: Mapped[RecordingSession] = relationship(back_populates="trials")
+    rig: Mapped[Rig | None] = relationship()
+    """The trial's own rig (None: the session's)."""
     rated_by: Mapped[User | None] = relationship()
     videos: Mapped[list[Video]] = relationship(back_populates="trial", order_by="Video.side")
     results: Mapped[list[Result]] = relationship(back_populates="trial", order_by="Result.revision")

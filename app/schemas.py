@@ -310,6 +310,10 @@ class TrialRead(_Out):
     task: Literal[
         "finger_tapping", "hand_movements", "pronation_supination", "toe_tapping", "leg_agility"
     ] = Field(default="finger_tapping", description="The MDS-UPDRS item recorded (3.4-3.8).")
+    rig_id: int = Field(
+        description="The rig that recorded it: the session's, or the one named at upload"
+        " (another placement of the cameras, e.g. for toe tapping or leg agility)."
+    )
     status: JobStatus
     offset_frames: float | None
     created_at: datetime

@@ -300,18 +300,21 @@ def _segment(a: FloatArray, b: FloatArray, span: tuple[float, float]) -> float |
 
 
 def _label_leg(tracks: list[FloatArray], fps: float) -> tuple[list[int | None], list[str]]:
-    """(knee, thigh, ankle): the triple whose thigh and shank segments are the steadiest."""
+    """(knee, thigh, ankle): the triple whose thigh and shank segments are the steadiest;
+    without an ankle, the steadiest thigh segment's two markers (the signal needs all three,
+    but markers.csv still names them)."""
     seen = [int(np.count_nonzero(np.all(np.isfinite(t), axis=1))) for t in tracks]
     moving = [k for k in range(len(tracks)) if _spread(tracks[k]) >= MIN_SPREAD_MM]
     candidates = sorted(moving, key=lambda k: -seen[k])[:10]
     speeds = {k: _speed(tracks[k], fps) for k in candidates}
     best: tuple[float, tuple[int, int, int]] | None = None
-    thigh_found = False
+    pair: tuple[float, int, int] | None = None
     for thigh, knee in itertools.permutations(candidates, 2):
         sd_thigh = _segment(tracks[thigh], tracks[knee], LA_THIGH_KNEE_RANGE_MM)
         if sd_thigh is None or speeds[thigh] >= speeds[knee]:
             continue
-        thigh_found = True
+        if pair is None or sd_thigh < pair[0]:
+            pair = (sd_thigh, knee, thigh)
         for ankle in candidates:
             if ankle in (thigh, knee) or speeds[thigh] >= speeds[ankle]:
                 continue
@@ -320,12 +323,12 @@ def _label_leg(tracks: list[FloatArray], fps: float) -> tuple[list[int | None], 
                 best = (sd_thigh + sd_shank, (knee, thigh, ankle))
     if best is not None:
         return list(best[1]), []
-    if not thigh_found:
+    if pair is None:
         return [None, None, None], [
             "no thigh and knee markers were found 100-350 mm apart at a steady distance; check"
             " that both sit on the lateral side of the thigh, in view of both cameras"
         ]
-    return [None, None, None], [
+    return [pair[1], pair[2], None], [
         "no ankle marker was found 250-550 mm from the knee marker at a steady distance; check"
         " that it sits on the lateral malleolus, in view of both cameras"
     ]

@@ -38,6 +38,13 @@ TRIAL_BODY = multipart_body(
             " hand_movements (3.5), pronation_supination (3.6), toe_tapping (3.7) or"
             " leg_agility (3.8).",
         },
+        "rig_id": {
+            "type": "integer",
+            "description": "The rig that recorded the trial, when not the session's: another"
+            " placement of the cameras, calibrated as a rig of its own (toe tapping and leg"
+            " agility film the foot and leg from elsewhere). Its calibration measures the"
+            " trial. Omit it for the session's rig.",
+        },
         "left_video": {**BINARY, "description": "Video of the left camera."},
         "right_video": {**BINARY, "description": "Video of the right camera."},
         "offset_frames": {
@@ -54,7 +61,8 @@ TRIAL_BODY = multipart_body(
         "right_times": {**BINARY, "description": "Likewise for the right video."},
     },
     ["hand", "left_video", "right_video"],
-    "One recording of one task on one side by the two cameras of the session's rig.",
+    "One recording of one task on one side by the two cameras of the session's rig (or of"
+    " the rig named by rig_id).",
 )
 
 

@@ -63,12 +63,15 @@ DEFAULT_DICTIONARY = "DICT_4X4_1000"
 # --------------------------------------------------------------------------- which one
 
 
-def calibration_for(db: Session, session: RecordingSession) -> Calibration:
-    """The calibration an analysis of ``session`` uses.
+def calibration_for(
+    db: Session, session: RecordingSession, rig_id: int | None = None
+) -> Calibration:
+    """The calibration an analysis of ``session`` uses (of one of its trials recorded by
+    rig ``rig_id``, when that is not the session's rig: ``Trial.rig_id``).
 
-    The session's own override (``session.calibration_id``) if set, otherwise
-    the newest ``ready`` calibration of the session's rig whose ``valid_from``
-    is not after ``session.recorded_at`` (ties: the highest version).
+    The session's own override (``session.calibration_id``) if set and the rig is
+    the session's, otherwise the newest ``ready`` calibration of the rig whose
+    ``valid_from`` is not after ``session.recorded_at`` (ties: the highest version).
 
     Raises
     ------
@@ -76,7 +79,8 @@ def calibration_for(db: Session, session: RecordingSession) -> Calibration:
         When the override is not ready, or the rig has no ready calibration
         valid at the session's time.
     """
-    if session.calibration_id is not None:
+    rig_id = session.rig_id if rig_id is None else rig_id
+    if session.calibration_id is not None and rig_id == session.rig_id:
         cal = db.get(Calibration, session.calibration_id)
         if cal is None or cal.status != "ready":
             raise CalibrationMissingError(
@@ -87,7 +91,7 @@ def calibration_for(db: Session, session: RecordingSession) -> Calibration:
     cal = db.scalars(
         select(Calibration)
         .where(
-            Calibration.rig_id == session.rig_id,
+            Calibration.rig_id == rig_id,
             Calibration.status == "ready",
             Calibration.valid_from <= session.recorded_at,
         )
@@ -96,15 +100,18 @@ def calibration_for(db: Session, session: RecordingSession) -> Calibration:
     ).first()
     if cal is None:
         raise CalibrationMissingError(
-            f"rig {session.rig_id} has no ready calibration valid on "
+            f"rig {rig_id} has no ready calibration valid on "
             f"{session.recorded_at:%Y-%m-%d %H:%M} UTC; upload a calibration for this rig "
             "first (valid from a date before the session)."
         )
     return cal
 
 
-def rig_to_check_against(db: Session, session: RecordingSession) -> StereoRig | None:
-    """The rig that will measure ``session`` (to check uploaded videos against it), or None.
+def rig_to_check_against(
+    db: Session, session: RecordingSession, rig_id: int | None = None
+) -> StereoRig | None:
+    """The rig that will measure the trials of ``session`` recorded by rig ``rig_id`` (default
+    the session's rig), to check uploaded videos against it; or None.
 
     None while the rig's only calibration is still being computed (the videos
     are then checked against it by the analysis).
@@ -112,14 +119,17 @@ def rig_to_check_against(db: Session, session: RecordingSession) -> StereoRig | 
     Raises
     ------
     CalibrationMissingError
-        The session's rig has no usable calibration at all, not even a pending one (409).
+        That rig has no usable calibration at all, not even a pending one (409).
     """
     try:
-        cal = calibration_for(db, session)
+        cal = calibration_for(db, session, rig_id)
     except CalibrationMissingError:
         pending = db.scalars(
             select(Calibration.id)
-            .where(Calibration.rig_id == session.rig_id, Calibration.status == "pending")
+            .where(
+                Calibration.rig_id == (session.rig_id if rig_id is None else rig_id),
+                Calibration.status == "pending",
+            )
             .limit(1)
         ).first()
         if pending is None:

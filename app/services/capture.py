@@ -53,24 +53,29 @@ def _sizes(rig: StereoRig | None) -> tuple[ImageSize | None, ImageSize | None]:
     return rig.left.image_size, rig.right.image_size
 
 
-def session_capture(db: Session, actor: Actor, session_id: int) -> CaptureTarget:
-    """The capture page of a session (audited as a read of the session: it names the patient).
+def session_capture(
+    db: Session, actor: Actor, session_id: int, rig_id: int | None = None
+) -> CaptureTarget:
+    """The capture page of a session (audited as a read of the session: it names the patient),
+    recording with rig ``rig_id`` (default the session's: another placement of the cameras,
+    ``Trial.rig_id``).
 
     Raises
     ------
     app.errors.NotFoundError
-        Unknown or deleted session.
+        Unknown or deleted session, or unknown rig.
     """
     session = load_session(db, actor, session_id, "read")
+    rig = session.rig if rig_id is None else load_rig(db, actor, rig_id, "read")
     problem = None
     try:
-        checked = rig_to_check_against(db, session)
+        checked = rig_to_check_against(db, session, rig.id)
     except CalibrationMissingError as exc:
         checked, problem = None, str(exc)
     left, right = _sizes(checked)
     audit(db, actor, "read", "session", session.id, session.patient_id)
     db.commit()
-    return CaptureTarget(session.rig, session, left, right, problem)
+    return CaptureTarget(rig, session, left, right, problem)
 
 
 def rig_capture(db: Session, actor: Actor, rig_id: int) -> CaptureTarget:

@@ -25,7 +25,7 @@ from app import jobs
 from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, InvalidRequestError, NotFoundError, PermissionDeniedError
-from app.models import Job, Trial, Video, utcnow
+from app.models import Job, Rig, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import calibration_for, rig_to_check_against
 from app.services.common import (
@@ -47,7 +47,7 @@ TRIAL_FILE_FIELDS = {
     "left_times": ".csv",
     "right_times": ".csv",
 }
-TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task"})
+TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task", "rig_id"})
 PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS | {"take_id"}
 """The capture page's uploads also carry ``take_id`` (docs/capture.md)."""
 _TAKE_ID = re.compile(r"[A-Za-z0-9_-]{8,64}")
@@ -68,10 +68,11 @@ class TrialOut:
 
 
 def check_trial_target(db: Session, actor: Actor, session_id: int) -> None:
-    """Fail fast before receiving a large body: unknown session (404), no calibration (409)."""
-    session = load_session(db, actor, session_id, "create")
+    """Fail fast before receiving a large body: unknown session (404). Whether a calibration
+    can measure the trial (409) depends on its rig, a field of the body (``rig_id``):
+    :func:`create_trial` checks it before decoding the videos."""
     try:
-        rig_to_check_against(db, session)
+        load_session(db, actor, session_id, "create")
     finally:
         db.rollback()  # end the read transaction; the upload may take a while
 
@@ -91,6 +92,19 @@ def _parse_task(upload: ParsedUpload) -> str:
     if raw not in TASKS:
         raise InvalidUpload(f"task must be one of {', '.join(TASKS)}, not {raw[:40]!r}.")
     return raw
+
+
+def _parse_rig(db: Session, upload: ParsedUpload, session_rig_id: int) -> int | None:
+    """The upload's ``rig_id``: None when absent or the session's own rig."""
+    raw = (upload.fields.get("rig_id") or "").strip()
+    if not raw:
+        return None
+    if not raw.isdigit() or db.get(Rig, int(raw)) is None:
+        raise InvalidUpload(
+            f"rig_id {raw[:20]!r} names no rig; give the id of the rig that recorded the trial"
+            " (GET /api/v1/rigs), or leave it out for the session's rig."
+        )
+    return None if int(raw) == session_rig_id else int(raw)
 
 
 def _parse_offset(upload: ParsedUpload) -> float | None:
@@ -144,7 +158,8 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
         audit(db, actor, "read", "trial", stored.id, session.patient_id)
         db.commit()
         return TrialOut(trial=stored, job_id=job.id if job else 0, stored_before=True)
-    rig = rig_to_check_against(db, session)
+    rig_id = _parse_rig(db, upload, session.rig_id)
+    rig = rig_to_check_against(db, session, rig_id)
     pair = check_video_pair(upload, rig=rig)
     warnings = pair.warnings
     try:
@@ -152,6 +167,7 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
             session_id=session.id,
             hand=hand,
             task=task,
+            rig_id=rig_id,
             status="queued",
             offset_frames=offset,
             take_id=take_id,
@@ -193,6 +209,7 @@ def trial_view(db: Session, trial: Trial) -> dict[str, Any]:
         "session_id": trial.session_id,
         "hand": trial.hand,
         "task": trial.task,
+        "rig_id": trial.rig_id if trial.rig_id is not None else trial.session.rig_id,
         "status": trial.status,
         "offset_frames": trial.offset_frames,
         "created_at": trial.created_at,
@@ -441,7 +458,7 @@ def analysis_inputs(
         raise InvalidRequestError(
             f"trial {trial.id} has no {' and no '.join(missing)} video; upload the trial again."
         )
-    cal = calibration_for(db, trial.session)
+    cal = calibration_for(db, trial.session, trial.rig_id)
     used = CalibrationUsed(
         id=cal.id,
         rig_id=cal.rig_id,

@@ -34,6 +34,7 @@
     this.root = root;
     this.mode = root.getAttribute("data-mode");
     this.rigId = root.getAttribute("data-rig-id");
+    this.trialRigId = root.getAttribute("data-trial-rig-id"); // "" = the session's rig
     this.uploadUrl = root.getAttribute("data-upload-url");
     this.csrf = root.getAttribute("data-csrf");
     this.markersExpected = Number(root.getAttribute("data-markers") || 0);
@@ -789,6 +790,7 @@
     if (this.mode === "trial") {
       data.append("hand", form.elements.hand.value);
       if (form.elements.task) data.append("task", form.elements.task.value);
+      if (this.trialRigId) data.append("rig_id", this.trialRigId);
       data.append("take_id", this.take.id);
     } else {
       ["board", "dictionary", "cols", "rows", "square_mm", "marker_mm"].forEach(function (name) {

@@ -20,6 +20,7 @@ from fastapi.responses import HTMLResponse, Response
 from app.auth import SessionDep
 from app.errors import NotFoundError
 from app.services import capture
+from app.services.rigs import all_rigs
 from app.web.common import PageUser, error_page, render
 from core.errors import InputError
 from core.protocols import protocol_for
@@ -62,12 +63,15 @@ def _size_text(size: tuple[int, int] | None) -> str:
 
 @router.get("/sessions/{session_id}/capture", response_class=HTMLResponse)
 def session_capture_page(
-    request: Request, db: SessionDep, user: PageUser, session_id: int, task: str = ""
+    request: Request, db: SessionDep, user: PageUser, session_id: int, task: str = "", rig: str = ""
 ) -> Response:
     """The capture page of a session; ``?task=`` chooses the task first (default: finger tapping;
-    an unknown value is ignored)."""
+    an unknown value is ignored), ``?rig=`` the rig the cameras are placed as (default the
+    session's; the take's trial then names it: ``Trial.rig_id``)."""
+    if rig and not rig.isdigit():
+        return error_page(request, user, status_code=404, message="The rig was not found.")
     try:
-        target = capture.session_capture(db, user, session_id)
+        target = capture.session_capture(db, user, session_id, int(rig) if rig else None)
     except NotFoundError as exc:
         return error_page(request, user, status_code=404, message=str(exc))
     try:
@@ -88,6 +92,8 @@ def session_capture_page(
             session=session,
             patient=session.patient,
             rig=target.rig,
+            trial_rig_id=target.rig.id if target.rig.id != session.rig_id else "",
+            other_rigs=[r for r in all_rigs(db) if r.id != target.rig.id],
             left_size=_size_text(target.left_size),
             right_size=_size_text(target.right_size),
             upload_url=f"/sessions/{session.id}/trials",
@@ -121,6 +127,8 @@ def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: i
             session=None,
             patient=None,
             rig=target.rig,
+            trial_rig_id="",
+            other_rigs=[],
             left_size=_size_text(target.left_size),
             right_size=_size_text(target.right_size),
             upload_url=f"/rigs/{target.rig.id}/calibrations",

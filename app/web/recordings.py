@@ -25,6 +25,7 @@ from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Job, Trial
 from app.services import sessions, signatures, trials, visits
+from app.services.rigs import all_rigs
 from app.uploads import ParsedUpload
 from app.web.common import (
     PageUser,
@@ -110,6 +111,7 @@ def _session_response(
         task_grid=_task_grid(trials),
         task_labels={task.value: task.label for task in Task},
         task_choices=[(task.value, task.heading) for task in Task],
+        other_rigs=[r for r in all_rigs(db) if r.id != session.rig_id],
     )
 
 
@@ -150,7 +152,7 @@ def _user_and_target(
     if user is None:
         return None, None
     try:
-        trials.check_trial_target(db, user, session_id)  # 404 unknown session, 409 no calibration
+        trials.check_trial_target(db, user, session_id)  # 404 unknown session
     except AppError as exc:
         return user, exc
     return user, None

@@ -179,3 +179,85 @@ def test_a_take_sent_again_is_not_stored_twice(
     )
     assert bad.status_code == 422 and "take_id must be" in bad.json()["detail"], bad.text
     assert _count(db_sessionmaker, Trial) == counts[0] + 1
+
+
+def _leg_rig(db_sessionmaker) -> int:
+    """A second rig of the clinic: the cameras placed beside the leg (1280 x 1024 px)."""
+    from datetime import UTC, datetime
+
+    from app.models import Calibration
+    from core.camera import ImageSize, rig_to_dict
+    from core.simulation.rig import default_rig
+
+    with db_sessionmaker() as db:
+        rig = Rig(name="clinic-A legs")
+        db.add(rig)
+        db.flush()
+        doc = rig_to_dict(default_rig(image_size=ImageSize(1280, 1024), baseline_mm=700.0,
+                                      convergence_mm=1000.0))  # fmt: skip
+        db.add(
+            Calibration(
+                rig_id=rig.id, version=1, valid_from=datetime(2024, 1, 1, tzinfo=UTC),
+                rig_json=doc, rms_px=0.2, quality={"rms_px": 0.2}, source="rig_file",
+                status="ready", verdict="good",
+            )
+        )  # fmt: skip
+        db.commit()
+        return rig.id
+
+
+def test_the_capture_page_records_with_another_rig_of_the_clinic(
+    client, seeded, db_sessionmaker
+) -> None:
+    """Toe tapping and leg agility film from another placement, calibrated as a rig of its
+    own: the page offers the clinic's other rigs, and with ``?rig=`` asks for that rig's
+    resolution and sends its id with the take (the page's script reads data-trial-rig-id)."""
+    legs = _leg_rig(db_sessionmaker)
+    login(client)
+    html = client.get("/sessions/1/capture?task=leg_agility").text
+    assert 'data-trial-rig-id=""' in html  # the session's rig: the trial names none
+    link = f'href="/sessions/1/capture?rig={legs}&amp;task=leg_agility" data-other-rig="{legs}"'
+    assert link in html
+    html = client.get(f"/sessions/1/capture?rig={legs}&task=leg_agility").text
+    assert f'data-trial-rig-id="{legs}"' in html and f'data-rig-id="{legs}"' in html
+    assert 'data-left-size="1280x1024"' in html and 'data-right-size="1280x1024"' in html
+    assert "clinic-A legs</a> (not the session's" in html
+    assert f'href="/rigs/{legs}/capture">Record the calibration board instead' in html
+    assert f'data-other-rig="{seeded["rig_id"]}"' in html  # and back to the session's rig
+    for bad in ("999", "x"):
+        assert client.get(f"/sessions/1/capture?rig={bad}").status_code == 404
+
+
+def test_a_take_of_another_rig_is_checked_against_that_rig_and_shown_with_it(
+    client, seeded, tiny_videos, db_sessionmaker
+) -> None:
+    legs = _leg_rig(db_sessionmaker)
+    token = login(client)
+    session_url = _new_session(client, seeded, token)
+    page = client.get(session_url).text
+    assert '<select id="rig-left" name="rig_id">' in page  # the upload form offers it
+    assert f'<option value="{legs}">clinic-A legs</option>' in page
+    left, right = tiny_videos  # 640 x 512 px: the session's rig's size, not the legs rig's
+    files = {
+        "left_video": ("left.webm", left.read_bytes(), "video/webm"),
+        "right_video": ("right.webm", right.read_bytes(), "video/webm"),
+    }
+    headers = {"X-CSRF-Token": token, "Accept": "application/json"}
+    take = {"hand": "left", "task": "leg_agility", "rig_id": str(legs)}
+    refused = client.post(f"{session_url}/trials", data=take, files=files, headers=headers)
+    assert refused.status_code == 422, refused.text
+    assert "1280" in refused.json()["detail"]  # checked against the legs rig's resolution
+    assert _count(db_sessionmaker, Trial) == 3  # seeded's only
+    with db_sessionmaker() as db:  # the legs rig now stands where the session's did
+        legs_rig = db.scalars(select(Rig).where(Rig.id == legs)).one()
+        session_rig = db.get(Rig, seeded["rig_id"])
+        assert session_rig is not None
+        legs_rig.calibrations[0].rig_json = session_rig.calibrations[0].rig_json
+        db.commit()
+    stored = client.post(f"{session_url}/trials", data=take, files=files, headers=headers)
+    assert stored.status_code == 201, stored.text
+    with db_sessionmaker() as db:
+        trial = db.get(Trial, stored.json()["trial_id"])
+        assert trial is not None and trial.rig_id == legs
+    page = client.get(session_url).text
+    assert f'<span class="hint" data-trial-rig="{legs}">(rig clinic-A legs)</span>' in page

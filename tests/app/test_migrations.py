@@ -329,3 +329,44 @@ def test_leg_agility_trials_can_be_stored_and_block_going_back(
         conn.exec_driver_sql(insert.format(id=3, task="leg_agility"))
     engine.dispose()
     dispose_engines()
+
+
+def test_a_trial_naming_its_own_rig_blocks_going_back(tmp_path: Path, make_settings):
+    """Revision 0015 adds ``trials.rig_id``; going back to 0014 refuses while a trial names
+    a rig of its own (its analysis would silently use the session's rig)."""
+    settings = make_settings(tmp_path / "data")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.effective_database_url
+    migrate(settings)
+    dispose_engines()
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        run = conn.exec_driver_sql
+        run("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
+        for rig_id, name in ((1, "hands"), (2, "legs")):
+            run(
+                f"INSERT INTO rigs (id, name, created_at) VALUES ({rig_id}, '{name}', '2026-01-01')"
+            )
+        run(
+            "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
+            " dbs_state, created_at) VALUES (1, 1, 1, '2026-02-01 10:00:00', 'off', 'none',"
+            " '2026-02-01 10:05:00')"
+        )
+        run(
+            "INSERT INTO trials (id, session_id, hand, task, rig_id, status, created_at)"
+            " VALUES (1, 1, 'left', 'leg_agility', 2, 'succeeded', '2026-02-01')"
+        )
+    engine.dispose()
+    with pytest.raises(RuntimeError, match="1 trial\\(s\\) name a rig of their own"):
+        command.downgrade(alembic_config(url), "0014")
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("UPDATE trials SET rig_id = NULL")
+    engine.dispose()
+    command.downgrade(alembic_config(url), "0014")
+    engine = sa.create_engine(url)
+    with engine.connect() as conn:
+        columns = {c["name"] for c in sa.inspect(conn).get_columns("trials")}
+    engine.dispose()
+    assert "rig_id" not in columns and "task" in columns
+    dispose_engines()

@@ -17,11 +17,11 @@ import pytest
 from api_support import Api, api  # noqa: F401 - fixture
 
 from app.worker import run_worker
-from core.camera import ImageSize, write_rig
+from core.camera import ImageSize, StereoRig, write_rig
 from core.protocols import marker_diameter_mm
 from core.simulation.rig import default_rig
 from core.simulation.session import ImagingScenario, SimulatedSession, simulate_session
-from core.simulation.tasks import TaskScenario
+from core.simulation.tasks import TaskScenario, rig_geometry
 from core.tasks import Task
 
 SIZE = ImageSize(640, 512)  # px: small, as the service's demo rig
@@ -34,23 +34,25 @@ TRIALS = (  # (task, side, duration_s, frequency_hz)
 )
 
 
+def _rig(task: Task) -> StereoRig:
+    """The visit's rig (the hand tasks, and the foot 800 mm away), or for leg agility the
+    cameras placed beside the leg, 1 m away (a rig of its own: the trial names it)."""
+    if task is Task.LEG_AGILITY:
+        return default_rig(image_size=SIZE, **rig_geometry(task)._asdict())
+    return default_rig(image_size=SIZE)
+
+
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[SimulatedSession]:
-    # One rig for the visit (the foot 800 mm away, the leg 1 m).
-    rig = default_rig(image_size=SIZE)
     out = []
     for k, (task, side, duration, freq) in enumerate(TRIALS):
-        # The left leg 120 mm left of the axes' crossing: all of it in both cameras' view.
-        where = {"centre_mm": (-120.0, 60.0, 1000.0)} if task is Task.LEG_AGILITY else {}
-        scenario = TaskScenario(
-            task=task, side=side, duration_s=duration, frequency_hz=freq, **where
-        )
+        scenario = TaskScenario(task=task, side=side, duration_s=duration, frequency_hz=freq)
         out.append(
             simulate_session(
                 tmp_path_factory.mktemp(f"{task.value}-{side}"),
                 seed=40 + k,
                 task=scenario,
-                rig=rig,
+                rig=_rig(task),
                 imaging=ImagingScenario(
                     image_size=SIZE,
                     codec="mp4v",  # small files
@@ -69,15 +71,19 @@ def test_every_task_through_upload_worker_result_reports_and_fhir(
 ) -> None:
     h = api.headers
     patient = api.client.post("/api/v1/patients", json={"code": "PD-0016"}, headers=h).json()
-    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-T"}, headers=h).json()
-    rig_file = tmp_path / "rig.json"
-    write_rig(default_rig(image_size=SIZE), rig_file)
-    cal = api.client.post(
-        f"/api/v1/rigs/{rig['id']}/calibrations",
-        files={"rig_json": ("rig.json", rig_file.read_bytes(), "application/json")},
-        headers=h,
-    )
-    assert cal.status_code == 201, cal.text
+    rigs = {}
+    for task, name in ((Task.HAND_MOVEMENTS, "clinic-T"), (Task.LEG_AGILITY, "clinic-T legs")):
+        rig = api.client.post("/api/v1/rigs", json={"name": name}, headers=h).json()
+        rig_file = tmp_path / f"{name}.json"
+        write_rig(_rig(task), rig_file)
+        cal = api.client.post(
+            f"/api/v1/rigs/{rig['id']}/calibrations",
+            files={"rig_json": ("rig.json", rig_file.read_bytes(), "application/json")},
+            headers=h,
+        )
+        assert cal.status_code == 201, cal.text
+        rigs[task] = rig["id"]
+    rig = {"id": rigs[Task.HAND_MOVEMENTS]}
     session = api.client.post(
         "/api/v1/sessions",
         json={
@@ -94,9 +100,12 @@ def test_every_task_through_upload_worker_result_reports_and_fhir(
             "left_video": ("left.mp4", rec.left_video.read_bytes(), "video/mp4"),
             "right_video": ("right.mp4", rec.right_video.read_bytes(), "video/mp4"),
         }
+        # The leg agility trial names the rig placed beside the leg; the others are the
+        # session's rig's.
+        own = {"rig_id": str(rigs[task])} if task is Task.LEG_AGILITY else {}
         r = api.client.post(
             f"/api/v1/sessions/{session['id']}/trials",
-            data={"hand": side, "task": task.value},
+            data={"hand": side, "task": task.value, **own},
             files=files,
             headers=h,
         )
@@ -109,6 +118,10 @@ def test_every_task_through_upload_worker_result_reports_and_fhir(
         assert job["status"] == "succeeded", job
         doc = api.client.get(f"/api/v1/trials/{made['id']}/result", headers=h).json()
         assert doc["task"] == task.value
+        measured_by = rigs.get(task, rig["id"])  # that rig's calibration measured it
+        assert doc["calibration"]["rig_id"] == measured_by
+        read = api.client.get(f"/api/v1/trials/{made['id']}", headers=h).json()
+        assert read["rig_id"] == measured_by
         assert doc["markers"] == rec.truth["marker_names"]
         m = doc["metrics"]
         assert m["amplitude_unit"] == task.amplitude_unit

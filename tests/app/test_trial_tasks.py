@@ -9,6 +9,7 @@ import pytest
 from api_support import (  # noqa: F401 - fixtures
     Api,
     api,
+    rig_document,
     seed_recording_target,
     trial_files,
     video_pair,
@@ -70,6 +71,70 @@ def test_an_unknown_task_is_refused_and_leaves_nothing(api: Api, video_pair) -> 
     assert api.recording_rows() == (0, 0, 0)
     with api.sessions() as db:
         assert db.scalars(select(Job)).first() is None
+
+
+def _second_rig(api: Api, name: str, *, calibrated: bool = True) -> int:
+    """Another rig (another placement of the cameras), with a rig-file calibration."""
+    import json
+
+    rig = api.client.post("/api/v1/rigs", json={"name": name}, headers=api.headers).json()
+    if calibrated:
+        cal = api.client.post(
+            f"/api/v1/rigs/{rig['id']}/calibrations",
+            files={
+                "rig_json": ("rig.json", json.dumps(rig_document()).encode(), "application/json")
+            },
+            headers=api.headers,
+        )
+        assert cal.status_code == 201, cal.text
+    return int(rig["id"])
+
+
+def test_a_trial_names_the_rig_that_recorded_it(api: Api, video_pair) -> None:
+    """Toe tapping and leg agility film from another placement: a trial may name its rig;
+    its analysis job is queued, and the API reads the rig back (the session's otherwise)."""
+    seeded = seed_recording_target(api)
+    legs = _second_rig(api, "clinic-A legs")
+    made = {}
+    for rig_id in (str(legs), str(seeded.rig_id), ""):
+        r = api.client.post(
+            f"/api/v1/sessions/{seeded.session_id}/trials",
+            data={"hand": "left", "task": "leg_agility", "rig_id": rig_id},
+            files=trial_files(*video_pair),
+            headers=api.headers,
+        )
+        assert r.status_code == 201, r.text
+        made[rig_id] = r.json()["id"]
+    with api.sessions() as db:
+        stored = {k: db.get(Trial, v).rig_id for k, v in made.items()}  # type: ignore[union-attr]
+    assert stored == {str(legs): legs, str(seeded.rig_id): None, "": None}  # NULL: the session's
+    read = {
+        k: api.client.get(f"/api/v1/trials/{v}", headers=api.headers).json()["rig_id"]
+        for k, v in made.items()
+    }
+    assert read == {str(legs): legs, str(seeded.rig_id): seeded.rig_id, "": seeded.rig_id}
+
+
+@pytest.mark.parametrize(
+    ("rig_id", "status", "words"),
+    [("9999", 422, "rig_id '9999' names no rig"), ("legs", 422, "names no rig"), (None, 409, "")],
+)
+def test_a_rig_that_cannot_measure_the_trial_is_refused_and_leaves_nothing(
+    api: Api, video_pair, rig_id: str | None, status: int, words: str
+) -> None:
+    seeded = seed_recording_target(api)
+    if rig_id is None:  # a rig without any calibration
+        uncalibrated = _second_rig(api, "clinic-A new placement", calibrated=False)
+        rig_id, words = str(uncalibrated), f"rig {uncalibrated} has no ready calibration"
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "right", "task": "toe_tapping", "rig_id": rig_id},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == status, r.text
+    assert words in r.json()["detail"]
+    assert api.recording_rows() == (0, 0, 0)
 
 
 def test_the_openapi_document_offers_the_tasks(api: Api) -> None:

@@ -202,7 +202,7 @@ def test_a_missing_marker_is_said_not_guessed() -> None:
     truth = _truth(Task.LEG_AGILITY)
     two = [truth.positions_mm[:, 0], truth.positions_mm[:, 1]]  # knee and thigh: no ankle
     picks, warnings = label_chains(Task.LEG_AGILITY, two, fps=truth.fps)
-    assert picks == [None, None, None] and "ankle" in warnings[0]
+    assert picks == [0, 1, None] and "ankle" in warnings[0]
     picks, warnings = label_chains(Task.LEG_AGILITY, two[:1], fps=truth.fps)
     assert picks == [None, None, None] and "thigh and knee" in warnings[0]
 
