@@ -443,12 +443,29 @@ def toe_lift_mm(positions_mm: FloatArray) -> CycleSignal:
     exactly its angle.
     """
     toe, heel, shin = positions_mm[:, 0], positions_mm[:, 1], positions_mm[:, 2]
-    f = toe - heel
-    g = shin - heel
-    ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(g), axis=1)
-    out = np.full(len(f), np.nan)
-    if np.count_nonzero(ok) < 3:
+    out = np.full(len(toe), np.nan)
+    turn = _turn_in_plane(toe - heel, shin - heel)
+    if turn is None:
         return CycleSignal(out, "mm", {"heel_toe_mm": None})
+    theta, ok, length = turn
+    out[ok] = length * (theta - float(np.min(theta)))
+    return CycleSignal(out, "mm", {"heel_toe_mm": length})
+
+
+def _turn_in_plane(
+    f: FloatArray, g: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_], float] | None:
+    """The signed turn (radians) of the segment ``f (T, 3)`` from its mean direction ``f0``,
+    in the plane of ``f0`` and ``g (T, 3)`` (normal ``n``: the mean of ``f0 x g``), positive
+    from ``f0`` towards ``g``; over the frames ``ok`` where both are seen, with the median
+    length of ``f``: ``(theta, ok, length)``; None with fewer than three such frames.
+
+    ``atan2((f0 x f) . n, f0 . f)`` reads only the parts of ``f`` in the plane (``n`` is
+    across ``f0``): the angle of ``f`` projected onto it.
+    """
+    ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(g), axis=1)
+    if np.count_nonzero(ok) < 3:
+        return None
     length = float(np.median(np.linalg.norm(f[ok], axis=1)))
     unit_f = f[ok] / np.linalg.norm(f[ok], axis=1)[:, None]
     f0 = np.mean(unit_f, axis=0)
@@ -456,10 +473,8 @@ def toe_lift_mm(positions_mm: FloatArray) -> CycleSignal:
     n = np.mean(np.cross(f0[None], g[ok]), axis=0)
     n /= np.linalg.norm(n)
     sin_part = np.cross(f0[None], unit_f) @ n
-    theta = np.arctan2(sin_part, unit_f @ f0)
-    lift = length * (theta - float(np.min(theta)))
-    out[ok] = lift
-    return CycleSignal(out, "mm", {"heel_toe_mm": length})
+    theta: FloatArray = np.arctan2(sin_part, unit_f @ f0)
+    return theta, ok, length
 
 
 def thigh_lift_deg(positions_mm: FloatArray) -> CycleSignal:
@@ -467,9 +482,9 @@ def thigh_lift_deg(positions_mm: FloatArray) -> CycleSignal:
 
     ``f = knee - thigh`` rotates with the thigh. Its mean direction ``f0`` and
     the shank's direction up from the ankle, ``g = knee - ankle``, span the
-    leg's sagittal plane, with normal ``n = f0 x g`` (mean over frames). ``f``
-    is projected onto that plane and ``theta = atan2((f0 x f) . n, f0 . f)``
-    grows as the knee rises (hip flexion). The signal is ``theta - min theta``
+    leg's sagittal plane, with normal ``n = f0 x g`` (mean over frames): the
+    angle ``theta = atan2((f0 x f) . n, f0 . f)`` of ``f`` projected onto that
+    plane grows as the knee rises (hip flexion). The signal is ``theta - min theta``
     in degrees: 0 at the lowest position of the recording. A rotation of the
     thigh about any axis across the plane (the hip's flexion axis) changes
     ``theta`` by exactly its angle when the thigh and knee markers sit at the
@@ -478,20 +493,11 @@ def thigh_lift_deg(positions_mm: FloatArray) -> CycleSignal:
     of its value at 30 degrees).
     """
     knee, thigh, ankle = positions_mm[:, 0], positions_mm[:, 1], positions_mm[:, 2]
-    f = knee - thigh
-    g = knee - ankle
-    ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(g), axis=1)
-    out = np.full(len(f), np.nan)
-    if np.count_nonzero(ok) < 3:
+    out = np.full(len(knee), np.nan)
+    turn = _turn_in_plane(knee - thigh, knee - ankle)
+    if turn is None:
         return CycleSignal(out, "deg", {"thigh_knee_mm": None})
-    length = float(np.median(np.linalg.norm(f[ok], axis=1)))
-    unit_f = f[ok] / np.linalg.norm(f[ok], axis=1)[:, None]
-    f0 = np.mean(unit_f, axis=0)
-    f0 /= np.linalg.norm(f0)
-    n = np.mean(np.cross(f0[None], g[ok]), axis=0)
-    n /= np.linalg.norm(n)
-    in_plane = unit_f - np.outer(unit_f @ n, n)
-    theta = np.arctan2(np.cross(f0[None], in_plane) @ n, in_plane @ f0)
+    theta, ok, length = turn
     out[ok] = np.rad2deg(theta - float(np.min(theta)))
     return CycleSignal(out, "deg", {"thigh_knee_mm": length})
 

@@ -285,6 +285,19 @@ def test_signatures_table_on_upgrade_refuses_updates(tmp_path, make_settings):
     dispose_engines()
 
 
+def _one_visit(conn: sa.Connection, *, rigs: tuple[str, ...]) -> None:
+    """Patient 1, rigs 1, 2, ... named ``rigs``, and session 1 of rig 1 (raw rows)."""
+    run = conn.exec_driver_sql
+    run("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
+    for rig_id, name in enumerate(rigs, start=1):
+        run(f"INSERT INTO rigs (id, name, created_at) VALUES ({rig_id}, '{name}', '2026-01-01')")
+    run(
+        "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
+        " dbs_state, created_at) VALUES (1, 1, 1, '2026-02-01 10:00:00', 'off', 'none',"
+        " '2026-02-01 10:05:00')"
+    )
+
+
 @pytest.mark.parametrize(
     "backend", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
 )
@@ -305,15 +318,8 @@ def test_leg_agility_trials_can_be_stored_and_block_going_back(
         " VALUES ({id}, 1, 'left', '{task}', 'succeeded', '2026-02-01')"
     )
     with engine.begin() as conn:
-        run = conn.exec_driver_sql
-        run("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
-        run("INSERT INTO rigs (id, name, created_at) VALUES (1, 'r', '2026-01-01')")
-        run(
-            "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
-            " dbs_state, created_at) VALUES (1, 1, 1, '2026-02-01 10:00:00', 'off', 'none',"
-            " '2026-02-01 10:05:00')"
-        )
-        run(insert.format(id=1, task="leg_agility"))
+        _one_visit(conn, rigs=("r",))
+        conn.exec_driver_sql(insert.format(id=1, task="leg_agility"))
     with pytest.raises(sa.exc.IntegrityError), engine.begin() as conn:
         conn.exec_driver_sql(insert.format(id=2, task="gait"))  # the constraint still holds
     engine.dispose()
@@ -341,18 +347,8 @@ def test_a_trial_naming_its_own_rig_blocks_going_back(tmp_path: Path, make_setti
     dispose_engines()
     engine = sa.create_engine(url)
     with engine.begin() as conn:
-        run = conn.exec_driver_sql
-        run("INSERT INTO patients (id, code, created_at) VALUES (1, 'PD-1', '2026-01-01')")
-        for rig_id, name in ((1, "hands"), (2, "legs")):
-            run(
-                f"INSERT INTO rigs (id, name, created_at) VALUES ({rig_id}, '{name}', '2026-01-01')"
-            )
-        run(
-            "INSERT INTO sessions (id, patient_id, rig_id, recorded_at, medication_state,"
-            " dbs_state, created_at) VALUES (1, 1, 1, '2026-02-01 10:00:00', 'off', 'none',"
-            " '2026-02-01 10:05:00')"
-        )
-        run(
+        _one_visit(conn, rigs=("hands", "legs"))
+        conn.exec_driver_sql(
             "INSERT INTO trials (id, session_id, hand, task, rig_id, status, created_at)"
             " VALUES (1, 1, 'left', 'leg_agility', 2, 'succeeded', '2026-02-01')"
         )
