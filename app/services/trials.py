@@ -51,6 +51,7 @@ TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task", "rig_id"})
 PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS | {"take_id"}
 """The capture page's uploads also carry ``take_id`` (docs/capture.md)."""
 _TAKE_ID = re.compile(r"[A-Za-z0-9_-]{8,64}")
+_ID = re.compile(r"[0-9]{1,9}")  # a row id (an int4 on PostgreSQL); no sign, no other digits
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,7 @@ def _parse_rig(db: Session, upload: ParsedUpload, session_rig_id: int) -> int | 
     raw = (upload.fields.get("rig_id") or "").strip()
     if not raw:
         return None
-    if not raw.isdigit() or db.get(Rig, int(raw)) is None:
+    if not _ID.fullmatch(raw) or db.get(Rig, int(raw)) is None:
         raise InvalidUpload(
             f"rig_id {raw[:20]!r} names no rig; give the id of the rig that recorded the trial"
             " (GET /api/v1/rigs), or leave it out for the session's rig."

@@ -68,7 +68,7 @@ def session_capture_page(
     """The capture page of a session; ``?task=`` chooses the task first (default: finger tapping;
     an unknown value is ignored), ``?rig=`` the rig the cameras are placed as (default the
     session's; the take's trial then names it: ``Trial.rig_id``)."""
-    if rig and not rig.isdigit():
+    if rig and not (rig.isascii() and rig.isdigit() and len(rig) <= 9):
         return error_page(request, user, status_code=404, message="The rig was not found.")
     try:
         target = capture.session_capture(db, user, session_id, int(rig) if rig else None)

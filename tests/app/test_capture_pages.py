@@ -224,7 +224,7 @@ def test_the_capture_page_records_with_another_rig_of_the_clinic(
     assert "clinic-A legs</a> (not the session's" in html
     assert f'href="/rigs/{legs}/capture">Record the calibration board instead' in html
     assert f'data-other-rig="{seeded["rig_id"]}"' in html  # and back to the session's rig
-    for bad in ("999", "x"):
+    for bad in ("999", "x", "²", "9" * 20):
         assert client.get(f"/sessions/1/capture?rig={bad}").status_code == 404
 
 

@@ -117,7 +117,13 @@ def test_a_trial_names_the_rig_that_recorded_it(api: Api, video_pair) -> None:
 
 @pytest.mark.parametrize(
     ("rig_id", "status", "words"),
-    [("9999", 422, "rig_id '9999' names no rig"), ("legs", 422, "names no rig"), (None, 409, "")],
+    [
+        ("9999", 422, "rig_id '9999' names no rig"),
+        ("legs", 422, "names no rig"),
+        ("²", 422, "names no rig"),  # a digit to str.isdigit, not to int()
+        ("99999999999999999999", 422, "names no rig"),  # beyond a PostgreSQL integer
+        (None, 409, ""),
+    ],
 )
 def test_a_rig_that_cannot_measure_the_trial_is_refused_and_leaves_nothing(
     api: Api, video_pair, rig_id: str | None, status: int, words: str
