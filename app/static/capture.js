@@ -258,6 +258,10 @@
     if (!option) return;
     this.markersExpected = Number(option.getAttribute("data-markers") || 0);
     if (this.limbText) this.limbText.textContent = option.getAttribute("data-limb") || "hand";
+    // The links to the clinic's other rigs keep the task chosen (?rig=...&task=...).
+    Array.prototype.forEach.call(this.root.querySelectorAll("a[data-other-rig]"), function (a) {
+      a.href = a.href.replace(/([?&]task=)[^&#]*/, "$1" + encodeURIComponent(option.value));
+    });
     var self = this;
     SIDES.forEach(function (side) { if (self.cams[side].gate) self.showFacts(self.cams[side]); });
     if (this.phase === "setup") this.updateGate();

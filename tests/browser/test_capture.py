@@ -77,28 +77,34 @@ class Api:
         self.data_dir = served.data_dir
         self._patients = 0
 
-    def target(self, rig_document: dict, name: str) -> Target:
-        """A patient, a rig calibrated with ``rig_document`` and a session."""
-        self._patients += 1
-        patient = self.client.post("/api/v1/patients", json={"code": f"CAP-{self._patients}"})
+    def rig(self, rig_document: dict, name: str) -> int:
+        """A rig calibrated with ``rig_document``; its id."""
         rig = self.client.post("/api/v1/rigs", json={"name": name})
-        assert patient.status_code == 201 and rig.status_code == 201, (patient.text, rig.text)
+        assert rig.status_code == 201, rig.text
         cal = self.client.post(
             f"/api/v1/rigs/{rig.json()['id']}/calibrations",
             files={"rig_json": ("rig.json", json.dumps(rig_document).encode(), "application/json")},
         )
         assert cal.status_code == 201, cal.text
+        return int(rig.json()["id"])
+
+    def target(self, rig_document: dict, name: str) -> Target:
+        """A patient, a rig calibrated with ``rig_document`` and a session."""
+        self._patients += 1
+        patient = self.client.post("/api/v1/patients", json={"code": f"CAP-{self._patients}"})
+        assert patient.status_code == 201, patient.text
+        rig_id = self.rig(rig_document, name)
         session = self.client.post(
             "/api/v1/sessions",
             json={
                 "patient_id": patient.json()["id"],
-                "rig_id": rig.json()["id"],
+                "rig_id": rig_id,
                 "recorded_at": "2026-03-01T09:30:00Z",
                 "medication_state": "off",
             },
         )
         assert session.status_code == 201, session.text
-        return Target(session.json()["id"], rig.json()["id"])
+        return Target(session.json()["id"], rig_id)
 
     def trials(self, session_id: int) -> list[dict]:
         r = self.client.get(f"/api/v1/sessions/{session_id}/trials")
@@ -564,6 +570,8 @@ def test_an_interrupted_upload_stores_nothing_twice_and_can_be_sent_again(
     pattern_cameras, served, api
 ) -> None:
     target = api.target(_rig_document(640, 480), "interrupted-rig")
+    # The cameras placed for the foot: another rig of the clinic, which the take names.
+    foot = api.rig(_rig_document(640, 480), "interrupted-rig foot")
     before = api.stored_files()
     proxy = AnswerCuttingProxy(served.url)  # the page is served through it
     p = Page(pattern_cameras, replace(served, url=proxy.url))
@@ -571,9 +579,14 @@ def test_an_interrupted_upload_stores_nothing_twice_and_can_be_sent_again(
     # The interruptions themselves: a reset, and an answer that never came.
     p.expected_failures += ["net::ERR_CONNECTION_RESET", "net::ERR_EMPTY_RESPONSE"]
     p.open_capture(target)
+    page.get_by_role("link", name="interrupted-rig foot").click()
+    page.wait_for_url(re.compile(rf"/sessions/{target.session_id}/capture\?rig={foot}&"))
+    page.wait_for_selector("#camera-left option:nth-child(3)", state="attached")
     # Another task and side than the defaults: both travel with the take.
     page.get_by_label("Task").select_option(label="Toe tapping (MDS-UPDRS 3.7)")
     assert page.locator("[data-limb-text]").inner_text() == "foot"
+    back = page.locator(f'a[data-other-rig="{target.rig_id}"]').get_attribute("href")
+    assert back is not None and back.endswith(f"rig={target.rig_id}&task=toe_tapping"), back
     page.get_by_label("Left", exact=True).check()
     p.choose("fake_device_0", "fake_device_1")
     upload = f"**/sessions/{target.session_id}/trials"
@@ -601,6 +614,7 @@ def test_an_interrupted_upload_stores_nothing_twice_and_can_be_sent_again(
     fields = set(re.findall(rb'name="(\w+)"', sent[-1]))
     assert fields >= {b"task", b"hand", b"take_id", b"left_video", b"right_video"}, sent[-1][:500]
     assert b'name="task"\r\n\r\ntoe_tapping\r\n' in sent[-1]
+    assert f'name="rig_id"\r\n\r\n{foot}\r\n'.encode() in sent[-1]
     page.unroute(upload)
     # 2. "Upload again": the server gets all of it and stores it, but its answer is lost.
     proxy.cut_after = f"POST /sessions/{target.session_id}/trials ".encode()
@@ -622,6 +636,7 @@ def test_an_interrupted_upload_stores_nothing_twice_and_can_be_sent_again(
     trials = api.trials(target.session_id)
     assert len(trials) == 1 and all(v["has_times"] for v in trials[0]["videos"]), trials
     assert (trials[0]["task"], trials[0]["hand"]) == ("toe_tapping", "left"), trials
+    assert trials[0]["rig_id"] == foot
     # The analysis ends with a sentence (no marker in the test pattern, or no measure of the
     # task yet), not with an unexpected error.
     page.wait_for_function(
