@@ -232,6 +232,7 @@ def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
         (Task.HAND_MOVEMENTS, (0, 1)),
         (Task.TOE_TAPPING, (0, 1)),
         (Task.PRONATION_SUPINATION, (1,)),
+        (Task.LEG_AGILITY, (0, 1)),
     ):
         for k in sessions:
             # the amplitude falls from the first visit to the second (another trial)
@@ -243,28 +244,38 @@ def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
     login(client)
     html = client.get(f"/patients/{seeded['patient_id']}").text
     groups = re.findall(r'data-trend-task="([a-z_]+)"', html)
-    assert groups == ["finger_tapping", "hand_movements", "pronation_supination", "toe_tapping"]
+    assert groups == [
+        "finger_tapping",
+        "hand_movements",
+        "pronation_supination",
+        "toe_tapping",
+        "leg_agility",
+    ]
     sections = dict(
         re.findall(r'data-trend-task="([a-z_]+)"(.*?)</section>', html, re.S)
     )  # fmt: skip
 
-    for task in (Task.HAND_MOVEMENTS, Task.TOE_TAPPING):
+    for task in (Task.HAND_MOVEMENTS, Task.TOE_TAPPING, Task.LEG_AGILITY):
         part = sections[task.value]
+        unit = task.amplitude_unit
         keys = re.findall(r'<figure class="plot-figure trend" data-trend="([^"]+)"', part)
         assert keys == [key for key, _, _ in trend_metrics(task)]
         assert (
-            task_key("amplitude_decrement_mm_per_tap", task) == "amplitude_decrement_mm_per_cycle"
+            task_key("amplitude_decrement_mm_per_tap", task)
+            == f"amplitude_decrement_{unit}_per_cycle"
         )
         texts = _texts(part)
-        assert {"Mean amplitude (mm)", "Amplitude decrement (mm/cycle)", "Frequency (Hz)"} <= set(
-            texts
-        )
+        assert {
+            f"Mean amplitude ({unit})",
+            f"Amplitude decrement ({unit}/cycle)",
+            "Frequency (Hz)",
+        } <= set(texts)
         towards = task.phase_words[0]
-        assert f"Peak {towards} velocity (mm/s)" in texts
+        assert f"Peak {towards} velocity ({unit}/s)" in texts
         # Each point's hover: the date, the side's limb, and that trial's first-10 value.
         for k, (day, med) in enumerate((("2024-03-01", "off"), ("2025-03-01", "on"))):
             first10 = docs[(task, k)]["metrics_first_10"]["amplitude_mean"]
-            hover = f"{day} 09:00, right {task.limb}, medication {med}: {first10:.3g} mm"
+            hover = f"{day} 09:00, right {task.limb}, medication {med}: {first10:.3g} {unit}"
             assert hover in part
         assert "thumb" not in part and "Tapping" not in part
 
