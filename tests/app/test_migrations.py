@@ -337,10 +337,16 @@ def test_leg_agility_trials_can_be_stored_and_block_going_back(
     dispose_engines()
 
 
-def test_a_trial_naming_its_own_rig_blocks_going_back(tmp_path: Path, make_settings):
+@pytest.mark.parametrize(
+    "backend", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
+)
+def test_a_trial_naming_its_own_rig_blocks_going_back(
+    backend: str, tmp_path: Path, make_settings, request: pytest.FixtureRequest
+):
     """Revision 0015 adds ``trials.rig_id``; going back to 0014 refuses while a trial names
     a rig of its own (its analysis would silently use the session's rig)."""
-    settings = make_settings(tmp_path / "data")
+    url = None if backend == "sqlite" else request.getfixturevalue("pg_empty_url")
+    settings = make_settings(tmp_path / "data", database_url=url)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     url = settings.effective_database_url
     migrate(settings)
