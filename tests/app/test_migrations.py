@@ -298,59 +298,64 @@ def _one_visit(conn: sa.Connection, *, rigs: tuple[str, ...]) -> None:
     )
 
 
-@pytest.mark.parametrize(
-    "backend", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
-)
+def _head_database(backend: str, tmp_path: Path, make_settings, request) -> str:
+    """A database of ``backend`` (sqlite or postgres) at the newest revision; its URL."""
+    url = None if backend == "sqlite" else request.getfixturevalue("pg_empty_url")
+    settings = make_settings(tmp_path / "data", database_url=url)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    migrate(settings)
+    dispose_engines()
+    return str(settings.effective_database_url)
+
+
+def _execute(url: str, *statements: str) -> None:
+    """Run ``statements`` in one transaction of their own."""
+    engine = sa.create_engine(url)
+    try:
+        with engine.begin() as conn:
+            for sql in statements:
+                conn.exec_driver_sql(sql)
+    finally:
+        engine.dispose()
+
+
+BACKENDS = ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_leg_agility_trials_can_be_stored_and_block_going_back(
     backend: str, tmp_path: Path, make_settings, request: pytest.FixtureRequest
 ):
     """Revision 0014 widens ``ck_trials_task`` to leg agility; going back to 0013 refuses
     while a leg agility trial is stored (it would not hold), and works once none is."""
-    url = None if backend == "sqlite" else request.getfixturevalue("pg_empty_url")
-    settings = make_settings(tmp_path / "data", database_url=url)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url = settings.effective_database_url
-    migrate(settings)
-    dispose_engines()
-    engine = sa.create_engine(url)
+    url = _head_database(backend, tmp_path, make_settings, request)
     insert = (
         "INSERT INTO trials (id, session_id, hand, task, status, created_at)"
         " VALUES ({id}, 1, 'left', '{task}', 'succeeded', '2026-02-01')"
     )
+    engine = sa.create_engine(url)
     with engine.begin() as conn:
         _one_visit(conn, rigs=("r",))
         conn.exec_driver_sql(insert.format(id=1, task="leg_agility"))
-    with pytest.raises(sa.exc.IntegrityError), engine.begin() as conn:
-        conn.exec_driver_sql(insert.format(id=2, task="gait"))  # the constraint still holds
     engine.dispose()
+    with pytest.raises(sa.exc.IntegrityError):
+        _execute(url, insert.format(id=2, task="gait"))  # the constraint still holds
     with pytest.raises(RuntimeError, match="1 leg agility trial"):
         command.downgrade(alembic_config(url), "0013")
-    engine = sa.create_engine(url)
-    with engine.begin() as conn:
-        conn.exec_driver_sql("DELETE FROM trials")
-    engine.dispose()
+    _execute(url, "DELETE FROM trials")
     command.downgrade(alembic_config(url), "0013")
-    engine = sa.create_engine(url)
-    with pytest.raises(sa.exc.IntegrityError), engine.begin() as conn:
-        conn.exec_driver_sql(insert.format(id=3, task="leg_agility"))
-    engine.dispose()
+    with pytest.raises(sa.exc.IntegrityError):
+        _execute(url, insert.format(id=3, task="leg_agility"))
     dispose_engines()
 
 
-@pytest.mark.parametrize(
-    "backend", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
-)
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_a_trial_naming_its_own_rig_blocks_going_back(
     backend: str, tmp_path: Path, make_settings, request: pytest.FixtureRequest
 ):
     """Revision 0015 adds ``trials.rig_id``; going back to 0014 refuses while a trial names
     a rig of its own (its analysis would silently use the session's rig)."""
-    url = None if backend == "sqlite" else request.getfixturevalue("pg_empty_url")
-    settings = make_settings(tmp_path / "data", database_url=url)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url = settings.effective_database_url
-    migrate(settings)
-    dispose_engines()
+    url = _head_database(backend, tmp_path, make_settings, request)
     engine = sa.create_engine(url)
     with engine.begin() as conn:
         _one_visit(conn, rigs=("hands", "legs"))
@@ -361,10 +366,7 @@ def test_a_trial_naming_its_own_rig_blocks_going_back(
     engine.dispose()
     with pytest.raises(RuntimeError, match="1 trial\\(s\\) name a rig of their own"):
         command.downgrade(alembic_config(url), "0014")
-    engine = sa.create_engine(url)
-    with engine.begin() as conn:
-        conn.exec_driver_sql("UPDATE trials SET rig_id = NULL")
-    engine.dispose()
+    _execute(url, "UPDATE trials SET rig_id = NULL")
     command.downgrade(alembic_config(url), "0014")
     engine = sa.create_engine(url)
     with engine.connect() as conn:
