@@ -37,6 +37,7 @@ from app.services.common import load_trial, visible_trial, visit_trials
 from app.services.revisions import served_document
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
+from core.tasks import parse_task
 
 T = TypeVar("T")
 
@@ -444,6 +445,11 @@ def trial_page(
             compare_error = (
                 "That trial cannot be compared: it does not exist, has no result,"
                 " or belongs to another patient."
+            )
+        elif other.task != trial.task:
+            compare_error = (
+                f"That trial measured {parse_task(other.task).label.lower()}, this one"
+                f" {parse_task(trial.task).label.lower()}: only trials of the same task compare."
             )
         else:
             comparison = Comparison(

@@ -39,6 +39,7 @@ from app.web.common import (
     status_of,
     validation_message,
 )
+from core.tasks import parse_task
 
 router = APIRouter()
 
@@ -56,7 +57,8 @@ DOWNLOADS: dict[str, tuple[str, str, str]] = {
 
 def trial_label(trial: Trial) -> str:
     s = trial.session
-    return f"{s.recorded_at:%Y-%m-%d}, {trial.hand} hand, medication {s.medication_state}"
+    limb = parse_task(trial.task).limb
+    return f"{s.recorded_at:%Y-%m-%d}, {trial.hand} {limb}, medication {s.medication_state}"
 
 
 def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
@@ -87,7 +89,8 @@ def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
 
 
 def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]:
-    """Candidates for comparison, the most useful first (other hand, same session; other medication)."""
+    """Candidates for comparison: the trials of the same task, the most useful first (other
+    side, same session; other medication)."""
 
     def rank(t: Trial) -> tuple[int, float]:
         same_session = t.session_id == trial.session_id
@@ -103,14 +106,16 @@ def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]
             score = 3
         return score, -t.session.recorded_at.timestamp()
 
+    limb = parse_task(trial.task).limb
     hints = {
-        0: "other hand, same session",
-        1: "same hand, other medication state",
-        2: "same hand, other session",
+        0: f"other {limb}, same session",
+        1: f"same {limb}, other medication state",
+        2: f"same {limb}, other session",
         3: "",
     }
+    same_task = (c for c in candidates if c.id != trial.id and c.task == trial.task)
     out = []
-    for t in sorted((c for c in candidates if c.id != trial.id), key=rank):
+    for t in sorted(same_task, key=rank):
         hint = hints[rank(t)[0]]
         out.append((t, trial_label(t) + (f" ({hint})" if hint else "")))
     return out

@@ -300,6 +300,34 @@ def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
     assert ft.count('data-plot="trend"') == 5 and "Tapping frequency (Hz)" in _texts(ft)
 
 
+def test_only_trials_of_the_same_task_are_offered_and_compared(
+    client, seeded, db_sessionmaker, storage
+) -> None:
+    """Leg agility in degrees beside finger tapping in millimetres would compare nothing:
+    the trial page offers the same task's trials only, and refuses another task's."""
+    legs = {
+        hand: store_task_trial(db_sessionmaker, storage, Task.LEG_AGILITY, hand=hand)[0]
+        for hand in ("right", "left")
+    }
+    login(client)
+    html = client.get(f"/trials/{legs['right']}").text
+    select = re.search(r'<select id="compare-select".*?</select>', html, re.S).group(0)
+    offered = re.findall(r'<option value="(\d+)"[^>]*>([^<]*)</option>', select)
+    assert [int(v) for v, _ in offered] == [legs["left"]]
+    assert offered[0][1].endswith(", left leg, medication on (other leg, same session)")
+    title = re.search(r"<title>([^<]*)</title>", html).group(1)
+    assert ", right leg, medication on" in title
+    r = client.get(f"/trials/{legs['right']}?compare={legs['left']}")
+    assert "Compared trial" in r.text
+    tapping = seeded["trials"][(1, "left")]
+    r = client.get(f"/trials/{legs['right']}?compare={tapping}")
+    assert r.status_code == 200 and "Compared trial" not in r.text
+    assert "That trial measured finger tapping, this one leg agility" in r.text
+    page = client.get(f"/trials/{tapping}").text
+    select = re.search(r'<select id="compare-select".*?</select>', page, re.S).group(0)
+    assert f'value="{legs["left"]}"' not in select and f'value="{legs["right"]}"' not in select
+
+
 @pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
 def test_the_review_page_shows_the_task_s_signal_and_corrects_its_cycles(
     client, seeded, db_sessionmaker, storage, task: Task
