@@ -283,8 +283,8 @@ def calibrate(ctx: JobContext) -> None:
 
 
 def make_report_pdf(ctx: JobContext) -> None:
-    """Make the PDF report of the job's trial (its current result) into the report cache,
-    and those of the trials shown beside it, whose reports show it
+    """Make the PDF reports of the job's trial (its current result) and of its visit into
+    the report cache, unless an analysis of the visit is pending
     (:func:`app.services.results.make_report_pdfs`); then the trend plots of its patient's
     page that are not kept yet (:func:`app.services.patients.draw_trend_plots`).
 
@@ -297,7 +297,10 @@ def make_report_pdf(ctx: JobContext) -> None:
     made = results.make_report_pdfs(
         ctx.sessions, ctx.storage, ctx.job.trial_id, timezone=ctx.settings.timezone
     )
-    log.info("job %d: PDF reports made for trials %s", ctx.job.id, made or "none (all kept)")
+    if made is None:
+        log.info("job %d: PDF reports left to the visit's pending analysis", ctx.job.id)
+    else:
+        log.info("job %d: PDF reports made for trials %s", ctx.job.id, made or "none (all kept)")
     drawn = patients.draw_trend_plots(
         ctx.sessions, ctx.storage, ctx.job.trial_id, timezone=ctx.settings.timezone
     )

@@ -33,8 +33,9 @@ Life cycle of a :class:`app.models.Job` row::
 A ``report_pdf`` job (:data:`REPORT_PDF`, :func:`enqueue_report_pdf`) makes a
 trial's PDF report ahead of time, for the report cache. It is claimed before
 the other kinds (about a second of work, against a minute for an analysis) and
-is never a trial's latest job (:func:`latest_jobs`): a trial's status and the
-pages' job views follow its analyses only.
+is never a trial's latest job (:func:`app.job_views.latest_jobs`): a trial's status and the
+pages' job views follow its analyses only. An analysis failing for good queues
+one too: its visit's reports waited for it (``results.make_report_pdfs``).
 
 Timestamps come from the worker's clock (UTC): machines sharing a PostgreSQL
 database must keep their clocks synchronised (NTP) to well under the lease.
@@ -44,12 +45,11 @@ from __future__ import annotations
 
 import logging
 import uuid
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import and_, case, exists, func, or_, select, update
+from sqlalchemy import and_, case, exists, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Calibration, Job, Result, Trial, utcnow
@@ -324,6 +324,8 @@ def complete(db: Session, job: ClaimedJob) -> None:
 
 def _mark_targets_failed(db: Session, trial_id: int | None, calibration_id: int | None) -> None:
     _set_trial_status(db, trial_id, "failed")
+    if trial_id is not None:  # its visit's reports waited for it (make_report_pdfs)
+        enqueue_report_pdf(db, trial_id)
     if calibration_id is not None:
         db.execute(
             update(Calibration)
@@ -439,62 +441,3 @@ def reap_expired(sessions: sessionmaker[Session], *, now: datetime | None = None
                 reaped += 1
                 log.warning("job %d failed: its lease expired after the last attempt", row.id)
     return reaped
-
-
-def job_status(db: Session, job_id: int) -> dict[str, Any] | None:
-    """The public view of a job (``GET /api/v1/jobs/{id}``), or None if it does not exist."""
-    job = db.get(Job, job_id)
-    if job is None:
-        return None
-    return {
-        "id": job.id,
-        "kind": job.kind,
-        "status": job.status,
-        "progress": job.progress,
-        "stage": job.stage,
-        "error": job.error,
-        "attempts": job.attempts,
-        "max_attempts": job.max_attempts,
-        "trial_id": job.trial_id,
-        "calibration_id": job.calibration_id,
-        "created_at": job.created_at,
-        "started_at": job.started_at,
-        "finished_at": job.finished_at,
-    }
-
-
-def latest_jobs(
-    db: Session, *, trial_ids: Iterable[int] = (), calibration_ids: Iterable[int] = ()
-) -> dict[int, Job]:
-    """The newest job of each given trial, or of each given calibration (one query).
-
-    Pass either ``trial_ids`` or ``calibration_ids``; the answer maps each id
-    that has a job to its newest job (the highest job id: a re-analysis or a
-    retry queued later wins). A ``report_pdf`` job is never one: a trial's
-    latest job is its latest analysis.
-    """
-    trials, calibrations = list(trial_ids), list(calibration_ids)
-    if trials and calibrations:
-        raise ValueError("give trial_ids or calibration_ids, not both")
-    owner = Job.trial_id if trials else Job.calibration_id
-    ids = trials or calibrations
-    if not ids:
-        return {}
-    newest = select(func.max(Job.id)).where(owner.in_(ids), Job.kind != REPORT_PDF).group_by(owner)
-    out: dict[int, Job] = {}
-    for job in db.scalars(select(Job).where(Job.id.in_(newest))):
-        key = job.trial_id if trials else job.calibration_id
-        if key is not None:
-            out[key] = job
-    return out
-
-
-def latest_job(
-    db: Session, *, trial_id: int | None = None, calibration_id: int | None = None
-) -> Job | None:
-    """The newest job of one trial or one calibration (see :func:`latest_jobs`)."""
-    if trial_id is not None:
-        return latest_jobs(db, trial_ids=[trial_id]).get(trial_id)
-    if calibration_id is not None:
-        return latest_jobs(db, calibration_ids=[calibration_id]).get(calibration_id)
-    raise ValueError("give trial_id or calibration_id")

@@ -20,7 +20,7 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views, jobs
 from app.actors import Actor
 from app.audit import audit, audit_failure
 from app.errors import CalibrationMissingError, ConflictError, InvalidRequestError, NotFoundError
@@ -330,7 +330,7 @@ def create_calibration(
 
 def calibration_view(db: Session, cal: Calibration) -> dict[str, Any]:
     """The ``CalibrationRead`` fields of a calibration."""
-    job = jobs.latest_job(db, calibration_id=cal.id)
+    job = job_views.latest_job(db, calibration_id=cal.id)
     return {
         "id": cal.id,
         "rig_id": cal.rig_id,
@@ -395,7 +395,7 @@ class CalibrationRow:
 
 def calibration_rows(db: Session, rig: Rig) -> list[CalibrationRow]:
     """The rig's calibrations, newest version first, each with its newest job."""
-    newest_jobs = jobs.latest_jobs(db, calibration_ids=[c.id for c in rig.calibrations])
+    newest_jobs = job_views.latest_jobs(db, calibration_ids=[c.id for c in rig.calibrations])
     return [
         CalibrationRow(cal=cal, job=newest_jobs.get(cal.id))
         for cal in sorted(rig.calibrations, key=lambda c: c.version, reverse=True)

@@ -122,6 +122,22 @@ def visit_sessions(session: RecordingSession, timezone: str) -> list[RecordingSe
     return sorted(same_day, key=lambda s: (s.recorded_at, s.id))
 
 
+def visit_analyses_pending(db: Session, session: RecordingSession, timezone: str) -> bool:
+    """Whether an analysis of a trial of ``session``'s visit is queued or running."""
+    session_ids = [s.id for s in visit_sessions(session, timezone)]
+    pending = db.scalar(
+        select(func.count())
+        .select_from(Job)
+        .join(Trial, Job.trial_id == Trial.id)
+        .where(
+            Job.kind == "analyze_trial",
+            Job.status.in_(("queued", "running")),
+            Trial.session_id.in_(session_ids),
+        )
+    )
+    return bool(pending)
+
+
 def visit_trials(session: RecordingSession, timezone: str) -> list[Trial]:
     """The visible trials with a result of ``session``'s visit, oldest session first."""
     return [

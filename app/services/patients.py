@@ -15,7 +15,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from app import jobs
+from app import job_views
 from app.actors import Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, NotFoundError
@@ -349,7 +349,7 @@ def patient_overview(db: Session, actor: Actor, patient_id: int) -> PatientOverv
         reverse=True,
     )
     rows = [SessionRow(s, [t for t in s.trials if t.deleted_at is None]) for s in sessions]
-    newest = jobs.latest_jobs(db, trial_ids=[t.id for r in rows for t in r.trials])
+    newest = job_views.latest_jobs(db, trial_ids=[t.id for r in rows for t in r.trials])
     overview = PatientOverview(
         patient=patient,
         sessions=rows,

@@ -22,7 +22,7 @@ from typing import Any, Literal, TypeVar
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app import jobs
+from app import job_views
 from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, NotFoundError
@@ -33,7 +33,12 @@ from app.reports.pdf_cache import ReportPdfCache
 from app.reports.rendering import render_report_html, render_report_pdf, report_key
 from app.reports.result import read_result
 from app.reports.summary import SummaryColumn, neighbours
-from app.services.common import load_trial, visible_trial, visit_trials
+from app.services.common import (
+    load_trial,
+    visible_trial,
+    visit_analyses_pending,
+    visit_trials,
+)
 from app.services.revisions import served_document
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
@@ -59,7 +64,7 @@ def _result_of(
         result = found
     if result is None:
         if trial.status == "failed":
-            job = jobs.latest_job(db, trial_id=trial.id)
+            job = job_views.latest_job(db, trial_id=trial.id)
             reason = f": {job.error}" if job is not None and job.error else "."
             raise ConflictError(f"The analysis of trial {trial.id} failed{reason}")
         raise ConflictError(
@@ -245,27 +250,35 @@ def _current_report_data(
 
 def make_report_pdfs(
     sessions: sessionmaker[Session], storage: Storage, trial_id: int, *, timezone: str
-) -> list[int]:
-    """The worker's part of a ``report_pdf`` job: the PDF report of the trial's current
-    result, then of the trials shown beside it (the other hand, the other medication
-    state of its visit: their reports show this trial beside them), each made into the
-    report cache unless it is there already, dated in ``timezone``.
+) -> list[int] | None:
+    """The worker's part of a ``report_pdf`` job: the PDF reports of the trial's visit,
+    the trial's own first, each made into the report cache unless it is there already,
+    dated in ``timezone``.
+
+    A trial's report shows the trials of its visit beside it (the other hand, the other
+    medication state), so a change of one trial changes the others' reports: all of the
+    visit's are looked at (one already made costs its HTML, ~20 ms). Nothing is made
+    (None) while an analysis of the visit is queued or running: it would change them
+    again, and its own report job, or its failure's
+    (:func:`app.jobs.enqueue_report_pdf` in :func:`app.jobs.fail`), makes them once it
+    ends, so a batch of recordings is made once, after its last (the trend plots wait
+    the same way: :func:`app.services.patients.draw_trend_plots`).
 
     ``timezone`` must be the server's (``Settings.timezone``), or the request will
     not find the reports. Returns the ids of the trials whose PDF was made; nothing
     is made for a trial that is hidden, erased or has no result.
     """
-    data = _current_report_data(sessions, storage, trial_id, timezone)
-    if data is None:
-        return []
+    with sessions() as db:
+        trial = visible_trial(db, trial_id)
+        if trial is None:
+            return []
+        if visit_analyses_pending(db, trial.session, timezone):
+            return None
+        visit = [t.id for t in visit_trials(trial.session, timezone) if t.id != trial_id]
     cache = ReportPdfCache.of(storage)
     made = []
-    for column in (None, *data.beside):
-        shown = (
-            data
-            if column is None
-            else _current_report_data(sessions, storage, column.trial_id, timezone)
-        )
+    for shown_id in (trial_id, *visit):
+        shown = _current_report_data(sessions, storage, shown_id, timezone)
         if shown is None:
             continue
         _, new = _cached_pdf(shown, cache)
@@ -431,7 +444,9 @@ def trial_page(
     trial = load_trial(db, actor, trial_id, "read")
     patient = trial.session.patient
     if trial.result is None:
-        page = TrialPage(trial=trial, patient=patient, job=jobs.latest_job(db, trial_id=trial.id))
+        page = TrialPage(
+            trial=trial, patient=patient, job=job_views.latest_job(db, trial_id=trial.id)
+        )
         audit(db, actor, "read", "trial", trial.id, patient.id)
         db.commit()
         return page

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views
 from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, NotFoundError
@@ -169,7 +169,7 @@ def review_page(
         data=data,
         videos=videos,
         corrections=corrections,
-        job=jobs.latest_job(db, trial_id=trial.id),
+        job=job_views.latest_job(db, trial_id=trial.id),
         not_carried=describe_corrections(
             Corrections.from_dict(doc.get("corrections_not_carried")), read.task
         ),

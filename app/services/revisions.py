@@ -33,7 +33,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views, jobs
 from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, InvalidRequestError, NotFoundError
@@ -197,7 +197,7 @@ def create_revision(
 def _queue_reanalysis(
     db: Session, actor: Actor, trial: Trial, data: RevisionCreate, change: dict[str, Any]
 ) -> RevisionOut:
-    running = jobs.latest_job(db, trial_id=trial.id)
+    running = job_views.latest_job(db, trial_id=trial.id)
     if running is not None and running.status in ("queued", "running"):
         raise ConflictError(
             f"An analysis of trial {trial.id} is already {running.status} (job {running.id});"

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views, jobs
 from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit
 from app.errors import AppError, InvalidRequestError
@@ -158,7 +158,7 @@ def session_overview(db: Session, actor: Actor, session_id: int) -> SessionOverv
     """The session page (audited as a read of the session)."""
     row = load_session(db, actor, session_id, "read")
     trials = [t for t in row.trials if t.deleted_at is None]
-    newest = jobs.latest_jobs(db, trial_ids=[t.id for t in trials])
+    newest = job_views.latest_jobs(db, trial_ids=[t.id for t in trials])
     calibration, problem = None, None
     try:
         calibration = calibration_for(db, row)

@@ -21,7 +21,7 @@ from sqlalchemy import and_, func, or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views, jobs
 from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, InvalidRequestError, NotFoundError, PermissionDeniedError
@@ -155,7 +155,7 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
     session = load_session(db, actor, session_id, "create")
     stored = _stored_take(db, session.id, take_id)
     if stored is not None:
-        job = jobs.latest_job(db, trial_id=stored.id)
+        job = job_views.latest_job(db, trial_id=stored.id)
         audit(db, actor, "read", "trial", stored.id, session.patient_id)
         db.commit()
         return TrialOut(trial=stored, job_id=job.id if job else 0, stored_before=True)
@@ -204,7 +204,7 @@ def audit_rejected_upload(db: Session, actor: Actor, session_id: int) -> None:
 
 def trial_view(db: Session, trial: Trial) -> dict[str, Any]:
     """The ``TrialRead`` fields of a trial."""
-    job = jobs.latest_job(db, trial_id=trial.id)
+    job = job_views.latest_job(db, trial_id=trial.id)
     return {
         "id": trial.id,
         "session_id": trial.session_id,

@@ -19,7 +19,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views
 from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
@@ -202,7 +202,7 @@ async def trial_upload(request: Request, session_id: int) -> Response:
 
 def _job_view(db: Session, job: Job) -> dict[str, Any]:
     """What the job page and its polling script show of a job."""
-    view = jobs.job_status(db, job.id) or {}
+    view = job_views.job_status(db, job.id) or {}
     out = {
         key: view.get(key)
         for key in (

@@ -8,7 +8,7 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import func, select
 
-from app import jobs
+from app import job_views, jobs
 from app.jobs import LeaseLostError
 from app.models import Job, Patient, RecordingSession, Result, Rig, Trial, utcnow
 from app.services import trials
@@ -131,6 +131,9 @@ def test_retryable_failures_are_bounded(db_sessionmaker):
     assert (job.status, job.error) == ("failed", "boom 2") and job.finished_at is not None
     with sm() as db:
         assert db.get(Trial, trial_id).status == "failed"
+    # Only the failure for good queues the reports of the trial's visit, which waited for it.
+    report = _claim(sm)
+    assert report is not None and (report.kind, report.trial_id) == (jobs.REPORT_PDF, trial_id)
     assert _claim(sm) is None
 
 
@@ -167,6 +170,8 @@ def test_reap_fails_jobs_whose_worker_died_on_the_last_attempt(db_sessionmaker):
     assert job.status == "failed" and "stopped 1 times" in job.error
     with sm() as db:
         assert db.get(Trial, trial_id).status == "failed"
+        reports = db.scalars(select(Job).where(Job.kind == jobs.REPORT_PDF)).all()
+        assert [(r.trial_id, r.status) for r in reports] == [(trial_id, "queued")]
 
 
 def test_concurrent_claims_on_sqlite_never_share_a_job(db_sessionmaker):
@@ -199,14 +204,14 @@ def test_job_status_view(db_sessionmaker):
     with sm() as db, db.begin():
         job_id = jobs.enqueue(db, "calibrate").id
     with sm() as db:
-        view = jobs.job_status(db, job_id)
+        view = job_views.job_status(db, job_id)
         assert (view["status"], view["progress"], view["stage"], view["error"]) == (
             "queued",
             0.0,
             None,
             None,
         )
-        assert jobs.job_status(db, 999) is None
+        assert job_views.job_status(db, 999) is None
 
 
 def test_enqueue_validates_arguments(db_session):
@@ -266,8 +271,8 @@ def test_a_report_job_is_no_trials_latest_job_and_leaves_its_status(db_sessionma
         analysis = jobs.enqueue(db, "analyze_trial", trial_id=trial_id).id
         report = jobs.enqueue(db, jobs.REPORT_PDF, trial_id=trial_id, max_attempts=1).id
     with sm() as db:
-        assert jobs.latest_job(db, trial_id=trial_id).id == analysis
-        assert jobs.latest_jobs(db, trial_ids=[trial_id])[trial_id].id == analysis
+        assert job_views.latest_job(db, trial_id=trial_id).id == analysis
+        assert job_views.latest_jobs(db, trial_ids=[trial_id])[trial_id].id == analysis
     claimed = _claim(sm, kinds=(jobs.REPORT_PDF,))
     assert claimed.id == report
     with sm() as db:

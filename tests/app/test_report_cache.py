@@ -27,7 +27,7 @@ from sqlalchemy import select
 from test_revisions import _trial
 
 import app.services.results as results_service
-from app import jobs
+from app import job_views, jobs
 from app.db import dispose_engines, get_sessionmaker
 from app.main import create_app
 from app.models import AuditEvent, Calibration, Job, Result, Trial, utcnow
@@ -131,7 +131,7 @@ def test_the_worker_makes_the_pdf_and_the_request_serves_it(db_api: Api, video_p
     assert api.client.get(f"/api/v1/trials/{trial_id}", headers=api.headers).json()["job_id"]
     with api.sessions() as db:
         assert db.get(Trial, trial_id).status == "succeeded"
-        analysis = jobs.latest_job(db, trial_id=trial_id)
+        analysis = job_views.latest_job(db, trial_id=trial_id)
         assert analysis is not None and analysis.kind == "analyze_trial"
 
     assert run_worker(api.settings, once=True) == 1
@@ -273,6 +273,79 @@ def test_the_other_hand_measured_makes_the_first_hands_report_again(api: Api, vi
     assert made == [first, second, first]  # its own report, then the left hand's again
     after = _pdf(api, first)
     assert after != before and len(made) == 3  # found made
+
+
+def _second_hand(api: Api, video_pair, first: int) -> int:
+    """The other hand of ``first``'s session, uploaded: its analysis is queued."""
+    with api.sessions() as db:
+        session_id = db.get(Trial, first).session_id
+    r = api.client.post(
+        f"/api/v1/sessions/{session_id}/trials",
+        data={"hand": "right"},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == 201, r.text
+    return int(r.json()["id"])
+
+
+def test_a_visits_reports_wait_for_its_pending_analysis(db_api: Api, video_pair, made):
+    """While an analysis of the visit is queued or running, a report job makes nothing
+    (the analysis would change the reports again); the analysis's own report job then
+    makes the visit's reports, each once."""
+    api = db_api
+    first = _measured_trial(api, video_pair)
+    second = _second_hand(api, video_pair, first)
+    r = api.client.patch(
+        f"/api/v1/trials/{first}", json={"clinician_rating": 2}, headers=api.headers
+    )
+    assert r.status_code == 200 and _queued_reports(api) == [first]
+    assert run_worker(api.settings, max_jobs=1) == 1  # reports first: the rating's job
+    assert made == [] and _queued_reports(api) == [] and _cache(api).files() == []
+    markers, document = synthetic_trial(amplitude0_mm=40.0)
+    storage = Storage.from_settings(api.settings)
+    stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
+    with api.sessions() as db, db.begin():  # what the worker stores after measuring it
+        job = db.scalars(select(Job).where(Job.trial_id == second)).one()
+        job.status = "succeeded"
+        db.get(Trial, second).status = "succeeded"
+        revisions.store_analysis(
+            db,
+            trial_id=second,
+            job_id=job.id,
+            calibration_id=db.scalar(select(Calibration.id)),
+            document=document,
+            markers_path=stored.path,
+            overlay_path=None,
+            plots_path=revisions.store_plots(storage, document, markers),
+        )
+    assert _queued_reports(api) == [second]
+    assert run_worker(api.settings, once=True) == 1
+    assert made == [second, first]  # its own first, then the rest of the visit
+    first_pdf = _pdf(api, first)
+    assert _pdf(api, second) != first_pdf and made == [second, first]  # both found made
+
+
+def test_an_analysis_that_fails_for_good_lets_its_visits_reports_be_made(
+    api: Api, video_pair, made
+):
+    first = _measured_trial(api, video_pair)
+    second = _second_hand(api, video_pair, first)
+    api.client.patch(f"/api/v1/trials/{first}", json={"comment": "x"}, headers=api.headers)
+    assert run_worker(api.settings, max_jobs=1) == 1
+    assert made == []  # waits for the second hand's analysis
+    claimed = jobs.claim_next(api.sessions, worker_name="w", lease_s=60.0, kinds=("analyze_trial",))
+    assert claimed is not None and claimed.trial_id == second
+    assert jobs.fail(api.sessions, claimed, "No markers.", retryable=True) == "queued"
+    assert _queued_reports(api) == []  # it will be tried again: still pending
+    claimed = jobs.claim_next(api.sessions, worker_name="w", lease_s=60.0, kinds=("analyze_trial",))
+    assert claimed is not None
+    assert jobs.fail(api.sessions, claimed, "No markers.", retryable=False) == "failed"
+    assert _queued_reports(api) == [second]
+    assert run_worker(api.settings, once=True) == 1
+    assert made == [first]  # the second hand has no result, so no report
+    _pdf(api, first)
+    assert made == [first]
 
 
 def test_without_the_workers_copy_the_request_makes_the_pdf_and_keeps_it(
