@@ -1,41 +1,60 @@
-"""Demo data for ``bradyscope serve --demo``: a clinician, a rig, a patient followed for two years.
+"""Demo data for ``bradyscope serve --demo``: a clinician, rigs, a patient followed for two years.
 
 :func:`seed_demo` creates (once; it is idempotent):
 
 - a clinician account ``demo@example.org`` whose random password is kept in
   ``<data_dir>/demo-credentials.txt`` (mode 600) and printed at every start;
-- a rig ``demo-rig`` calibrated with the simulator's true rig (640 x 512 px);
+- a rig ``demo-rig`` calibrated with the simulator's true rig (640 x 512 px),
+  and the same cameras placed for the feet (``demo-rig-feet``, toe tapping) and
+  for the legs (``demo-rig-legs``, leg agility) as docs/protocols.md asks,
+  each calibrated the same way;
 - a patient ``DEMO-0001`` with visits over two years, each with a session OFF
-  medication and one ON medication: tapping gets smaller, slower, decrements
-  more and hesitates more as the disease progresses, the right hand more than
-  the left, and medication ON improves it;
-- one trial per hand and session, made from a real simulated stereo recording
-  (640 x 512 px, 60 fps, 6 s, MPEG-4) uploaded through the service's own trial
-  use case, so the worker measures it like any upload.
+  medication and one ON medication: finger tapping gets smaller, slower,
+  decrements more and hesitates more as the disease progresses, the right hand
+  more than the left, and medication ON improves it;
+- one finger-tapping trial per hand and session, and at the last visit, OFF
+  medication, the other items of the examination (hand movements,
+  pronation–supination, toe tapping, leg agility) on the more affected right
+  side, each made from a real simulated stereo recording (640 x 512 px, 60 fps,
+  6 s, MPEG-4) uploaded through the service's own trial use case (the feet and
+  legs with their own rig), so the worker measures it like any upload.
 
-The recordings are simulated in a background thread, most useful first (the
-right hand OFF medication at every visit, so that the trend appears early),
-so the pages fill while the server runs. Restarting only adds what is missing.
+What the patient does and how it is simulated is :mod:`app.demo_plan`. The
+recordings are simulated in a background thread, most useful first (the
+right hand OFF medication at every visit, so that the trend appears early;
+the other tasks last), so the pages fill while the server runs. Restarting
+only adds what is missing.
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import secrets
 import shutil
 import tempfile
 import threading
-from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.actors import ROLE_SCOPES, Actor
 from app.db import get_sessionmaker
+from app.demo_plan import (
+    VISITS,
+    DemoTrial,
+    DemoVisit,
+    SimulationStopped,
+    demo_rating,
+    demo_trials,
+    should_stop,
+    simulate_trial,
+    true_rig_doc,
+)
 from app.models import Calibration, Patient, RecordingSession, Rig, Trial, User
 from app.passwords import hash_password, verify_password
 from app.schemas import TrialRatingUpdate
@@ -43,93 +62,27 @@ from app.services.trials import create_trial, rate_trial
 from app.settings import Settings
 from app.storage import Storage
 from app.uploads import ParsedUpload, StagedFile
-from core.camera import ImageSize, rig_to_dict
-from core.simulation.kinematics import TappingScenario
-from core.simulation.rig import default_rig
-from core.simulation.session import ImagingScenario, simulate_session
+from core.tasks import Task
 
 log = logging.getLogger(__name__)
 
 DEMO_EMAIL = "demo@example.org"
 DEMO_PATIENT = "DEMO-0001"
 DEMO_RIG = "demo-rig"
+#: The demo's other rigs: the same cameras placed as the feet and the legs need them
+#: (core.simulation.tasks.rig_geometry); the hand tasks use ``DEMO_RIG``.
+DEMO_TASK_RIGS: dict[Task, tuple[str, str]] = {
+    Task.TOE_TAPPING: (
+        "demo-rig-feet",
+        "The demo's cameras placed for toe tapping: lower, 400 mm apart, 800 mm from the foot.",
+    ),
+    Task.LEG_AGILITY: (
+        "demo-rig-legs",
+        "The demo's cameras placed for leg agility: at knee height, 700 mm apart, 1 m away.",
+    ),
+}
 CREDENTIALS_FILE = "demo-credentials.txt"
-IMAGE_SIZE = (640, 512)  # px, (width, height)
-# Small recordings, so that the whole demo is measured within a couple of minutes: 6 s
-# (10 or more taps at every planned frequency), 60 fps, MPEG-4 Part 2 (about 1 MB a video).
-FPS = 60.0  # Hz
-CLIP_S = 6.0  # s
-CODEC = "mp4v"
-
 _threads: list[threading.Thread] = []
-
-
-@dataclass(frozen=True)
-class DemoTrial:
-    """One simulated trial of the demo: who taps how (all lengths in mm, rates in Hz)."""
-
-    visit: int
-    medication_state: str
-    hand: str
-    amplitude_mm: float
-    frequency_hz: float
-    decrement_mm_per_tap: float
-    hesitations: tuple[int, ...] = ()
-    halts: tuple[tuple[int, float], ...] = ()
-    seed: int = 0
-
-
-@dataclass(frozen=True)
-class DemoVisit:
-    """A clinic visit: months before today, the clinician's 3.4 ratings of the right hand
-    (off, on; the left hand, less affected, one lower), notes."""
-
-    months_ago: int
-    rating_off: int
-    rating_on: int
-    note: str
-
-
-VISITS: tuple[DemoVisit, ...] = (
-    DemoVisit(24, 1, 0, "First instrumented assessment; symptoms mainly right-sided."),
-    DemoVisit(12, 2, 1, "Slower tapping on the right; levodopa dose increased."),
-    DemoVisit(1, 3, 1, "Clear decrement and hesitations off medication."),
-)
-
-
-def demo_trials() -> list[DemoTrial]:
-    """The demo's trials, in the order they are simulated (most informative first)."""
-    trials = []
-    # (amplitude, frequency, decrement, hesitations, halts) OFF medication per visit.
-    right_off = [
-        (48.0, 3.0, -0.3, (), ()),
-        (40.0, 2.6, -0.7, (7,), ()),
-        (32.0, 2.2, -1.1, (3, 6), ((5, 0.5),)),  # pauses that fit in a 6-s clip
-    ]
-    left_off = [
-        (52.0, 3.2, -0.1, (), ()),
-        (48.0, 3.0, -0.3, (), ()),
-        (43.0, 2.7, -0.5, (8,), ()),
-    ]
-    seed = 100
-    for visit in range(len(VISITS)):
-        for hand, table in (("right", right_off), ("left", left_off)):
-            amp, freq, dec, hes, halts = table[visit]
-            for med in ("off", "on"):
-                hes_m: tuple[int, ...]
-                halts_m: tuple[tuple[int, float], ...]
-                if med == "on":  # levodopa: bigger, faster, less decrement, fewer pauses
-                    amp_m, freq_m, dec_m = amp + 7.0, freq + 0.4, dec * 0.5
-                    hes_m, halts_m = (hes[:1] if len(hes) > 1 else ()), ()
-                else:
-                    amp_m, freq_m, dec_m, hes_m, halts_m = amp, freq, dec, hes, halts
-                seed += 1
-                trials.append(
-                    DemoTrial(visit, med, hand, amp_m, freq_m, dec_m, hes_m, halts_m, seed)
-                )
-    priority = {("right", "off"): 0, ("right", "on"): 1, ("left", "off"): 2, ("left", "on"): 3}
-    trials.sort(key=lambda t: (priority[(t.hand, t.medication_state)], t.visit))
-    return trials
 
 
 def _password(settings: Settings) -> tuple[str, bool]:
@@ -145,13 +98,6 @@ def _password(settings: Settings) -> tuple[str, bool]:
     with os.fdopen(fd, "w", encoding="utf-8") as fh:
         fh.write(f"email: {DEMO_EMAIL}\npassword: {password}\n")
     return password, True
-
-
-def _demo_rig_doc() -> dict[str, Any]:
-    doc = rig_to_dict(default_rig(image_size=ImageSize(*IMAGE_SIZE)))
-    # The demo videos are rendered with exactly this rig: its error is zero by construction.
-    doc["quality"] = {"rms_px": 0.0, "source": "the simulator's true rig (exact; demo only)"}
-    return doc
 
 
 def _visit_tag(i: int) -> str:
@@ -179,26 +125,19 @@ def _seed_rows(db: Session, settings: Settings, now: datetime) -> dict[str, Any]
         db.add(user)
     elif not verify_password(user.password_hash, password):
         user.password_hash = hash_password(password)  # the file is the source of truth
-    rig = db.scalars(select(Rig).where(Rig.name == DEMO_RIG)).first()
-    if rig is None:
-        rig = Rig(name=DEMO_RIG, description="Simulated two-camera rig of the demo (640 x 512 px).")
-        db.add(rig)
     db.flush()
-    if not any(c.status == "ready" for c in rig.calibrations):
-        doc = _demo_rig_doc()
-        db.add(
-            Calibration(
-                rig_id=rig.id,
-                version=1 + max((c.version for c in rig.calibrations), default=0),
-                valid_from=now - timedelta(days=3 * 365),
-                rig_json=doc,
-                rms_px=doc["quality"]["rms_px"],
-                quality=doc["quality"],
-                source="rig_file",
-                status="ready",
-                created_by_user_id=user.id,
-            )
-        )
+    rig = _calibrated_rig(
+        db,
+        DEMO_RIG,
+        "Simulated two-camera rig of the demo (640 x 512 px).",
+        Task.FINGER_TAPPING,
+        user.id,
+        now,
+    )
+    task_rigs = {
+        task: _calibrated_rig(db, name, description, task, user.id, now).id
+        for task, (name, description) in DEMO_TASK_RIGS.items()
+    }
     patient = db.scalars(select(Patient).where(Patient.code == DEMO_PATIENT)).first()
     if patient is None:
         patient = Patient(code=DEMO_PATIENT, birth_year=1958, sex="male", notes="Demo patient.")
@@ -244,7 +183,36 @@ def _seed_rows(db: Session, settings: Settings, now: datetime) -> dict[str, Any]
                 db.flush()
             sessions[(i, med)] = found.id
     db.commit()
-    return {"user_id": user.id, "password": password, "sessions": sessions}
+    return {"user_id": user.id, "password": password, "sessions": sessions, "rigs": task_rigs}
+
+
+def _calibrated_rig(
+    db: Session, name: str, description: str, task: Task, user_id: int, now: datetime
+) -> Rig:
+    """The demo rig ``name``, with a ready calibration: the simulator's true rig placed for
+    ``task``."""
+    rig = db.scalars(select(Rig).where(Rig.name == name)).first()
+    if rig is None:
+        rig = Rig(name=name, description=description)
+        db.add(rig)
+        db.flush()
+    if not any(c.status == "ready" for c in rig.calibrations):
+        doc = true_rig_doc(task)
+        db.add(
+            Calibration(
+                rig_id=rig.id,
+                version=1 + max((c.version for c in rig.calibrations), default=0),
+                valid_from=now - timedelta(days=3 * 365),
+                rig_json=doc,
+                rms_px=doc["quality"]["rms_px"],
+                quality=doc["quality"],
+                source="rig_file",
+                status="ready",
+                created_by_user_id=user_id,
+            )
+        )
+        db.flush()
+    return rig
 
 
 def _missing_trials(
@@ -257,90 +225,13 @@ def _missing_trials(
             select(Trial.id).where(
                 Trial.session_id == session_id,
                 Trial.hand == trial.hand,
+                Trial.task == trial.task.value,
                 Trial.deleted_at.is_(None),
             )
         ).first()
         if exists is None:
             out.append((trial, session_id))
     return out
-
-
-class _Stopped(Exception):
-    """The server is shutting down: stop simulating."""
-
-
-def _should_stop(stop_event: threading.Event | None) -> bool:
-    # The generator thread is not a daemon (a daemon killed inside the video
-    # encoder aborts the process); it stops by itself once the main thread
-    # (the server) has ended, or when asked to.
-    return (
-        stop_event is not None and stop_event.is_set()
-    ) or not threading.main_thread().is_alive()
-
-
-def pauses_that_fit(
-    trial: DemoTrial, clip_s: float
-) -> tuple[tuple[int, ...], tuple[tuple[int, float], ...]]:
-    """The trial's hesitations and halts that leave at least two taps after them in ``clip_s``.
-
-    The taps fit in the clip less its still lead-in and tail (about 0.8 s) and
-    the pauses before them; a 10 % margin covers the simulated rhythm's jitter.
-    """
-    hesitation_s = TappingScenario.hesitation_s
-    period_s = 1.0 / trial.frequency_hz
-    pauses = sorted(
-        [(k, hesitation_s, "hesitation") for k in trial.hesitations]
-        + [(k, d, "halt") for k, d in trial.halts]
-    )
-    lost_s = 0.0
-    hesitations: list[int] = []
-    halts: list[tuple[int, float]] = []
-    for k, duration_s, kind in pauses:
-        taps_that_fit = 0.9 * (clip_s - 0.8 - lost_s - duration_s) / period_s
-        if k >= taps_that_fit - 2:
-            continue
-        lost_s += duration_s
-        if kind == "hesitation":
-            hesitations.append(k)
-        else:
-            halts.append((k, duration_s))
-    return tuple(hesitations), tuple(halts)
-
-
-def _simulate(
-    trial: DemoTrial, out_dir: Path, *, clip_s: float, stop_event: threading.Event | None = None
-) -> tuple[Path, Path]:
-    hesitations, halts = pauses_that_fit(trial, clip_s)
-
-    def progress(stage: str, done: int, total: int) -> None:
-        if _should_stop(stop_event):
-            raise _Stopped
-
-    sim = simulate_session(
-        out_dir,
-        seed=trial.seed,
-        progress=progress,
-        tapping=TappingScenario(
-            duration_s=clip_s,
-            fps=FPS,
-            amplitude_mm=trial.amplitude_mm,
-            frequency_hz=trial.frequency_hz,
-            decrement_mm_per_tap=trial.decrement_mm_per_tap,
-            amplitude_jitter=0.04,
-            hesitations=hesitations,
-            halts=halts,
-            hand=trial.hand,
-        ),
-        imaging=ImagingScenario(image_size=ImageSize(*IMAGE_SIZE), codec=CODEC),
-    )
-    return sim.left_video, sim.right_video
-
-
-def demo_rating(trial: DemoTrial) -> int:
-    """The clinician's 3.4 rating of a demo trial: the visit's for the right hand, one lower left."""
-    visit = VISITS[trial.visit]
-    rating = visit.rating_off if trial.medication_state == "off" else visit.rating_on
-    return rating if trial.hand == "right" else max(0, rating - 1)
 
 
 def _upload_trial(
@@ -351,10 +242,18 @@ def _upload_trial(
     left: Path,
     right: Path,
     rating: int | None = None,
+    *,
+    task: Task = Task.FINGER_TAPPING,
+    rig_id: int | None = None,
 ) -> int:
-    """Store the two videos through the service's trial use case; returns the job id."""
+    """Store the two videos through the service's trial use case; returns the job id.
+
+    ``rig_id``: the rig that recorded them, when not the session's."""
     storage = Storage.from_settings(settings)
-    upload = ParsedUpload(storage, fields={"hand": hand})
+    fields = {"hand": hand, "task": task.value}
+    if rig_id is not None:
+        fields["rig_id"] = str(rig_id)
+    upload = ParsedUpload(storage, fields=fields)
     try:
         for name, path in (("left_video", left), ("right_video", right)):
             incoming = storage.receive("videos", path.suffix, max_bytes=settings.max_upload_bytes)
@@ -384,52 +283,123 @@ def generate_recordings(
     user_id: int,
     todo: list[tuple[DemoTrial, int]],
     *,
-    clip_s: float = CLIP_S,
+    clip_s: float | None = None,
     stop_event: threading.Event | None = None,
     start: threading.Event | None = None,
+    rigs: dict[Task, int] | None = None,
 ) -> int:
     """Simulate and upload the given demo trials one by one; returns how many were queued.
 
+    ``rigs``: the rig of each task not recorded by the session's (``DEMO_TASK_RIGS``).
     With ``start``, waits until it is set (or the server has ended) before the first.
+    The recordings are simulated in a child process (:class:`_Simulator`).
     """
+    rigs = rigs or {}
     while start is not None and not start.wait(0.2):
-        if _should_stop(stop_event):
+        if should_stop(stop_event):
             return 0
     work = Path(settings.data_dir) / "tmp"
     work.mkdir(parents=True, exist_ok=True)
     done = 0
-    for trial, session_id in todo:
-        if _should_stop(stop_event):
-            break
-        tmp = Path(tempfile.mkdtemp(prefix="demo-", dir=work))
-        try:
-            left, right = _simulate(trial, tmp, clip_s=clip_s, stop_event=stop_event)
-            job_id = _upload_trial(
-                settings, user_id, session_id, trial.hand, left, right, demo_rating(trial)
+    simulator = _Simulator(stop_event)
+    try:
+        for trial, session_id in todo:
+            if should_stop(stop_event):
+                break
+            queued = _prepare_one(
+                settings, user_id, trial, session_id, work, simulator, clip_s, rigs
             )
-            log.info(
-                "demo: queued visit %d, %s hand, medication %s (job %d)",
-                trial.visit,
-                trial.hand,
-                trial.medication_state,
-                job_id,
-            )
-            done += 1
-        except _Stopped:
-            log.info("demo: stopped; the remaining recordings are made at the next start")
-            break
-        except Exception:
-            log.exception("demo: could not prepare a simulated recording; skipping it")
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+            if queued is None:
+                break
+            done += queued
+    finally:
+        simulator.close()
     return done
+
+
+class _Simulator:
+    """Simulates demo recordings in one child process, started at the first.
+
+    The simulation is mostly Python (rendering each frame): in the server's process it
+    would hold the interpreter's lock against the embedded workers measuring the
+    recordings already made, and both would crawl (an analysis took ~3x as long while the
+    demo was being simulated: ``bench/bench_startup.py``). ``stop_event`` (or the end of
+    the server) stops it at once: the child is terminated.
+    """
+
+    def __init__(self, stop_event: threading.Event | None) -> None:
+        self.stop_event = stop_event
+        self._pool: Any = None
+
+    def simulate(self, trial: DemoTrial, out_dir: Path, clip_s: float | None) -> tuple[Path, Path]:
+        if self._pool is None:
+            self._pool = multiprocessing.get_context("spawn").Pool(1)
+        pending = self._pool.apply_async(simulate_trial, (trial, out_dir), {"clip_s": clip_s})
+        while True:
+            try:
+                return cast(tuple[Path, Path], pending.get(timeout=0.2))
+            except multiprocessing.TimeoutError:
+                if should_stop(self.stop_event):
+                    self.close()  # before the caller removes the files the child writes
+                    raise SimulationStopped from None
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+
+
+def _prepare_one(
+    settings: Settings,
+    user_id: int,
+    trial: DemoTrial,
+    session_id: int,
+    work: Path,
+    simulator: _Simulator,
+    clip_s: float | None,
+    rigs: dict[Task, int],
+) -> int | None:
+    """Simulate and upload one demo trial: 1 when queued, 0 when it failed (logged), None
+    when asked to stop."""
+    tmp = Path(tempfile.mkdtemp(prefix="demo-", dir=work))
+    try:
+        left, right = simulator.simulate(trial, tmp, clip_s)
+        job_id = _upload_trial(
+            settings,
+            user_id,
+            session_id,
+            trial.hand,
+            left,
+            right,
+            demo_rating(trial),
+            task=trial.task,
+            rig_id=rigs.get(trial.task),
+        )
+        log.info(
+            "demo: queued visit %d, %s, %s side, medication %s (job %d)",
+            trial.visit,
+            trial.task.value,
+            trial.hand,
+            trial.medication_state,
+            job_id,
+        )
+        return 1
+    except SimulationStopped:
+        log.info("demo: stopped; the remaining recordings are made at the next start")
+        return None
+    except Exception:
+        log.exception("demo: could not prepare a simulated recording; skipping it")
+        return 0
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def seed_demo(
     settings: Settings,
     *,
     background: bool = True,
-    clip_s: float = CLIP_S,
+    clip_s: float | None = None,
     max_trials: int | None = None,
     now: datetime | None = None,
     start: threading.Event | None = None,
@@ -444,8 +414,9 @@ def seed_demo(
         Simulate the recordings in a background thread (default) so the server
         starts at once; it ends with the main thread. ``False`` simulates them
         before returning (tests).
-    clip_s : float
-        Length of each simulated recording (s).
+    clip_s : float, optional
+        Length of each simulated recording (s); default each trial's own (``clip_s``:
+        6 s, or what its ten cycles need).
     max_trials : int, optional
         Simulate at most this many of the missing trials (tests).
     start : threading.Event, optional
@@ -471,21 +442,24 @@ def seed_demo(
             thread = threading.Thread(
                 target=generate_recordings,
                 args=(settings, seeded["user_id"], todo),
-                kwargs={"clip_s": clip_s, "start": start},
+                kwargs={"clip_s": clip_s, "start": start, "rigs": seeded["rigs"]},
                 name="bradyscope-demo-recordings",
                 daemon=False,
             )
             thread.start()
             _threads.append(thread)
         else:
-            generate_recordings(settings, seeded["user_id"], todo, clip_s=clip_s)
+            generate_recordings(
+                settings, seeded["user_id"], todo, clip_s=clip_s, rigs=seeded["rigs"]
+            )
     n_total = len(demo_trials())
     lines = [
         "Open http://127.0.0.1:8000/ (or the --host/--port you gave) and log in with:",
         f"  e-mail:   {DEMO_EMAIL}",
         f"  password: {seeded['password']}",
         f"  (also in {Path(settings.data_dir) / CREDENTIALS_FILE})",
-        f"Demo patient {DEMO_PATIENT}: {len(VISITS)} visits over two years, medication off and on.",
+        f"Demo patient {DEMO_PATIENT}: {len(VISITS)} visits over two years, medication off and on;"
+        " finger tapping at each, the other tasks at the last.",
     ]
     if todo:
         lines.append(

@@ -82,7 +82,7 @@ def main() -> None:
     )
     args = parser.parse_args()
 
-    from app.demo import demo_trials
+    from app.demo_plan import demo_trials
 
     n_demo = len(demo_trials())
     if args.keep is not None:

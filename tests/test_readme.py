@@ -81,7 +81,7 @@ def test_the_readme_password_example_is_accepted() -> None:
 
 
 def test_the_demo_simulate_example_fits_the_demo_rig() -> None:
-    from app.demo import IMAGE_SIZE
+    from app.demo_plan import IMAGE_SIZE
 
     match = re.search(r"bradyscope simulate .*--size (\d+)x(\d+).*demo rig accepts", README)
     match = match or re.search(

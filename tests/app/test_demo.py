@@ -6,11 +6,13 @@ import itertools
 import re
 from datetime import UTC, datetime
 
+import pytest
 from sqlalchemy import func, select
 
-from app import demo
+from app import demo, demo_plan
 from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, User
 from app.passwords import verify_password
+from core.tasks import Task
 
 NOW = datetime(2026, 1, 15, 12, 0, tzinfo=UTC)
 
@@ -24,9 +26,10 @@ def _counts(db_sessionmaker) -> dict[str, int]:
 
 
 def test_the_planned_progression_is_realistic():
-    trials = demo.demo_trials()
-    assert len(trials) == len(demo.VISITS) * 2 * 2  # visits x medication x hands
-    assert len({t.seed for t in trials}) == len(trials)
+    everything = demo_plan.demo_trials()
+    trials = [t for t in everything if t.task is Task.FINGER_TAPPING]
+    assert len(trials) == len(demo_plan.VISITS) * 2 * 2  # visits x medication x hands
+    assert len({t.seed for t in everything}) == len(everything)
 
     def pick(hand, med):
         return sorted(
@@ -37,22 +40,34 @@ def test_the_planned_progression_is_realistic():
     for hand in ("left", "right"):
         off = pick(hand, "off")
         # Over the visits OFF medication: smaller, slower, more decrement, not fewer pauses.
-        assert all(a.amplitude_mm > b.amplitude_mm for a, b in itertools.pairwise(off))
+        assert all(a.amplitude > b.amplitude for a, b in itertools.pairwise(off))
         assert all(a.frequency_hz > b.frequency_hz for a, b in itertools.pairwise(off))
         assert all(
-            a.decrement_mm_per_tap > b.decrement_mm_per_tap for a, b in itertools.pairwise(off)
+            a.decrement_per_cycle > b.decrement_per_cycle for a, b in itertools.pairwise(off)
         )
         # Medication ON is better than OFF at every visit.
         for o, n in zip(off, pick(hand, "on"), strict=True):
-            assert n.amplitude_mm > o.amplitude_mm and n.frequency_hz > o.frequency_hz
+            assert n.amplitude > o.amplitude and n.frequency_hz > o.frequency_hz
             assert len(n.hesitations) + len(n.halts) <= len(o.hesitations) + len(o.halts)
-    # Every planned pause fits in the demo's clips (none is dropped to make them fit).
-    for t in trials:
-        assert demo.pauses_that_fit(t, demo.CLIP_S) == (t.hesitations, t.halts), t
+    # Every recording holds the ten cycles the items ask for, and every planned pause
+    # (none is dropped to make them fit), in 6 s or the half seconds more it needs.
+    for t in everything:
+        assert demo_plan.pauses_that_fit(t, t.clip_s) == (t.hesitations, t.halts), t
+        moving_s = t.clip_s - demo_plan.STILL_S - t.pauses_s
+        assert 0.9 * moving_s * t.frequency_hz >= demo_plan.CYCLES, t
+        assert t.clip_s == demo_plan.CLIP_S or 0.9 * (moving_s - 0.5) * t.frequency_hz < 10, t
     # The right hand is the more affected one at the last visit.
-    assert pick("right", "off")[-1].amplitude_mm < pick("left", "off")[-1].amplitude_mm
+    assert pick("right", "off")[-1].amplitude < pick("left", "off")[-1].amplitude
+    # The other items of the examination come last: once each, at the last visit, OFF
+    # medication, on the more affected side, each shrinking from cycle to cycle.
+    others = everything[len(trials) :]
+    assert [t.task for t in others] == [t for t in Task if t is not Task.FINGER_TAPPING]
+    assert {(t.visit, t.medication_state, t.hand) for t in others} == {
+        (len(demo_plan.VISITS) - 1, "off", "right")
+    }
+    assert all(t.decrement_per_cycle < 0 for t in others)
     # The right hand OFF medication is simulated first at every visit (trend appears first).
-    assert [(t.hand, t.medication_state) for t in trials[: len(demo.VISITS)]] == [
+    assert [(t.hand, t.medication_state) for t in trials[: len(demo_plan.VISITS)]] == [
         ("right", "off")
     ] * 3
 
@@ -64,18 +79,21 @@ def test_seed_demo_is_idempotent_and_its_trials_are_measured(app_settings, db_se
     password = re.search(r"password: (\S+)", text).group(1)
     assert demo.DEMO_EMAIL in text and demo.DEMO_PATIENT in text
     first = _counts(db_sessionmaker)
-    assert first["Patient"] == 1 and first["Rig"] == 1 and first["Calibration"] == 1
-    assert first["RecordingSession"] == 2 * len(demo.VISITS)
+    # the hands' rig, and the same cameras placed for the feet and for the legs
+    assert first["Patient"] == 1 and first["Rig"] == 3 and first["Calibration"] == 3
+    assert first["RecordingSession"] == 2 * len(demo_plan.VISITS)
     assert first["Trial"] == 1 and first["Job"] == 1
     with db_sessionmaker() as db:
         user = db.scalars(select(User).where(User.email == demo.DEMO_EMAIL)).one()
         assert verify_password(user.password_hash, password)
-        cal = db.scalars(select(Calibration)).one()
-        assert cal.status == "ready" and cal.rig_json["format"] == "bradyscope.rig/1"
+        cals = db.scalars(select(Calibration)).all()
+        assert all(c.status == "ready" for c in cals)
+        assert all(c.rig_json["format"] == "bradyscope.rig/1" for c in cals)
         sessions = db.scalars(select(RecordingSession).order_by(RecordingSession.recorded_at)).all()
         assert (sessions[-1].recorded_at - sessions[0].recorded_at).days > 600  # about two years
         assert {s.medication_state for s in sessions} == {"on", "off"}
-        assert all(cal.valid_from <= s.recorded_at for s in sessions)
+        assert all(c.valid_from <= s.recorded_at for s in sessions for c in cals)
+        assert {s.rig.name for s in sessions} == {demo.DEMO_RIG}
     # The file keeps the credentials, readable by the owner only.
     cred = app_settings.data_dir / demo.CREDENTIALS_FILE
     assert (cred.stat().st_mode & 0o777) == 0o600 and password in cred.read_text()
@@ -92,13 +110,47 @@ def test_seed_demo_is_idempotent_and_its_trials_are_measured(app_settings, db_se
         assert job.status == "succeeded", job.error
         result = db.scalars(select(Result)).one()
         metrics = result.document["metrics"]
-        planned = demo.demo_trials()[0]
+        planned = demo_plan.demo_trials()[0]
         # Within the metrics' tolerances on clean simulated video (a few mm, ~0.1 Hz).
         assert abs(metrics["frequency_hz"] - planned.frequency_hz) < 0.3  # Hz
         assert (
-            metrics["amplitude_mm_mean"] < planned.amplitude_mm + 3
+            metrics["amplitude_mm_mean"] < planned.amplitude + 3
         )  # mm; decrement shrinks later taps
         assert metrics["tap_count"] >= 6
+
+
+@pytest.mark.slow
+def test_the_feet_and_legs_are_recorded_with_their_rig_and_measured(app_settings, db_sessionmaker):
+    """Toe tapping and leg agility at the last visit: uploaded with the rig placed for them
+    (the hand tasks take the session's), measured by the real worker as planned."""
+    from app.worker import run_worker
+
+    demo.seed_demo(app_settings, background=False, max_trials=0, now=NOW)
+    with db_sessionmaker() as db:
+        sessions = {(i, med): s.id for i, med, s in _sessions(db)}
+        todo = [
+            (t, s) for t, s in demo._missing_trials(db, sessions) if t.task in demo.DEMO_TASK_RIGS
+        ]
+        rigs = {r.name: r.id for r in db.scalars(select(Rig))}
+    assert len(todo) == 2
+    task_rigs = {task: rigs[name] for task, (name, _) in demo.DEMO_TASK_RIGS.items()}
+    assert demo.generate_recordings(app_settings, 1, todo, clip_s=4.0, rigs=task_rigs) == 2
+    run_worker(app_settings, once=True)
+    with db_sessionmaker() as db:
+        for planned, _ in todo:
+            trial = db.scalars(select(Trial).where(Trial.task == planned.task.value)).one()
+            assert (trial.hand, trial.status) == ("right", "succeeded"), trial.task
+            assert trial.rig_id == task_rigs[planned.task], trial.task
+            assert trial.clinician_rating == 3
+            metrics = trial.result.document["metrics"]
+            # 4-s clips: the first cycles of the planned rhythm, shrinking as planned
+            assert abs(metrics["frequency_hz"] - planned.frequency_hz) < 0.1, trial.task  # Hz
+            first = planned.amplitude
+            assert first * 0.8 < metrics["amplitude_mean"] <= first * 1.02, trial.task
+            assert metrics["amplitude_decrement_per_cycle"] < 0, trial.task
+        # A restart finds them: it does not make them again.
+        missing = demo._missing_trials(db, sessions)
+        assert not [t for t, _ in missing if t.task in demo.DEMO_TASK_RIGS]
 
 
 def test_generation_stops_when_asked(app_settings, db_sessionmaker):
@@ -108,7 +160,7 @@ def test_generation_stops_when_asked(app_settings, db_sessionmaker):
     with db_sessionmaker() as db:
         sessions = {(i, med): s.id for i, med, s in _sessions(db)}
         todo = demo._missing_trials(db, sessions)
-    assert len(todo) == len(demo.demo_trials())
+    assert len(todo) == len(demo_plan.demo_trials())
     stop = threading.Event()
     stop.set()
     assert demo.generate_recordings(app_settings, 1, todo, clip_s=3.0, stop_event=stop) == 0
@@ -130,5 +182,5 @@ def test_a_running_simulation_stops_promptly(tmp_path):
 
     stop = threading.Event()
     stop.set()
-    with pytest.raises(demo._Stopped):
-        demo._simulate(demo.demo_trials()[0], tmp_path, clip_s=2.0, stop_event=stop)
+    with pytest.raises(demo_plan.SimulationStopped):
+        demo_plan.simulate_trial(demo_plan.demo_trials()[0], tmp_path, clip_s=2.0, stop_event=stop)
