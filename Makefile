@@ -43,7 +43,7 @@ test: deps-run deps-test $(STAMP)
 	$(BIN)/ruff check core app tests bench
 	$(BIN)/ruff format --check core app tests bench
 	$(BIN)/mypy
-	$(BIN)/pytest -n 2 --dist loadgroup --timeout 600 --durations=40
+	$(BIN)/pytest -n 2 --timeout 600 --durations=40
 
 ## deps-build: what creating .venv needs, if $(PYTHON) lacks it
 deps-build:

@@ -103,22 +103,3 @@ def simulated_session(run_once: Callable[..., Any]) -> Callable[..., Any]:
         return run_once(key, lambda out: simulate_session(out, seed=seed, **kwargs))
 
     return make
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Keep the tests that share a module-scoped fixture in one xdist worker.
-
-    ``make test`` runs ``pytest -n 2 --dist loadgroup``: every other test goes to whichever
-    worker is free, but a module-scoped fixture (a simulated recording and its analysis,
-    often tens of seconds) would otherwise be made once in each worker that runs one of its
-    tests. tests/core/test_pipeline_hands.py and test_task_pipeline.py on a 2-core machine
-    whose speed drifts, one run each: 374 s of CPU with ``--dist load``, 340 s grouped so,
-    259 s with ``--dist loadfile`` (the same grouping for these two files).
-    """
-    for item in items:
-        info = getattr(item, "_fixtureinfo", None)
-        if info is None:
-            continue
-        defs = info.name2fixturedefs.values()
-        if any(d and d[-1].scope == "module" for d in defs):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
