@@ -214,12 +214,10 @@ def simulate_trial(
         codec=CODEC,
         marker_diameter_mm=marker_diameter_mm(trial.task),
     )
+    scenario: dict[str, Any]
     if trial.task is Task.FINGER_TAPPING:
-        sim = simulate_session(
-            out_dir,
-            seed=trial.seed,
-            progress=progress,
-            tapping=TappingScenario(
+        scenario = {
+            "tapping": TappingScenario(
                 duration_s=clip_s,
                 fps=FPS,
                 amplitude_mm=trial.amplitude,
@@ -229,15 +227,11 @@ def simulate_trial(
                 hesitations=hesitations,
                 halts=halts,
                 hand=trial.hand,
-            ),
-            imaging=imaging,
-        )
+            )
+        }
     else:  # the rig placed for the task (rig_geometry), as the demo's rig of the task
-        sim = simulate_session(
-            out_dir,
-            seed=trial.seed,
-            progress=progress,
-            task=TaskScenario(
+        scenario = {
+            "task": TaskScenario(
                 task=trial.task,
                 duration_s=clip_s,
                 fps=FPS,
@@ -248,9 +242,9 @@ def simulate_trial(
                 hesitations=hesitations,
                 halts=halts,
                 side=trial.hand,
-            ),
-            imaging=imaging,
-        )
+            )
+        }
+    sim = simulate_session(out_dir, seed=trial.seed, progress=progress, imaging=imaging, **scenario)
     return sim.left_video, sim.right_video
 
 

@@ -55,7 +55,10 @@ def test_the_planned_progression_is_realistic():
         assert demo_plan.pauses_that_fit(t, t.clip_s) == (t.hesitations, t.halts), t
         moving_s = t.clip_s - demo_plan.STILL_S - t.pauses_s
         assert 0.9 * moving_s * t.frequency_hz >= demo_plan.CYCLES, t
-        assert t.clip_s == demo_plan.CLIP_S or 0.9 * (moving_s - 0.5) * t.frequency_hz < 10, t
+        assert (
+            t.clip_s == demo_plan.CLIP_S
+            or 0.9 * (moving_s - 0.5) * t.frequency_hz < demo_plan.CYCLES
+        ), t
     # The right hand is the more affected one at the last visit.
     assert pick("right", "off")[-1].amplitude < pick("left", "off")[-1].amplitude
     # The other items of the examination come last: once each, at the last visit, OFF

@@ -235,46 +235,6 @@ def test_every_change_of_what_the_report_shows_makes_a_new_pdf(
     assert "RESULT REVISION 3 — edited" in _text(seen[-1], tmp_path)
 
 
-def test_the_other_hand_measured_makes_the_first_hands_report_again(api: Api, video_pair, made):
-    """A trial's report shows the other hand of its visit beside it: when that one is
-    measured, the worker makes both reports, and the first hand's PDF is found made."""
-    first = _measured_trial(api, video_pair)  # the left hand
-    before = _pdf(api, first)
-    assert made == [first]
-    with api.sessions() as db:
-        session_id = db.get(Trial, first).session_id
-    r = api.client.post(
-        f"/api/v1/sessions/{session_id}/trials",
-        data={"hand": "right"},
-        files=trial_files(*video_pair),
-        headers=api.headers,
-    )
-    assert r.status_code == 201, r.text
-    second = int(r.json()["id"])
-    markers, document = synthetic_trial(amplitude0_mm=40.0)
-    storage = Storage.from_settings(api.settings)
-    stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
-    with api.sessions() as db, db.begin():  # what the worker stores after measuring it
-        job = db.get(Job, r.json()["job_id"])
-        job.status = "succeeded"
-        db.get(Trial, second).status = "succeeded"
-        revisions.store_analysis(
-            db,
-            trial_id=second,
-            job_id=job.id,
-            calibration_id=db.scalar(select(Calibration.id)),
-            document=document,
-            markers_path=stored.path,
-            overlay_path=None,
-            plots_path=revisions.store_plots(storage, document, markers),
-        )
-    assert _queued_reports(api) == [second]
-    assert run_worker(api.settings, once=True) == 1
-    assert made == [first, second, first]  # its own report, then the left hand's again
-    after = _pdf(api, first)
-    assert after != before and len(made) == 3  # found made
-
-
 def _second_hand(api: Api, video_pair, first: int) -> int:
     """The other hand of ``first``'s session, uploaded: its analysis is queued."""
     with api.sessions() as db:
@@ -287,6 +247,43 @@ def _second_hand(api: Api, video_pair, first: int) -> int:
     )
     assert r.status_code == 201, r.text
     return int(r.json()["id"])
+
+
+def _measure_as_the_worker(api: Api, trial_id: int) -> None:
+    """Store a result of ``trial_id`` and mark its analysis done, as the worker does after
+    measuring it (the same transaction queues its report job)."""
+    markers, document = synthetic_trial(amplitude0_mm=40.0)
+    storage = Storage.from_settings(api.settings)
+    stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
+    with api.sessions() as db, db.begin():
+        job = db.scalars(select(Job).where(Job.trial_id == trial_id)).one()
+        job.status = "succeeded"
+        db.get(Trial, trial_id).status = "succeeded"
+        revisions.store_analysis(
+            db,
+            trial_id=trial_id,
+            job_id=job.id,
+            calibration_id=db.scalar(select(Calibration.id)),
+            document=document,
+            markers_path=stored.path,
+            overlay_path=None,
+            plots_path=revisions.store_plots(storage, document, markers),
+        )
+
+
+def test_the_other_hand_measured_makes_the_first_hands_report_again(api: Api, video_pair, made):
+    """A trial's report shows the other hand of its visit beside it: when that one is
+    measured, the worker makes both reports, and the first hand's PDF is found made."""
+    first = _measured_trial(api, video_pair)  # the left hand
+    before = _pdf(api, first)
+    assert made == [first]
+    second = _second_hand(api, video_pair, first)
+    _measure_as_the_worker(api, second)
+    assert _queued_reports(api) == [second]
+    assert run_worker(api.settings, once=True) == 1
+    assert made == [first, second, first]  # its own report, then the left hand's again
+    after = _pdf(api, first)
+    assert after != before and len(made) == 3  # found made
 
 
 def test_a_visits_reports_wait_for_its_pending_analysis(db_api: Api, video_pair, made):
@@ -302,23 +299,7 @@ def test_a_visits_reports_wait_for_its_pending_analysis(db_api: Api, video_pair,
     assert r.status_code == 200 and _queued_reports(api) == [first]
     assert run_worker(api.settings, max_jobs=1) == 1  # reports first: the rating's job
     assert made == [] and _queued_reports(api) == [] and _cache(api).files() == []
-    markers, document = synthetic_trial(amplitude0_mm=40.0)
-    storage = Storage.from_settings(api.settings)
-    stored = storage.write_bytes("results", ".csv", markers_csv_text(markers).encode())
-    with api.sessions() as db, db.begin():  # what the worker stores after measuring it
-        job = db.scalars(select(Job).where(Job.trial_id == second)).one()
-        job.status = "succeeded"
-        db.get(Trial, second).status = "succeeded"
-        revisions.store_analysis(
-            db,
-            trial_id=second,
-            job_id=job.id,
-            calibration_id=db.scalar(select(Calibration.id)),
-            document=document,
-            markers_path=stored.path,
-            overlay_path=None,
-            plots_path=revisions.store_plots(storage, document, markers),
-        )
+    _measure_as_the_worker(api, second)
     assert _queued_reports(api) == [second]
     assert run_worker(api.settings, once=True) == 1
     assert made == [second, first]  # its own first, then the rest of the visit
