@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -56,18 +57,22 @@ def _hand_session(
     return session, analysis
 
 
-@pytest.fixture(scope="module")
-def skin(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
-    return _hand_session(tmp_path_factory.mktemp("skin"), ImageSize(1280, 1024))
+# Each recording and its analysis is made once per test run, in whichever xdist worker
+# asks first (``run_once``): the tests of one module may run in both workers.
 
 
 @pytest.fixture(scope="module")
-def small(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
-    return _hand_session(tmp_path_factory.mktemp("small"), ImageSize(640, 512))
+def skin(run_once: Any) -> tuple[SimulatedSession, Analysis]:
+    return run_once("hands-skin", lambda out: _hand_session(out, ImageSize(1280, 1024)))
 
 
 @pytest.fixture(scope="module")
-def overlap(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
+def small(run_once: Any) -> tuple[SimulatedSession, Analysis]:
+    return run_once("hands-small", lambda out: _hand_session(out, ImageSize(640, 512)))
+
+
+@pytest.fixture(scope="module")
+def overlap(run_once: Any) -> tuple[SimulatedSession, Analysis]:
     # closed marker centres 3 mm apart seen from the right camera (5-mm markers); 4 s with
     # a hesitation before tap 3 and a 0.5-s halt before tap 6, both closed (merged)
     tapping = TappingScenario(
@@ -77,17 +82,18 @@ def overlap(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession,
         hesitations=(3,),
         halts=((6, 0.5),),
     )
-    return _hand_session(
-        tmp_path_factory.mktemp("overlap"), ImageSize(1280, 1024), overlap_mm=3.0, tapping=tapping
+    return run_once(
+        "hands-overlap",
+        lambda out: _hand_session(out, ImageSize(1280, 1024), overlap_mm=3.0, tapping=tapping),
     )
 
 
 @pytest.fixture(scope="module")
-def occlusion(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
+def occlusion(run_once: Any) -> tuple[SimulatedSession, Analysis]:
     # closed marker centres 5.5 mm apart seen from the right camera: the index fingertip
     # hides up to ~3 % of the thumb marker there, their images do not touch
-    return _hand_session(
-        tmp_path_factory.mktemp("occlusion"), ImageSize(1280, 1024), overlap_mm=5.5
+    return run_once(
+        "hands-occlusion", lambda out: _hand_session(out, ImageSize(1280, 1024), overlap_mm=5.5)
     )
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -71,12 +72,18 @@ SCENARIOS = {
 
 @pytest.fixture(scope="module", params=list(SCENARIOS), ids=lambda t: t.value)
 def measured(
-    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+    request: pytest.FixtureRequest, run_once: Any
 ) -> tuple[Task, SimulatedSession, Analysis]:
+    """The task's recording and its analysis, made once per test run in whichever xdist
+    worker asks first (``run_once``)."""
     task: Task = request.param
+    return task, *run_once(f"task-pipeline-{task.value}", lambda out: _measure(task, out))
+
+
+def _measure(task: Task, out: Path) -> tuple[SimulatedSession, Analysis]:
     scenario = SCENARIOS[task]
     session = simulate_session(
-        tmp_path_factory.mktemp(task.value),
+        out,
         seed=17,
         task=scenario,
         # Leg agility's protocol markers (10 mm at 1 m); toe tapping's 5-mm ones are
@@ -92,7 +99,7 @@ def measured(
         task=task,
         side=scenario.side,
     )
-    return task, session, analysis
+    return session, analysis
 
 
 def test_markers_are_labelled_and_measured_to_0_05_mm(
