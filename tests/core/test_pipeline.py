@@ -18,6 +18,7 @@ import csv
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -51,8 +52,12 @@ def aperture_error_mm(analysis: Analysis, session: SimulatedSession) -> np.ndarr
 
 
 @pytest.fixture(scope="module")
-def messy(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
-    out = tmp_path_factory.mktemp("messy")
+def messy(run_once: Any) -> tuple[SimulatedSession, Analysis]:
+    """Made once per test run, in whichever xdist worker asks first (``run_once``)."""
+    return run_once("pipeline-messy", _messy)
+
+
+def _messy(out: Path) -> tuple[SimulatedSession, Analysis]:
     session = simulate_session(
         out,
         seed=21,
@@ -85,8 +90,12 @@ def messy(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, A
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSession, Analysis]:
-    out = tmp_path_factory.mktemp("clean")
+def clean(run_once: Any) -> tuple[SimulatedSession, Analysis]:
+    """Made once per test run, in whichever xdist worker asks first (``run_once``)."""
+    return run_once("pipeline-clean", _clean)
+
+
+def _clean(out: Path) -> tuple[SimulatedSession, Analysis]:
     session = simulate_session(
         out,
         seed=5,
