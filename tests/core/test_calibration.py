@@ -142,8 +142,12 @@ def test_opencv_stereo_sample_from_paths_with_progress(opencv_folders):
 
 
 @pytest.fixture(scope="module")
-def sim_dir(tmp_path_factory):
-    out = tmp_path_factory.mktemp("boards")
+def sim_dir(run_once):
+    """Made once per test run, in whichever xdist worker asks first (``run_once``)."""
+    return run_once("calibration-boards", _write_boards)
+
+
+def _write_boards(out):
     write_board_recordings(
         example_rig(),
         out,
@@ -157,8 +161,12 @@ def sim_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def sim(sim_dir):
-    """Per board kind: (true rig, board, collection, result)."""
+def sim(sim_dir, run_once):
+    """Per board kind: (true rig, board, collection, result); once per test run."""
+    return run_once("calibration-boards-calibrated", lambda _out: _calibrate_boards(sim_dir))
+
+
+def _calibrate_boards(sim_dir):
     out = {}
     for kind in ("chessboard", "charuco"):
         board = BoardSpec.from_dict(json.loads((sim_dir / f"{kind}.json").read_text()))
