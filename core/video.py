@@ -912,6 +912,33 @@ def iter_frames(
             )
 
 
+def _realtime_threads() -> set[int]:
+    """The ids of this process's threads that run under a real-time policy (FIFO or RR)."""
+    if not hasattr(os, "sched_getscheduler") or not os.path.isdir("/proc/self/task"):
+        return set()
+    found = set()
+    for name in os.listdir("/proc/self/task"):
+        with contextlib.suppress(ProcessLookupError):  # a thread that has ended meanwhile
+            if os.sched_getscheduler(int(name)) in (os.SCHED_FIFO, os.SCHED_RR):
+                found.add(int(name))
+    return found
+
+
+def _end_realtime_scheduling(before: set[int]) -> None:
+    """Put back under the normal policy the threads an encoder made real-time.
+
+    SVT-AV1 (``libsvtav1``) switches the thread that opens it to SCHED_FIFO at the
+    highest priority wherever it may (as root, in a container), and its own threads
+    inherit that: every later computation of the thread, and anything it starts, then
+    runs before everything else on its core. In a test run that turned a pytest worker
+    real-time, and a busy-waiting encoder of the same worker, with a browser on the
+    other core, stopped the machine's other work for minutes.
+    """
+    for tid in _realtime_threads() - before:
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+
+
 class VideoWriter:
     """Write frames to a video file, optionally with a capture time per frame.
 
@@ -1005,6 +1032,9 @@ class VideoWriter:
             stream.time_base = tb
             stream.codec_context.time_base = tb
             stream.options = {**options, **self._encoder_options}
+            realtime_before = _realtime_threads()
+            stream.codec_context.open()
+            _end_realtime_scheduling(realtime_before)
         except (av.FFmpegError, OSError, ValueError) as exc:
             raise InputError(
                 f"cannot write the video {self.path.name} with codec {codec}."

@@ -5,6 +5,7 @@ is read upright."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -573,3 +574,27 @@ def test_a_damaged_video_ends_where_opencv_ends_it(tmp_path, monkeypatch):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(InputError, match="truncated"):
         list(iter_frames(path, expected_count=4 * N, background=False))
+
+
+def _realtime_thread_ids() -> list[int]:
+    import os
+
+    return [
+        int(tid)
+        for tid in os.listdir("/proc/self/task")
+        if os.sched_getscheduler(int(tid)) in (os.SCHED_FIFO, os.SCHED_RR)
+    ]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="Linux's thread list")
+def test_writing_av1_leaves_no_thread_real_time(tmp_path):
+    """SVT-AV1 switches the thread that opens it to SCHED_FIFO at the highest priority where
+    it may (as root), and its threads inherit that: a test process that wrote AV1 once then
+    ran real-time, and with busy-waiting code beside it stopped the machine's other work.
+    The writer puts the threads back under the normal policy."""
+    assert _realtime_thread_ids() == []
+    with VideoWriter(tmp_path / "a.webm", fps=FPS, image_size=SIZE, codec="av1") as w:
+        for k in range(3):
+            w.write(np.full((SIZE.height, SIZE.width), 40 * k, np.uint8))
+        assert _realtime_thread_ids() == []  # the encoder's own threads too
+    assert _realtime_thread_ids() == []
