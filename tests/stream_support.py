@@ -40,3 +40,21 @@ def write_raw_h264(
         for packet in stream.encode():
             out.mux(packet)
     return n
+
+
+def raw_h264_from_mp4(src: Path, dst: Path) -> int:
+    """The H.264 stream of the MP4 ``src`` taken out of its container as it is (Annex B
+    start codes, as a camera writes a raw stream): the same frames, no rate and no
+    timestamps; returns how many frames were written."""
+    import av
+    from av.bitstream import BitStreamFilterContext
+
+    n = 0
+    with av.open(str(src)) as inp, open(dst, "wb") as out:
+        stream = inp.streams.video[0]
+        annex_b = BitStreamFilterContext("h264_mp4toannexb", stream)
+        for packet in inp.demux(stream):
+            for raw in annex_b.filter(None if packet.size == 0 else packet):
+                out.write(bytes(raw))
+                n += 1
+    return n

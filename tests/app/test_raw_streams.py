@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from api_support import Api, api, seed_recording_target  # noqa: F401 - fixtures
 from sqlalchemy import select
-from stream_support import write_raw_h264
+from stream_support import raw_h264_from_mp4
 
 from app.models import Result, Video
 from app.storage import Storage
@@ -51,17 +51,6 @@ def _simulated(out: Path) -> SimulatedSession:
     )
 
 
-def _raw_h264(src: Path, dst: Path) -> int:
-    """``src`` re-encoded by PyAV as a raw H.264 stream (no container: no rate, no timestamps)."""
-    import av
-
-    with av.open(str(src)) as inp:
-        frames = (frame.to_ndarray(format="gray") for frame in inp.decode(video=0))
-        return write_raw_h264(
-            dst, frames, size=SIZE, rate=25, options={"crf": "10", "preset": "veryfast"}
-        )
-
-
 def _times_csv(truth: dict[str, Any], side: str) -> bytes:
     """Each frame's capture time on its camera's own clock (what the capture page writes)."""
     stamps = 500.0 + np.asarray(truth["cameras"][side]["timestamps_s"])  # s
@@ -76,7 +65,7 @@ def test_raw_h264_streams_with_timestamps_files_are_measured_by_the_service(
     truth = sim.truth
     raw = {"left": tmp_path / "left.h264", "right": tmp_path / "right.h264"}
     for side, video in (("left", sim.left_video), ("right", sim.right_video)):
-        n = _raw_h264(video, raw[side])
+        n = raw_h264_from_mp4(video, raw[side])
         assert n == truth["cameras"][side]["frame_count"]
     session_id = seed_recording_target(
         api, rig_json=sim.rig_path.read_bytes(), patient_code="RAW-H264", rig_name="raw-streams"
