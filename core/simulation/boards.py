@@ -238,8 +238,9 @@ def render_board_view(
     # Ray (x, y, 1) meets the plane z_board = 0 at board point G @ (x, y, 1),
     # G = [r1 r2 t]^-1, in front of the camera where the third component is > 0.
     G = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], t]))
-    lo = crop.reshape(-1, 2).min(axis=0)
-    hi = crop.reshape(-1, 2).max(axis=0)
+    # channel by channel: numpy reduces an (N, 2) array along axis 0 about 20x slower
+    lo = np.array([crop[..., 0].min(), crop[..., 1].min()])
+    hi = np.array([crop[..., 0].max(), crop[..., 1].max()])
     box = np.array([[lo[0], lo[1], 1], [hi[0], lo[1], 1], [lo[0], hi[1], 1], [hi[0], hi[1], 1]])
     in_front = bool(np.all(box @ G[2] > 0))
     tpm = texture.texels_per_mm
@@ -283,7 +284,9 @@ def _finish(
         out = cv2.GaussianBlur(out, (0, 0), blur_sigma_px)
     if noise_std > 0:
         out += np.float32(noise_std) * rng.standard_normal(size=out.shape, dtype=np.float32)
-    result: NDArray[np.uint8] = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    np.rint(out, out=out)
+    np.clip(out, 0, 255, out=out)
+    result: NDArray[np.uint8] = out.astype(np.uint8)
     return result
 
 
