@@ -72,7 +72,10 @@ FAST_H264 = (("preset", "ultrafast"),)
 
 
 def _simulate_and_analyze(
-    name: str, out: Path, encoder_options: tuple[tuple[str, str], ...] = FAST_H264
+    name: str,
+    out: Path,
+    encoder_options: tuple[tuple[str, str], ...] = FAST_H264,
+    detector: Any = None,
 ) -> tuple[SimulatedSession, Analysis]:
     spec = SCENARIOS[name]
     tapping = replace(TAPPING, fps=spec.get("fps", 60.0))
@@ -89,10 +92,62 @@ def _simulate_and_analyze(
         ),
         rig=spec.get("rig"),
     )
-    analysis = analyze_recording(
-        read_rig(session.rig_path), session.left_video, session.right_video
+    return session, analyze_recording(
+        read_rig(session.rig_path), session.left_video, session.right_video, detector=detector
     )
-    return session, analysis
+
+
+def _rolling_both_ways(out: Path) -> tuple[SimulatedSession, tuple[Analysis, Analysis]]:
+    """The rolling-shutter case measured with its rig and as if the shutters were global
+    (readout_ms 0). The marker search does not depend on the rig: its answers in the first
+    analysis are replayed, checked call by call, in the second."""
+    detections = _RecordedDetector()
+    session, analysis = _simulate_and_analyze("rolling", out, detector=detections.record)
+    rig = read_rig(session.rig_path)
+    global_rig = StereoRig(replace(rig.left, readout_ms=0.0), replace(rig.right, readout_ms=0.0))
+    as_global = analyze_recording(
+        global_rig, session.left_video, session.right_video, detector=detections.replay
+    )
+    assert detections.all_replayed(), "the second analysis searched fewer frames"
+    return session, (analysis, as_global)
+
+
+class _RecordedDetector:
+    """The marker detector's answers in one analysis, replayed in a second analysis of the
+    same videos: each video is searched in its own thread (``detect-0``, ``detect-1``), in
+    frame order; a replayed call must ask for the same search points as the recorded one."""
+
+    def __init__(self) -> None:
+        import threading
+
+        from core.markers import _default_detector
+
+        self._real = _default_detector(None)
+        self._thread = threading.current_thread
+        self._calls: dict[str, list[tuple[Any, Any, Any]]] = {}
+        self._done: dict[str, int] = {}
+
+    def record(self, image: Any, pts: Any, radius: Any) -> Any:
+        out = self._real(image, pts, radius)
+        stored = None if pts is None else np.array(pts, copy=True)
+        self._calls.setdefault(self._thread().name, []).append((stored, radius, out))
+        return out
+
+    def replay(self, image: Any, pts: Any, radius: Any) -> Any:
+        name = self._thread().name
+        k = self._done.get(name, 0)
+        self._done[name] = k + 1
+        calls = self._calls[name]
+        assert k < len(calls), f"{name}: the second analysis searched more frames"
+        pts0, radius0, out = calls[k]
+        same = (pts0 is None and pts is None) or (
+            pts0 is not None and pts is not None and np.array_equal(pts0, pts)
+        )
+        assert same and radius0 == radius, f"{name}: frame {k} searched elsewhere"
+        return out
+
+    def all_replayed(self) -> bool:
+        return all(self._done.get(n, 0) == len(c) for n, c in self._calls.items())
 
 
 @pytest.fixture(scope="session")
@@ -100,7 +155,9 @@ def free_running(run_once) -> dict[str, Any]:
     """Each scenario simulated and analysed once per test run, whichever xdist worker asks
     first (``run_once`` in tests/conftest.py)."""
 
-    def get(name: str) -> tuple[SimulatedSession, Analysis]:
+    def get(name: str) -> Any:
+        if name == "rolling":  # (session, (analysis, analysis as if the shutters were global))
+            return run_once("free-running/rolling", _rolling_both_ways)
         return run_once(f"free-running/{name}", lambda out: _simulate_and_analyze(name, out))
 
     return {"get": get}
@@ -158,15 +215,13 @@ def test_lost_frames_are_found_and_almost_every_frame_is_measured(free_running):
 
 
 def test_rolling_shutter_is_compensated_with_readout_ms(free_running, tmp_path: Path):
-    session, analysis = free_running["get"]("rolling")
+    session, (analysis, plain) = free_running["get"]("rolling")
     rms, _, _ = _errors(session, analysis)
     assert analysis.sync["readout_ms"] == [15.0, 15.0]
     assert rms <= 0.1, f"3D RMS {rms:.3f} mm"  # mm
     _check_metrics(session, analysis)
     # Without readout_ms the same recording is measured worse (docs/sync.md states by how much).
-    rig = read_rig(session.rig_path)
-    global_rig = StereoRig(replace(rig.left, readout_ms=0.0), replace(rig.right, readout_ms=0.0))
-    plain = analyze_recording(global_rig, session.left_video, session.right_video)
+    assert "readout_ms" not in plain.sync  # measured as if the shutters were global
     rms_plain, _, _ = _errors(session, plain)
     assert rms_plain > 2 * rms
 
