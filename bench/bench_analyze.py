@@ -44,7 +44,6 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -215,35 +214,21 @@ def breakdown(d: Path, repeat: int) -> None:
       run on one core.
     """
     from core.camera import read_rig
-    from core.markers import _default_detector
     from core.pipeline import analyze_recording
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from detector_replay import RecordedDetector
 
     left, right = _videos(d)
     rig = read_rig(d / "rig.json")
-    real = _default_detector(None)
-    answers: dict[str, list[Any]] = {}
-
-    def recording(image: Any, pts: Any, radius: Any) -> Any:
-        out = real(image, pts, radius)
-        answers.setdefault(threading.current_thread().name, []).append(out)
-        return out
-
-    def replaying() -> Any:
-        done: dict[str, int] = {}
-
-        def detect(image: Any, pts: Any, radius: Any) -> Any:
-            name = threading.current_thread().name  # detect-0, detect-1 (core.pipeline)
-            done[name] = done.get(name, 0) + 1
-            return answers[name][done[name] - 1]
-
-        return detect
-
-    analyze_recording(rig, left, right, detector=recording)
+    detections = RecordedDetector()  # the replay checks each call asks for the same search
+    analyze_recording(rig, left, right, detector=detections.record)
     rows: dict[str, list[float]] = {"floor": [], "replay": [], "detector": [], "after": []}
     for _ in range(repeat):
         rows["floor"].append(decode_only(left, right))
         ends = {}
-        for name, detector in (("replay", replaying()), ("real", None)):
+        detections.rewind()
+        for name, detector in (("replay", detections.replay), ("real", None)):
             marks: list[float] = []
 
             def progress(stage: str, done: int, total: int, marks: list[float] = marks) -> None:

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from detector_replay import RecordedDetector
 
 from core.camera import ImageSize, StereoRig, read_rig
 from core.metrics import compute_metrics
@@ -101,7 +102,7 @@ def _rolling_both_ways(out: Path) -> tuple[SimulatedSession, tuple[Analysis, Ana
     """The rolling-shutter case measured with its rig and as if the shutters were global
     (readout_ms 0). The marker search does not depend on the rig: its answers in the first
     analysis are replayed, checked call by call, in the second."""
-    detections = _RecordedDetector()
+    detections = RecordedDetector()
     session, analysis = _simulate_and_analyze("rolling", out, detector=detections.record)
     rig = read_rig(session.rig_path)
     global_rig = StereoRig(replace(rig.left, readout_ms=0.0), replace(rig.right, readout_ms=0.0))
@@ -110,44 +111,6 @@ def _rolling_both_ways(out: Path) -> tuple[SimulatedSession, tuple[Analysis, Ana
     )
     assert detections.all_replayed(), "the second analysis searched fewer frames"
     return session, (analysis, as_global)
-
-
-class _RecordedDetector:
-    """The marker detector's answers in one analysis, replayed in a second analysis of the
-    same videos: each video is searched in its own thread (``detect-0``, ``detect-1``), in
-    frame order; a replayed call must ask for the same search points as the recorded one."""
-
-    def __init__(self) -> None:
-        import threading
-
-        from core.markers import _default_detector
-
-        self._real = _default_detector(None)
-        self._thread = threading.current_thread
-        self._calls: dict[str, list[tuple[Any, Any, Any]]] = {}
-        self._done: dict[str, int] = {}
-
-    def record(self, image: Any, pts: Any, radius: Any) -> Any:
-        out = self._real(image, pts, radius)
-        stored = None if pts is None else np.array(pts, copy=True)
-        self._calls.setdefault(self._thread().name, []).append((stored, radius, out))
-        return out
-
-    def replay(self, image: Any, pts: Any, radius: Any) -> Any:
-        name = self._thread().name
-        k = self._done.get(name, 0)
-        self._done[name] = k + 1
-        calls = self._calls[name]
-        assert k < len(calls), f"{name}: the second analysis searched more frames"
-        pts0, radius0, out = calls[k]
-        same = (pts0 is None and pts is None) or (
-            pts0 is not None and pts is not None and np.array_equal(pts0, pts)
-        )
-        assert same and radius0 == radius, f"{name}: frame {k} searched elsewhere"
-        return out
-
-    def all_replayed(self) -> bool:
-        return all(self._done.get(n, 0) == len(c) for n, c in self._calls.items())
 
 
 @pytest.fixture(scope="session")
