@@ -35,6 +35,7 @@ import secrets
 import shutil
 import tempfile
 import threading
+import traceback
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, cast
@@ -324,30 +325,75 @@ class _Simulator:
     would hold the interpreter's lock against the embedded workers measuring the
     recordings already made, and both would crawl (an analysis took ~3x as long while the
     demo was being simulated: ``bench/bench_startup.py``). ``stop_event`` (or the end of
-    the server) stops it at once: the child is terminated.
+    the server) stops it at once: the child is terminated. A child that dies (killed, out
+    of memory) fails the recording it was making with an error that says so, and the next
+    recording starts a new one: with a process pool, the lost task's result would have been
+    waited for forever.
     """
 
     def __init__(self, stop_event: threading.Event | None) -> None:
         self.stop_event = stop_event
-        self._pool: Any = None
+        self._proc: Any = None
+        self._conn: Any = None
 
     def simulate(self, trial: DemoTrial, out_dir: Path, clip_s: float | None) -> tuple[Path, Path]:
-        if self._pool is None:
-            self._pool = multiprocessing.get_context("spawn").Pool(1)
-        pending = self._pool.apply_async(simulate_trial, (trial, out_dir), {"clip_s": clip_s})
+        if self._proc is not None and not self._proc.is_alive():
+            self.close()  # it died between two recordings
+        if self._proc is None:
+            ctx = multiprocessing.get_context("spawn")
+            self._conn, child_conn = ctx.Pipe()
+            self._proc = ctx.Process(
+                target=_simulate_in_child, args=(child_conn,), name="demo-simulator", daemon=True
+            )
+            self._proc.start()
+            child_conn.close()  # the child's end: its death then ends the pipe here
+        self._conn.send((trial, out_dir, clip_s))
         while True:
-            try:
-                return cast(tuple[Path, Path], pending.get(timeout=0.2))
-            except multiprocessing.TimeoutError:
+            if self._conn.poll(0.2):
+                try:
+                    kind, value = self._conn.recv()
+                except (EOFError, OSError):
+                    kind, value = "died", None
+                if kind == "done":
+                    return cast(tuple[Path, Path], value)
+                if kind == "error":
+                    raise RuntimeError(f"the simulation failed in its process:\n{value}")
+            elif self._proc.is_alive():
                 if should_stop(self.stop_event):
                     self.close()  # before the caller removes the files the child writes
-                    raise SimulationStopped from None
+                    raise SimulationStopped
+                continue
+            self._proc.join(5.0)
+            code = self._proc.exitcode
+            self.close()
+            raise RuntimeError(
+                f"the simulation process ended (exit code {code}) before the recording was "
+                "made; the next recording starts a new one"
+            )
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.terminate()
-            self._pool.join()
-            self._pool = None
+        if self._proc is not None:
+            self._proc.terminate()
+            self._proc.join()
+            self._conn.close()
+            self._proc = self._conn = None
+
+
+def _simulate_in_child(conn: Any) -> None:
+    """The simulation child of :class:`_Simulator`: each ``(trial, out_dir, clip_s)`` it is
+    sent, simulated, and ``("done", (left, right))`` or ``("error", what went wrong)``
+    sent back, until the server's end of the pipe closes."""
+    while True:
+        try:
+            trial, out_dir, clip_s = conn.recv()
+        except EOFError:
+            return
+        try:
+            result = simulate_trial(trial, out_dir, clip_s=clip_s)
+        except Exception:  # raised in the server by _Simulator.simulate, and logged
+            conn.send(("error", traceback.format_exc()))
+        else:
+            conn.send(("done", result))
 
 
 def _prepare_one(

@@ -187,3 +187,45 @@ def test_a_running_simulation_stops_promptly(tmp_path):
     stop.set()
     with pytest.raises(demo_plan.SimulationStopped):
         demo_plan.simulate_trial(demo_plan.demo_trials()[0], tmp_path, clip_s=2.0, stop_event=stop)
+
+
+def test_a_simulation_process_that_dies_fails_its_recording_and_is_replaced(tmp_path):
+    """A killed simulation child (out of memory, say) fails the recording it was making at
+    once, with its exit code, and the next recording is made by a new child; a process pool
+    would have waited for the lost result forever."""
+    import os
+    import signal
+    import threading
+    import time
+
+    trial = demo_plan.demo_trials()[0]
+    simulator = demo._Simulator(None)
+    failure: list[BaseException] = []
+
+    def first() -> None:
+        try:
+            simulator.simulate(trial, tmp_path, 3.0)
+        except RuntimeError as exc:
+            failure.append(exc)
+
+    try:
+        making = threading.Thread(target=first)
+        making.start()
+        deadline = time.monotonic() + 30
+        while (
+            simulator._proc is None or simulator._proc.pid is None
+        ) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        os.kill(simulator._proc.pid, signal.SIGKILL)
+        making.join(timeout=30)
+        assert not making.is_alive(), "the dead child's recording was waited for"
+        assert len(failure) == 1 and f"exit code -{signal.SIGKILL}" in str(failure[0])
+        left, right = simulator.simulate(trial, tmp_path, 1.0)
+        assert left.stat().st_size > 0 and right.stat().st_size > 0
+        # one that died between two recordings is replaced too
+        os.kill(simulator._proc.pid, signal.SIGKILL)
+        simulator._proc.join(10)
+        left.unlink()
+        assert simulator.simulate(trial, tmp_path, 1.0)[0].stat().st_size > 0
+    finally:
+        simulator.close()
