@@ -205,17 +205,46 @@ cdef void dilate_disc5(const unsigned char* src, unsigned char* dst, unsigned ch
     pixels 2 rows above and below."""
     cdef int x, y, i, lo, hi
     cdef unsigned char acc
+    cdef const unsigned char* s
+    cdef unsigned char* t
+    cdef unsigned char* d
+    cdef const unsigned char* up
+    cdef const unsigned char* down
+    cdef const unsigned char* up2
+    cdef const unsigned char* down2
+    cdef int ix0 = min(ax0 + 2, ax1), ix1 = max(ax1 - 2, ix0)  # columns with 2 on each side
     for y in range(ay0, ay1):
-        for x in range(ax0, ax1):
+        s = src + <size_t>y * stride
+        t = tmp + <size_t>y * stride
+        for x in range(ix0, ix1):
+            t[x] = s[x - 2] | s[x - 1] | s[x] | s[x + 1] | s[x + 2]
+        for x in range(ax0, ix0):
             lo = max(ax0, x - 2)
             hi = min(ax1 - 1, x + 2)
             acc = 0
             for i in range(lo, hi + 1):
-                acc |= src[y * stride + i]
-            tmp[y * stride + x] = acc
+                acc |= s[i]
+            t[x] = acc
+        for x in range(ix1, ax1):
+            lo = max(ax0, x - 2)
+            hi = min(ax1 - 1, x + 2)
+            acc = 0
+            for i in range(lo, hi + 1):
+                acc |= s[i]
+            t[x] = acc
     for y in range(ay0, ay1):
+        t = tmp + <size_t>y * stride
+        d = dst + <size_t>y * stride
+        if ay0 + 2 <= y < ay1 - 2:
+            up = t - stride
+            down = t + stride
+            up2 = src + <size_t>(y - 2) * stride
+            down2 = src + <size_t>(y + 2) * stride
+            for x in range(ax0, ax1):
+                d[x] = t[x] | up[x] | down[x] | up2[x] | down2[x]
+            continue
         for x in range(ax0, ax1):
-            acc = tmp[y * stride + x]
+            acc = t[x]
             if y > ay0:
                 acc |= tmp[(y - 1) * stride + x]
             if y < ay1 - 1:
@@ -224,7 +253,7 @@ cdef void dilate_disc5(const unsigned char* src, unsigned char* dst, unsigned ch
                 acc |= src[(y - 2) * stride + x]
             if y < ay1 - 2:
                 acc |= src[(y + 2) * stride + x]
-            dst[y * stride + x] = acc
+            d[x] = acc
 
 
 cdef void edt_1d(const double* f, double* out, int n, int* v, double* z) noexcept nogil:
