@@ -41,6 +41,7 @@ from app.services.common import (
 )
 from app.services.revisions import served_document
 from app.storage import Storage
+from core.camera import rig_from_dict
 from core.markers_csv import MarkerTable, read_markers_csv
 from core.tasks import parse_task
 
@@ -375,6 +376,17 @@ def fhir_bundle(
     return bundle
 
 
+def _left_focal_px(db: Session, data: ReportData) -> float | None:
+    """The focal length (px) of the left camera of the calibration that measured the
+    trial, for the C3D residuals in mm; None when it is not known."""
+    cal_id = data.calibration.id if data.calibration is not None else None
+    cal = db.get(Calibration, cal_id) if cal_id is not None else None
+    if cal is None or not cal.rig_json:
+        return None
+    k = rig_from_dict(cal.rig_json, source=f"calibration {cal.id}").cameras[0].K
+    return 0.5 * float(k[0, 0] + k[1, 1])
+
+
 def trajectory_file(
     db: Session, actor: Actor, trial_id: int, kind: Literal["c3d", "trc"], storage: Storage
 ) -> bytes:
@@ -387,7 +399,10 @@ def trajectory_file(
         path = Path(tmp) / f"trial.{kind}"
         from app.exports import write_c3d, write_trc  # ezc3d and fhir.resources: not at start-up
 
-        (write_c3d if kind == "c3d" else write_trc)(path, data.markers)
+        if kind == "c3d":
+            write_c3d(path, data.markers, focal_px=_left_focal_px(db, data))
+        else:
+            write_trc(path, data.markers)
         body = path.read_bytes()
     return _exported(db, actor, trial, f"{kind}_file", body)
 

@@ -54,10 +54,13 @@ def test_marker_table_checks_shapes(markers):
 def test_c3d_reads_back_with_an_independent_reader(tmp_path, markers):
     import c3d  # the pure-Python reader, independent of ezc3d which wrote the file
 
-    path = exports.write_c3d(tmp_path / "trial.c3d", markers)
+    focal_px = 1400.0
+    path = exports.write_c3d(tmp_path / "trial.c3d", markers, focal_px=focal_px)
     with open(path, "rb") as fh:
-        reader = c3d.Reader(fh)
+        reader = c3d.Reader(fh)  # checks that the header's scale factor is POINT:SCALE's
         assert reader.point_rate == pytest.approx(markers.fps)
+        step = abs(reader.point_scale)
+        assert step == pytest.approx(np.nanmax(np.abs(markers.positions_mm)) / 32000, rel=1e-6)
         labels = [s.strip() for s in reader.point_labels]
         assert labels == list(markers.labels)
         assert reader.get("POINT:UNITS").string_value.strip() == "mm"
@@ -69,7 +72,16 @@ def test_c3d_reads_back_with_an_independent_reader(tmp_path, markers):
     np.testing.assert_allclose(pts[valid][:, :3], markers.positions_mm[valid], atol=1e-3)  # mm
     # Missing samples are flagged invalid (residual -1), not written as zeros.
     assert (pts[~valid][:, 3] < 0).all()
-    assert (pts[valid][:, 3] >= 0).all()
+    # C3D's meaning of the fourth word: a measured sample has a positive residual (its
+    # reprojection error at its depth, in mm, to one POINT:SCALE step) and the cameras
+    # that saw it (1 and 2); an interpolated one residual 0 and no camera.
+    measured = markers.status == "measured"
+    interpolated = markers.status == "interpolated"
+    assert measured.any() and interpolated.any()
+    expected_mm = markers.reprojection_px * markers.positions_mm[:, :, 2] / focal_px
+    np.testing.assert_allclose(pts[measured][:, 3], expected_mm[measured], atol=0.5 * step)
+    assert (pts[measured][:, 3] > 0).all() and (pts[measured][:, 4] == 0b11).all()  # cameras 1, 2
+    assert (pts[interpolated][:, 3] == 0).all() and (pts[interpolated][:, 4] == 0).all()
 
 
 @pytest.mark.filterwarnings("ignore:No analog data found:UserWarning")

@@ -391,6 +391,30 @@ def test_downloads_are_audited_once_each(client, seeded, db_sessionmaker):
     r = client.get(f"/trials/{t}/download/c3d")
     assert r.status_code == 200 and len(r.content) > 512
     assert client.get(f"/trials/{t}/download/exe").status_code == 404
+    # The C3D residuals are the reprojection errors in mm, through the focal length of
+    # the calibration that measured the trial.
+    import io
+    import warnings
+
+    import c3d
+    import numpy as np
+
+    from app.models import Calibration, Result
+    from core.camera import rig_from_dict
+    from core.markers_csv import read_markers_csv
+
+    with db_sessionmaker() as db:
+        result = db.scalars(select(Result).where(Result.trial_id == t)).one()
+        k = rig_from_dict(db.get(Calibration, result.calibration_id).rig_json).cameras[0].K
+    markers = read_markers_csv(io.StringIO(client.get(f"/trials/{t}/download/csv").text))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "No analog data found"
+        reader = c3d.Reader(io.BytesIO(r.content))
+        pts = np.stack([p.copy() for _, p, _ in reader.read_frames()])
+    measured = markers.status == "measured"
+    expected = markers.reprojection_px * markers.positions_mm[:, :, 2] / (0.5 * (k[0, 0] + k[1, 1]))
+    step = abs(reader.point_scale)
+    np.testing.assert_allclose(pts[measured][:, 3], expected[measured], atol=0.5 * step)  # mm
 
 
 def test_rig_pages_show_the_calibration_verdict(client, seeded):
