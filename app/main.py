@@ -193,6 +193,10 @@ def _wants_html_page(request: Request) -> bool:
     )
 
 
+#: pydantic's error types for a body that is not a JSON object (a string, a list, a number)
+_NOT_AN_OBJECT = frozenset({"model_attributes_type", "dict_type", "model_type"})
+
+
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
     async def app_error(request: Request, exc: AppError) -> Response:
@@ -224,6 +228,20 @@ def _install_error_handlers(app: FastAPI) -> None:
             }
             for err in exc.errors()
         ]
+        if any(i["type"] == "json_invalid" for i in issues):  # unreadable, not invalid
+            where = next(i for i in issues if i["type"] == "json_invalid")["loc"][1:]
+            at = f" (at character {where[0]})" if where else ""
+            return _error(
+                400,
+                f"The request body is not valid JSON{at}; send a JSON document (UTF-8) with "
+                "Content-Type: application/json.",
+            )
+        if any(i["loc"] == ["body"] and i["type"] in _NOT_AN_OBJECT for i in issues):
+            return _error(
+                422,
+                "The request body must be a JSON object, sent with Content-Type: application/json.",
+                errors=issues,
+            )
         parts = [f"{'.'.join(i['loc'][1:] or i['loc'])}: {i['msg']}" for i in issues[:5]]
         detail = "The request is invalid: " + "; ".join(parts) + "."
         return _error(422, detail, errors=issues)

@@ -15,6 +15,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    Strict,
     StringConstraints,
     model_validator,
 )
@@ -67,7 +68,9 @@ Name = Annotated[
     StringConstraints(strip_whitespace=True, min_length=1, max_length=100),
     AfterValidator(_no_nul),
 ]
-Id = Annotated[int, Field(ge=1, le=MAX_ID)]
+# Numbers of request bodies are strict: JSON true, "2" or 2.0 is not a rating, a tap or an id
+# (pydantic would read them as 1 and 2).
+Id = Annotated[int, Strict(), Field(ge=1, le=MAX_ID)]
 
 
 class _In(BaseModel):
@@ -118,7 +121,7 @@ class Page(BaseModel, Generic[T]):
 
 class PatientCreate(_In):
     code: PatientCode
-    birth_year: int | None = Field(default=None, ge=1900, le=2100)
+    birth_year: Annotated[int, Strict()] | None = Field(default=None, ge=1900, le=2100)
     sex: Sex | None = None
     notes: ShortText | None = None
 
@@ -127,7 +130,7 @@ class PatientUpdate(_In):
     """Fields to change; omitted fields stay as they are."""
 
     code: PatientCode | None = None
-    birth_year: int | None = Field(default=None, ge=1900, le=2100)
+    birth_year: Annotated[int, Strict()] | None = Field(default=None, ge=1900, le=2100)
     sex: Sex | None = None
     notes: ShortText | None = None
 
@@ -196,6 +199,7 @@ def _no_session_rating(data: Any) -> Any:
 
 LevodopaMinutes = Annotated[
     int,
+    Strict(),
     Field(
         ge=0,
         le=7 * 24 * 60,
@@ -333,7 +337,7 @@ class TrialRead(_Out):
 class TrialRatingUpdate(_In):
     """The clinician's rating of one trial (one hand); omitted fields stay as they are."""
 
-    clinician_rating: int | None = Field(
+    clinician_rating: Annotated[int, Strict()] | None = Field(
         default=None,
         ge=0,
         le=4,
@@ -358,7 +362,7 @@ class JobRead(_Out):
 
 # --------------------------------------------------------------------------- revisions
 
-TapNumber = Annotated[int, Field(ge=0, le=100_000)]
+TapNumber = Annotated[int, Strict(), Field(ge=0, le=100_000)]
 Reason = Annotated[
     str,
     StringConstraints(strip_whitespace=True, min_length=3, max_length=2000),
@@ -383,20 +387,20 @@ class RevisionCreate(_In):
         max_length=10_000,
         description="Taps whose hesitation or halt is not one (e.g. the patient was talking).",
     )
-    window_s: tuple[float, float] | None = Field(
+    window_s: tuple[Annotated[float, Strict()], Annotated[float, Strict()]] | None = Field(
         default=None,
         description="Only taps wholly inside [start, end] (s) count; null: the whole recording.",
     )
-    swap_labels: bool | None = Field(
+    swap_labels: Annotated[bool, Strict()] | None = Field(
         default=None, description="The thumb and index labels are the wrong way round."
     )
-    offset_frames: float | None = Field(
+    offset_frames: Annotated[float, Strict()] | None = Field(
         default=None,
         ge=-10_000,
         le=10_000,
         description="Measure the videos again with this offset (right frame j = left j + K).",
     )
-    swap_cameras: bool | None = Field(
+    swap_cameras: Annotated[bool, Strict()] | None = Field(
         default=None, description="Measure again with the left and right videos exchanged."
     )
 

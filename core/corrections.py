@@ -228,6 +228,18 @@ def _signal(
     return aperture, signal
 
 
+def _numbered(indices: list[int]) -> str:
+    """Taps as a clinician counts them (from 1) and as the API numbers them (from 0):
+    ``3 (index 2)``, ``3 and 5 (indices 2 and 4)``."""
+    ones = [str(i + 1) for i in indices]
+    zeros = [str(i) for i in indices]
+    if len(indices) == 1:
+        return f"{ones[0]} (index {zeros[0]})"
+    return (
+        f"{', '.join(ones[:-1])} and {ones[-1]} (indices {', '.join(zeros[:-1])} and {zeros[-1]})"
+    )
+
+
 def correct_metrics(
     table: MarkerTable,
     corrections: Corrections,
@@ -273,17 +285,15 @@ def correct_metrics(
     known = {t.index for t in seg.taps}
     unknown = sorted(set(corrections.exclude_taps) - known)
     if unknown:
+        n = len(seg.taps)
         raise ValueError(
-            f"there is no {word} {', '.join(str(i + 1) for i in unknown)} in this recording"
-            f" (it has {len(seg.taps)} {word}s)."
+            f"there is no {word} {_numbered(unknown)} in this recording (it has {n} {word}s"
+            + (f", indices 0–{n - 1})." if n else ").")
         )
     paused = {e["tap_index"] for e in events if e["kind"] in PAUSE_KINDS}
     not_paused = sorted(set(corrections.dismiss_pauses) - paused)
     if not_paused:
-        raise ValueError(
-            f"{word} {', '.join(str(i + 1) for i in not_paused)} has no hesitation or halt"
-            " to dismiss."
-        )
+        raise ValueError(f"{word} {_numbered(not_paused)} has no hesitation or halt to dismiss.")
 
     excluded = set(corrections.exclude_taps)
     window = corrections.window_s

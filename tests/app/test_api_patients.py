@@ -147,6 +147,11 @@ def test_sessions_create_list_update_delete(api: Api) -> None:
         ).status_code
         == 422
     )
+    for minutes in (True, "90", 90.0):  # strict: not read as 1 or 90
+        r = api.client.patch(
+            f"/api/v1/sessions/{ids[0]}", json={"time_since_levodopa_min": minutes}, headers=h
+        )
+        assert r.status_code == 422 and "valid integer" in r.text, (minutes, r.text)
     # The session-level rating moved to the trials: a clear 422 says where.
     r = api.client.patch(f"/api/v1/sessions/{ids[0]}", json={"updrs_34_rating": 3}, headers=h)
     assert r.status_code == 422 and "PATCH /api/v1/trials/" in r.text

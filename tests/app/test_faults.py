@@ -221,6 +221,26 @@ def test_deep_or_malformed_json_is_refused_on_every_json_route(api: Api, body: b
         assert "detail" in r.json()
 
 
+def test_a_body_that_is_not_json_is_a_400_and_one_that_is_not_an_object_says_so(
+    api: Api,
+) -> None:
+    """docs/api.md: an unreadable body is a 400 (it was a 422 "0: JSON decode error")."""
+    for body in (b"hello", b'{"code": "PD-1",}', b'{"code": '):
+        r = api.client.post(
+            "/api/v1/patients",
+            content=body,
+            headers={**api.headers, "Content-Type": "application/json"},
+        )
+        assert r.status_code == 400, (body, r.text)
+        assert "not valid JSON (at character" in r.json()["detail"], r.text
+    r = api.client.post(
+        "/api/v1/patients",
+        content=b'{"code": "PD-1"}',
+        headers={**api.headers, "Content-Type": "text/plain"},
+    )
+    assert r.status_code == 422 and "Content-Type: application/json" in r.json()["detail"]
+
+
 def test_a_deeply_nested_rig_file_is_a_clear_422(api: Api) -> None:
     seeded = seed_recording_target(api)
     r = api.client.post(

@@ -162,7 +162,11 @@ def test_a_correction_stores_its_plots_and_the_report_reads_them(api: Api, video
         ({"exclude_taps": [2]}, 422, "reason"),
         ({"exclude_taps": [2], "reason": "  "}, 422, "reason"),
         ({"reason": REASON}, 422, "Say what to change"),
-        ({"exclude_taps": [999], "reason": REASON}, 422, "no tap 1000"),
+        ({"exclude_taps": [999], "reason": REASON}, 422, "no tap 1000 (index 999)"),
+        # numbers are strict: JSON true or "1" is not tap 1
+        ({"exclude_taps": [True], "reason": REASON}, 422, "valid integer"),
+        ({"exclude_taps": ["1"], "reason": REASON}, 422, "valid integer"),
+        ({"swap_labels": 1, "reason": REASON}, 422, "valid boolean"),
         ({"exclude_taps": [1], "swap_cameras": True, "reason": REASON}, 422, "two revisions"),
         ({"window_s": [5.0, 1.0], "reason": REASON}, 422, "window_s"),
         ({"exclude_taps": [], "reason": REASON}, 422, "nothing would change"),

@@ -59,6 +59,11 @@ def test_rating_round_trip(api: Api):
     assert (r.json()["clinician_rating"], r.json()["comment"]) == (None, "Revised.")
     for bad in ({"clinician_rating": 5}, {"clinician_rating": -1}, {"rating": 2}):
         assert api.client.patch(url, json=bad, headers=h).status_code == 422, bad
+    # A rating is a whole number: JSON true, "2" or 2.0 is refused, not read as 1 or 2.
+    for bad in (True, "2", 2.0):
+        r = api.client.patch(url, json={"clinician_rating": bad}, headers=h)
+        assert r.status_code == 422 and "valid integer" in r.text, (bad, r.text)
+    assert api.client.get(url, headers=h).json()["clinician_rating"] is None
     assert api.client.patch("/api/v1/trials/9999", json={}, headers=h).status_code == 404
 
 
