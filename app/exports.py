@@ -202,12 +202,14 @@ def _observation(
     effective: str,
     hand: str,
     task: Task = Task.FINGER_TAPPING,
+    trial_id: int = 0,
+    revision: int = 1,
 ) -> dict[str, Any]:
     spec = metric_spec(key, task.value)
     label, ucum, unit = spec.label, spec.ucum, spec.unit
     obs: dict[str, Any] = {
         "resourceType": "Observation",
-        "status": "final",
+        **_version(trial_id, key, revision),
         "category": [{"coding": [dict(EXAM_CATEGORY)]}],
         "code": {
             "coding": [{"system": metric_code_system(task), "code": key, "display": label}],
@@ -220,7 +222,7 @@ def _observation(
     }
     if math.isfinite(value):
         obs["valueQuantity"] = {
-            "value": round(float(value), 6),
+            "value": float(value),  # as result.json has it
             "unit": unit or ucum,
             "system": UCUM_SYSTEM,
             "code": ucum,
@@ -238,6 +240,24 @@ def _observation(
     if spec.definition:
         obs["note"] = [{"text": spec.definition}]
     return obs
+
+
+OBSERVATION_ID_SYSTEM = "urn:bradyscope:trial-observation"
+REPORT_ID_SYSTEM = "urn:bradyscope:trial-report"
+
+
+def _version(trial_id: int, what: str, revision: int) -> dict[str, Any]:
+    """A measured resource's identifier, the same in every revision of the trial (so that
+    a receiving system replaces the values it holds), its version (the revision) and its
+    status: ``final``, or ``amended`` once a correction or a re-analysis has changed the
+    first result."""
+    system = REPORT_ID_SYSTEM if what == "report" else OBSERVATION_ID_SYSTEM
+    value = str(trial_id) if what == "report" else f"{trial_id}/{what}"
+    return {
+        "meta": {"versionId": str(revision)},
+        "identifier": [{"system": system, "value": value}],
+        "status": "final" if revision <= 1 else "amended",
+    }
 
 
 def _iso(value: datetime) -> str:
@@ -311,7 +331,7 @@ def _task_group(
     task = parse_task(data.task)
     return {
         "resourceType": "Observation",
-        "status": "final",
+        **_version(data.trial_id, "panel", data.revision),
         "category": [
             {
                 "coding": [
@@ -411,6 +431,8 @@ def _observation_entries(
                     effective=effective,
                     hand=data.hand,
                     task=task,
+                    trial_id=data.trial_id,
+                    revision=data.revision,
                 ),
             }
         )
@@ -429,7 +451,7 @@ def _diagnostic_report(
     task = parse_task(data.task)
     report: dict[str, Any] = {
         "resourceType": "DiagnosticReport",
-        "status": "final",
+        **_version(data.trial_id, "report", data.revision),
         "category": [
             {
                 "coding": [

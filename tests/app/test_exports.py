@@ -211,3 +211,38 @@ def test_fhir_undefined_metric_has_a_data_absent_reason_and_guessed_units():
         e["resource"] for e in doc["entry"] if e["resource"]["resourceType"] == "DiagnosticReport"
     )
     assert "presentedForm" not in report  # no PDF given, none attached
+
+
+def test_fhir_values_are_the_results_and_a_revision_amends_the_same_resources():
+    """A receiving system matches the resources of two revisions by their identifiers and
+    sees the later one as amended (an integrator found every revision 'final', with no
+    identifier, and values rounded to 6 decimals: 0.000935 for 0.0009354739957012296)."""
+    import dataclasses
+
+    first = exports.fhir_bundle(sample_report_data(), None)
+    second = exports.fhir_bundle(dataclasses.replace(sample_report_data(), revision=2), None)
+
+    def measured(doc):
+        out = {}
+        for e in doc["entry"]:
+            r = e["resource"]
+            if r["resourceType"] in ("Observation", "DiagnosticReport") and "identifier" in r:
+                out[(r["identifier"][0]["system"], r["identifier"][0]["value"])] = r
+        return out
+
+    a, b = measured(first), measured(second)
+    assert a.keys() == b.keys() and len(a) == 11 + 1 + 1  # metrics, their panel, the report
+    assert ("urn:bradyscope:trial-report", "7") in a
+    assert ("urn:bradyscope:trial-observation", "7/frequency_hz") in a
+    assert {r["status"] for r in a.values()} == {"final"}
+    assert {r["status"] for r in b.values()} == {"amended"}
+    assert {r["meta"]["versionId"] for r in a.values()} == {"1"}
+    assert {r["meta"]["versionId"] for r in b.values()} == {"2"}
+    # The clinician's rating is not a measurement: it keeps its own status.
+    rating = [e["resource"] for e in second["entry"] if "clinician-rating" in str(e["resource"])]
+    assert rating[0]["status"] == "final"
+    # Values exactly as result.json has them.
+    metrics = sample_report_data().result["metrics"]
+    for key in ("amplitude_mm_cv", "amplitude_mm_mean", "frequency_hz"):
+        value = a[("urn:bradyscope:trial-observation", f"7/{key}")]["valueQuantity"]["value"]
+        assert value == metrics[key], key
