@@ -10,6 +10,7 @@ shown as a page in plain words, with the status the API would have used.
 from __future__ import annotations
 
 import hmac
+import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Annotated, Any, TypeVar
 from urllib.parse import quote, urlsplit
@@ -123,6 +124,22 @@ def wants_json(request: Request) -> bool:
     return "application/json" in request.headers.get("accept", "")
 
 
+#: The notices a redirect may ask a page to show (``?msg=``), as the pages' own redirects
+#: word them. Anything else is not shown: a crafted link must not put its own sentence
+#: ("Result verified by the neurologist.") in a clinical page's status notice.
+NOTICES = re.compile(
+    r"(Patient created|Session created|Session updated|Trial hidden|Trial restored"
+    r"|Rating saved|Revision \d{1,9} stored|Rig created|Calibration v\d{1,9} saved"
+    r"|Visit signed \(signature \d{1,9}\)|You are logged out"
+    r"|Single sign-on is not set up here)\."
+)
+
+
+def notice_of(msg: str | None) -> str | None:
+    """``msg`` when it is one of :data:`NOTICES`, else None."""
+    return msg if msg is not None and NOTICES.fullmatch(msg) else None
+
+
 def render(
     request: Request,
     template: str,
@@ -140,7 +157,7 @@ def render(
         "active": active,
         "clinic_tz": settings_of(request).timezone,
         "error": context.pop("error", None),
-        "message": context.pop("message", request.query_params.get("msg")),
+        "message": context.pop("message", notice_of(request.query_params.get("msg"))),
     }
     base.update(context)
     return templates.TemplateResponse(request, template, base, status_code=status_code)

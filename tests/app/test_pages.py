@@ -832,3 +832,33 @@ def test_the_aperture_caption_explains_the_closed_offset_and_the_grey_lines(clie
     assert "does not reach 0 when the fingers touch" in caption
     assert "measured from that closed position" in caption
     assert "thin grey vertical lines: the start of each tap" in caption
+
+
+def test_a_page_shows_only_the_notices_the_pages_themselves_send(client, seeded):
+    """?msg= is how a redirect says what was done; a crafted link must not put its own
+    sentence in a clinical page's status notice (found in a clinician-style review)."""
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    html = client.get(f"/trials/{t}?msg=Rating+saved.").text
+    assert 'role="status"' in html and "Rating saved." in html
+    html = client.get(f"/trials/{t}?msg=Result+verified+by+the+neurologist.").text
+    assert "verified by the neurologist" not in html
+    assert "Revision 12 stored." in client.get(f"/trials/{t}/review?msg=Revision+12+stored.").text
+
+
+def test_every_notice_the_pages_send_is_one_they_show():
+    """Each ``?msg=`` of the app's redirects passes app.web.common.NOTICES (a new notice
+    must be added there, or it would not be shown)."""
+    from pathlib import Path
+    from urllib.parse import unquote_plus
+
+    from app.web.common import notice_of
+
+    root = Path(__file__).resolve().parents[2] / "app"
+    sent = set()
+    for path in root.rglob("*.py"):
+        for raw in re.findall(r"\?msg=([^\s\"'#&`]+)", path.read_text(encoding="utf-8")):
+            if raw.endswith("."):  # a redirect's notice, not prose about them
+                sent.add(unquote_plus(re.sub(r"\{[^}]*\}", "7", raw)))
+    assert len(sent) >= 12, sent
+    assert [m for m in sorted(sent) if notice_of(m) is None] == []
