@@ -25,6 +25,7 @@ from app.actors import Actor
 from app.audit import audit
 from app.errors import ConflictError, NotFoundError
 from app.models import Job, Result, Trial
+from app.plots import MARKER_COLOURS
 from app.quantities import quantity_of
 from app.reports.figures import signal_series
 from app.reports.result import read_result
@@ -32,6 +33,7 @@ from app.services.common import load_trial
 from app.services.revisions import RevisionInfo, history, served_document
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
+from core.protocols import protocol_for
 from core.tasks import parse_task
 
 if TYPE_CHECKING:  # core.corrections imports core.metrics (SciPy): when a page needs it
@@ -160,6 +162,11 @@ def review_page(
         "dismissed_events": doc.get("dismissed_events") or [],
         "window_s": corrections.to_dict()["window_s"],
         "overlay": read_overlay(result, storage),
+        # each marker in the colour the plots and the caption give it (the protocol's order)
+        "marker_colours": {
+            label: MARKER_COLOURS[k % len(MARKER_COLOURS)][0]
+            for k, label in enumerate(protocol_for(parse_task(read.task)).labels)
+        },
         "videos": {side: f"/trials/{trial.id}/video/{side}" for side in videos},
     }
     page = ReviewPage(

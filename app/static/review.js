@@ -8,8 +8,7 @@
 "use strict";
 
 (function () {
-  var COLORS = { thumb: "rgb(255,127,14)", index: "rgb(31,119,180)" };
-  var OTHER = "rgb(148,103,189)";
+  var OTHER = "rgb(148,103,189)";  // a marker the protocol does not name
   var DETECTION = "rgb(0,200,0)";
   var RADIUS = 6;
 
@@ -17,6 +16,7 @@
 
   function setup(data) {
     var fps = data.fps || 100;
+    var colours = data.marker_colours || {};
     var cams = (data.overlay && data.overlay.cameras) || [];
     var players = {};
     cams.forEach(function (cam) {
@@ -76,18 +76,31 @@
         ctx.moveTo(x, y + 8); ctx.lineTo(x, y + 12);
         ctx.stroke();
       });
+      var shown = [];
       Object.keys(p.cam.tracks).forEach(function (name) {
         var pt = p.cam.tracks[name][frame];
-        if (!pt) return;
-        var x = pt[0] + 0.5, y = pt[1] + 0.5;
-        ctx.fillStyle = COLORS[name] || OTHER;
-        ctx.beginPath();
-        ctx.arc(x, y, RADIUS, 0, 2 * Math.PI);
-        ctx.fill();
-        ctx.font = "bold 14px sans-serif";
-        ctx.fillStyle = "rgb(255,255,255)";
-        ctx.fillText(name, x + 14, y - 14);
+        if (pt) shown.push({ name: name, x: pt[0] + 0.5, y: pt[1] + 0.5 });
       });
+      // Each label on the side of its dot away from the others' middle, so that no label
+      // covers a neighbouring dot (markers of one hand are a few dot sizes apart).
+      var mx = 0, my = 0;
+      shown.forEach(function (s) { mx += s.x / shown.length; my += s.y / shown.length; });
+      ctx.font = "bold 14px sans-serif";
+      shown.forEach(function (s) {
+        ctx.fillStyle = colours[s.name] || OTHER;
+        ctx.beginPath();
+        ctx.arc(s.x, s.y, RADIUS, 0, 2 * Math.PI);
+        ctx.fill();
+        var dx = s.x - mx, dy = s.y - my, len = Math.sqrt(dx * dx + dy * dy);
+        if (shown.length < 2 || len < 1) { dx = 0.7071; dy = -0.7071; len = 1; }
+        var lx = s.x + 18 * dx / len, ly = s.y + 18 * dy / len;
+        ctx.textAlign = dx < -0.3 * len ? "right" : (dx > 0.3 * len ? "left" : "center");
+        ctx.textBaseline = dy < -0.3 * len ? "bottom" : (dy > 0.3 * len ? "top" : "middle");
+        ctx.fillStyle = "rgb(255,255,255)";
+        ctx.fillText(s.name, lx, ly);
+      });
+      ctx.textAlign = "start";
+      ctx.textBaseline = "alphabetic";
     }
 
     function time() { return lead.video.currentTime; }

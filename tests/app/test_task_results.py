@@ -350,6 +350,14 @@ def test_the_review_page_shows_the_task_s_signal_and_corrects_its_cycles(
     assert data["unit"] == unit and data["peak_key"] == task_key("t_max_aperture_s", task)
     assert [c["index"] for c in data["taps"]] == [c["index"] for c in doc["cycles"]]
     assert data["pause_key"] == "cycle_index"
+    # The overlay draws each marker in its plots' colour (all but the thumb and index
+    # were purple, against a caption naming orange, blue and green)
+    from app.plots import MARKER_COLOURS
+    from core.protocols import protocol_for
+
+    labels = protocol_for(task).labels
+    assert data["marker_colours"] == {label: MARKER_COLOURS[k][0] for k, label in enumerate(labels)}
+    # (the caption under the videos names the same colours: app.templating's marker_legend)
     assert f"{signal[0].upper()}{signal[1:]} ({unit}) over time" in html
     assert f'<th scope="col" class="num">Amplitude ({unit})</th>' in html
     assert "Cycle 3</button>" in html and "Tap " not in html

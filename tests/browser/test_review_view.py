@@ -51,9 +51,11 @@ DRAWN_AHEAD_OF_SEEK_JS = """() => {
 THUMB_DISC_JS = """(side) => {
   const c = document.querySelector(`canvas[data-overlay="${side}"]`);
   const img = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  const hex = JSON.parse(document.getElementById('review-data').textContent).marker_colours.thumb;
+  const [r, g, b] = [1, 3, 5].map((k) => parseInt(hex.slice(k, k + 2), 16));
   let n = 0, sx = 0, sy = 0;
   for (let i = 0; i < img.length; i += 4) {
-    if (img[i] === 255 && img[i + 1] === 127 && img[i + 2] === 14 && img[i + 3] === 255) {
+    if (img[i] === r && img[i + 1] === g && img[i + 2] === b && img[i + 3] === 255) {
       const p = i / 4; sx += p % c.width; sy += Math.floor(p / c.width); n++;
     }
   }
