@@ -341,6 +341,9 @@ def test_session_page_offers_the_left_right_comparison(client, seeded, db_sessio
     assert f'href="/trials/{right}?compare={left}#compare"' in html
     page = client.get(f"/trials/{right}?compare={left}")
     assert page.status_code == 200 and "Compared trial" in page.text
+    # all-tap values beside a first-10 summary: the table says which it compares
+    assert "Values over all taps of each trial" in page.text
+    assert "This trial (A), all taps" in page.text
 
 
 def test_trial_page_has_every_plot_metrics_and_quality(client, seeded, db_sessionmaker):
