@@ -194,6 +194,10 @@ def read_trc(path: str | Path) -> tuple[float, tuple[str, ...], NDArray[np.float
 # --------------------------------------------------------------------------- FHIR
 
 
+FIRST_10_SUFFIX = "_first_10"
+"""The code of a metric over the first 10 taps or cycles: its key with this suffix."""
+
+
 def _observation(
     key: str,
     value: float,
@@ -204,9 +208,12 @@ def _observation(
     task: Task = Task.FINGER_TAPPING,
     trial_id: int = 0,
     revision: int = 1,
+    first_10: bool = False,
 ) -> dict[str, Any]:
     spec = metric_spec(key, task.value)
     label, ucum, unit = spec.label, spec.ucum, spec.unit
+    if first_10:  # the value the pages, the trends and the summary show (the item's 10 taps)
+        key, label = f"{key}{FIRST_10_SUFFIX}", f"{label}, first 10 {task.cycle_word}s"
     obs: dict[str, Any] = {
         "resourceType": "Observation",
         **_version(trial_id, key, revision),
@@ -411,12 +418,17 @@ def _urn() -> str:
 def _observation_entries(
     data: ReportData, patient_url: str, effective: str
 ) -> list[dict[str, Any]]:
-    """One Observation entry per numeric metric of the result (an undefined one: data absent);
-    the common keys that repeat one of the task's own metrics are given once, by its name."""
+    """One Observation entry per numeric metric of the result (an undefined one: data absent),
+    over all taps (``metrics``) and over the first 10 (``metrics_first_10``, codes with
+    :data:`FIRST_10_SUFFIX`: the values the pages and trends show); the common keys that
+    repeat one of the task's own metrics are given once, by its name."""
     task = parse_task(data.task)
     aliases = ALIAS_KEYS | ({"cycle_count"} if task is Task.FINGER_TAPPING else set())
     entries = []
-    for key, value in data.analysis.metrics.items():
+    both = [(k, v, False) for k, v in data.analysis.metrics.items()] + [
+        (k, v, True) for k, v in data.analysis.metrics_first_10.items()
+    ]
+    for key, value, first_10 in both:
         if key in aliases:
             continue
         # Tap numbers are counted from 1, as the definition in the note says.
@@ -433,6 +445,7 @@ def _observation_entries(
                     task=task,
                     trial_id=data.trial_id,
                     revision=data.revision,
+                    first_10=first_10,
                 ),
             }
         )
@@ -494,16 +507,30 @@ def _diagnostic_report(
 
 
 def _conclusion(data: ReportData) -> str:
-    m = data.analysis
+    """One sentence per count of taps: over all of them, and over the first 10 (what the
+    pages and the trends show): ``Right hand, medication off. All 12 taps: 2.18 Hz, mean
+    amplitude 26.7 mm, decrement -1.12 mm/tap. First 10 taps: ...``."""
     task = parse_task(data.task)
     unit, word = task.amplitude_unit, task.cycle_word
-    parts = [f"{data.hand.capitalize()} {task.limb}, medication {data.medication_state}."]
-    if (taps := m.metric(task_key("tap_count", task))) is not None:
-        parts.append(f"{int(taps)} {word}s")
-    if (frequency := m.metric("frequency_hz")) is not None:
-        parts.append(f"at {frequency:.2f} Hz")
-    if (amplitude := m.metric(task_key("amplitude_mm_mean", task))) is not None:
-        parts.append(f"mean amplitude {amplitude:.1f} {unit}")
-    if (decrement := m.metric(task_key("amplitude_decrement_mm_per_tap", task))) is not None:
-        parts.append(f"decrement {decrement:+.2f} {unit}/{word}")
-    return " ".join(parts[:1]) + " " + ", ".join(parts[1:]) + "." if len(parts) > 1 else parts[0]
+    m = data.analysis
+
+    def summary(values: dict[str, Any], lead: str) -> str | None:
+        taps = values.get(task_key("tap_count", task))
+        if taps is None:
+            return None
+        parts = []
+        if (frequency := values.get("frequency_hz")) is not None:
+            parts.append(f"{frequency:.2f} Hz")
+        if (amplitude := values.get(task_key("amplitude_mm_mean", task))) is not None:
+            parts.append(f"mean amplitude {amplitude:.1f} {unit}")
+        decrement = values.get(task_key("amplitude_decrement_mm_per_tap", task))
+        if decrement is not None:
+            parts.append(f"decrement {decrement:+.2f} {unit}/{word}")
+        head = lead.format(n=int(taps), word=word if int(taps) == 1 else f"{word}s")
+        return f"{head}: {', '.join(parts)}." if parts else f"{head}."
+
+    sentences = [f"{data.hand.capitalize()} {task.limb}, medication {data.medication_state}."]
+    for values, lead in ((m.metrics, "All {n} {word}"), (m.metrics_first_10, "First {n} {word}")):
+        if (text := summary(dict(values), lead)) is not None:
+            sentences.append(text)
+    return " ".join(sentences)

@@ -127,6 +127,11 @@ def test_fhir_bundle_validates_and_carries_every_metric_and_the_pdf():
         for e in doc["entry"]
         if "clinician-rating" not in str(e["resource"].get("code", ""))
         and "hasMember" not in e["resource"]  # the task's Observation group (below)
+        and not e["resource"]
+        .get("code", {})
+        .get("coding", [{}])[0]
+        .get("code", "")
+        .endswith("_first_10")  # the first-10 values (the next test)
     ]
     kinds = [r["resourceType"] for r in resources]
     numeric = {
@@ -154,11 +159,13 @@ def test_fhir_bundle_validates_and_carries_every_metric_and_the_pdf():
     assert units["amplitude_decrement_mm_per_tap"] == "mm/{tap}"
     assert units["tap_count"] == units["amplitude_mm_cv"] == "1"
     report = DiagnosticReport.model_validate(resources[kinds.index("DiagnosticReport")])
-    assert len(report.result) == 11 + 1  # the metrics and their task group
+    n_first_10 = len(data.result["metrics_first_10"])
+    assert len(report.result) == 11 + n_first_10 + 1  # the metrics, first 10, their group
     (group,) = [e for e in doc["entry"] if "hasMember" in e["resource"]]
     assert group["resource"]["code"]["coding"][0]["code"] == "finger-tapping"
     members = {m["reference"] for m in group["resource"]["hasMember"]}
-    assert len(members) == 11 and group["fullUrl"] in {r.reference for r in report.result}
+    assert len(members) == 11 + n_first_10
+    assert group["fullUrl"] in {r.reference for r in report.result}
     form = report.presentedForm[0]
     assert form.contentType == "application/pdf"
     assert base64.b64decode(doc["entry"][-1]["resource"]["presentedForm"][0]["data"]) == pdf
@@ -231,7 +238,8 @@ def test_fhir_values_are_the_results_and_a_revision_amends_the_same_resources():
         return out
 
     a, b = measured(first), measured(second)
-    assert a.keys() == b.keys() and len(a) == 11 + 1 + 1  # metrics, their panel, the report
+    n = 11 + len(sample_report_data().result["metrics_first_10"]) + 1 + 1
+    assert a.keys() == b.keys() and len(a) == n  # metrics, first 10, their panel, the report
     assert ("urn:bradyscope:trial-report", "7") in a
     assert ("urn:bradyscope:trial-observation", "7/frequency_hz") in a
     assert {r["status"] for r in a.values()} == {"final"}
@@ -246,3 +254,10 @@ def test_fhir_values_are_the_results_and_a_revision_amends_the_same_resources():
     for key in ("amplitude_mm_cv", "amplitude_mm_mean", "frequency_hz"):
         value = a[("urn:bradyscope:trial-observation", f"7/{key}")]["valueQuantity"]["value"]
         assert value == metrics[key], key
+    # and over the first 10 taps, the values the pages, the summary and the trends show
+    first_10 = sample_report_data().result["metrics_first_10"]
+    for key in ("amplitude_mm_mean", "amplitude_decrement_mm_per_tap", "frequency_hz"):
+        obs = a[("urn:bradyscope:trial-observation", f"7/{key}_first_10")]
+        assert obs["valueQuantity"]["value"] == first_10[key], key
+        assert obs["code"]["coding"][0]["code"] == f"{key}_first_10"
+        assert obs["code"]["coding"][0]["display"].endswith(", first 10 taps")

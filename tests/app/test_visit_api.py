@@ -108,7 +108,7 @@ def test_fhir_bundle_holds_the_clinicians_rating_as_its_own_observation(api: Api
         if r["resourceType"] == "Observation"
         and r["code"]["coding"][0]["system"] == "urn:bradyscope:finger-tapping-metric"
     ]
-    assert len(measured) == len(document["metrics"])
+    assert len(measured) == len(document["metrics"]) + len(document["metrics_first_10"])
     (report,) = [r for _, r in resources if r["resourceType"] == "DiagnosticReport"]
     assert url not in {ref["reference"] for ref in report["result"]}  # not a measurement
     # Without a rating there is no rating Observation.
