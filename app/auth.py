@@ -114,7 +114,11 @@ def authenticate_api_key(db: Session, token: str) -> Actor:
                 " for a new key."
             )
     if client.last_used_at is None or now - client.last_used_at > _TOUCH_INTERVAL:
-        client.last_used_at = now  # committed with the request's use case, if any
+        # Committed at once (nothing else is pending yet): a request that writes nothing
+        # else, or writes through its own session (an upload), must count as a use too, or
+        # an administrator would see a key in use as "never" used and revoke the wrong one.
+        client.last_used_at = now
+        db.commit()
     return Actor(
         type="api_client",
         id=client.id,
@@ -138,6 +142,7 @@ def _browser_session(db: Session, token: str, idle_s: float | None) -> BrowserSe
         return None
     if now - row.last_seen_at > _TOUCH_INTERVAL:
         row.last_seen_at = now
+        db.commit()  # at once, as a key's last use: the idle timeout reads it
     return row
 
 

@@ -109,6 +109,23 @@ def test_allow_listed_routes_hold_no_patient_data(api: Api) -> None:
         assert "PD-HIDDEN-1" not in r.text
 
 
+def test_a_key_s_last_use_is_kept_by_a_request_that_writes_nothing(api: Api) -> None:
+    """`admin list-api-keys` showed "never" for keys in use: the time was only saved when
+    the request wrote something else."""
+
+    def last_used():
+        with api.sessions() as db:
+            return db.scalar(select(ApiClient.last_used_at))
+
+    assert last_used() is None
+    assert api.client.get("/api/v1/auth/me", headers=api.headers).status_code == 200
+    first = last_used()
+    assert first is not None
+    # at most once a minute: the next request does not write again
+    assert api.client.get("/api/v1/auth/me", headers=api.headers).status_code == 200
+    assert last_used() == first
+
+
 def test_malformed_unknown_and_revoked_keys_are_refused(api: Api) -> None:
     c = api.client
     for header in ("Bearer nonsense", "Basic dXNlcjpwdw==", f"Bearer {api.key[:-2]}xx"):
