@@ -324,6 +324,10 @@ def task_text(text: str, task: Task) -> str:
             f"largest {task.signal} of a cycle minus that at its start",
         ),
         ("thumb–index", task.signal),
+        # wordings that the word-for-word replacements below would garble
+        ("complete taps (open–close cycles)", "complete cycles"),  # not "cycles (cycles)"
+        ("the fingers stay", "the movement stays"),
+        ("whose cycle is", "whose duration is"),  # not "cycles whose cycle is"
         ("Tapping frequency", "Frequency"),
         ("Tapping time", "Movement time"),
         ("Tap rate", "Cycle rate"),

@@ -243,6 +243,8 @@ def test_the_patient_page_trends_each_task_in_its_own_metrics_and_units(
             docs[(task, k)] = doc
     login(client)
     html = client.get(f"/patients/{seeded['patient_id']}").text
+    # the sessions table holds feet and legs too: sides and cycles, not only hands and taps
+    assert 'Right side <span class="unit">(first 10 taps or cycles)</span>' in html
     groups = re.findall(r'data-trend-task="([a-z_]+)"', html)
     assert groups == [
         "finger_tapping",
@@ -459,3 +461,19 @@ def test_the_exports_give_the_task_s_markers_and_metrics_with_units(
     for key, ucum in expected.items():
         assert quantities[key]["code"] == ucum, (key, quantities[key])
         assert quantities[key]["value"] == pytest.approx(doc["metrics"][key], abs=1e-6)
+
+
+@pytest.mark.parametrize("task", NEW_TASKS, ids=lambda t: t.value)
+def test_the_other_tasks_metric_wording_names_no_fingers_and_repeats_no_word(task: Task) -> None:
+    """The finger-tapping definitions reworded for each task read as sentences: a
+    clinician-style review found "complete cycles (cycles)" and "the movement stay still"."""
+    import re
+
+    from app.reports import catalogue
+
+    for key in catalogue.METRICS:
+        spec = catalogue.metric_spec(task_key(key, task), task.value)
+        text = f"{spec.label}. {spec.definition}"
+        assert not re.search(r"\b(\w+) \(\1\)", text), text
+        pattern = r"\btaps?\b|thumb|the fingers|movement stay\b|cycles whose cycle"
+        assert not re.search(pattern, text, re.I), text
