@@ -193,6 +193,13 @@ def _wants_html_page(request: Request) -> bool:
     )
 
 
+def _html_error(request: Request, status: int, message: str) -> Response:
+    """The error page (the site's layout, no navigation) for a browser asking for a page."""
+    from app.web.common import error_page  # the web layer loads after the app is made
+
+    return error_page(request, None, status_code=status, message=message)
+
+
 #: pydantic's error types for a body that is not a JSON object (a string, a list, a number)
 _NOT_AN_OBJECT = frozenset({"model_attributes_type", "dict_type", "model_type"})
 
@@ -219,7 +226,13 @@ def _install_error_handlers(app: FastAPI) -> None:
         return _error(422, str(exc))
 
     @app.exception_handler(RequestValidationError)
-    async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    async def validation_error(request: Request, exc: RequestValidationError) -> Response:
+        if _wants_html_page(request) and all(
+            str(err.get("loc", ("",))[0]) == "path" for err in exc.errors()
+        ):  # /trials/abc in the address bar: that page does not exist
+            return _html_error(
+                request, 404, f"There is no page {request.url.path}: check the address."
+            )
         issues = [
             {
                 "loc": [str(part) for part in err.get("loc", ())],
@@ -247,7 +260,11 @@ def _install_error_handlers(app: FastAPI) -> None:
         return _error(422, detail, errors=issues)
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        if exc.status_code == 404 and _wants_html_page(request):
+            return _html_error(
+                request, 404, f"There is no page {request.url.path}: check the address."
+            )
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         if exc.status_code == 400 and detail == "There was an error parsing the body":
             detail = "The request body could not be read; send valid JSON (UTF-8) or a valid form."

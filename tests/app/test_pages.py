@@ -865,3 +865,18 @@ def test_every_notice_the_pages_send_is_one_they_show():
                 sent.add(unquote_plus(re.sub(r"\{[^}]*\}", "7", raw)))
     assert len(sent) >= 12, sent
     assert [m for m in sorted(sent) if notice_of(m) is None] == []
+
+
+def test_an_address_that_is_no_page_gets_the_error_page_not_json(client, seeded):
+    """/trials/abc answered a browser with raw JSON (a 422 of the path's validation)."""
+    login(client)
+    html = {"Accept": "text/html,application/xhtml+xml"}
+    for url in ("/trials/abc", "/patients/1x", "/no-such-page"):
+        r = client.get(url, headers=html)
+        assert r.status_code == 404, url
+        assert r.headers["content-type"].startswith("text/html"), url
+        assert f"There is no page {url}: check the address." in r.text
+    # API clients keep their JSON answers
+    r = client.get("/api/v1/trials/abc", headers=html)
+    assert r.status_code == 422 and r.json()["detail"].startswith("The request is invalid")
+    assert client.get("/no-such-page").headers["content-type"].startswith("application/json")
