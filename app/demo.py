@@ -449,6 +449,7 @@ def seed_demo(
     max_trials: int | None = None,
     now: datetime | None = None,
     start: threading.Event | None = None,
+    url: str = "http://127.0.0.1:8000/",
 ) -> str:
     """Create the demo account, rig, patient and sessions; queue simulated trials.
 
@@ -469,6 +470,8 @@ def seed_demo(
         With ``background``: the recordings are simulated once it is set (the
         server sets it when it answers, so that start-up does not share the
         processor with the simulation).
+    url : str
+        The address the printed lines tell the user to open (``bradyscope serve``'s).
     now : datetime, optional
         "Today" of the demo (UTC); default the current time.
 
@@ -500,7 +503,7 @@ def seed_demo(
             )
     n_total = len(demo_trials())
     lines = [
-        "Open http://127.0.0.1:8000/ (or the --host/--port you gave) and log in with:",
+        f"Open {url} and log in with:",
         f"  e-mail:   {DEMO_EMAIL}",
         f"  password: {seeded['password']}",
         f"  (also in {Path(settings.data_dir) / CREDENTIALS_FILE})",

@@ -125,7 +125,10 @@ def run(args: argparse.Namespace) -> int:
     if args.demo:
         from app.demo import seed_demo
 
-        info = seed_demo(settings, start=serving)
+        # the address a browser on this machine opens (0.0.0.0 listens on every address)
+        shown = "127.0.0.1" if args.host in ("0.0.0.0", "::", "") else args.host
+        shown = f"[{shown}]" if ":" in shown else shown
+        info = seed_demo(settings, start=serving, url=f"http://{shown}:{args.port}/")
         print("bradyscope demo:\n" + format_demo_info(info), flush=True)
 
     from app.main import create_app

@@ -229,3 +229,11 @@ def test_a_simulation_process_that_dies_fails_its_recording_and_is_replaced(tmp_
         assert simulator.simulate(trial, tmp_path, 1.0)[0].stat().st_size > 0
     finally:
         simulator.close()
+
+
+def test_the_demo_tells_the_address_it_is_served_at(app_settings):
+    """`bradyscope serve --demo --port 8131` printed 'Open http://127.0.0.1:8000/'."""
+    text = demo.seed_demo(
+        app_settings, background=False, max_trials=0, now=NOW, url="http://127.0.0.1:8131/"
+    )
+    assert "Open http://127.0.0.1:8131/ and log in with:" in text
