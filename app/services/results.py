@@ -465,10 +465,12 @@ def trial_page(
         audit(db, actor, "read", "trial", trial.id, patient.id)
         db.commit()
         return page
+    comparison, compare_error = None, None
+    if compare == trial.id:
+        compare, compare_error = None, "That is this trial: choose another trial to compare with."
     # The trajectories are read only to draw the plots of a comparison.
     with_markers = compare is not None
     data = load_report_data(db, trial, storage, timezone=timezone, markers=with_markers)
-    comparison, compare_error = None, None
     if compare is not None:
         other = visible_trial(db, compare)
         if other is None or other.result is None or other.session.patient_id != patient.id:

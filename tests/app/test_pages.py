@@ -369,8 +369,10 @@ def test_trial_page_has_every_plot_metrics_and_quality(client, seeded, db_sessio
     assert "Compared trial" in r.text and _svg_count(r.text) >= 4 + 4
     ids = re.findall(r'id="([^"]+)"', r.text)
     assert len(ids) == len(set(ids)), "duplicate element ids on the comparison page"
-    # A trial of another patient cannot be compared.
+    # A trial of another patient cannot be compared, nor the trial with itself.
     assert "cannot be compared" in client.get(f"/trials/{t}?compare=99999").text
+    same = client.get(f"/trials/{t}?compare={t}").text
+    assert "That is this trial" in same and "Compared trial" not in same
 
 
 def test_downloads_are_audited_once_each(client, seeded, db_sessionmaker):
