@@ -147,7 +147,8 @@ def _formatted(column: SummaryColumn, key: str) -> str:
     return format_metric(task_key(key, task), value, task.value)
 
 
-# (aspect, metric key, label); the band is shown on the aspect's first row.
+# (aspect, metric key, label); the band is shown on the aspect's first row (interruptions:
+# in a row of its own after both, templates/partials/summary_block.html).
 ROWS: tuple[tuple[str, str, str], ...] = (
     ("speed", "frequency_hz", "Tapping frequency"),
     ("speed", "opening_velocity_mm_s_max", "Peak opening velocity"),

@@ -882,3 +882,17 @@ def test_an_address_that_is_no_page_gets_the_error_page_not_json(client, seeded)
     r = client.get("/api/v1/trials/abc", headers=html)
     assert r.status_code == 422 and r.json()["detail"].startswith("The request is invalid")
     assert client.get("/no-such-page").headers["content-type"].startswith("application/json")
+
+
+def test_the_interruptions_band_has_a_row_of_its_own(client, seeded):
+    """The band of hesitations and halts together sat in the Hesitations row and read as
+    that count's band ("Hesitations 2 — 3 · moderate: a freeze"; found in a review)."""
+    login(client)
+    html = client.get(f"/trials/{seeded['trials'][(1, 'right')]}").text
+    rows = dict(re.findall(r'<tr data-summary-row="([^"]+)"[^>]*>(.*?)</tr>', html, re.S))
+    assert "data-band" not in rows["hesitation_count"]
+    assert "data-band" not in rows["halt_count"]
+    assert 'data-band="interruptions"' in rows["interruptions-band"]
+    assert "Band of both" in rows["interruptions-band"]
+    # the single-measure aspects keep their band beside their value
+    assert 'data-band="speed"' in rows["frequency_hz"]
