@@ -1,4 +1,4 @@
-"""A trial's result and its exports: result.json, markers.csv, report.html/.pdf, FHIR."""
+"""A trial's result and its exports: result.json, markers.csv/.c3d/.trc, report.html/.pdf, FHIR."""
 
 from __future__ import annotations
 
@@ -128,3 +128,49 @@ def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Req
         db, actor, trial_id, request.app.state.storage, timezone=_tz(request)
     )
     return JSONResponse(bundle, media_type="application/fhir+json")
+
+
+@router.get(
+    "/markers.c3d",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/octet-stream": {"schema": {"type": "string"}}},
+            "description": "C3D (mm, the rig's frame; docs/reports.md, Exports)",
+        },
+        **EXPORT_ERRORS,
+    },
+    summary="The marker trajectories as a C3D file (motion-capture tools)",
+)
+def get_markers_c3d(
+    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> Response:
+    body = service.trajectory_file(db, actor, trial_id, "c3d", request.app.state.storage)
+    return Response(
+        body,
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="trial-{trial_id}-markers.c3d"'},
+    )
+
+
+@router.get(
+    "/markers.trc",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"text/plain": {"schema": {"type": "string"}}},
+            "description": "OpenSim TRC (tab separated, mm)",
+        },
+        **EXPORT_ERRORS,
+    },
+    summary="The marker trajectories as an OpenSim TRC file",
+)
+def get_markers_trc(
+    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+) -> Response:
+    body = service.trajectory_file(db, actor, trial_id, "trc", request.app.state.storage)
+    return Response(
+        body,
+        media_type="text/plain; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="trial-{trial_id}-markers.trc"'},
+    )

@@ -7,7 +7,15 @@ import csv
 import io
 
 import pytest
-from api_support import Api, add_result, api, seed_recording_target, trial_files, video_pair  # noqa: F401 - pytest fixtures
+from api_support import (  # noqa: F401 - pytest fixtures
+    Api,
+    add_result,
+    api,
+    make_api_key,
+    seed_recording_target,
+    trial_files,
+    video_pair,
+)
 
 
 def _upload(api: Api, video_pair, hand: str = "left") -> dict:
@@ -109,7 +117,8 @@ def _patient_and_rig(api: Api, session_id: int) -> tuple[int, int]:
 
 def test_result_is_409_until_the_analysis_succeeded(api: Api, video_pair) -> None:
     up = _upload(api, video_pair)
-    for suffix in ("result", "markers.csv", "report.html", "report.pdf", "fhir"):
+    suffixes = ("result", "markers.csv", "markers.c3d", "markers.trc", "report.html")
+    for suffix in (*suffixes, "report.pdf", "fhir"):
         r = api.client.get(f"/api/v1/trials/{up['id']}/{suffix}", headers=api.headers)
         assert r.status_code == 409, suffix
         assert "no result yet" in r.json()["detail"]
@@ -147,6 +156,19 @@ def test_result_and_exports(api: Api, video_pair) -> None:
     assert fhir.headers["content-type"].startswith("application/fhir+json")
     assert fhir.json()["resourceType"] == "Bundle"
     assert api.client.get("/api/v1/trials/1/result").status_code == 401
+    # The trajectories for motion-capture tools, with a key (they were pages only).
+    trc = api.client.get(f"/api/v1/trials/{up['id']}/markers.trc", headers=h)
+    assert trc.status_code == 200 and trc.text.startswith("PathFileType\t4")
+    c3d = api.client.get(f"/api/v1/trials/{up['id']}/markers.c3d", headers=h)
+    assert c3d.status_code == 200 and len(c3d.content) > 512
+    assert "markers.c3d" in c3d.headers["content-disposition"]
+    reader = make_api_key(api.sessions, name="reader", scopes=("patients:read",))
+    assert (
+        api.client.get(
+            f"/api/v1/trials/{up['id']}/markers.c3d", headers={"Authorization": f"Bearer {reader}"}
+        ).status_code
+        == 403
+    )
 
 
 def test_rig_file_calibration_round_trip(api: Api) -> None:
