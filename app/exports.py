@@ -470,8 +470,10 @@ def _diagnostic_report(
                 "coding": [
                     {
                         "system": "http://terminology.hl7.org/CodeSystem/v2-0074",
-                        "code": "NRS",
-                        "display": "Nursing Service Measures",
+                        # v2-0074 has no section for an instrumented neurological
+                        # examination; "Nursing Service Measures" (NRS) it is not
+                        "code": "OTH",
+                        "display": "Other",
                     }
                 ],
                 "text": "Movement analysis",

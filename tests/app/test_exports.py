@@ -159,6 +159,8 @@ def test_fhir_bundle_validates_and_carries_every_metric_and_the_pdf():
     assert units["amplitude_decrement_mm_per_tap"] == "mm/{tap}"
     assert units["tap_count"] == units["amplitude_mm_cv"] == "1"
     report = DiagnosticReport.model_validate(resources[kinds.index("DiagnosticReport")])
+    category = report.category[0]
+    assert (category.coding[0].code, category.text) == ("OTH", "Movement analysis")
     n_first_10 = len(data.result["metrics_first_10"])
     assert len(report.result) == 11 + n_first_10 + 1  # the metrics, first 10, their group
     (group,) = [e for e in doc["entry"] if "hasMember" in e["resource"]]
