@@ -120,14 +120,28 @@ def trend_plot(
     return to_svg(fig, title=title, name="trend", hover=hover)
 
 
+#: Up to this many visit days, the x axis is labelled at the visits themselves.
+VISIT_TICKS_MAX = 6
+
+
 def _date_axis(ax: Any, days: list[datetime]) -> None:
-    """Dates on the x axis: 2-5 concise ticks; a span under 60 days widened to 90 around its middle."""
-    # matplotlib.dates has no type hints: its three calls are the untyped ones here.
+    """Dates on the x axis: the visit days themselves when there are at most
+    :data:`VISIT_TICKS_MAX` (a year's tick between two visits told neither's date), else 2-5
+    concise ticks; a span under 60 days widened to 90 around its middle."""
+    # matplotlib.dates has no type hints: its calls are the untyped ones here.
     import matplotlib.dates as mdates
 
-    locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
-    ax.xaxis.set_major_locator(locator)
-    ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
+    visits = sorted({d.date() for d in days})
+    if len(visits) <= VISIT_TICKS_MAX:
+        noon = [datetime(v.year, v.month, v.day, 12) for v in visits]
+        ax.set_xticks(
+            [mdates.date2num(d) for d in noon],  # type: ignore[no-untyped-call]
+            [f"{d.day} {d:%b}\n{d:%Y}" for d in noon],
+        )
+    else:
+        locator = mdates.AutoDateLocator(minticks=2, maxticks=5)  # type: ignore[no-untyped-call]
+        ax.xaxis.set_major_locator(locator)
+        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
     if max(days) - min(days) < timedelta(days=60):
         centre = min(days) + (max(days) - min(days)) / 2
         ax.set_xlim(

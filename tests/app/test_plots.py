@@ -149,6 +149,25 @@ def test_trend_plot_separates_hands_and_medication():
     assert "left, off" not in only_on
 
 
+def test_a_trend_of_few_visits_is_labelled_at_the_visits():
+    """Three visits over two years were labelled '2025' and '2026' only: the first visit sat
+    on the '2025' tick (found in a clinician-style review)."""
+    days = (datetime(2024, 11, 27, 9, tzinfo=UTC), datetime(2025, 11, 27, 9, tzinfo=UTC))
+    days += (datetime(2026, 10, 28, 9, tzinfo=UTC),)
+    pts = [trends.TrendPoint(d, "right", "off", 40.0) for d in days]
+    svg = trends.trend_plot(pts, label="Mean amplitude", unit="mm")
+    ticks = re.findall(r">(\d{1,2} [A-Z][a-z]{2})<", svg)
+    assert ticks == ["27 Nov", "27 Nov", "28 Oct"], ticks
+    # many visits: the concise automatic dates again
+    many = [
+        trends.TrendPoint(datetime(2024, m, 1, tzinfo=UTC), "right", "off", 40.0)
+        for m in range(1, 13)
+    ]
+    assert not re.findall(
+        r">(\d{1,2} [A-Z][a-z]{2})<", trends.trend_plot(many, label="A", unit="mm")
+    )
+
+
 def test_missing_and_unreliable_tap_values_do_not_break_the_plots(trial):
     markers, result = trial
     taps = [dict(tp) for tp in result["taps"]]
