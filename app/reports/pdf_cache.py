@@ -7,6 +7,7 @@ from here (:func:`app.services.results.report_pdf`). A file is named after the
 report's content::
 
     <patient id>-<trial id>-<key>.pdf
+    <patient id>-visit-<session id>-<key>.pdf     (a visit report, made on request)
 
 ``key`` is the SHA-256 of the report's HTML rendered at a fixed "generated on"
 time (:func:`app.reports.rendering.report_key`): a change of anything the
@@ -72,6 +73,30 @@ class ReportPdfCache(PatientFileCache):
         final = self.path(patient_id, trial_id, key)
         self.write(final, pdf)
         self.keep_newest(f"{patient_id}-{trial_id}-*.pdf", KEEP_PER_TRIAL)
+        self.trim()
+        return final
+
+    # A visit report (every trial of a visit day; app.services.visits), by the session it
+    # was asked for: ``<patient id>-visit-<session id>-<key>.pdf``.
+
+    def visit_path(self, patient_id: int, session_id: int, key: str) -> Path:
+        """Where the visit report of ``session_id``'s visit with content ``key`` is kept."""
+        self.check_id("patient_id", patient_id)
+        self.check_id("session_id", session_id)
+        self.check_key(key)
+        return self.directory / f"{patient_id}-visit-{session_id}-{key}.pdf"
+
+    def get_visit(self, patient_id: int, session_id: int, key: str) -> bytes | None:
+        """The kept visit report, or None (a file found counts as just used)."""
+        return self.read(self.visit_path(patient_id, session_id, key))
+
+    def put_visit(self, patient_id: int, session_id: int, key: str, pdf: bytes) -> Path:
+        """Keep ``pdf`` as the visit report of ``session_id``; as :meth:`put`."""
+        if not pdf.startswith(b"%PDF"):
+            raise ValueError("only a PDF is kept in the report cache")
+        final = self.visit_path(patient_id, session_id, key)
+        self.write(final, pdf)
+        self.keep_newest(f"{patient_id}-visit-{session_id}-*.pdf", KEEP_PER_TRIAL)
         self.trim()
         return final
 

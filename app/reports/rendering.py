@@ -221,6 +221,14 @@ def render_visit_html(visit: VisitData) -> str:
     return jinja_env.get_template("visit_report.html").render(**visit_context(visit))
 
 
+def visit_key(visit: VisitData) -> str:
+    """What the visit report of ``visit`` shows, as a SHA-256 (lower-case hex), as
+    :func:`report_key` for a trial's: its HTML at a fixed "generated on" time. The key of
+    the visit reports in the PDF report cache."""
+    html = render_visit_html(replace(visit, generated_at=_KEY_TIME))
+    return hashlib.sha256(html.encode("utf-8")).hexdigest()
+
+
 def render_visit_pdf(visit: VisitData) -> bytes:
     """The visit report as PDF bytes (A4; page 1 is the one-page visit summary)."""
     return html_to_pdf(render_visit_html(visit))

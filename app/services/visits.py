@@ -9,12 +9,14 @@ Each report is audited as one ``export`` of the session it was asked for.
 
 from __future__ import annotations
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.audit import audit
 from app.models import RecordingSession, User
-from app.reports.rendering import render_visit_html, render_visit_pdf
+from app.reports.pdf_cache import ReportPdfCache
+from app.reports.rendering import render_visit_html, render_visit_pdf, visit_key
 from app.reports.visit import SessionFacts, VisitData
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.results import load_report_data
@@ -83,7 +85,22 @@ def visit_report_pdf(
 ) -> bytes:
     """The visit report of ``session_id``'s visit as PDF (audited ``export visit_report_pdf``)."""
     session, visit = _visit(db, actor, session_id, storage, timezone)
-    pdf = render_visit_pdf(visit)
+    # Made once per content (2-3 s of CPU for a visit of several tasks) and kept in the
+    # report cache: a report asked for again, or printed, comes from there.
+    cache = ReportPdfCache.of(storage)
+    key = visit_key(visit)
+    pdf = cache.get_visit(session.patient_id, session.id, key)
+    made = pdf is None
+    if pdf is None:
+        pdf = render_visit_pdf(visit)
+        cache.put_visit(session.patient_id, session.id, key, pdf)
     audit(db, actor, "export", "visit_report_pdf", session.id, session.patient_id)
     db.commit()
+    # a patient erased while the PDF was made: its erasure may have missed the new file
+    # (as app.services.results._forget_if_erased, in a transaction begun after the put)
+    if (
+        made
+        and db.scalar(select(RecordingSession.id).where(RecordingSession.id == session.id)) is None
+    ):
+        cache.forget_patient(session.patient_id)
     return pdf

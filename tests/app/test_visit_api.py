@@ -266,3 +266,35 @@ def test_calibration_form_errors_name_the_form_labels():
     upload.fields["square_mm"] = "-3"
     with pytest.raises(InvalidUpload, match=r"^Square size \(mm\) must be a number"):
         _board_fields(upload)
+
+
+def test_a_visit_report_asked_again_comes_from_the_cache_until_its_content_changes(api: Api):
+    """A visit report took 1.5-3 s at every request (found in a clinician-style review):
+    it is kept in the report cache, by its content, as the trials' reports are."""
+    import time
+
+    from app.reports.pdf_cache import ReportPdfCache
+
+    visit = _visit(api)
+    h, url = api.headers, f"/api/v1/sessions/{visit['session_id']}/report.pdf"
+    cache = ReportPdfCache.of(Storage.from_settings(api.settings))
+    first = api.client.get(url, headers=h)
+    assert first.status_code == 200 and first.content.startswith(b"%PDF")
+    kept = list(cache.directory.glob("*-visit-*.pdf"))
+    assert len(kept) == 1 and kept[0].read_bytes() == first.content
+    start = time.perf_counter()
+    again = api.client.get(url, headers=h)
+    assert again.content == first.content  # the same file, its "generated on" time with it
+    assert time.perf_counter() - start < 1.0  # s: read, not made (made: 1.5-3 s)
+    # A rating changes what the visit report shows: it is made anew.
+    trial_id = visit["ids"][("right", "off")]
+    r = api.client.patch(
+        f"/api/v1/trials/{trial_id}", json={"comment": "Seen again for the cache."}, headers=h
+    )
+    assert r.status_code == 200
+    changed = api.client.get(url, headers=h)
+    assert changed.content != first.content
+    assert len(list(cache.directory.glob("*-visit-*.pdf"))) == 2
+    # every visit export stays audited, whether made or read
+    exports = [e for e in api.audit_events() if e.resource_type == "visit_report_pdf"]
+    assert len(exports) == 3
