@@ -67,6 +67,8 @@ CASES = [
     Case("PATCH", "/api/v1/trials/{trial_id}", "update", "trial"),
     Case("GET", "/api/v1/trials/{trial_id}/result", "read", "result"),
     Case("GET", "/api/v1/trials/{trial_id}/markers.csv", "export", "markers_csv"),
+    Case("GET", "/api/v1/trials/{trial_id}/markers.c3d", "export", "c3d_file"),
+    Case("GET", "/api/v1/trials/{trial_id}/markers.trc", "export", "trc_file"),
     Case("GET", "/api/v1/trials/{trial_id}/report.html", "export", "report_html"),
     Case("GET", "/api/v1/trials/{trial_id}/report.pdf", "export", "report_pdf"),
     Case("GET", "/api/v1/trials/{trial_id}/fhir", "export", "fhir_bundle"),

@@ -131,10 +131,10 @@ def test_cycle_numbers_in_errors_are_counted_from_1_in_the_task_words() -> None:
     truth = _truth(Task.HAND_MOVEMENTS, "right", seed=5)
     n = len(truth.cycles)
     with pytest.raises(
-        ValueError, match=rf"no cycle {n + 1} in this recording \(it has {n} cycles"
+        ValueError, match=rf"no cycle {n + 1} \(index {n}\) in this recording \(it has {n} cycles"
     ):
         correct_metrics(_table(truth), Corrections(exclude_taps=(n,)), task=Task.HAND_MOVEMENTS)
-    with pytest.raises(ValueError, match="cycle 2 has no hesitation or halt"):
+    with pytest.raises(ValueError, match=r"cycle 2 \(index 1\) has no hesitation or halt"):
         correct_metrics(_table(truth), Corrections(dismiss_pauses=(1,)), task=Task.HAND_MOVEMENTS)
 
 
