@@ -29,16 +29,14 @@ only adds what is missing.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import secrets
 import shutil
 import tempfile
 import threading
-import traceback
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -50,10 +48,10 @@ from app.demo_plan import (
     DemoTrial,
     DemoVisit,
     SimulationStopped,
+    Simulator,
     demo_rating,
     demo_trials,
     should_stop,
-    simulate_trial,
     true_rig_doc,
 )
 from app.models import Calibration, Patient, RecordingSession, Rig, Trial, User
@@ -293,7 +291,7 @@ def generate_recordings(
 
     ``rigs``: the rig of each task not recorded by the session's (``DEMO_TASK_RIGS``).
     With ``start``, waits until it is set (or the server has ended) before the first.
-    The recordings are simulated in a child process (:class:`_Simulator`).
+    The recordings are simulated in a child process (:class:`Simulator`).
     """
     rigs = rigs or {}
     while start is not None and not start.wait(0.2):
@@ -302,7 +300,7 @@ def generate_recordings(
     work = Path(settings.data_dir) / "tmp"
     work.mkdir(parents=True, exist_ok=True)
     done = 0
-    simulator = _Simulator(stop_event)
+    simulator = Simulator(stop_event)
     try:
         for trial, session_id in todo:
             if should_stop(stop_event):
@@ -318,91 +316,13 @@ def generate_recordings(
     return done
 
 
-class _Simulator:
-    """Simulates demo recordings in one child process, started at the first.
-
-    The simulation is mostly Python (rendering each frame): in the server's process it
-    would hold the interpreter's lock against the embedded workers measuring the
-    recordings already made, and both would crawl (an analysis took ~3x as long while the
-    demo was being simulated: ``bench/bench_startup.py``). ``stop_event`` (or the end of
-    the server) stops it at once: the child is terminated. A child that dies (killed, out
-    of memory) fails the recording it was making with an error that says so, and the next
-    recording starts a new one: with a process pool, the lost task's result would have been
-    waited for forever.
-    """
-
-    def __init__(self, stop_event: threading.Event | None) -> None:
-        self.stop_event = stop_event
-        self._proc: Any = None
-        self._conn: Any = None
-
-    def simulate(self, trial: DemoTrial, out_dir: Path, clip_s: float | None) -> tuple[Path, Path]:
-        if self._proc is not None and not self._proc.is_alive():
-            self.close()  # it died between two recordings
-        if self._proc is None:
-            ctx = multiprocessing.get_context("spawn")
-            self._conn, child_conn = ctx.Pipe()
-            self._proc = ctx.Process(
-                target=_simulate_in_child, args=(child_conn,), name="demo-simulator", daemon=True
-            )
-            self._proc.start()
-            child_conn.close()  # the child's end: its death then ends the pipe here
-        self._conn.send((trial, out_dir, clip_s))
-        while True:
-            if self._conn.poll(0.2):
-                try:
-                    kind, value = self._conn.recv()
-                except (EOFError, OSError):
-                    kind, value = "died", None
-                if kind == "done":
-                    return cast(tuple[Path, Path], value)
-                if kind == "error":
-                    raise RuntimeError(f"the simulation failed in its process:\n{value}")
-            elif self._proc.is_alive():
-                if should_stop(self.stop_event):
-                    self.close()  # before the caller removes the files the child writes
-                    raise SimulationStopped
-                continue
-            self._proc.join(5.0)
-            code = self._proc.exitcode
-            self.close()
-            raise RuntimeError(
-                f"the simulation process ended (exit code {code}) before the recording was "
-                "made; the next recording starts a new one"
-            )
-
-    def close(self) -> None:
-        if self._proc is not None:
-            self._proc.terminate()
-            self._proc.join()
-            self._conn.close()
-            self._proc = self._conn = None
-
-
-def _simulate_in_child(conn: Any) -> None:
-    """The simulation child of :class:`_Simulator`: each ``(trial, out_dir, clip_s)`` it is
-    sent, simulated, and ``("done", (left, right))`` or ``("error", what went wrong)``
-    sent back, until the server's end of the pipe closes."""
-    while True:
-        try:
-            trial, out_dir, clip_s = conn.recv()
-        except EOFError:
-            return
-        try:
-            result = simulate_trial(trial, out_dir, clip_s=clip_s)
-        except Exception:  # raised in the server by _Simulator.simulate, and logged
-            conn.send(("error", traceback.format_exc()))
-        else:
-            conn.send(("done", result))
-
-
 def _prepare_one(
     settings: Settings,
     user_id: int,
     trial: DemoTrial,
     session_id: int,
     work: Path,
-    simulator: _Simulator,
+    simulator: Simulator,
     clip_s: float | None,
     rigs: dict[Task, int],
 ) -> int | None:

@@ -4,17 +4,20 @@
 medication, at three visits over two years; the other items of the examination at
 the last); :func:`simulate_trial` renders one as a stereo recording with the
 simulator's true rig placed for its task (:func:`true_rig_doc`, the demo rigs'
-calibration); :func:`demo_rating` is the clinician's rating of it. :mod:`app.demo`
-seeds the rows and uploads the recordings.
+calibration); :func:`demo_rating` is the clinician's rating of it; :class:`Simulator`
+runs the simulations in one child process. :mod:`app.demo` seeds the rows and uploads
+the recordings.
 """
 
 from __future__ import annotations
 
 import math
+import multiprocessing
 import threading
+import traceback
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from core.camera import ImageSize, rig_to_dict
 from core.protocols import marker_diameter_mm
@@ -254,3 +257,81 @@ def demo_rating(trial: DemoTrial) -> int:
     visit = VISITS[trial.visit]
     rating = visit.rating_off if trial.medication_state == "off" else visit.rating_on
     return rating if trial.hand == "right" else max(0, rating - 1)
+
+
+class Simulator:
+    """Simulates demo recordings in one child process, started at the first.
+
+    The simulation is mostly Python (rendering each frame): in the server's process it
+    would hold the interpreter's lock against the embedded workers measuring the
+    recordings already made, and both would crawl (an analysis took ~3x as long while the
+    demo was being simulated: ``bench/bench_startup.py``). ``stop_event`` (or the end of
+    the server) stops it at once: the child is terminated. A child that dies (killed, out
+    of memory) fails the recording it was making with an error that says so, and the next
+    recording starts a new one: with a process pool, the lost task's result would have been
+    waited for forever.
+    """
+
+    def __init__(self, stop_event: threading.Event | None) -> None:
+        self.stop_event = stop_event
+        self._proc: Any = None
+        self._conn: Any = None
+
+    def simulate(self, trial: DemoTrial, out_dir: Path, clip_s: float | None) -> tuple[Path, Path]:
+        if self._proc is not None and not self._proc.is_alive():
+            self.close()  # it died between two recordings
+        if self._proc is None:
+            ctx = multiprocessing.get_context("spawn")
+            self._conn, child_conn = ctx.Pipe()
+            self._proc = ctx.Process(
+                target=_simulate_in_child, args=(child_conn,), name="demo-simulator", daemon=True
+            )
+            self._proc.start()
+            child_conn.close()  # the child's end: its death then ends the pipe here
+        self._conn.send((trial, out_dir, clip_s))
+        while True:
+            if self._conn.poll(0.2):
+                try:
+                    kind, value = self._conn.recv()
+                except (EOFError, OSError):
+                    kind, value = "died", None
+                if kind == "done":
+                    return cast(tuple[Path, Path], value)
+                if kind == "error":
+                    raise RuntimeError(f"the simulation failed in its process:\n{value}")
+            elif self._proc.is_alive():
+                if should_stop(self.stop_event):
+                    self.close()  # before the caller removes the files the child writes
+                    raise SimulationStopped
+                continue
+            self._proc.join(5.0)
+            code = self._proc.exitcode
+            self.close()
+            raise RuntimeError(
+                f"the simulation process ended (exit code {code}) before the recording was "
+                "made; the next recording starts a new one"
+            )
+
+    def close(self) -> None:
+        if self._proc is not None:
+            self._proc.terminate()
+            self._proc.join()
+            self._conn.close()
+            self._proc = self._conn = None
+
+
+def _simulate_in_child(conn: Any) -> None:
+    """The simulation child of :class:`Simulator`: each ``(trial, out_dir, clip_s)`` it is
+    sent, simulated, and ``("done", (left, right))`` or ``("error", what went wrong)``
+    sent back, until the server's end of the pipe closes."""
+    while True:
+        try:
+            trial, out_dir, clip_s = conn.recv()
+        except EOFError:
+            return
+        try:
+            result = simulate_trial(trial, out_dir, clip_s=clip_s)
+        except Exception:  # raised in the server by Simulator.simulate, and logged
+            conn.send(("error", traceback.format_exc()))
+        else:
+            conn.send(("done", result))

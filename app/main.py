@@ -204,6 +204,41 @@ def _html_error(request: Request, status: int, message: str) -> Response:
 _NOT_AN_OBJECT = frozenset({"model_attributes_type", "dict_type", "model_type"})
 
 
+def _validation_response(request: Request, exc: RequestValidationError) -> Response:
+    """The answer to a request whose path, query or body does not validate: the 404 page
+    for a browser at an address that is no page, 400 for a body that is not JSON, else
+    422 naming the fields."""
+    if _wants_html_page(request) and all(
+        str(err.get("loc", ("",))[0]) == "path" for err in exc.errors()
+    ):  # /trials/abc in the address bar: that page does not exist
+        return _html_error(request, 404, f"There is no page {request.url.path}: check the address.")
+    issues = [
+        {
+            "loc": [str(part) for part in err.get("loc", ())],
+            "msg": str(err.get("msg", "")),
+            "type": str(err.get("type", "")),
+        }
+        for err in exc.errors()
+    ]
+    if any(i["type"] == "json_invalid" for i in issues):  # unreadable, not invalid
+        where = next(i for i in issues if i["type"] == "json_invalid")["loc"][1:]
+        at = f" (at character {where[0]})" if where else ""
+        return _error(
+            400,
+            f"The request body is not valid JSON{at}; send a JSON document (UTF-8) with "
+            "Content-Type: application/json.",
+        )
+    if any(i["loc"] == ["body"] and i["type"] in _NOT_AN_OBJECT for i in issues):
+        return _error(
+            422,
+            "The request body must be a JSON object, sent with Content-Type: application/json.",
+            errors=issues,
+        )
+    parts = [f"{'.'.join(i['loc'][1:] or i['loc'])}: {i['msg']}" for i in issues[:5]]
+    detail = "The request is invalid: " + "; ".join(parts) + "."
+    return _error(422, detail, errors=issues)
+
+
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
     async def app_error(request: Request, exc: AppError) -> Response:
@@ -227,37 +262,7 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> Response:
-        if _wants_html_page(request) and all(
-            str(err.get("loc", ("",))[0]) == "path" for err in exc.errors()
-        ):  # /trials/abc in the address bar: that page does not exist
-            return _html_error(
-                request, 404, f"There is no page {request.url.path}: check the address."
-            )
-        issues = [
-            {
-                "loc": [str(part) for part in err.get("loc", ())],
-                "msg": str(err.get("msg", "")),
-                "type": str(err.get("type", "")),
-            }
-            for err in exc.errors()
-        ]
-        if any(i["type"] == "json_invalid" for i in issues):  # unreadable, not invalid
-            where = next(i for i in issues if i["type"] == "json_invalid")["loc"][1:]
-            at = f" (at character {where[0]})" if where else ""
-            return _error(
-                400,
-                f"The request body is not valid JSON{at}; send a JSON document (UTF-8) with "
-                "Content-Type: application/json.",
-            )
-        if any(i["loc"] == ["body"] and i["type"] in _NOT_AN_OBJECT for i in issues):
-            return _error(
-                422,
-                "The request body must be a JSON object, sent with Content-Type: application/json.",
-                errors=issues,
-            )
-        parts = [f"{'.'.join(i['loc'][1:] or i['loc'])}: {i['msg']}" for i in issues[:5]]
-        detail = "The request is invalid: " + "; ".join(parts) + "."
-        return _error(422, detail, errors=issues)
+        return _validation_response(request, exc)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:

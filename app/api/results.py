@@ -10,6 +10,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from app.api.responses import AUTH, IdPath, errors, json_errors
 from app.auth import ResultReader, SessionDep
 from app.services import results as service
+from app.services import trajectories
 
 router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
 
@@ -145,7 +146,7 @@ def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Req
 def get_markers_c3d(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> Response:
-    body = service.trajectory_file(db, actor, trial_id, "c3d", request.app.state.storage)
+    body = trajectories.trajectory_file(db, actor, trial_id, "c3d", request.app.state.storage)
     return Response(
         body,
         media_type="application/octet-stream",
@@ -168,7 +169,7 @@ def get_markers_c3d(
 def get_markers_trc(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> Response:
-    body = service.trajectory_file(db, actor, trial_id, "trc", request.app.state.storage)
+    body = trajectories.trajectory_file(db, actor, trial_id, "trc", request.app.state.storage)
     return Response(
         body,
         media_type="text/plain; charset=utf-8",

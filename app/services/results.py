@@ -14,10 +14,9 @@ keeps it (:func:`report_pdf`, :func:`fhir_bundle`).
 
 from __future__ import annotations
 
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, TypeVar
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -41,7 +40,6 @@ from app.services.common import (
 )
 from app.services.revisions import served_document
 from app.storage import Storage
-from core.camera import rig_from_dict
 from core.markers_csv import MarkerTable, read_markers_csv
 from core.tasks import parse_task
 
@@ -75,7 +73,7 @@ def _result_of(
     return trial, result
 
 
-def _exported(db: Session, actor: Actor, trial: Trial, resource_type: str, value: T) -> T:
+def exported(db: Session, actor: Actor, trial: Trial, resource_type: str, value: T) -> T:
     """Audit the export of ``trial``'s ``resource_type`` (committed); returns ``value``."""
     audit(db, actor, "export", resource_type, trial.id, trial.session.patient_id)
     db.commit()
@@ -313,7 +311,7 @@ def markers_csv_path(db: Session, actor: Actor, trial_id: int, storage: Storage)
     path = storage.absolute(result.markers_path) if result.markers_path else None
     if path is None or not path.is_file():
         raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
-    return _exported(db, actor, trial, "markers_csv", path)
+    return exported(db, actor, trial, "markers_csv", path)
 
 
 def _report_data(
@@ -338,7 +336,7 @@ def report_html(
     timezone: str = "UTC",
 ) -> str:
     trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
-    return _exported(db, actor, trial, "report_html", render_report_html(data))
+    return exported(db, actor, trial, "report_html", render_report_html(data))
 
 
 def report_pdf(
@@ -355,7 +353,7 @@ def report_pdf(
     trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
     cache = ReportPdfCache.of(storage)
     pdf, made = _cached_pdf(data, cache)
-    _exported(db, actor, trial, "report_pdf", pdf)
+    exported(db, actor, trial, "report_pdf", pdf)
     if made:
         _forget_if_erased(db, cache, data)
     return pdf
@@ -370,41 +368,10 @@ def fhir_bundle(
 
     cache = ReportPdfCache.of(storage)
     pdf, made = _cached_pdf(data, cache)
-    bundle = _exported(db, actor, trial, "fhir_bundle", make_fhir_bundle(data, pdf))
+    bundle = exported(db, actor, trial, "fhir_bundle", make_fhir_bundle(data, pdf))
     if made:
         _forget_if_erased(db, cache, data)
     return bundle
-
-
-def _left_focal_px(db: Session, data: ReportData) -> float | None:
-    """The focal length (px) of the left camera of the calibration that measured the
-    trial, for the C3D residuals in mm; None when it is not known."""
-    cal_id = data.calibration.id if data.calibration is not None else None
-    cal = db.get(Calibration, cal_id) if cal_id is not None else None
-    if cal is None or not cal.rig_json:
-        return None
-    k = rig_from_dict(cal.rig_json, source=f"calibration {cal.id}").cameras[0].K
-    return 0.5 * float(k[0, 0] + k[1, 1])
-
-
-def trajectory_file(
-    db: Session, actor: Actor, trial_id: int, kind: Literal["c3d", "trc"], storage: Storage
-) -> bytes:
-    """The trial's marker trajectories as a C3D or TRC file (audited as ``c3d_file``/``trc_file``)."""
-    trial = load_trial(db, actor, trial_id, "export")
-    data = load_report_data(db, trial, storage, markers=True)
-    if data.markers is None:
-        raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / f"trial.{kind}"
-        from app.exports import write_c3d, write_trc  # ezc3d and fhir.resources: not at start-up
-
-        if kind == "c3d":
-            write_c3d(path, data.markers, focal_px=_left_focal_px(db, data))
-        else:
-            write_trc(path, data.markers)
-        body = path.read_bytes()
-    return _exported(db, actor, trial, f"{kind}_file", body)
 
 
 # --------------------------------------------------------------------------- the trial page

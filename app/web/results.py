@@ -25,7 +25,7 @@ from app.reports.data import ReportData
 from app.reports.figures import comparison_plots
 from app.reports.rendering import report_context
 from app.schemas import TrialRatingUpdate
-from app.services import results, trials
+from app.services import results, trajectories, trials
 from app.services.common import load_trial
 from app.storage import Storage
 from app.web.common import (
@@ -195,7 +195,9 @@ def _download(
         return json.dumps(results.get_result(db, user, trial_id), indent=1)
     if kind == "csv":
         return results.markers_csv_path(db, user, trial_id, storage).read_bytes()
-    return results.trajectory_file(db, user, trial_id, "c3d" if kind == "c3d" else "trc", storage)
+    return trajectories.trajectory_file(
+        db, user, trial_id, "c3d" if kind == "c3d" else "trc", storage
+    )
 
 
 @router.get("/trials/{trial_id}/download/{kind}")

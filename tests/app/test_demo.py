@@ -199,7 +199,7 @@ def test_a_simulation_process_that_dies_fails_its_recording_and_is_replaced(tmp_
     import time
 
     trial = demo_plan.demo_trials()[0]
-    simulator = demo._Simulator(None)
+    simulator = demo_plan.Simulator(None)
     failure: list[BaseException] = []
 
     def first() -> None:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from sample_trial import sample_report_data, synthetic_trial
 
-from app import exports
+from app import exports, trajectories
 from core import markers_csv
 
 
@@ -55,7 +55,7 @@ def test_c3d_reads_back_with_an_independent_reader(tmp_path, markers):
     import c3d  # the pure-Python reader, independent of ezc3d which wrote the file
 
     focal_px = 1400.0
-    path = exports.write_c3d(tmp_path / "trial.c3d", markers, focal_px=focal_px)
+    path = trajectories.write_c3d(tmp_path / "trial.c3d", markers, focal_px=focal_px)
     with open(path, "rb") as fh:
         reader = c3d.Reader(fh)  # checks that the header's scale factor is POINT:SCALE's
         assert reader.point_rate == pytest.approx(markers.fps)
@@ -88,7 +88,7 @@ def test_c3d_reads_back_with_an_independent_reader(tmp_path, markers):
 def test_c3d_convention_the_axes_are_not_permuted(tmp_path, markers):
     import c3d
 
-    path = exports.write_c3d(tmp_path / "trial.c3d", markers)
+    path = trajectories.write_c3d(tmp_path / "trial.c3d", markers)
     with open(path, "rb") as fh:
         first = next(iter(c3d.Reader(fh).read_frames()))[1]
     # The synthetic thumb rests at (10, -30, 600) mm: x, y, z must arrive in that order.
@@ -96,7 +96,7 @@ def test_c3d_convention_the_axes_are_not_permuted(tmp_path, markers):
 
 
 def test_trc_round_trip_and_header(tmp_path, markers):
-    path = exports.write_trc(tmp_path / "trial.trc", markers)
+    path = trajectories.write_trc(tmp_path / "trial.trc", markers)
     lines = path.read_text().splitlines()
     assert lines[0].startswith("PathFileType\t4\t(X/Y/Z)\ttrial.trc")
     header = dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=True))
@@ -104,7 +104,7 @@ def test_trc_round_trip_and_header(tmp_path, markers):
     assert int(header["NumFrames"]) == markers.frames.size
     assert int(header["NumMarkers"]) == 2
     assert float(header["DataRate"]) == pytest.approx(markers.fps)
-    fps, labels, pos = exports.read_trc(path)
+    fps, labels, pos = trajectories.read_trc(path)
     assert labels == markers.labels and fps == pytest.approx(markers.fps)
     np.testing.assert_allclose(pos, markers.positions_mm, atol=5e-5)  # mm, 4 decimals
     # Frame numbers start at 1; time is frame / fps.
