@@ -239,6 +239,44 @@ def _validation_response(request: Request, exc: RequestValidationError) -> Respo
     return _error(422, detail, errors=issues)
 
 
+#: The answers any API route with a body of this type can give, whatever the route: an
+#: unreadable or oversized body, an upload the storage cannot take.
+_BODY_ERRORS = {"application/json": (400, 413), "multipart/form-data": (400, 413, 415, 507)}
+
+
+def _document_shared_errors(app: FastAPI) -> None:
+    """Add to the OpenAPI document the statuses every API route shares, which the routes do
+    not list one by one: 400 and 413 where a body is read, 415 and 507 for uploads, and 503
+    (the database unreachable, the storage read-only) everywhere (docs/api.md says the
+    document lists every status a route can answer)."""
+    from app.api.responses import errors
+
+    default = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = default()
+        ref = {"$ref": "#/components/schemas/ErrorResponse"}
+        for path, operations in schema.get("paths", {}).items():
+            if not path.startswith(API_PREFIX):
+                continue
+            for op in operations.values():
+                content = (op.get("requestBody") or {}).get("content", {})
+                statuses = {503} | {s for t in content for s in _BODY_ERRORS.get(t, ())}
+                for status, entry in errors(*sorted(statuses)).items():
+                    op["responses"].setdefault(
+                        str(status),
+                        {
+                            "description": entry["description"],
+                            "content": {"application/json": {"schema": ref}},
+                        },
+                    )
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
     async def app_error(request: Request, exc: AppError) -> Response:
@@ -371,6 +409,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return Response(status_code=204)
 
     app.include_router(web_router)
+    _document_shared_errors(app)
 
     @app.exception_handler(LoginRequired)
     async def login_required(request: Request, exc: LoginRequired) -> Response:

@@ -339,3 +339,20 @@ def test_the_command_line_refuses_an_impossible_rig(tmp_path: Path, capsys, vide
     assert code == 2
     err = capsys.readouterr().err
     assert "baseline" in err and "Traceback" not in err
+
+
+def test_the_openapi_document_lists_the_statuses_every_route_shares(api: Api) -> None:
+    """A 1-MiB JSON body is a 413 on any route and the database may be unreachable (503);
+    the document listed neither on PATCH /trials/{id} (found by an integrator-style review)."""
+    doc = api.client.get("/openapi.json").json()
+    patch = doc["paths"]["/api/v1/trials/{trial_id}"]["patch"]["responses"]
+    assert {"400", "413", "503"} <= set(patch)
+    upload = doc["paths"]["/api/v1/sessions/{session_id}/trials"]["post"]["responses"]
+    assert {"400", "413", "415", "503", "507"} <= set(upload)
+    get = doc["paths"]["/api/v1/patients/{patient_id}"]["get"]["responses"]
+    assert "503" in get and "413" not in get  # no body read there
+    r = api.client.patch(
+        "/api/v1/trials/1", content=b'{"comment": "' + b"x" * (1 << 20) + b'"}',
+        headers={**api.headers, "Content-Type": "application/json"},
+    )  # fmt: skip
+    assert r.status_code == 413
