@@ -198,12 +198,22 @@ cdef void dilate_square(const unsigned char* src, unsigned char* dst, unsigned c
             dst[y * stride + ax0 + x] |= last[x] - y <= r
 
 
+cdef inline unsigned char or_within(const unsigned char* s, int lo, int hi, int ax0,
+                                    int ax1) noexcept nogil:
+    """OR of ``s[lo..hi]`` (inclusive) clipped to ``[ax0, ax1)``."""
+    cdef int i
+    cdef unsigned char acc = 0
+    for i in range(max(ax0, lo), min(ax1 - 1, hi) + 1):
+        acc |= s[i]
+    return acc
+
+
 cdef void dilate_disc5(const unsigned char* src, unsigned char* dst, unsigned char* tmp, int stride,
                        int ax0, int ay0, int ax1, int ay1) noexcept nogil:
     """Binary dilation by cv2.getStructuringElement(MORPH_ELLIPSE, (5, 5)) on a rectangle
     (as :func:`dilate_square`): the 5x3 box of rows -1..1 and columns -2..2, plus the
     pixels 2 rows above and below."""
-    cdef int x, y, i, lo, hi
+    cdef int x, y
     cdef unsigned char acc
     cdef const unsigned char* s
     cdef unsigned char* t
@@ -219,19 +229,9 @@ cdef void dilate_disc5(const unsigned char* src, unsigned char* dst, unsigned ch
         for x in range(ix0, ix1):
             t[x] = s[x - 2] | s[x - 1] | s[x] | s[x + 1] | s[x + 2]
         for x in range(ax0, ix0):
-            lo = max(ax0, x - 2)
-            hi = min(ax1 - 1, x + 2)
-            acc = 0
-            for i in range(lo, hi + 1):
-                acc |= s[i]
-            t[x] = acc
+            t[x] = or_within(s, x - 2, x + 2, ax0, ax1)
         for x in range(ix1, ax1):
-            lo = max(ax0, x - 2)
-            hi = min(ax1 - 1, x + 2)
-            acc = 0
-            for i in range(lo, hi + 1):
-                acc |= s[i]
-            t[x] = acc
+            t[x] = or_within(s, x - 2, x + 2, ax0, ax1)
     for y in range(ay0, ay1):
         t = tmp + <size_t>y * stride
         d = dst + <size_t>y * stride

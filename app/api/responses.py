@@ -7,6 +7,7 @@ from collections.abc import Iterable
 from typing import Annotated, Any, TypeVar
 
 from fastapi import Path, Query
+from fastapi.responses import Response
 from pydantic import BaseModel
 
 from app.schemas import MAX_ID, ErrorResponse, Page
@@ -59,3 +60,17 @@ def page(schema: type[S], rows: Iterable[Any], total: int, *, limit: int, offset
     return Page[schema](  # type: ignore[valid-type]
         items=[schema.model_validate(row) for row in rows], total=total, limit=limit, offset=offset
     )
+
+
+def attachment(body: bytes, media_type: str, filename: str, **headers: str) -> Response:
+    """``body`` as a download named ``filename`` (``Content-Disposition: attachment``)."""
+    disposition = {"Content-Disposition": f'attachment; filename="{filename}"'}
+    return Response(body, media_type=media_type, headers={**disposition, **headers})
+
+
+def file_responses(media_type: str, description: str) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` of a route answering a file of ``media_type``, with its errors."""
+    return {
+        200: {"content": {media_type: {"schema": {"type": "string"}}}, "description": description},
+        **json_errors(*AUTH, 404, 409),
+    }

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
-from app.api.responses import AUTH, IdPath, errors, json_errors
+from app.api.responses import AUTH, IdPath, attachment, errors, file_responses, json_errors
 from app.auth import ResultReader, SessionDep
 from app.services import results as service
 from app.services import trajectories
@@ -105,11 +105,7 @@ def get_report_pdf(
     pdf = service.report_pdf(
         db, actor, trial_id, request.app.state.storage, revision, timezone=_tz(request)
     )
-    return Response(
-        pdf,
-        media_type="application/pdf",
-        headers={"Content-Disposition": f'attachment; filename="trial-{trial_id}-report.pdf"'},
-    )
+    return attachment(pdf, "application/pdf", f"trial-{trial_id}-report.pdf")
 
 
 @router.get(
@@ -134,44 +130,26 @@ def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Req
 @router.get(
     "/markers.c3d",
     response_class=Response,
-    responses={
-        200: {
-            "content": {"application/octet-stream": {"schema": {"type": "string"}}},
-            "description": "C3D (mm, the rig's frame; docs/reports.md, Exports)",
-        },
-        **EXPORT_ERRORS,
-    },
+    responses=file_responses(
+        "application/octet-stream", "C3D (mm, the rig's frame; docs/reports.md, Exports)"
+    ),
     summary="The marker trajectories as a C3D file (motion-capture tools)",
 )
 def get_markers_c3d(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> Response:
     body = trajectories.trajectory_file(db, actor, trial_id, "c3d", request.app.state.storage)
-    return Response(
-        body,
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="trial-{trial_id}-markers.c3d"'},
-    )
+    return attachment(body, "application/octet-stream", f"trial-{trial_id}-markers.c3d")
 
 
 @router.get(
     "/markers.trc",
     response_class=Response,
-    responses={
-        200: {
-            "content": {"text/plain": {"schema": {"type": "string"}}},
-            "description": "OpenSim TRC (tab separated, mm)",
-        },
-        **EXPORT_ERRORS,
-    },
+    responses=file_responses("text/plain", "OpenSim TRC (tab separated, mm)"),
     summary="The marker trajectories as an OpenSim TRC file",
 )
 def get_markers_trc(
     trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
 ) -> Response:
     body = trajectories.trajectory_file(db, actor, trial_id, "trc", request.app.state.storage)
-    return Response(
-        body,
-        media_type="text/plain; charset=utf-8",
-        headers={"Content-Disposition": f'attachment; filename="trial-{trial_id}-markers.trc"'},
-    )
+    return attachment(body, "text/plain; charset=utf-8", f"trial-{trial_id}-markers.trc")

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import HTMLResponse
 
-from app.api.responses import AUTH, IdPath, Limit, Offset, errors, json_errors, page
+from app.api.responses import AUTH, IdPath, Limit, Offset, attachment, errors, json_errors, page
 from app.auth import CurrentActor, ResultReader, SessionDep
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Writer
@@ -143,17 +143,9 @@ def get_visit_report_pdf(
             db, actor, session_id, storage, timezone=settings.timezone, number=signature
         )
         name = f"visit-{session_id}-signed-{row.number}.pdf"
-        headers = {
-            "Content-Disposition": f'attachment; filename="{name}"',
-            "X-Content-SHA256": row.sha256,
-        }
-        return Response(pdf, media_type="application/pdf", headers=headers)
+        return attachment(pdf, "application/pdf", name, **{"X-Content-SHA256": row.sha256})
     pdf = visits.visit_report_pdf(db, actor, session_id, storage, timezone=settings.timezone)
-    return Response(
-        pdf,
-        media_type="application/pdf",
-        headers={"Content-Disposition": f'attachment; filename="visit-{session_id}-report.pdf"'},
-    )
+    return attachment(pdf, "application/pdf", f"visit-{session_id}-report.pdf")
 
 
 @router.post(

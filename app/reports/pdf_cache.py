@@ -53,10 +53,7 @@ class ReportPdfCache(PatientFileCache):
 
     def path(self, patient_id: int, trial_id: int, key: str) -> Path:
         """Where the report of ``trial_id`` with content ``key`` is kept."""
-        self.check_id("patient_id", patient_id)
-        self.check_id("trial_id", trial_id)
-        self.check_key(key)
-        return self.directory / f"{patient_id}-{trial_id}-{key}.pdf"
+        return self._named(patient_id, str(self.check_id("trial_id", trial_id)), key)
 
     def get(self, patient_id: int, trial_id: int, key: str) -> bytes | None:
         """The kept PDF, or None; a file found counts as just used (kept longest)."""
@@ -68,23 +65,16 @@ class ReportPdfCache(PatientFileCache):
         Then the trial's older files beyond :data:`KEEP_PER_TRIAL` and, past
         ``max_bytes``, the least recently used files of the cache are removed.
         """
-        if not pdf.startswith(b"%PDF"):
-            raise ValueError("only a PDF is kept in the report cache")
         final = self.path(patient_id, trial_id, key)
-        self.write(final, pdf)
-        self.keep_newest(f"{patient_id}-{trial_id}-*.pdf", KEEP_PER_TRIAL)
-        self.trim()
-        return final
+        return self._keep(final, f"{patient_id}-{trial_id}-*.pdf", pdf)
 
     # A visit report (every trial of a visit day; app.services.visits), by the session it
     # was asked for: ``<patient id>-visit-<session id>-<key>.pdf``.
 
     def visit_path(self, patient_id: int, session_id: int, key: str) -> Path:
         """Where the visit report of ``session_id``'s visit with content ``key`` is kept."""
-        self.check_id("patient_id", patient_id)
-        self.check_id("session_id", session_id)
-        self.check_key(key)
-        return self.directory / f"{patient_id}-visit-{session_id}-{key}.pdf"
+        stem = f"visit-{self.check_id('session_id', session_id)}"
+        return self._named(patient_id, stem, key)
 
     def get_visit(self, patient_id: int, session_id: int, key: str) -> bytes | None:
         """The kept visit report, or None (a file found counts as just used)."""
@@ -92,11 +82,21 @@ class ReportPdfCache(PatientFileCache):
 
     def put_visit(self, patient_id: int, session_id: int, key: str, pdf: bytes) -> Path:
         """Keep ``pdf`` as the visit report of ``session_id``; as :meth:`put`."""
+        final = self.visit_path(patient_id, session_id, key)
+        return self._keep(final, f"{patient_id}-visit-{session_id}-*.pdf", pdf)
+
+    def _named(self, patient_id: int, stem: str, key: str) -> Path:
+        self.check_id("patient_id", patient_id)
+        self.check_key(key)
+        return self.directory / f"{patient_id}-{stem}-{key}.pdf"
+
+    def _keep(self, final: Path, siblings: str, pdf: bytes) -> Path:
+        """Write ``pdf`` to ``final``; keep the newest :data:`KEEP_PER_TRIAL` of the files
+        matching ``siblings`` and the cache within its bound."""
         if not pdf.startswith(b"%PDF"):
             raise ValueError("only a PDF is kept in the report cache")
-        final = self.visit_path(patient_id, session_id, key)
         self.write(final, pdf)
-        self.keep_newest(f"{patient_id}-visit-{session_id}-*.pdf", KEEP_PER_TRIAL)
+        self.keep_newest(siblings, KEEP_PER_TRIAL)
         self.trim()
         return final
 
