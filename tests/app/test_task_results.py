@@ -434,6 +434,42 @@ def test_the_visit_report_draws_and_defines_each_task_in_its_own_units(
     assert "Toe tapping: Amplitude decrement (mm/cycle)" in terms
 
 
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils is not installed")
+def test_the_visit_report_keeps_each_task_s_summary_on_one_page(
+    api: Api, seeded, db_sessionmaker, storage, tmp_path
+) -> None:
+    """A clinician-style review found the five items' summary split over pages: a task's
+    table begun on one page and ended on the next, the signature box alone on a page.
+    Each task's summary (title, table, rating) is on one page now, the note on bands is
+    printed once, and the summary with the signature box takes at most three pages."""
+    from app.reports.summary import TASK_TITLES
+
+    for task in NEW_TASKS:
+        store_task_trial(db_sessionmaker, storage, task, session_index=1)
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, seeded["trials"][(1, "right")]).session_id
+    url = f"/api/v1/sessions/{session_id}/report"
+    html = api.client.get(f"{url}.html", headers=api.headers).text
+    assert html.count('class="summary-note"') == 1
+    r = api.client.get(f"{url}.pdf", headers=api.headers)
+    assert r.status_code == 200
+    (tmp_path / "visit.pdf").write_bytes(r.content)
+    text = subprocess.run(
+        ["pdftotext", str(tmp_path / "visit.pdf"), "-"], check=True, capture_output=True, text=True
+    ).stdout
+    pages = [" ".join(page.split()) for page in text.split("\f")]
+    signature = next(i for i, page in enumerate(pages) if "Signature and date" in page)
+    assert signature <= 2, f"the summary runs over {signature + 1} pages"
+    assert "Interpretation" in pages[signature]
+    for task in NEW_TASKS:
+        title = TASK_TITLES[task.value]
+        page = next(p for p in pages[: signature + 1] if title in p)
+        table = page[page.index(title) :]
+        rating = re.search(r"clinician's rating \(0–4\): (\S+)", table)
+        assert rating is not None, (task, "the rating is not on the title's page")
+        assert "Decrement onset" in table[: rating.start()], (task, "the table is split")
+
+
 def test_the_exports_give_the_task_s_markers_and_metrics_with_units(
     api: Api, seeded, db_sessionmaker, storage
 ) -> None:
