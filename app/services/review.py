@@ -187,18 +187,28 @@ def review_page(
     return page
 
 
-def proxy_file(db: Session, actor: Actor, trial_id: int, side: str, storage: Storage) -> Path:
+def proxy_file(
+    db: Session, actor: Actor, trial_id: int, side: str, storage: Storage, *, first: bool
+) -> Path:
     """The browser proxy of one video of a trial, for the review view's player.
 
-    Not audited on its own: the player fetches it in many range requests, all
-    part of the one audited view of the review page (``read review``).
+    A video is the most identifying data a trial has, and its address can be
+    fetched without the review page: a request from its first byte (no
+    ``Range``, or one from byte 0, as a player or a download starts) is one
+    ``read video`` event (id ``<trial>/<side>``); the player's further range
+    requests of the same viewing are not recorded again.
     """
     trial = load_trial(db, actor, trial_id, "read")
     video = next((v for v in trial.videos if v.side == side), None)
-    db.rollback()
     if video is None or not video.proxy_path or not storage.exists(video.proxy_path):
+        db.rollback()
         raise NotFoundError(
             f"The {side} video of trial {trial_id} has no browser copy; ask for a re-analysis"
             " to make one."
         )
+    if first:
+        audit(db, actor, "read", "video", f"{trial.id}/{side}", trial.session.patient_id)
+        db.commit()
+    else:
+        db.rollback()
     return storage.absolute(video.proxy_path)

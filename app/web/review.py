@@ -68,11 +68,19 @@ def trial_video(
     if side not in ("left", "right"):
         return error_page(request, user, status_code=404, message=f"There is no {side!r} video.")
     try:
-        path = review.proxy_file(db, user, trial_id, side, request.app.state.storage)
+        path = review.proxy_file(
+            db, user, trial_id, side, request.app.state.storage, first=_from_first_byte(request)
+        )
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
     return FileResponse(path, media_type="video/mp4")
+
+
+def _from_first_byte(request: Request) -> bool:
+    """Whether the request asks for the file from its start (no range, or one from byte 0)."""
+    ranges = request.headers.get("range", "").strip().lower()
+    return not ranges or ranges.replace(" ", "").startswith("bytes=0-")
 
 
 def _taps(values: list[str]) -> list[int]:

@@ -8,7 +8,7 @@ import re
 from sqlalchemy import select
 from test_pages import _audit_count, client, login, seeded  # noqa: F401 - fixtures
 
-from app.models import AuditEvent, RecordingSession, Result, Trial
+from app.models import AuditEvent, RecordingSession, Result, Trial, Video
 
 
 def _events(db_sessionmaker, since: int) -> list[tuple[str, str, str]]:
@@ -234,3 +234,34 @@ def test_the_session_edit_form_names_its_fields_by_their_labels(client, seeded, 
     )
     assert not_a_number.status_code == 422
     assert "Time since the last levodopa dose: give a whole number of minutes" in not_a_number.text
+
+
+def test_a_video_read_from_its_first_byte_is_audited_once_per_viewing(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+    storage,
+):
+    """A security review downloaded every trial's videos without a trace: the address
+    works without the review page. A request from byte 0 is one ``read video``; the
+    player's later range requests of the same viewing are not recorded again."""
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    stored = storage.write_bytes("videos", ".mp4", b"\x00" * 4096)
+    with db_sessionmaker() as db:
+        trial = db.get(Trial, t)
+        db.add(
+            Video(trial_id=t, side="left", path=stored.path, size_bytes=4096, sha256="0" * 64,
+                  fps=100.0, frame_count=1, width=640, height=512, proxy_path=stored.path)
+        )  # fmt: skip
+        patient_id = trial.session.patient_id
+        db.commit()
+    since = _last_event_id(db_sessionmaker)
+    assert client.get(f"/trials/{t}/video/left").status_code == 200
+    assert client.get(f"/trials/{t}/video/left", headers={"Range": "bytes=0-99"}).status_code == 206
+    assert client.get(f"/trials/{t}/video/left", headers={"Range": "bytes=100-"}).status_code == 206
+    with db_sessionmaker() as db:
+        rows = db.scalars(select(AuditEvent).where(AuditEvent.id > since)).all()
+        assert [(e.action, e.resource_type, e.resource_id, e.patient_id) for e in rows] == [
+            ("read", "video", f"{t}/left", patient_id)
+        ] * 2
