@@ -42,6 +42,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.actors import ROLE_SCOPES, Actor
+from app.audit import SystemActor, audit
 from app.db import get_sessionmaker
 from app.demo_plan import (
     VISITS,
@@ -122,6 +123,8 @@ def _seed_rows(db: Session, settings: Settings, now: datetime) -> dict[str, Any]
             display_name="Demo Clinician",
         )
         db.add(user)
+        db.flush()
+        audit(db, SystemActor("demo"), "create", "user", user.id)
     elif not verify_password(user.password_hash, password):
         user.password_hash = hash_password(password)  # the file is the source of truth
     db.flush()

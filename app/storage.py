@@ -54,6 +54,28 @@ _CATEGORY_RE = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 _SUFFIX_RE = re.compile(r"^(\.[a-z0-9]{1,8}){0,2}$")
 
 
+def close_to_others(data_dir: Path, *, umask: bool) -> None:
+    """Close the data directory to other users of the machine (mode 0700).
+
+    The directory holds the database, the videos and the reports: health data.
+    With a common umask (022) everything in it would be readable by every
+    local account; closing the directory itself shuts them out of all of it,
+    also of files made before. ``umask``: also create every later file of this
+    process for its user only (the long-running ``serve`` and ``worker``).
+    """
+    if umask:
+        os.umask(0o077)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    if data_dir.stat().st_mode & 0o077:
+        try:
+            data_dir.chmod(0o700)
+        except PermissionError as exc:
+            raise StorageError(
+                f"the data directory {data_dir} is open to other users and cannot be closed "
+                f"({exc.strerror}); run as its owner, or 'chmod 700' it."
+            ) from exc
+
+
 @dataclass(frozen=True)
 class StoredFile:
     """A file stored under the data directory."""

@@ -120,8 +120,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from app.db import migrate
+    from app.storage import close_to_others
 
     settings = settings_with(data_dir=args.data_dir)
+    close_to_others(settings.data_dir, umask=False)
     if getattr(args, "migrate_first", True):
         migrate(settings)
     return int(args.admin_func(settings, args) or 0)
@@ -163,14 +165,15 @@ def create_user(settings: Settings, args: argparse.Namespace) -> int:
                 raise ConflictError(
                     f"a user {email} already exists; use 'bradyscope admin set-password {email}'."
                 )
-            db.add(
-                User(
-                    email=email,
-                    password_hash=hash_password(password),
-                    role=args.role,
-                    display_name=args.name,
-                )
+            user = User(
+                email=email,
+                password_hash=hash_password(password),
+                role=args.role,
+                display_name=args.name,
             )
+            db.add(user)
+            db.flush()
+            _audit_admin(db, "create", user.id)
     except IntegrityError as exc:  # created concurrently by someone else
         raise ConflictError(f"a user {email} already exists.") from exc
     print(f"created {args.role} {email}", file=sys.stderr)

@@ -89,8 +89,23 @@ def start_embedded_workers(
     return threads
 
 
+class PathWithoutQuery(logging.Filter):
+    """Drop the query string from uvicorn's access log lines.
+
+    A query can hold a patient code (``/patients?q=``) or a clinician's words
+    (``?reason=``); the log is kept outside the audit trail and outlives an
+    erasure, so it keeps the path only.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if isinstance(args, tuple) and len(args) >= 3 and isinstance(args[2], str):
+            record.args = (*args[:2], args[2].split("?", 1)[0], *args[3:])
+        return True
+
+
 def uvicorn_config(app: Any, *, host: str, port: int, verbose: bool = False) -> Any:
-    """uvicorn's settings for the app: no proxy headers of its own.
+    """uvicorn's settings for the app: no proxy headers of its own, no queries logged.
 
     uvicorn would believe ``X-Forwarded-For`` from any loopback client
     (``proxy_headers`` with its default ``FORWARDED_ALLOW_IPS``); the app honours
@@ -98,7 +113,7 @@ def uvicorn_config(app: Any, *, host: str, port: int, verbose: bool = False) -> 
     """
     import uvicorn
 
-    return uvicorn.Config(
+    config = uvicorn.Config(
         app,
         host=host,
         port=port,
@@ -107,6 +122,10 @@ def uvicorn_config(app: Any, *, host: str, port: int, verbose: bool = False) -> 
         forwarded_allow_ips="",
         server_header=False,
     )
+    access = logging.getLogger("uvicorn.access")  # configured by uvicorn.Config
+    if not any(isinstance(f, PathWithoutQuery) for f in access.filters):
+        access.addFilter(PathWithoutQuery())
+    return config
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,10 +133,12 @@ def run(args: argparse.Namespace) -> int:
 
     from app.db import migrate
     from app.errors import InvalidRequestError
+    from app.storage import close_to_others
 
     if args.workers_in_process < 0:
         raise InvalidRequestError("--workers-in-process must be 0 or more.")
     settings = settings_with(data_dir=args.data_dir)
+    close_to_others(settings.data_dir, umask=True)
     logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
     migrate(settings)
 

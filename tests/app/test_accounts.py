@@ -355,6 +355,16 @@ def test_account_lifecycle_on_the_command_line(
     assert _cli(api.settings, monkeypatch, "deactivate-user", "nobody@example.org") == 2
     actions = [e.action for e in api.audit_events() if e.resource_type == "user"]
     assert "set_role:admin" in actions and "deactivate" in actions
+    # A new account, an admin's above all, is in the trail too (a security review found
+    # create-user the one account change that was not).
+    monkeypatch.setenv("BRADYSCOPE_PASSWORD", PASSWORD)
+    assert _cli(api.settings, monkeypatch, "create-user", "it@example.org", "--role", "admin") == 0
+    created = [
+        (e.actor_type, e.action, e.outcome)
+        for e in api.audit_events()
+        if e.resource_type == "user" and e.action == "create"
+    ]
+    assert created == [("system", "create", "success")]
 
 
 def test_idle_sessions_end_before_the_absolute_limit(api: Api) -> None:

@@ -31,6 +31,29 @@ def _db(data_dir):
     return get_sessionmaker(Settings(data_dir=data_dir))()
 
 
+def test_the_data_directory_is_closed_to_other_users(fresh_dir, tmp_path):
+    """A security review found the database, videos and reports readable by every local
+    account (umask 022). ``admin`` closes the directory (files made before included);
+    ``worker`` and ``serve`` also make every later file for their user only."""
+    fresh_dir.mkdir(mode=0o755)
+    (fresh_dir / "before.txt").write_text("x")
+    assert main(["admin", "list-users"]) == 0
+    assert fresh_dir.stat().st_mode & 0o777 == 0o700
+    worker_dir = tmp_path / "worker"
+    bin_dir = os.path.dirname(sys.executable)
+    env = {**os.environ, "BRADYSCOPE_DATA_DIR": str(worker_dir)}
+    proc = subprocess.run(
+        [os.path.join(bin_dir, "bradyscope"), "worker", "--once"],
+        env=env, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert worker_dir.stat().st_mode & 0o777 == 0o700
+    made = [p for p in worker_dir.rglob("*") if p.is_file()]
+    assert made and all(p.stat().st_mode & 0o077 == 0 for p in made), [
+        (p.name, oct(p.stat().st_mode)) for p in made
+    ]
+
+
 def test_console_script_creates_user_on_fresh_data_dir(fresh_dir):
     env = {**os.environ, "BRADYSCOPE_PASSWORD": "amber kettle sunrise"}
     bin_dir = os.path.dirname(sys.executable)
@@ -160,3 +183,25 @@ def test_set_password_logs_the_user_out_of_every_browser(fresh_dir, monkeypatch)
 def test_check_migrations_passes_on_a_fresh_data_dir(fresh_dir, capsys):
     assert main(["admin", "check-migrations"]) == 0
     assert "agree" in capsys.readouterr().err
+
+
+def test_the_access_log_keeps_no_query_string():
+    """A query can hold a patient code (``/patients?q=``) or a clinician's words
+    (``?reason=``): the access log, which outlives an erasure, keeps the path only."""
+    import logging
+
+    from app.cli.serve import uvicorn_config
+
+    uvicorn_config(object(), host="127.0.0.1", port=1)
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    access = logging.getLogger("uvicorn.access")
+    access.addHandler(handler)
+    try:
+        access.info(
+            '%s - "%s %s HTTP/%s" %d', "127.0.0.1:5", "GET", "/patients?q=DEMO-7", "1.1", 200
+        )
+    finally:
+        access.removeHandler(handler)
+    assert records == ['127.0.0.1:5 - "GET /patients HTTP/1.1" 200']
