@@ -10,6 +10,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Annotated, Any, Generic, Literal, TypeVar
 
+from fastapi import Path
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -71,6 +72,8 @@ Name = Annotated[
 # Numbers of request bodies are strict: JSON true, "2" or 2.0 is not a rating, a tap or an id
 # (pydantic would read them as 1 and 2).
 Id = Annotated[int, Strict(), Field(ge=1, le=MAX_ID)]
+IdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="Numeric id.")]
+"""An id in a path, API or page: larger ones do not exist (and would overflow the database)."""
 
 
 class _In(BaseModel):

@@ -6,11 +6,12 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Annotated, Any, TypeVar
 
-from fastapi import Path, Query
+from fastapi import Query
 from fastapi.responses import Response
 from pydantic import BaseModel
 
-from app.schemas import MAX_ID, ErrorResponse, Page
+from app.schemas import ErrorResponse, Page
+from app.schemas import IdPath as IdPath  # the API's routes import it from here
 
 S = TypeVar("S", bound=BaseModel)
 
@@ -50,7 +51,6 @@ def json_errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
 # Every authenticated route can answer these.
 AUTH = (401, 403, 422)
 
-IdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="Numeric id.")]
 Limit = Annotated[int, Query(ge=1, le=200, description="Items per page.")]
 Offset = Annotated[int, Query(ge=0, le=10_000_000, description="Items to skip.")]
 

@@ -19,6 +19,7 @@ from fastapi.responses import HTMLResponse, Response
 
 from app.auth import SessionDep
 from app.errors import NotFoundError
+from app.schemas import IdPath
 from app.services import capture
 from app.services.rigs import all_rigs
 from app.web.common import PageUser, error_page, render
@@ -63,7 +64,12 @@ def _size_text(size: tuple[int, int] | None) -> str:
 
 @router.get("/sessions/{session_id}/capture", response_class=HTMLResponse)
 def session_capture_page(
-    request: Request, db: SessionDep, user: PageUser, session_id: int, task: str = "", rig: str = ""
+    request: Request,
+    db: SessionDep,
+    user: PageUser,
+    session_id: IdPath,
+    task: str = "",
+    rig: str = "",
 ) -> Response:
     """The capture page of a session; ``?task=`` chooses the task first (default: finger tapping;
     an unknown value is ignored), ``?rig=`` the rig the cameras are placed as (default the
@@ -110,7 +116,7 @@ def session_capture_page(
 
 
 @router.get("/rigs/{rig_id}/capture", response_class=HTMLResponse)
-def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: int) -> Response:
+def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: IdPath) -> Response:
     try:
         target = capture.rig_capture(db, user, rig_id)
     except NotFoundError as exc:

@@ -22,7 +22,7 @@ from app.errors import AppError, NotFoundError
 from app.models import DBS_STATES, MEDICATION_STATES, Patient, Rig
 from app.reports.catalogue import format_metric
 from app.reports.task_metrics import trend_metrics
-from app.schemas import PatientCreate, SessionCreate
+from app.schemas import IdPath, PatientCreate, SessionCreate
 from app.services import patients, sessions
 from app.services.common import visible_patient
 from app.services.rigs import all_rigs
@@ -56,10 +56,14 @@ def patient_list(
     return render(request, "patients.html", user, active="patients", title="Patients", **context)
 
 
+MAX_PAGE = 10**6
+"""Pages beyond this are empty anyway (the offset would overflow the database)."""
+
+
 def _list_context(db: Session, user: Actor, q: str, page: int) -> dict[str, Any]:
     """The patient list (audited as a list of patients)."""
     q = q.strip()[:64]
-    page = max(1, page)
+    page = min(max(1, page), MAX_PAGE)
     found = patients.patient_list(db, user, q=q, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE)
     return dict(
         patients=found.patients,
@@ -154,7 +158,7 @@ def _trend_group(
 
 
 @router.get("/patients/{patient_id}", response_class=HTMLResponse)
-def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
+def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: IdPath) -> Response:
     try:
         overview = patients.patient_overview(db, user, patient_id)
     except NotFoundError as exc:
@@ -210,7 +214,7 @@ def _single_visit_table(task: str, points: dict[str, list[TrendPoint]]) -> dict[
 
 
 @router.get("/patients/{patient_id}/sessions/new", response_class=HTMLResponse)
-def session_new(request: Request, db: SessionDep, user: PageUser, patient_id: int) -> Response:
+def session_new(request: Request, db: SessionDep, user: PageUser, patient_id: IdPath) -> Response:
     try:
         patient = patients.patient_for_new_session(db, user, patient_id)
     except NotFoundError as exc:
@@ -261,7 +265,7 @@ def session_create(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    patient_id: int,
+    patient_id: IdPath,
     rig_id: Annotated[str, Form(max_length=20)] = "",
     recorded_at: Annotated[str, Form(max_length=40)] = "",
     medication_state: Annotated[str, Form(max_length=20)] = "unknown",

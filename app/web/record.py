@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 from app.auth import SessionDep
 from app.errors import AppError
-from app.schemas import SessionUpdate
+from app.schemas import IdPath, SessionUpdate
 from app.services import sessions, trials
 from app.services.common import visible_trial
 from app.web.common import (
@@ -36,7 +36,7 @@ def session_edit(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    session_id: int,
+    session_id: IdPath,
     medication_state: Annotated[str, Form(max_length=20)] = "",
     dbs_state: Annotated[str, Form(max_length=20)] = "",
     time_since_levodopa_min: Annotated[str, Form(max_length=10)] = "",
@@ -83,7 +83,7 @@ def trial_hide(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    trial_id: int,
+    trial_id: IdPath,
     reason: Annotated[str, Form(max_length=2000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
@@ -108,7 +108,7 @@ def trial_restore(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    trial_id: int,
+    trial_id: IdPath,
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
     if not csrf_ok(user, csrf_token):

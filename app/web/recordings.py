@@ -24,6 +24,7 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Job, Trial
+from app.schemas import IdPath
 from app.services import sessions, signatures, trials, visits
 from app.services.rigs import all_rigs
 from app.uploads import ParsedUpload
@@ -74,7 +75,7 @@ def _session_response(
     request: Request,
     db: Session,
     user: Actor,
-    session_id: int,
+    session_id: IdPath,
     *,
     status: int = 200,
     error: str | None = None,
@@ -116,13 +117,13 @@ def _session_response(
 
 
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)
-def session_page(request: Request, db: SessionDep, user: PageUser, session_id: int) -> Response:
+def session_page(request: Request, db: SessionDep, user: PageUser, session_id: IdPath) -> Response:
     return _session_response(request, db, user, session_id)
 
 
 @router.get("/sessions/{session_id}/visit-report.{kind}")
 def visit_report(
-    request: Request, db: SessionDep, user: PageUser, session_id: int, kind: str
+    request: Request, db: SessionDep, user: PageUser, session_id: IdPath, kind: str
 ) -> Response:
     """The visit report of the session's day, as PDF (a download) or HTML."""
     if kind not in ("pdf", "html"):
@@ -179,7 +180,7 @@ def _create_trial(
 
 
 @router.post("/sessions/{session_id}/trials")
-async def trial_upload(request: Request, session_id: int) -> Response:
+async def trial_upload(request: Request, session_id: IdPath) -> Response:
     user, refusal = await run_in_threadpool(
         with_own_db, request, _user_and_target, request, session_id
     )
@@ -270,7 +271,7 @@ def _stage_label(stage: str | None, status: str) -> str:
 
 
 @router.get("/jobs/{job_id}", response_class=HTMLResponse)
-def job_page(request: Request, db: SessionDep, user: PageUser, job_id: int) -> Response:
+def job_page(request: Request, db: SessionDep, user: PageUser, job_id: IdPath) -> Response:
     try:
         job = trials.job_page(db, user, job_id)
     except NotFoundError as exc:
@@ -289,7 +290,7 @@ def job_page(request: Request, db: SessionDep, user: PageUser, job_id: int) -> R
 
 
 @router.get("/jobs/{job_id}/status")
-def job_status_json(request: Request, db: SessionDep, job_id: int) -> Response:
+def job_status_json(request: Request, db: SessionDep, job_id: IdPath) -> Response:
     """The job's status for the page's polling script (browser session; not audited)."""
     user = page_user(request, db)
     if user is None:

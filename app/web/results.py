@@ -24,7 +24,7 @@ from app.reports.catalogue import format_metric, is_tap_number, metric_rows
 from app.reports.data import ReportData
 from app.reports.figures import comparison_plots
 from app.reports.rendering import report_context
-from app.schemas import TrialRatingUpdate
+from app.schemas import MAX_ID, IdPath, TrialRatingUpdate
 from app.services import results, trajectories, trials
 from app.services.common import load_trial
 from app.storage import Storage
@@ -123,10 +123,12 @@ def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]
 
 @router.get("/trials/{trial_id}", response_class=HTMLResponse)
 def trial_page(
-    request: Request, db: SessionDep, user: PageUser, trial_id: int, compare: str | None = None
+    request: Request, db: SessionDep, user: PageUser, trial_id: IdPath, compare: str | None = None
 ) -> Response:
     # ``compare`` is read here, not by FastAPI: a bad value gets this page, not a JSON error.
     compare_id = int(compare) if compare and compare.strip().isdigit() else None
+    if compare_id is not None and not 0 < compare_id <= MAX_ID:
+        compare_id = None  # no such trial: said so below
     try:
         page = results.trial_page(
             db,
@@ -202,7 +204,7 @@ def _download(
 
 @router.get("/trials/{trial_id}/download/{kind}")
 def trial_download(
-    request: Request, db: SessionDep, user: PageUser, trial_id: int, kind: str
+    request: Request, db: SessionDep, user: PageUser, trial_id: IdPath, kind: str
 ) -> Response:
     if kind not in DOWNLOADS:
         return error_page(request, user, status_code=404, message=f"There is no {kind!r} download.")
@@ -227,7 +229,7 @@ def trial_rating(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    trial_id: int,
+    trial_id: IdPath,
     clinician_rating: Annotated[str, Form(max_length=5)] = "",
     comment: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",

@@ -18,7 +18,7 @@ from pydantic import ValidationError
 
 from app.auth import SessionDep
 from app.errors import AppError
-from app.schemas import RevisionCreate
+from app.schemas import IdPath, RevisionCreate
 from app.services import review, revisions
 from app.web.common import (
     CSRF_MESSAGE,
@@ -37,7 +37,7 @@ REANALYSE = "reanalyse"
 
 @router.get("/trials/{trial_id}/review", response_class=HTMLResponse)
 def review_page(
-    request: Request, db: SessionDep, user: PageUser, trial_id: int, revision: int | None = None
+    request: Request, db: SessionDep, user: PageUser, trial_id: IdPath, revision: int | None = None
 ) -> Response:
     try:
         page = review.review_page(db, user, trial_id, request.app.state.storage, revision=revision)
@@ -63,7 +63,7 @@ def review_page(
 
 @router.get("/trials/{trial_id}/video/{side}")
 def trial_video(
-    request: Request, db: SessionDep, user: PageUser, trial_id: int, side: str
+    request: Request, db: SessionDep, user: PageUser, trial_id: IdPath, side: str
 ) -> Response:
     if side not in ("left", "right"):
         return error_page(request, user, status_code=404, message=f"There is no {side!r} video.")
@@ -98,7 +98,7 @@ def revision_create(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    trial_id: int,
+    trial_id: IdPath,
     reason: Annotated[str, Form(max_length=2000)] = "",
     kind: Annotated[str, Form(max_length=20)] = "correct",
     exclude_taps: Annotated[list[str] | None, Form()] = None,

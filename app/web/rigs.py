@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
-from app.schemas import RigCreate
+from app.schemas import IdPath, RigCreate
 from app.services import calibrations, rigs
 from app.uploads import ParsedUpload
 from app.web.common import (
@@ -177,7 +177,7 @@ def rig_create(
 
 
 @router.get("/rigs/{rig_id}", response_class=HTMLResponse)
-def rig_page(request: Request, db: SessionDep, user: PageUser, rig_id: int) -> Response:
+def rig_page(request: Request, db: SessionDep, user: PageUser, rig_id: IdPath) -> Response:
     return _rig_page(request, db, user, rig_id)
 
 
@@ -185,7 +185,7 @@ def _rig_page(
     request: Request,
     db: Session,
     user: Actor,
-    rig_id: int,
+    rig_id: IdPath,
     *,
     error: str | None = None,
     status_code: int = 200,
@@ -217,7 +217,7 @@ def _rig_page(
 
 
 def _user_and_rig(
-    db: Session, request: Request, rig_id: int
+    db: Session, request: Request, rig_id: IdPath
 ) -> tuple[Actor | None, AppError | None]:
     """The logged-in user, and a 404 if the rig does not exist (before the body is read)."""
     user = page_user(request, db)
@@ -231,7 +231,7 @@ def _user_and_rig(
 
 
 def _create(
-    db: Session, request: Request, user: Actor, rig_id: int, upload: ParsedUpload
+    db: Session, request: Request, user: Actor, rig_id: IdPath, upload: ParsedUpload
 ) -> Response:
     cal, job_id = calibrations.create_calibration(db, user, rig_id, upload)
     target = (
@@ -279,7 +279,7 @@ def _drop_unused_parts(upload: ParsedUpload) -> None:
 
 
 @router.post("/rigs/{rig_id}/calibrations")
-async def calibration_upload(request: Request, rig_id: int) -> Response:
+async def calibration_upload(request: Request, rig_id: IdPath) -> Response:
     user, refusal = await run_in_threadpool(with_own_db, request, _user_and_rig, request, rig_id)
     return await run_page_upload(
         request,

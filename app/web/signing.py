@@ -15,6 +15,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from app.auth import SessionDep
 from app.errors import AppError
+from app.schemas import IdPath
 from app.services import signatures
 from app.web.common import CSRF_MESSAGE, PageUser, csrf_ok, error_page, status_of
 
@@ -26,7 +27,7 @@ def sign_visit(
     request: Request,
     db: SessionDep,
     user: PageUser,
-    session_id: int,
+    session_id: IdPath,
     password: Annotated[str, Form(max_length=1024)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
@@ -52,7 +53,7 @@ def sign_visit(
 
 @router.get("/sessions/{session_id}/signed/{number}.pdf")
 def signed_pdf(
-    request: Request, db: SessionDep, user: PageUser, session_id: int, number: int
+    request: Request, db: SessionDep, user: PageUser, session_id: IdPath, number: IdPath
 ) -> Response:
     try:
         row, body = signatures.signed_report(

@@ -265,3 +265,29 @@ def test_a_video_read_from_its_first_byte_is_audited_once_per_viewing(
         assert [(e.action, e.resource_type, e.resource_id, e.patient_id) for e in rows] == [
             ("read", "video", f"{t}/left", patient_id)
         ] * 2
+
+
+HUGE = 9223372036854775808  # one past SQLite's largest integer
+
+
+def test_page_addresses_with_ids_too_large_for_the_database_are_404_pages(client, seeded):  # noqa: F811
+    """A security review found every page route answering 500 with two tracebacks in
+    the log for an id past 64 bits (OverflowError in the database driver)."""
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    for url in (
+        f"/patients/{HUGE}",
+        f"/sessions/{HUGE}",
+        f"/jobs/{HUGE}",
+        f"/trials/{HUGE}",
+        f"/trials/{HUGE}/video/left",
+        f"/rigs/{HUGE}",
+        f"/sessions/{HUGE}/capture",
+        f"/sessions/1/signed/{HUGE}.pdf",
+    ):
+        r = client.get(url, headers={"Accept": "text/html"})
+        assert r.status_code == 404 and "text/html" in r.headers["content-type"], (url, r.status_code)
+    assert client.get(f"/jobs/{HUGE}/status").status_code in (404, 422)
+    r = client.get(f"/trials/{t}?compare={HUGE}")
+    assert r.status_code == 200 and "choose a trial from the list" in r.text
+    assert client.get(f"/patients?page={HUGE}").status_code == 200
