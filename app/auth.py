@@ -34,6 +34,7 @@ from datetime import timedelta
 from typing import Annotated, Any
 
 from fastapi import Depends, Request
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -185,12 +186,32 @@ async def _csrf_token_of(request: Request) -> str | None:
     return None
 
 
+def csrf_matches(actor: Actor, sent: str | None) -> bool:
+    """Whether ``sent`` is the session's CSRF token (constant-time comparison)."""
+    return (
+        bool(sent)
+        and actor.csrf_token is not None
+        and hmac.compare_digest(str(sent), actor.csrf_token)
+    )
+
+
+def record_csrf_refusal(db: Session, actor: Actor, path: str) -> None:
+    """A request refused for its missing or stale CSRF token, in the audit trail: one of
+    the few signs of a forged request (``access route PATH denied``)."""
+    audit_failure(db, actor, "access", "route", path[:64], outcome="denied")
+
+
+def _record_csrf_refusal_alone(request: Request, actor: Actor) -> None:
+    with request.app.state.session_factory() as db:
+        record_csrf_refusal(db, actor, request.url.path)
+
+
 async def check_csrf(request: Request, actor: Actor) -> None:
-    """Refuse (403) a state-changing browser request without its session's CSRF token."""
+    """Refuse (403, audited) a state-changing browser request without its CSRF token."""
     if actor.type != "user" or request.method in _SAFE_METHODS:
         return
-    sent = await _csrf_token_of(request)
-    if not sent or actor.csrf_token is None or not hmac.compare_digest(sent, actor.csrf_token):
+    if not csrf_matches(actor, await _csrf_token_of(request)):
+        await run_in_threadpool(_record_csrf_refusal_alone, request, actor)
         raise PermissionDeniedError(
             "The form's security token is missing or out of date; reload the page and retry."
         )

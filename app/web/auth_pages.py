@@ -19,7 +19,7 @@ from app.auth import SESSION_COOKIE, SessionDep
 from app.chain import load_key
 from app.errors import AppError
 from app.login import login_from_request, login_sso, logout_from_request, set_session_cookie
-from app.web.common import csrf_ok, page_user, render, safe_next, settings_of, status_of
+from app.web.common import csrf_refused, page_user, render, safe_next, settings_of, status_of
 
 router = APIRouter()
 
@@ -190,7 +190,7 @@ def logout(
 ) -> Response:
     user = page_user(request, db)
     response = RedirectResponse("/login?msg=You+are+logged+out.", status_code=303)
-    if user is not None and not csrf_ok(user, csrf_token):
+    if user is not None and csrf_refused(db, user, csrf_token, request):
         return RedirectResponse("/patients", status_code=303)
     logout_from_request(db, request, response)
     return response

@@ -9,7 +9,6 @@ shown as a page in plain words, with the status the API would have used.
 
 from __future__ import annotations
 
-import hmac
 import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Annotated, Any, TypeVar
@@ -23,7 +22,13 @@ from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.apikeys import AUDIT_READ
-from app.auth import CSRF_HEADER, SessionDep, get_optional_user
+from app.auth import (
+    CSRF_HEADER,
+    SessionDep,
+    csrf_matches,
+    get_optional_user,
+    record_csrf_refusal,
+)
 from app.errors import AppError, PermissionDeniedError
 from app.settings import Settings
 from app.templating import templates
@@ -106,13 +111,17 @@ def login_redirect(request: Request) -> RedirectResponse:
     return RedirectResponse(f"/login?next={quote(path, safe='')}", status_code=303)
 
 
-def csrf_ok(user: Actor, sent: str | None) -> bool:
-    """Whether ``sent`` is the session's CSRF token (constant-time comparison)."""
-    return (
-        bool(sent)
-        and user.csrf_token is not None
-        and hmac.compare_digest(str(sent), user.csrf_token)
-    )
+def csrf_refused(db: Session, user: Actor, sent: str | None, request: Request) -> bool:
+    """Whether a page's form came without the session's CSRF token; a refusal is audited
+    (``access route PATH denied``) and committed before the page says so."""
+    if csrf_matches(user, sent):
+        return False
+    record_csrf_refusal(db, user, request.url.path)
+    return True
+
+
+class CsrfRefused(PermissionDeniedError):
+    """An upload's form without the session's CSRF token (403, audited)."""
 
 
 def csrf_from_header(request: Request) -> str | None:
@@ -268,14 +277,15 @@ async def run_page_upload(
         return await run_in_threadpool(with_own_db, request, fail, actor, status, message)
 
     header_token = csrf_from_header(request)
-    if header_token is not None and not csrf_ok(user, header_token):
+    if header_token is not None and not csrf_matches(user, header_token):
+        await run_in_threadpool(with_own_db, request, record_csrf_refusal, actor, request.url.path)
         return await failed(403, CSRF_MESSAGE)
     if refusal is not None:
         return await failed(status_of(refusal), str(refusal))
 
     def accept(upload: ParsedUpload) -> None:
-        if header_token is None and not csrf_ok(actor, upload.fields.get("csrf_token")):
-            raise PermissionDeniedError(CSRF_MESSAGE)
+        if header_token is None and not csrf_matches(actor, upload.fields.get("csrf_token")):
+            raise CsrfRefused(CSRF_MESSAGE)
         if prepare is not None:
             prepare(upload)
 
@@ -294,6 +304,10 @@ async def run_page_upload(
             else (lambda exc: with_own_db(request, rejected, actor)),
         )
     except AppError as exc:
+        if isinstance(exc, CsrfRefused):
+            await run_in_threadpool(
+                with_own_db, request, record_csrf_refusal, actor, request.url.path
+            )
         return await failed(status_of(exc), str(exc))
     except BradyscopeError as exc:  # a core error while checking the videos
         return await failed(422, str(exc))

@@ -33,7 +33,7 @@ from app.web.common import (
     CSRF_MESSAGE,
     SESSION_LABELS,
     PageUser,
-    csrf_ok,
+    csrf_refused,
     error_page,
     not_found_page,
     render,
@@ -89,7 +89,7 @@ def patient_create(
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
     form = {"code": code, "birth_year": birth_year, "sex": sex, "notes": notes}
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return _list_with_error(request, db, user, CSRF_MESSAGE, 403, form)
     try:
         data = PatientCreate(
@@ -291,7 +291,7 @@ def session_create(
         "dominant_hand": dominant_hand,
         "notes": notes,
     }
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return _session_form(
             request, user, patient, all_rigs(db), values, error=CSRF_MESSAGE, status_code=403
         )

@@ -22,7 +22,7 @@ from app.web.common import (
     CSRF_MESSAGE,
     SESSION_LABELS,
     PageUser,
-    csrf_ok,
+    csrf_refused,
     error_page,
     status_of,
     validation_message,
@@ -45,7 +45,7 @@ def session_edit(
     notes: Annotated[str, Form(max_length=5000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     try:
         data = SessionUpdate.model_validate(
@@ -87,7 +87,7 @@ def trial_hide(
     reason: Annotated[str, Form(max_length=2000)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     if len(reason.strip()) < 3:
         return error_page(
@@ -111,7 +111,7 @@ def trial_restore(
     trial_id: IdPath,
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     try:
         trial = trials.restore_trial(db, user, trial_id)

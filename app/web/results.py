@@ -31,7 +31,7 @@ from app.storage import Storage
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
-    csrf_ok,
+    csrf_refused,
     error_page,
     not_found_page,
     render,
@@ -235,7 +235,7 @@ def trial_rating(
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
     """Save the clinician's rating (0–4) and comment of the trial, then show the trial again."""
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     rating = clinician_rating.strip()
     if rating not in ("", "0", "1", "2", "3", "4"):

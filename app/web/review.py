@@ -23,7 +23,7 @@ from app.services import review, revisions
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
-    csrf_ok,
+    csrf_refused,
     error_page,
     render,
     status_of,
@@ -110,7 +110,7 @@ def revision_create(
     swap_cameras: Annotated[str, Form(max_length=5)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     try:
         if kind == REANALYSE:

@@ -25,7 +25,7 @@ from app.uploads import ParsedUpload
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
-    csrf_ok,
+    csrf_refused,
     error_page,
     page_user,
     render,
@@ -154,7 +154,7 @@ def rig_create(
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
     form = {"name": name, "description": description}
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return _rig_list(request, db, user, error=CSRF_MESSAGE, status_code=403, form=form)
     try:
         rig = rigs.create_rig(

@@ -17,7 +17,7 @@ from app.auth import SessionDep
 from app.errors import AppError
 from app.schemas import IdPath
 from app.services import signatures
-from app.web.common import CSRF_MESSAGE, PageUser, csrf_ok, error_page, status_of
+from app.web.common import CSRF_MESSAGE, PageUser, csrf_refused, error_page, status_of
 
 router = APIRouter()
 
@@ -31,7 +31,7 @@ def sign_visit(
     password: Annotated[str, Form(max_length=1024)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
-    if not csrf_ok(user, csrf_token):
+    if csrf_refused(db, user, csrf_token, request):
         return error_page(request, user, status_code=403, message=CSRF_MESSAGE)
     try:
         row = signatures.sign_visit(

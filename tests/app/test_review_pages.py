@@ -291,3 +291,28 @@ def test_page_addresses_with_ids_too_large_for_the_database_are_404_pages(client
     r = client.get(f"/trials/{t}?compare={HUGE}")
     assert r.status_code == 200 and "choose a trial from the list" in r.text
     assert client.get(f"/patients?page={HUGE}").status_code == 200
+
+
+def test_requests_refused_for_a_missing_csrf_token_are_audited(client, seeded, db_sessionmaker):  # noqa: F811
+    """A forged request is refused (403); a security review found no trace of it in the
+    trail. Pages' forms, their uploads and the API called with the cookie: one
+    ``access route PATH denied`` each."""
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    since = _last_event_id(db_sessionmaker)
+    posts = [
+        (f"/trials/{t}/rating", {"data": {"clinician_rating": "2"}}),
+        ("/patients", {"data": {"code": "FORGED-1"}}),
+        ("/rigs/1/calibrations", {"files": {"left": ("l.mp4", b"x")}}),
+        ("/api/v1/patients", {"json": {"code": "FORGED-2"}}),
+    ]
+    for url, body in posts:
+        r = client.post(url, **body)
+        assert r.status_code == 403, (url, r.status_code)
+    with db_sessionmaker() as db:
+        rows = db.scalars(
+            select(AuditEvent).where(AuditEvent.id > since, AuditEvent.action == "access")
+        ).all()
+        assert [(e.resource_type, e.resource_id, e.outcome) for e in rows] == [
+            ("route", url, "denied") for url, _ in posts
+        ]
