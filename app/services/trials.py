@@ -135,9 +135,10 @@ def _parse_take_id(upload: ParsedUpload) -> str | None:
 def _stored_take(db: Session, session_id: int, take_id: str | None) -> Trial | None:
     if take_id is None:
         return None
-    return db.scalars(
+    trial = db.scalars(
         select(Trial).where(Trial.session_id == session_id, Trial.take_id == take_id)
     ).first()
+    return trial
 
 
 def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUpload) -> TrialOut:
@@ -154,6 +155,11 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
     take_id = _parse_take_id(upload)
     session = load_session(db, actor, session_id, "create")
     stored = _stored_take(db, session.id, take_id)
+    if stored is not None and not trial_is_visible(stored):  # sent again after its deletion
+        audit_failure(db, actor, "create", "trial", None, session.patient_id, outcome="denied")
+        raise ConflictError(
+            "This take was stored and then deleted; record a new take to upload it again."
+        )
     if stored is not None:
         job = job_views.latest_job(db, trial_id=stored.id)
         audit(db, actor, "read", "trial", stored.id, session.patient_id)
@@ -311,9 +317,10 @@ def restore_trial(db: Session, actor: Actor, trial_id: int) -> Trial:
 
 
 def get_job(db: Session, actor: Actor, job_id: int) -> Job:
-    """A job's status. Holds no clinical values, so it is not audited (clients poll it)."""
+    """A job's status. Holds no clinical values, so it is not audited (clients poll it);
+    the job of a hidden trial does not exist here, as on the job page."""
     job = db.get(Job, job_id)
-    if job is None:
+    if job is None or (job.trial is not None and not trial_is_visible(job.trial)):
         raise NotFoundError(f"The job {job_id} does not exist; check the id.")
     db.rollback()
     return job
