@@ -252,8 +252,13 @@ def finish(
             f"The identity provider sent no e-mail address ({settings.oidc_email_claim});"
             " ask the administrator to release it to bradyscope."
         )
-    if claims.get("email_verified") is False:
-        raise OidcError(f"The identity provider has not verified the address {email}.")
+    verified = claims.get("email_verified")
+    if verified is False or (settings.oidc_require_verified_email and verified is not True):
+        # the address finds the account at a first login: an unverified one could be anyone's
+        raise OidcError(
+            f"The identity provider has not confirmed that {email} is verified"
+            " (email_verified); ask the administrator."
+        )
     name = claims.get("name")
     return Identity(
         subject=str(claims["sub"]),

@@ -115,6 +115,12 @@ class Settings(BaseSettings):
     oidc_email_claim: str = Field(
         default="email", description="The ID-token claim holding the account's e-mail address."
     )
+    oidc_require_verified_email: bool = Field(
+        default=True,
+        description="Accept an SSO login only with email_verified true in its ID token: its "
+        "address finds (and binds) the account. false: for a provider that manages the "
+        "addresses itself and does not send the claim.",
+    )
     oidc_create_users: bool = Field(
         default=False,
         description="Create a clinician account at a person's first SSO login "

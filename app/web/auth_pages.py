@@ -164,7 +164,9 @@ def oidc_callback(
             replace_token=request.cookies.get(SESSION_COOKIE),
         )
     except AppError as exc:
-        if isinstance(exc, oidc.OidcError):
+        # Without single sign-on there is nothing to log into: anyone's requests here
+        # would only fill the trail.
+        if isinstance(exc, oidc.OidcError) and oidc.enabled(settings):
             audit_failure(db, ANONYMOUS, "login", "user", None, outcome="denied")
         failed = _login_form(
             request, next_url="/patients", status_code=status_of(exc), error=str(exc)

@@ -138,6 +138,13 @@ def test_local_login_works_without_oidc_and_can_be_switched_off(
     with TestClient(plain) as client:
         assert "/login/oidc" not in client.get("/login").text
         assert client.get("/login/oidc", follow_redirects=False).status_code in (303, 404)
+        # nothing to log into: anyone's calls to the callback leave the trail alone
+        with db_sessionmaker() as db:
+            before = len(db.scalars(select(AuditEvent)).all())
+        for _ in range(3):
+            assert client.get("/auth/oidc/callback?error=x").status_code == 401
+        with db_sessionmaker() as db:
+            assert len(db.scalars(select(AuditEvent)).all()) == before
         r = client.post(
             "/api/v1/auth/login", json={"email": "doc@example.org", "password": PASSWORD}
         )
@@ -148,3 +155,21 @@ def test_local_login_works_without_oidc_and_can_be_switched_off(
             "/api/v1/auth/login", json={"email": "doc@example.org", "password": PASSWORD}
         )
         assert r.status_code == 401 and "single sign-on" in r.json()["detail"]
+
+
+def test_an_address_the_provider_does_not_say_is_verified_opens_no_account(
+    app_settings: Settings, db_sessionmaker, provider: str
+) -> None:
+    """A security review: without ``email_verified`` the address still found, and bound,
+    an account (an administrator's that has no SSO subject yet, say). Refused now unless
+    the provider is trusted to manage its addresses (BRADYSCOPE_OIDC_REQUIRE_VERIFIED_EMAIL)."""
+    make_user(db_sessionmaker, "admin@example.org", PASSWORD)
+    _claims(provider, "self-asserted", email="admin@example.org")
+    with TestClient(create_app(_sso_settings(app_settings, provider))) as client:
+        r = _sso_login(client, provider, "self-asserted")
+        assert r.status_code == 401 and "verified" in r.text
+    with db_sessionmaker() as db:
+        assert db.scalar(select(User.oidc_subject).where(User.email == "admin@example.org")) is None
+    trusting = _sso_settings(app_settings, provider, oidc_require_verified_email=False)
+    with TestClient(create_app(trusting)) as client:
+        assert _sso_login(client, provider, "self-asserted").status_code == 303

@@ -286,7 +286,10 @@ def test_page_addresses_with_ids_too_large_for_the_database_are_404_pages(client
         f"/sessions/1/signed/{HUGE}.pdf",
     ):
         r = client.get(url, headers={"Accept": "text/html"})
-        assert r.status_code == 404 and "text/html" in r.headers["content-type"], (url, r.status_code)
+        assert r.status_code == 404 and "text/html" in r.headers["content-type"], (
+            url,
+            r.status_code,
+        )
     assert client.get(f"/jobs/{HUGE}/status").status_code in (404, 422)
     r = client.get(f"/trials/{t}?compare={HUGE}")
     assert r.status_code == 200 and "choose a trial from the list" in r.text
