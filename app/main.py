@@ -204,6 +204,10 @@ def _html_error(request: Request, status: int, message: str) -> Response:
 _NOT_AN_OBJECT = frozenset({"model_attributes_type", "dict_type", "model_type"})
 
 
+NO_SUCH_PAGE = "There is no page at this address: check it, or go back to the patient list."
+"""Not the address itself: a crafted one would put its words on the page."""
+
+
 def _validation_response(request: Request, exc: RequestValidationError) -> Response:
     """The answer to a request whose path, query or body does not validate: the 404 page
     for a browser at an address that is no page, 400 for a body that is not JSON, else
@@ -211,7 +215,7 @@ def _validation_response(request: Request, exc: RequestValidationError) -> Respo
     if _wants_html_page(request) and all(
         str(err.get("loc", ("",))[0]) == "path" for err in exc.errors()
     ):  # /trials/abc in the address bar: that page does not exist
-        return _html_error(request, 404, f"There is no page {request.url.path}: check the address.")
+        return _html_error(request, 404, NO_SUCH_PAGE)
     issues = [
         {
             "loc": [str(part) for part in err.get("loc", ())],
@@ -305,9 +309,7 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         if exc.status_code == 404 and _wants_html_page(request):
-            return _html_error(
-                request, 404, f"There is no page {request.url.path}: check the address."
-            )
+            return _html_error(request, 404, NO_SUCH_PAGE)
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         if exc.status_code == 400 and detail == "There was an error parsing the body":
             detail = "The request body could not be read; send valid JSON (UTF-8) or a valid form."

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -292,15 +292,21 @@ def make_report_pdfs(
 
 
 def get_result(
-    db: Session, actor: Actor, trial_id: int, revision: int | None = None
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    revision: int | None = None,
+    *,
+    action: Literal["read", "export"] = "read",
 ) -> dict[str, Any]:
-    """The trial's ``result.json`` document: the current revision, or ``revision``.
+    """The trial's ``result.json`` document: the current revision, or ``revision``;
+    audited as ``action`` (``export`` for the page's download, like the other files).
 
     409 until the first analysis has succeeded; 404 for a revision that does not exist.
     """
-    trial, result = _result_of(db, actor, trial_id, "read", revision)
+    trial, result = _result_of(db, actor, trial_id, action, revision)
     document = served_document(result)
-    audit(db, actor, "read", "result", trial.id, trial.session.patient_id)
+    audit(db, actor, action, "result", trial.id, trial.session.patient_id)
     db.commit()
     return document
 

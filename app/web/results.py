@@ -194,7 +194,7 @@ def _download(
     if kind == "fhir":
         return json.dumps(results.fhir_bundle(db, user, trial_id, storage, timezone=tz), indent=1)
     if kind == "json":
-        return json.dumps(results.get_result(db, user, trial_id), indent=1)
+        return json.dumps(results.get_result(db, user, trial_id, action="export"), indent=1)
     if kind == "csv":
         return results.markers_csv_path(db, user, trial_id, storage).read_bytes()
     return trajectories.trajectory_file(

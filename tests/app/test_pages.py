@@ -877,7 +877,7 @@ def test_an_address_that_is_no_page_gets_the_error_page_not_json(client, seeded)
         r = client.get(url, headers=html)
         assert r.status_code == 404, url
         assert r.headers["content-type"].startswith("text/html"), url
-        assert f"There is no page {url}: check the address." in r.text
+        assert "There is no page at this address" in r.text and url not in r.text
     # API clients keep their JSON answers
     r = client.get("/api/v1/trials/abc", headers=html)
     assert r.status_code == 422 and r.json()["detail"].startswith("The request is invalid")

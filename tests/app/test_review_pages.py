@@ -319,3 +319,13 @@ def test_requests_refused_for_a_missing_csrf_token_are_audited(client, seeded, d
         assert [(e.resource_type, e.resource_id, e.outcome) for e in rows] == [
             ("route", url, "denied") for url, _ in posts
         ]
+
+
+def test_every_download_from_the_trial_page_is_an_export(client, seeded, db_sessionmaker):  # noqa: F811
+    """The JSON download was recorded as a read of the result, the other files as exports."""
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    for kind in ("json", "csv", "fhir"):
+        since = _last_event_id(db_sessionmaker)
+        assert client.get(f"/trials/{t}/download/{kind}").status_code == 200, kind
+        assert [e[0] for e in _events(db_sessionmaker, since)] == ["export"], kind
