@@ -11,7 +11,14 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from jinja2 import Environment, FileSystemLoader, StrictUndefined, select_autoescape
+from jinja2 import (
+    Environment,
+    FileSystemLoader,
+    StrictUndefined,
+    pass_context,
+    select_autoescape,
+)
+from jinja2.runtime import Context
 from starlette.templating import Jinja2Templates
 
 from app.plots import MARKER_COLOURS
@@ -23,20 +30,29 @@ from core.tasks import parse_task
 TEMPLATES_DIR = Path(__file__).resolve().parents[1] / "templates"
 
 
-def _datetime(value: datetime | None, tz: str | None = None, fmt: str = "%Y-%m-%d %H:%M") -> str:
-    """``2026-03-01 14:05 CET`` in the clinic's zone ``tz`` (the zone's abbreviation added)."""
+def _zone(ctx: Context, tz: str | None) -> str:
+    """The zone a time is shown in: ``tz``, else the page's clinic zone, else UTC; never
+    none, so that no page shows a UTC time unlabelled beside the clinic's."""
+    return tz or ctx.get("clinic_tz") or "UTC"
+
+
+@pass_context
+def _datetime(
+    ctx: Context, value: datetime | None, tz: str | None = None, fmt: str = "%Y-%m-%d %H:%M"
+) -> str:
+    """``2026-03-01 14:05 CET`` in the clinic's zone (the zone's abbreviation added)."""
     if value is None:
         return "–"
-    if tz is None:
-        return f"{value:{fmt}}"
-    local = to_zone(value, tz)
+    local = to_zone(value, _zone(ctx, tz))
     return f"{local:{fmt}} {local.tzname()}"
 
 
-def _date(value: datetime | None, tz: str | None = None) -> str:
+@pass_context
+def _date(ctx: Context, value: datetime | None, tz: str | None = None) -> str:
+    """The calendar day in the clinic's zone (a UTC day can be the clinic's day before)."""
     if value is None:
         return "–"
-    return f"{to_zone(value, tz):%Y-%m-%d}"
+    return f"{to_zone(value, _zone(ctx, tz)):%Y-%m-%d}"
 
 
 def _percent(value: Any, digits: int = 0) -> str:

@@ -50,7 +50,13 @@
     function showError(message) {
       if (button) button.disabled = false;
       if (block) block.hidden = true;
-      if (errorBox) { errorBox.textContent = message; errorBox.hidden = false; errorBox.focus && errorBox.focus(); }
+      if (errorBox) {
+        errorBox.textContent = message;
+        errorBox.hidden = false;
+        // a paragraph takes the focus only with a tabindex: else it stayed on <body>
+        if (!errorBox.hasAttribute("tabindex")) errorBox.setAttribute("tabindex", "-1");
+        errorBox.focus();
+      }
     }
   }
 

@@ -217,6 +217,9 @@ def _job_view(db: Session, job: Job) -> dict[str, Any]:
             "max_attempts",
         )
     }
+    error = out["error"]
+    if error:  # shown after "The analysis could not be completed."
+        out["error"] = error[:1].upper() + error[1:]
     out["stage_label"] = _stage_label(job.stage, job.status)
     position = trials.queue_position(db, job)
     out["queue_position"] = position

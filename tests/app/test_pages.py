@@ -590,6 +590,17 @@ def test_failed_job_is_explained_in_plain_words(client, seeded, db_sessionmaker)
     assert page.status_code == 200
     assert message in page.text and "could not be completed" in page.text
     assert client.get(f"/jobs/{job_id}/status").json()["stage_label"] == "Stopped with an error"
+    # A UI review found the failed job headed "Measuring ..." at "85 %", "updates by
+    # itself", and no way on: the ended state has its heading and a way to the session.
+    assert 'data-status="failed"' in page.text
+    assert "The measurement of the right hand of PD-0042 failed" in page.text
+    assert f'<a href="/sessions/{trial.session_id}">Go to the session</a>' in page.text
+    css = client.get("/static/style.css").text
+    assert '.job[data-status="failed"] .while-working' in css
+    with db_sessionmaker() as db:
+        db.get(Job, job_id).error = "the left video is 640x480; the rig's cameras are 640x512."
+        db.commit()
+    assert "The left video is 640x480" in client.get(f"/jobs/{job_id}").text
 
 
 def test_calibration_upload_needs_one_kind_of_input(client, seeded):

@@ -33,6 +33,17 @@ def test_shown_in_the_clinic_zone_with_its_name():
     assert render(t=when, tz="UTC") == "2026-03-01 09:30 UTC"
 
 
+def test_a_time_without_a_zone_is_shown_in_the_page_s_clinic_zone():
+    """A UI review found the review page's date (the UTC day) a day off the trial page's
+    (the clinic's day), and the signature and hiding times in UTC unlabelled beside the
+    clinic's. A filter without a zone takes the page's ``clinic_tz``, else UTC, and
+    always names it."""
+    late = datetime(2026, 3, 1, 23, 30, tzinfo=UTC)
+    page = jinja_env.from_string("{{ t | date }} / {{ t | datetime }}").render
+    assert page(t=late, clinic_tz="Pacific/Auckland") == "2026-03-02 / 2026-03-02 12:30 NZDT"
+    assert page(t=late) == "2026-03-01 / 2026-03-01 23:30 UTC"
+
+
 def test_an_unknown_zone_is_refused_with_a_message(tmp_path):
     with pytest.raises(ValidationError, match="not a time zone name"):
         Settings(data_dir=tmp_path, timezone="Mars/Olympus")
