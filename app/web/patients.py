@@ -27,7 +27,7 @@ from app.services import patients, sessions
 from app.services.common import visible_patient
 from app.services.rigs import all_rigs
 from app.storage import Storage
-from app.timezones import from_local
+from app.timezones import from_local, to_zone
 from app.trends import TrendPoint
 from app.web.common import (
     CSRF_MESSAGE,
@@ -152,6 +152,7 @@ def _trend_group(
             svg, new = patients.trend_plot_of(storage, patient_id, task, key, points[key])
             group["trends"].append({"key": key, "label": label, "svg": svg})
             drawn |= new
+        group["values"] = _trend_values(task, points, tz)
     elif any(p.value is not None for key, _, _ in metrics for p in points[key]):
         group["table"] = _single_visit_table(task, points)
     return group, drawn
@@ -184,6 +185,29 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: I
         job_ids=overview.job_ids,
         format_metric=format_metric,
     )
+
+
+def _trend_values(task: str, points: dict[str, list[TrendPoint]], tz: str) -> dict[str, Any]:
+    """The plotted values as a table, one row per trial (date, side, medication state):
+    for keyboard, touch and screen-reader users, whom the plots' hover titles miss."""
+    metrics = trend_metrics(task)
+    rows: dict[tuple[str, str, str], dict[str, str]] = {}
+    for key, _, _ in metrics:
+        for p in points[key]:
+            when = p.recorded_at
+            local = to_zone(when, tz) if isinstance(when, datetime) else None
+            day = f"{local:%Y-%m-%d %H:%M} {local.tzname()}" if local else f"{when}"
+            cells = rows.setdefault((day, p.hand, p.medication_state), {})
+            cells[key] = "–" if p.value is None else format_metric(key, p.value, task)
+    return {
+        "columns": [f"{label} ({unit})" if unit and unit != "count" else label
+                    for _, label, unit in metrics],
+        "rows": [
+            {"date": day, "hand": hand, "medication": med,
+             "cells": [cells.get(key, "–") for key, _, _ in metrics]}
+            for (day, hand, med), cells in sorted(rows.items())
+        ],
+    }  # fmt: skip
 
 
 def _single_visit_table(task: str, points: dict[str, list[TrendPoint]]) -> dict[str, Any]:

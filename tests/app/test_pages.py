@@ -765,6 +765,14 @@ def test_trends_follow_the_first_10_taps(client, seeded):
     assert "First-10-tap values" in html
     # Hover text of a point: its date, hand, medication state and first-10 value.
     assert "2025-03-01 09:00, left hand, medication on:" in html
+    # The same values in a table, for keyboard, touch and screen-reader users (a UI
+    # review: with two visits or more the values were only in the plots' hover titles).
+    values = re.search(r"<details[^>]*data-trend-values>(.*?)</details>", html, re.S)
+    assert values is not None
+    row = re.search(r"<tr><th scope=\"row\">2025-03-01 09:00 UTC</th><td>left</td><td>on</td>(.*?)</tr>",
+                    values.group(1))  # fmt: skip
+    assert row is not None and '<td class="num">' in row.group(1)
+    assert "Tapping frequency (Hz)" in values.group(1)
 
 
 def test_job_page_title_says_how_it_ended_and_the_queue_position(client, seeded, db_sessionmaker):
