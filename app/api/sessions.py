@@ -142,10 +142,12 @@ def get_visit_report_pdf(
         row, pdf = signatures.signed_report(
             db, actor, session_id, storage, timezone=settings.timezone, number=signature
         )
-        name = f"visit-{session_id}-signed-{row.number}.pdf"
+        name = visits.visit_file_name(db, session_id, settings.timezone, f"signed-{row.number}")
         return attachment(pdf, "application/pdf", name, **{"X-Content-SHA256": row.sha256})
     pdf = visits.visit_report_pdf(db, actor, session_id, storage, timezone=settings.timezone)
-    return attachment(pdf, "application/pdf", f"visit-{session_id}-report.pdf")
+    return attachment(
+        pdf, "application/pdf", visits.visit_file_name(db, session_id, settings.timezone)
+    )
 
 
 @router.post(

@@ -104,3 +104,13 @@ def visit_report_pdf(
     ):
         cache.forget_patient(session.patient_id)
     return pdf
+
+
+def visit_file_name(db: Session, session_id: int, timezone: str, suffix: str = "report") -> str:
+    """``PD-0042-visit-2026-03-01-report.pdf``: the patient's code and the visit's day, as
+    the trials' reports are named (not the session's internal id)."""
+    session = db.get(RecordingSession, session_id)
+    if session is None:
+        return f"visit-{session_id}-{suffix}.pdf"
+    day = local_date(session.recorded_at, timezone)
+    return f"{session.patient.code}-visit-{day:%Y-%m-%d}-{suffix}.pdf"

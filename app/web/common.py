@@ -219,6 +219,13 @@ SESSION_LABELS = {
 """The session form's labels, used in the error messages of the new-session and edit forms."""
 
 
+PATTERN_WORDS = {
+    "code": "use letters, digits, dots, underscores and dashes only, starting with a letter or"
+    " a digit (e.g. PD-0042)",
+}
+"""What a field's pattern allows, in words (a form showed the regular expression itself)."""
+
+
 def validation_message(exc: ValidationError, labels: Mapping[str, str] | None = None) -> str:
     """The first problems of a form as one sentence, each named by the form's own label."""
     parts = []
@@ -226,6 +233,8 @@ def validation_message(exc: ValidationError, labels: Mapping[str, str] | None = 
         field = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
         name = (labels or {}).get(field) or field.replace("_", " ").capitalize()
         message = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+        if err.get("type") == "string_pattern_mismatch":  # not a regular expression: words
+            message = PATTERN_WORDS.get(field, "contains characters that are not allowed")
         parts.append(f"{name}: {message}" if name else message)
     return "Please correct the form — " + "; ".join(parts) + "."
 

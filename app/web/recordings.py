@@ -138,10 +138,11 @@ def visit_report(
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    name = visits.visit_file_name(db, session_id, tz)
     return Response(
         pdf,
         media_type="application/pdf",
-        headers={"Content-Disposition": f'attachment; filename="visit-{session_id}-report.pdf"'},
+        headers={"Content-Disposition": f'attachment; filename="{name}"'},
     )
 
 

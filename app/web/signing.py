@@ -16,7 +16,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from app.auth import SessionDep
 from app.errors import AppError
 from app.schemas import IdPath
-from app.services import signatures
+from app.services import signatures, visits
 from app.web.common import CSRF_MESSAGE, PageUser, csrf_refused, error_page, status_of
 
 router = APIRouter()
@@ -67,7 +67,9 @@ def signed_pdf(
     except AppError as exc:
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
-    name = f"visit-{session_id}-signed-{row.number}.pdf"
+    name = visits.visit_file_name(
+        db, session_id, request.app.state.settings.timezone, f"signed-{row.number}"
+    )
     return Response(
         body,
         media_type="application/pdf",

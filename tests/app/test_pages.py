@@ -915,3 +915,12 @@ def test_the_interruptions_band_has_a_row_of_its_own(client, seeded):
     assert "Band of both" in rows["interruptions-band"]
     # the single-measure aspects keep their band beside their value
     assert 'data-band="speed"' in rows["frequency_hz"]
+
+
+def test_a_patient_code_refused_says_what_is_allowed_in_words(client, seeded):
+    """A UI review found "String should match pattern '^[A-Za-z0-9]...'" on the form."""
+    token = login(client)
+    r = client.post("/patients", data={"code": "Jan Novák", "csrf_token": token})
+    assert r.status_code == 422
+    assert "Patient code: use letters, digits, dots, underscores and dashes only" in r.text
+    assert "pattern" not in r.text.split("<main", 1)[1].split("</main>")[0].replace('pattern="', "")

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from datetime import UTC, datetime
@@ -171,6 +172,9 @@ def test_visit_report_page_one_summarises_the_visit(api: Api, tmp_path):
     visit = _visit(api)
     r = api.client.get(f"/api/v1/sessions/{visit['session_id']}/report.pdf", headers=api.headers)
     assert r.status_code == 200 and r.headers["content-type"] == "application/pdf"
+    # named as the trials' reports are, by the patient's code (not the internal id)
+    name = r.headers["content-disposition"]
+    assert re.search(r'filename="[A-Z0-9-]+-visit-\d{4}-\d\d-\d\d-report\.pdf"', name), name
     pdf = tmp_path / "visit.pdf"
     pdf.write_bytes(r.content)
     page1 = subprocess.run(
