@@ -213,21 +213,34 @@
     var yStep = Math.pow(10, Math.floor(Math.log(ymax / 5) / Math.LN10));
     if (ymax / yStep > 25) yStep *= 5; else if (ymax / yStep > 10) yStep *= 2;
     var pad = { l: 48, r: 10, t: 10, b: 28 };
-    function X(t) { return pad.l + (plot.width - pad.l - pad.r) * t / duration; }
-    function Y(v) { return plot.height - pad.b - (plot.height - pad.t - pad.b) * v / ymax; }
+    // Drawn in CSS pixels at the size it is shown (W x H), on a backing store of the
+    // screen's pixel density: the words keep their size on a narrow screen and stay sharp.
+    var W = 1200, H = 260, lastCursor = 0;
+    function fit() {
+      if (!plot) return;
+      var dpr = window.devicePixelRatio || 1;
+      W = Math.max(320, Math.round(plot.getBoundingClientRect().width || 1200));
+      H = Math.round(Math.min(260, Math.max(200, W * 0.3)));
+      plot.width = Math.round(W * dpr);
+      plot.height = Math.round(H * dpr);
+      plot.getContext("2d").setTransform(dpr, 0, 0, dpr, 0, 0);
+    }
+    function X(t) { return pad.l + (W - pad.l - pad.r) * t / duration; }
+    function Y(v) { return H - pad.b - (H - pad.t - pad.b) * v / ymax; }
     function band(ctx, t0, t1, color, dashed) {
       ctx.fillStyle = color;
-      ctx.fillRect(X(t0), pad.t, Math.max(1, X(t1) - X(t0)), plot.height - pad.t - pad.b);
+      ctx.fillRect(X(t0), pad.t, Math.max(1, X(t1) - X(t0)), H - pad.t - pad.b);
       if (dashed) {
         ctx.setLineDash([4, 3]); ctx.strokeStyle = "rgb(120,120,120)";
-        ctx.strokeRect(X(t0), pad.t, Math.max(1, X(t1) - X(t0)), plot.height - pad.t - pad.b);
+        ctx.strokeRect(X(t0), pad.t, Math.max(1, X(t1) - X(t0)), H - pad.t - pad.b);
         ctx.setLineDash([]);
       }
     }
     function drawPlot(cursor) {
       if (!plot) return;
+      lastCursor = cursor;
       var ctx = plot.getContext("2d");
-      ctx.clearRect(0, 0, plot.width, plot.height);
+      ctx.clearRect(0, 0, W, H);
       (data.events || []).forEach(function (e) {
         var c = e.kind === "halt" ? "rgba(214,39,40,0.25)" : e.kind === "hesitation" ? "rgba(255,165,0,0.3)" : "rgba(128,128,128,0.25)";
         band(ctx, e.t_start_s, e.t_start_s + Math.max(e.duration_s, 0.02), c, false);
@@ -241,7 +254,7 @@
       });
       if (data.window_s) {
         ctx.strokeStyle = "rgb(0,0,0)"; ctx.setLineDash([6, 4]);
-        [data.window_s[0], data.window_s[1]].forEach(function (t) { ctx.beginPath(); ctx.moveTo(X(t), pad.t); ctx.lineTo(X(t), plot.height - pad.b); ctx.stroke(); });
+        [data.window_s[0], data.window_s[1]].forEach(function (t) { ctx.beginPath(); ctx.moveTo(X(t), pad.t); ctx.lineTo(X(t), H - pad.b); ctx.stroke(); });
         ctx.setLineDash([]);
       }
       ctx.strokeStyle = "rgb(40,40,40)"; ctx.lineWidth = 1.5; ctx.beginPath();
@@ -252,7 +265,7 @@
         pen = true;
       });
       ctx.stroke();
-      ctx.fillStyle = "rgb(31,119,180)"; ctx.font = "11px sans-serif";
+      ctx.fillStyle = "rgb(31,119,180)"; ctx.font = "12px sans-serif";
       (data.taps || []).forEach(function (tp) {
         var i = Math.round(tp[peakKey] * fps);
         var v = ap[i];
@@ -262,18 +275,18 @@
       });
       ctx.fillStyle = "rgb(60,60,60)";
       ctx.fillText(data.unit || "mm", 4, pad.t + 10);
-      for (var s = 0; s <= duration; s += 1) ctx.fillText(s + " s", X(s) - 6, plot.height - 8);
+      for (var s = 0; s <= duration; s += 1) ctx.fillText(s + " s", X(s) - 6, H - 8);
       for (var m = 0; m <= ymax; m += yStep) ctx.fillText(String(m), 8, Y(m) + 4);
       ctx.strokeStyle = "rgb(214,39,40)"; ctx.lineWidth = 2; ctx.beginPath();
-      ctx.moveTo(X(cursor), pad.t); ctx.lineTo(X(cursor), plot.height - pad.b); ctx.stroke();
+      ctx.moveTo(X(cursor), pad.t); ctx.lineTo(X(cursor), H - pad.b); ctx.stroke();
       plot.setAttribute("data-cursor-s", cursor.toFixed(4));
       plot.setAttribute("data-cursor-x", X(cursor).toFixed(2));
     }
     if (plot) {
       plot.addEventListener("click", function (e) {
         var box = plot.getBoundingClientRect();
-        var x = (e.clientX - box.left) * plot.width / box.width;
-        var t = (x - pad.l) / (plot.width - pad.l - pad.r) * duration;
+        var x = (e.clientX - box.left) * W / box.width;
+        var t = (x - pad.l) / (W - pad.l - pad.r) * duration;
         var hit = (data.taps || []).concat(data.excluded_taps || [], data.outside_window_taps || []).filter(function (tp) {
           return t >= tp.t_start_s && t <= tp.t_end_s;
         })[0];
@@ -286,7 +299,9 @@
         }
       });
     }
+    fit();
     drawPlot(0);
+    window.addEventListener("resize", function () { fit(); drawPlot(lastCursor); });
     window.bradyscopeReview = { seekFrame: seekFrame, fps: fps };
   }
 
