@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import uuid
 from collections.abc import Iterable
 from pathlib import Path
@@ -35,10 +36,11 @@ from numpy.typing import NDArray
 from sqlalchemy.orm import Session
 
 from app import jobs
+from app.errors import InvalidRequestError
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
 from app.services import calibrations, patients, results, revisions, trials
 from core.calibration import calibrate_stereo_from_paths
-from core.errors import InputError
+from core.errors import BradyscopeError, InputError
 from core.markers_csv import read_markers_csv
 from core.overlay import overlay_document
 from core.pipeline import Analysis, FrameSink, analyze_recording, write_markers_csv
@@ -261,6 +263,30 @@ def analyze_trial(ctx: JobContext) -> None:
         raise
 
 
+class CalibrationFailed(InvalidRequestError):
+    """A calibration that cannot be made from its board videos, in the form's words."""
+
+
+_OPTION_WORDS = (
+    (re.compile(r"--cols (\d+) --rows (\d+)"), r"Columns \1, Rows \2"),
+    (re.compile(r"--cols/--rows/--square-mm"), "Columns, Rows and Square size (mm)"),
+    (re.compile(r"--cols/--rows"), "Columns and Rows"),
+    (re.compile(r"--cols and --rows"), "Columns and Rows"),
+    (re.compile(r"--dictionary"), "ArUco dictionary"),
+    (re.compile(r"--square-mm"), "Square size (mm)"),
+    (re.compile(r"--marker-mm"), "Marker size (mm)"),
+    (re.compile(r"--legacy"), "Printed with OpenCV before 4.6"),
+)
+
+
+def in_form_words(message: str) -> str:
+    """A calibration error of ``core`` (worded for ``bradyscope calibrate``) with the
+    calibration form's labels (``app.web.rigs.CALIBRATION_FORM_LABELS``) for its options."""
+    for pattern, words in _OPTION_WORDS:
+        message = pattern.sub(words, message)
+    return message
+
+
 def calibrate(ctx: JobContext) -> None:
     """Calibrate a rig from its two board videos; the calibration becomes ``ready``."""
     with ctx.sessions() as db:
@@ -271,14 +297,17 @@ def calibrate(ctx: JobContext) -> None:
     _require_files(
         ctx, [p for p in stored if p is not None], what=f"calibration {inputs.calibration_id}"
     )
-    outcome = calibrate_stereo_from_paths(
-        inputs.left,
-        inputs.right,
-        inputs.board,
-        progress=ctx.progress,
-        left_times=inputs.left_times,
-        right_times=inputs.right_times,
-    )
+    try:
+        outcome = calibrate_stereo_from_paths(
+            inputs.left,
+            inputs.right,
+            inputs.board,
+            progress=ctx.progress,
+            left_times=inputs.left_times,
+            right_times=inputs.right_times,
+        )
+    except BradyscopeError as exc:  # core's words name the command line's options
+        raise CalibrationFailed(in_form_words(str(exc))) from exc
     ctx.finish(lambda db: calibrations.store_calibration(db, inputs.calibration_id, outcome))
 
 

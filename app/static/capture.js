@@ -769,7 +769,7 @@
       });
       rows.appendChild(tr);
       if (f.dropped_frames > MAX_LOST) problems.push("the " + side + " camera lost " + f.dropped_frames + " frames");
-      if (f.fps < MIN_FPS) problems.push("the " + side + " camera reached only " + f.fps.toFixed(0) + " frames per second");
+      if (f.fps < MIN_FPS) problems.push("the " + side + " camera reached only " + f.fps.toFixed(1) + " frames per second (at least " + MIN_FPS + " needed)");
       if (self.take && f.duration_s < 0.8 * self.take.durationS && self.take.durationS && !self.take.stoppedEarly) {
         problems.push("the " + side + " recording is " + f.duration_s.toFixed(1) + " s long");
       }

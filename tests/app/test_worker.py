@@ -692,3 +692,20 @@ def test_board_descriptions_in_both_stored_forms():
     assert BoardSpec.from_dict(form) == spec
     with pytest.raises(InputError, match="lacks rows, square_mm"):
         BoardSpec.from_dict({"board": "chessboard", "cols": 9})
+
+
+def test_a_calibration_error_names_the_form_s_fields_not_the_command_line_s():
+    """A UI review found "check --cols/--rows ... and --dictionary" on the rig page and
+    the capture page: core's words for ``bradyscope calibrate``."""
+    from app.handlers import in_form_words
+
+    core = (
+        "The board was found in 0 of 40 left frames: check --cols/--rows (a ChArUco board"
+        " counts squares) and --dictionary, or swap --cols and --rows (--cols 6 --rows 9);"
+        " --cols/--rows/--square-mm describe the board filmed."
+    )
+    words = in_form_words(core)
+    assert "--" not in words
+    assert "check Columns and Rows (a ChArUco board counts squares) and ArUco dictionary" in words
+    assert "swap Columns and Rows (Columns 6, Rows 9)" in words
+    assert "Columns, Rows and Square size (mm) describe" in words
