@@ -9,14 +9,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from app.apikeys import DATA_SCOPES, SCOPES
+from app.apikeys import AUDIT_READ, DATA_SCOPES, SCOPES
 
 ADMIN_SCOPE = "admin"
-# Scopes of browser users by role (API clients have their own list). Only admins read
-# the audit trail.
+# Scopes of browser users by role (API clients have their own list). Admins and auditors
+# read the audit trail; an auditor (an IT or data-protection officer) reads nothing else.
 ROLE_SCOPES: dict[str, frozenset[str]] = {
     "clinician": frozenset(DATA_SCOPES),
     "admin": frozenset((*SCOPES, ADMIN_SCOPE)),
+    "auditor": frozenset((AUDIT_READ,)),
 }
 
 

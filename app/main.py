@@ -37,7 +37,7 @@ from app.faults import check_health, storage_fault
 from app.settings import Settings, get_settings
 from app.storage import Storage
 from app.web import router as web_router
-from app.web.common import LoginRequired, login_redirect
+from app.web.common import LoginRequired, PageForbidden, error_page, login_redirect
 from core.errors import BradyscopeError
 
 log = logging.getLogger(__name__)
@@ -416,6 +416,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(LoginRequired)
     async def login_required(request: Request, exc: LoginRequired) -> Response:
         return login_redirect(request)  # a page (PageUser) without a logged-in user
+
+    @app.exception_handler(PageForbidden)
+    async def page_forbidden(request: Request, exc: PageForbidden) -> Response:
+        return error_page(request, exc.user, status_code=403, message=str(exc))
 
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

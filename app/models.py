@@ -61,7 +61,7 @@ from sqlalchemy.types import TypeDecorator
 from core.tasks import TASKS
 
 # Allowed values of the enumerated string columns.
-ROLES = ("clinician", "admin")
+ROLES = ("clinician", "admin", "auditor")
 SEXES = ("female", "male", "other", "unknown")
 MEDICATION_STATES = ("on", "off", "unknown")
 DBS_STATES = ("on", "off", "none", "unknown")

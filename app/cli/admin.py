@@ -3,7 +3,7 @@
 Every sub-command first brings the database to the newest migration (under the
 start-up lock), so it works on a fresh data directory.
 
-- ``create-user EMAIL --role clinician|admin``: the password comes from
+- ``create-user EMAIL --role clinician|admin|auditor``: the password comes from
   ``BRADYSCOPE_PASSWORD`` or is asked twice at the prompt (never an argument,
   which would end up in the shell history).
 - ``set-password EMAIL``: same password sources; re-activates the account,

@@ -17,7 +17,7 @@ from app.audit import audit_failure
 from app.auth import SessionDep
 from app.errors import AppError
 from app.services import audit_log
-from app.web.common import PageUser, error_page, render, status_of
+from app.web.common import AnyPageUser, error_page, render, status_of
 
 router = APIRouter()
 
@@ -32,7 +32,7 @@ def _time(text: str | None, name: str) -> datetime | None:
 def audit_page(
     request: Request,
     db: SessionDep,
-    user: PageUser,
+    user: AnyPageUser,
     patient_id: Annotated[str | None, Query(max_length=20)] = None,
     actor: Annotated[str | None, Query(max_length=80)] = None,
     since: Annotated[str | None, Query(max_length=40)] = None,

@@ -19,7 +19,15 @@ from app.auth import SESSION_COOKIE, SessionDep
 from app.chain import load_key
 from app.errors import AppError
 from app.login import login_from_request, login_sso, logout_from_request, set_session_cookie
-from app.web.common import csrf_refused, page_user, render, safe_next, settings_of, status_of
+from app.web.common import (
+    PATIENT_PAGES_SCOPE,
+    csrf_refused,
+    page_user,
+    render,
+    safe_next,
+    settings_of,
+    status_of,
+)
 
 router = APIRouter()
 
@@ -89,7 +97,7 @@ def login_submit(
         )
     response = RedirectResponse(safe_next(next), status_code=303)
     try:
-        login_from_request(db, request, response, email=email, password=password)
+        result = login_from_request(db, request, response, email=email, password=password)
     except AppError as exc:
         return _login_form(
             request,
@@ -98,6 +106,8 @@ def login_submit(
             status_code=status_of(exc),
             error=str(exc),
         )
+    if not result.actor.has_scope(PATIENT_PAGES_SCOPE):  # an auditor: to the one page of theirs
+        response.headers["location"] = "/admin/audit"
     response.delete_cookie(LOGIN_CSRF_COOKIE, path="/login")
     return response
 

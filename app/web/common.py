@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterable, Mapping
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, NoReturn, TypeVar
 from urllib.parse import quote, urlsplit
 
 from fastapi import Depends, Request
@@ -22,6 +22,7 @@ from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.apikeys import AUDIT_READ
+from app.audit import audit_failure
 from app.auth import (
     CSRF_HEADER,
     SessionDep,
@@ -75,7 +76,19 @@ class LoginRequired(Exception):
     """No logged-in browser user: the app answers with a redirect to the login page."""
 
 
-def require_page_user(request: Request, db: SessionDep) -> Actor:
+class PageForbidden(Exception):
+    """A logged-in user whose role does not open this page (audited): a 403 page."""
+
+    def __init__(self, user: Actor, message: str) -> None:
+        super().__init__(message)
+        self.user = user
+
+
+PATIENT_PAGES_SCOPE = "patients:read"
+"""What every page of patients, recordings, results and rigs needs (an auditor lacks it)."""
+
+
+def require_any_page_user(request: Request, db: SessionDep) -> Actor:
     """The logged-in browser user; else :class:`LoginRequired` (see ``app.main``)."""
     user = page_user(request, db)
     if user is None:
@@ -83,8 +96,38 @@ def require_page_user(request: Request, db: SessionDep) -> Actor:
     return user
 
 
+def require_page_user(request: Request, db: SessionDep) -> Actor:
+    """The logged-in user of a clinical page: holding ``patients:read``, else a 403 page
+    and an ``access route PATH denied`` event (:class:`PageForbidden`)."""
+    user = require_any_page_user(request, db)
+    if not user.has_scope(PATIENT_PAGES_SCOPE):
+        refuse_page(db, user, request)
+    return user
+
+
+def refuse_page(db: Session, user: Actor, request: Request) -> NoReturn:
+    """Audit and refuse a page the user's role does not open."""
+    audit_failure(db, user, "access", "route", request.url.path[:64], outcome="denied")
+    raise PageForbidden(
+        user, "Your account's role does not open patients' data; the audit trail is yours."
+    )
+
+
+def scope_refusal(db: Session, user: Actor, request: Request, scope: str) -> AppError | None:
+    """Why ``user`` may not make this request (audited), or None when it holds ``scope``;
+    for the routes that read their user themselves (uploads, the job page's polling)."""
+    if user.has_scope(scope):
+        return None
+    audit_failure(db, user, "access", "route", request.url.path[:64], outcome="denied")
+    return PermissionDeniedError(f"Your account's role lacks the scope {scope}.")
+
+
 PageUser = Annotated[Actor, Depends(require_page_user)]
-"""A page's user: a page without a logged-in user redirects to ``/login?next=...``."""
+"""A clinical page's user: without a logged-in user it redirects to ``/login?next=...``;
+a user whose role does not read patients' data gets a 403 page."""
+
+AnyPageUser = Annotated[Actor, Depends(require_any_page_user)]
+"""Any logged-in user (the audit trail's page checks its own scope)."""
 
 
 def safe_next(target: str | None) -> str:
@@ -162,7 +205,11 @@ def render(
     base = {
         "user": user,
         "csrf_token": user.csrf_token if user is not None else "",
-        "nav": NAV + (ADMIN_NAV if user is not None and user.has_scope(AUDIT_READ) else ()),
+        "home": "/patients"
+        if user is None or user.has_scope(PATIENT_PAGES_SCOPE)
+        else "/admin/audit",
+        "nav": (NAV if user is None or user.has_scope(PATIENT_PAGES_SCOPE) else ())
+        + (ADMIN_NAV if user is not None and user.has_scope(AUDIT_READ) else ()),
         "active": active,
         "clinic_tz": settings_of(request).timezone,
         "error": context.pop("error", None),

@@ -29,12 +29,14 @@ from app.services import sessions, signatures, trials, visits
 from app.services.rigs import all_rigs
 from app.uploads import ParsedUpload
 from app.web.common import (
+    PATIENT_PAGES_SCOPE,
     PageUser,
     error_page,
     not_found_page,
     page_user,
     render,
     run_page_upload,
+    scope_refusal,
     settings_of,
     status_of,
     wants_json,
@@ -153,6 +155,9 @@ def _user_and_target(
     user = page_user(request, db)
     if user is None:
         return None, None
+    refused = scope_refusal(db, user, request, "recordings:write")
+    if refused is not None:
+        return user, refused
     try:
         trials.check_trial_target(db, user, session_id)  # 404 unknown session
     except AppError as exc:
@@ -299,6 +304,9 @@ def job_status_json(request: Request, db: SessionDep, job_id: IdPath) -> Respons
     user = page_user(request, db)
     if user is None:
         return JSONResponse({"detail": "Please log in again."}, status_code=401)
+    refused = scope_refusal(db, user, request, PATIENT_PAGES_SCOPE)
+    if refused is not None:
+        return JSONResponse({"detail": str(refused)}, status_code=403)
     try:
         job = trials.job_progress(db, user, job_id)
     except NotFoundError as exc:

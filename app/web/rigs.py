@@ -30,6 +30,7 @@ from app.web.common import (
     page_user,
     render,
     run_page_upload,
+    scope_refusal,
     status_of,
     validation_message,
     wants_json,
@@ -223,6 +224,9 @@ def _user_and_rig(
     user = page_user(request, db)
     if user is None:
         return None, None
+    refused = scope_refusal(db, user, request, "rigs:write")
+    if refused is not None:
+        return user, refused
     try:
         rigs.check_calibration_target(db, user, rig_id)
     except NotFoundError as exc:

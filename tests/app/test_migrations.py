@@ -374,3 +374,26 @@ def test_a_trial_naming_its_own_rig_blocks_going_back(
     engine.dispose()
     assert "rig_id" not in columns and "task" in columns
     dispose_engines()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_an_auditor_account_can_be_stored_and_blocks_going_back(
+    backend: str, tmp_path: Path, make_settings, request: pytest.FixtureRequest
+):
+    """Revision 0016 widens ``ck_users_role`` to the auditor; going back to 0015 refuses
+    while an auditor exists (making it a clinician would open every patient's data)."""
+    url = _head_database(backend, tmp_path, make_settings, request)
+    insert = (
+        "INSERT INTO users (id, email, password_hash, role, is_active, created_at)"
+        " VALUES ({id}, 'u{id}@example.org', 'x', '{role}', true, '2026-02-01')"
+    )
+    _execute(url, insert.format(id=1, role="auditor"))
+    with pytest.raises(sa.exc.IntegrityError):
+        _execute(url, insert.format(id=2, role="superuser"))  # the constraint still holds
+    with pytest.raises(RuntimeError, match="1 auditor account"):
+        command.downgrade(alembic_config(url), "0015")
+    _execute(url, "DELETE FROM users")
+    command.downgrade(alembic_config(url), "0015")
+    with pytest.raises(sa.exc.IntegrityError):
+        _execute(url, insert.format(id=3, role="auditor"))
+    dispose_engines()

@@ -329,3 +329,49 @@ def test_every_download_from_the_trial_page_is_an_export(client, seeded, db_sess
         since = _last_event_id(db_sessionmaker)
         assert client.get(f"/trials/{t}/download/{kind}").status_code == 200, kind
         assert [e[0] for e in _events(db_sessionmaker, since)] == ["export"], kind
+
+
+def test_an_auditor_reads_the_audit_trail_and_nothing_of_the_patients(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+):
+    """A security review: an admin is the only one who reads the trail, and an admin reads
+    every patient's data too; and the pages checked no scope at all. An auditor's login
+    opens the trail only; every clinical page refuses it (403, audited)."""
+    from api_support import make_user
+    from test_pages import _csrf
+
+    make_user(db_sessionmaker, "dpo@example.org", "tidal mirror lantern oak", role="auditor")
+    page = client.get("/login")
+    r = client.post(
+        "/login",
+        data={"email": "dpo@example.org", "password": "tidal mirror lantern oak",
+              "csrf_token": _csrf(page.text), "next": "/patients"},
+        follow_redirects=False,
+    )  # fmt: skip
+    assert r.status_code == 303 and r.headers["location"] == "/admin/audit"
+    trail = client.get("/admin/audit")
+    assert trail.status_code == 200 and 'href="/patients"' not in trail.text.split("<main")[0]
+    t = seeded["trials"][(1, "right")]
+    since = _last_event_id(db_sessionmaker)
+    for url in ("/patients", f"/patients/{seeded['patient_id']}", f"/trials/{t}", "/rigs",
+                f"/trials/{t}/download/csv", "/jobs/1/status"):  # fmt: skip
+        r = client.get(url)
+        assert r.status_code == 403, (url, r.status_code)
+        assert "PD-0042" not in r.text, url
+    token = _csrf(trail.text)
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, t).session_id
+    r = client.post("/patients", data={"code": "AUD-1", "csrf_token": token})
+    assert r.status_code == 403
+    r = client.post(
+        f"/sessions/{session_id}/trials",
+        data={"csrf_token": token, "hand": "left"},
+        files={"left_video": ("l.mp4", b"x"), "right_video": ("r.mp4", b"y")},
+        headers={"Accept": "application/json"},
+    )
+    assert r.status_code == 403, r.text
+    refused = [e for e in _events(db_sessionmaker, since) if e != ("list", "audit", "success")]
+    assert refused == [("access", "route", "denied")] * 8
+    assert client.get("/api/v1/patients").status_code == 403
