@@ -382,6 +382,34 @@ def fail(
     return str(values["status"])
 
 
+def postpone(sessions: sessionmaker[Session], job: ClaimedJob, message: str, delay_s: float) -> str:
+    """Put the job back in the queue for ``delay_s`` without spending its attempt: what
+    stopped it is the service's (a full disk, the database down), not the job's; it
+    waits, saying ``message``, until the service can take it. Returns ``queued``.
+
+    Raises
+    ------
+    LeaseLostError
+        When this claim no longer holds the job (nothing is changed).
+    """
+    with sessions() as db, db.begin():
+        _update_held(
+            db,
+            job,
+            {
+                "status": "queued",
+                "attempts": max(0, job.attempts - 1),
+                "run_after": utcnow() + timedelta(seconds=delay_s),
+                "lease_owner": None,
+                "lease_expires_at": None,
+                "stage": "waiting for the server's storage",
+                "error": message,
+            },
+        )
+        _set_trial_status(db, _status_trial(job.kind, job.trial_id), "queued")
+    return "queued"
+
+
 def cancel(db: Session, job_id: int, message: str) -> bool:
     """Fail a queued or running job with ``message`` in the caller's transaction.
 

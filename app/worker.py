@@ -32,7 +32,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app import jobs
 from app.db import get_sessionmaker
-from app.errors import AppError
+from app.errors import AppError, InsufficientStorageError, ServiceUnavailableError
+from app.faults import storage_fault
 from app.handlers import HANDLERS, STAGES
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
 from app.jobs import ClaimedJob, LeaseLostError
@@ -103,13 +104,21 @@ def run_job(
     except LeaseLostError:
         log.warning("job %d: abandoned; another worker holds it now", job.id)
         return "lost"
+    except (InsufficientStorageError, ServiceUnavailableError) as exc:
+        log.error("job %d (%s): %s; postponed %.0f s", job.id, job.kind, exc, STORAGE_FAULT_DELAY_S)
+        return _postpone(sessions, job, f"{exc} The job waits and retries by itself.")
     except (BradyscopeError, AppError) as exc:
         log.info("job %d (%s) failed: %s", job.id, job.kind, exc)
         return _fail(sessions, job, str(exc), retryable=False, settings=settings)
     except RetryableJobError as exc:
         log.warning("job %d (%s), attempt %d: %s", job.id, job.kind, job.attempts, exc)
         return _fail(sessions, job, str(exc), retryable=True, settings=settings)
-    except Exception:
+    except Exception as exc:
+        fault = storage_fault(exc)
+        if fault is not None:  # the service's fault, not the job's: wait, keep the attempt
+            log.error("job %d (%s): %s; postponed %.0f s", job.id, job.kind, fault,
+                      STORAGE_FAULT_DELAY_S)  # fmt: skip
+            return _postpone(sessions, job, f"{fault} The job waits and retries by itself.")
         log.exception("job %d (%s), attempt %d: unexpected error", job.id, job.kind, job.attempts)
         if job.attempts < job.max_attempts:
             message = UNEXPECTED_RETRY_MESSAGE.format(
@@ -121,6 +130,18 @@ def run_job(
     finally:
         beat.done.set()
         beat.join()
+
+
+STORAGE_FAULT_DELAY_S = 60.0
+"""A job stopped by a full disk or an unreachable database waits this long (s) to retry."""
+
+
+def _postpone(sessions: sessionmaker[Session], job: ClaimedJob, message: str) -> str:
+    try:
+        return jobs.postpone(sessions, job, message, STORAGE_FAULT_DELAY_S)
+    except LeaseLostError:
+        log.warning("job %d: not postponed; another worker holds it now", job.id)
+        return "lost"
 
 
 def _fail(
@@ -228,9 +249,22 @@ def run_worker(
                 break
             stop_event.wait(settings.worker_poll_s)
             continue
-        run_job(
-            job, settings=settings, handler=handlers[job.kind], sessions=sessions, storage=storage
-        )
+        try:
+            run_job(
+                job,
+                settings=settings,
+                handler=handlers[job.kind],
+                sessions=sessions,
+                storage=storage,
+            )
+        except Exception:
+            # Even recording the job's end failed (a full disk, the database gone): the
+            # worker lives on; the job's lease runs out and it is taken again.
+            if once:
+                raise
+            log.exception("worker %s: job %d ended without its outcome recorded", worker_name,
+                          job.id)  # fmt: skip
+            stop_event.wait(settings.worker_poll_s)
         count += 1
     log.info("worker %s stopped after %d job(s)", worker_name, count)
     return count

@@ -292,3 +292,55 @@ def test_every_kind_the_worker_runs_is_a_listed_job_kind() -> None:
 
     assert sorted(HANDLERS) == sorted(JOB_KINDS)
     assert jobs.REPORT_PDF in JOB_KINDS
+
+
+def test_a_full_disk_postpones_the_job_without_spending_its_attempts(
+    app_settings, db_sessionmaker, monkeypatch
+):
+    """An operations review filled the disk: the analysis used its three attempts in
+    seconds and said "an unexpected error"; and once even recording a job's end failed,
+    the worker thread died and the queue stood still until a restart."""
+    import errno
+    import threading
+
+    from app.worker import run_worker
+
+    with db_sessionmaker() as db:
+        first = jobs.enqueue(db, "analyze_trial", trial_id=_trial(db).id).id
+        second = jobs.enqueue(db, "analyze_trial", trial_id=_trial(db).id).id
+        db.commit()
+
+    def full(ctx) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    assert run_worker(app_settings, handlers={"analyze_trial": full}, max_jobs=1) == 1
+    job = _job(db_sessionmaker, first)
+    assert (job.status, job.attempts) == ("queued", 0)
+    assert "storage is full" in job.error and "retries by itself" in job.error
+    assert job.run_after.replace(tzinfo=UTC) > utcnow() + timedelta(seconds=30)
+
+    # Recording the outcome fails too (the database on the full disk): the worker lives on.
+    def broken_fail(*args, **kwargs):
+        raise RuntimeError("database or disk is full")
+
+    monkeypatch.setattr(jobs, "fail", broken_fail)
+    done: list[str] = []
+
+    def refused(ctx) -> None:
+        done.append("ran")
+        raise ValueError("not a storage fault")
+
+    stop = threading.Event()
+    worker = threading.Thread(
+        target=run_worker,
+        args=(app_settings,),
+        kwargs={"handlers": {"analyze_trial": refused}, "stop_event": stop, "max_jobs": 2},
+    )
+    worker.start()
+    worker.join(timeout=30)
+    stop.set()
+    # the worker lived on: it took the job again once its lease ran out (the first job
+    # waits for its 60 s), and the outcome, unrecorded again, leaves it to its lease
+    assert not worker.is_alive() and done == ["ran", "ran"]
+    assert _job(db_sessionmaker, second).status == "running"
+    assert _job(db_sessionmaker, first).status == "queued"

@@ -15,7 +15,17 @@ from app import jobs
 from app.errors import InvalidRequestError
 from app.job_context import JobContext
 from app.jobs import LeaseLostError
-from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
+from app.models import (
+    Calibration,
+    Job,
+    Patient,
+    RecordingSession,
+    Result,
+    Rig,
+    Trial,
+    Video,
+    utcnow,
+)
 from app.reports.figures import draw_plots, read_plots_document
 from app.reports.pdf_cache import ReportPdfCache
 from app.reports.rendering import report_key
@@ -440,8 +450,8 @@ def test_a_proxy_that_cannot_be_stored_fails_the_attempt_and_leaves_no_file(
     app_settings, db_sessionmaker, storage, small_recording, monkeypatch
 ):
     """Moving the second proxy into storage fails (the disk): that attempt stores nothing,
-    the first proxy it had already moved in is removed, and the retry stores the result
-    with exactly its two proxies."""
+    the first proxy it had already moved in is removed, the job waits for the disk without
+    spending its attempt, and the retry stores the result with exactly its two proxies."""
     from app.storage import Storage
 
     calls = []
@@ -460,7 +470,14 @@ def test_a_proxy_that_cannot_be_stored_fails_the_attempt_and_leaves_no_file(
         trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
     run_worker(app_settings, once=True)
     job = _job(sm, job_id)
-    assert (job.status, job.attempts) == ("succeeded", 2) and len(calls) == 4
+    assert (job.status, job.attempts) == ("queued", 0) and "storage is full" in job.error
+    assert list(storage.tmp_dir.iterdir()) == []
+    assert [p for p in (storage.files_dir / "proxies").rglob("*") if p.is_file()] == []
+    with sm() as db, db.begin():
+        db.get(Job, job_id).run_after = utcnow()  # the disk has room again: due now
+    run_worker(app_settings, once=True)
+    job = _job(sm, job_id)
+    assert (job.status, job.attempts) == ("succeeded", 1) and len(calls) == 4
     with sm() as db:
         proxies = sorted(v.proxy_path for v in db.get(Trial, trial_id).videos)
     stored = sorted(
