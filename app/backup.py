@@ -36,8 +36,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import inspect, text
+from sqlalchemy import create_engine, inspect, text
 from sqlalchemy.engine import make_url
+from sqlalchemy.pool import NullPool
 
 from app.chain import forget_key
 from app.db import current_revision, dispose_engines, get_engine, migrate
@@ -46,7 +47,7 @@ from app.models import Base, utcnow
 from app.reports.pdf_cache import ReportPdfCache
 from app.reports.trend_cache import TrendSvgCache
 from app.settings import Settings
-from app.storage import Storage
+from app.storage import Storage, service_running
 from app.storage import file_sha256 as _sha256
 from app.storage import fsync_path as _fsync
 
@@ -275,6 +276,32 @@ def read_manifest(source: Path) -> dict[str, Any]:
     return manifest
 
 
+def _refuse_while_running(settings: Settings) -> None:
+    """A restore under a running service loses what it writes and fails the jobs it takes
+    meanwhile (an operations review: a worker failed a trial on a file not yet copied
+    back). Refused while a ``serve`` or ``worker`` runs on the data directory, or, on
+    PostgreSQL, while anything else is connected to the database (workers elsewhere)."""
+    stop = "stop every 'bradyscope serve' and 'bradyscope worker' first, then restore."
+    if service_running(settings.data_dir):
+        raise ConflictError(f"bradyscope is running on {settings.data_dir}; {stop}")
+    if settings.is_sqlite:
+        return
+    dispose_engines()  # this process's own pooled connections are not others'
+    engine = create_engine(settings.effective_database_url, poolclass=NullPool)
+    try:
+        with engine.connect() as conn:
+            others = conn.execute(
+                text(
+                    "SELECT count(*) FROM pg_stat_activity"
+                    " WHERE datname = current_database() AND pid <> pg_backend_pid()"
+                )
+            ).scalar_one()
+    finally:
+        engine.dispose()
+    if others:
+        raise ConflictError(f"{others} other connection(s) to the database are open; {stop}")
+
+
 def _database_holds_data(settings: Settings) -> bool:
     engine = get_engine(settings)
     with engine.connect() as conn:
@@ -369,6 +396,7 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
             f"this backup holds a {database.get('kind')} database but bradyscope is configured"
             f" for {kind}; set BRADYSCOPE_DATABASE_URL accordingly."
         )
+    _refuse_while_running(settings)
     files_dir = settings.data_dir / "files"
     has_files = files_dir.is_dir() and any(p.is_file() for p in files_dir.rglob("*"))
     if not force and (has_files or _database_holds_data(settings)):

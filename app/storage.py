@@ -46,12 +46,44 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import BinaryIO
 
 from app.errors import PayloadTooLargeError, StorageError
 from app.settings import Settings
 
 _CATEGORY_RE = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 _SUFFIX_RE = re.compile(r"^(\.[a-z0-9]{1,8}){0,2}$")
+
+
+SERVICE_LOCK = ".service.lock"
+"""Held shared by every ``serve`` and ``worker`` on the data directory while it runs."""
+
+
+def hold_service_lock(data_dir: Path) -> BinaryIO:
+    """Mark this process as running on ``data_dir`` until it exits (a shared ``flock``,
+    which the kernel drops with the process, also after ``kill -9``); ``admin restore``
+    refuses while anyone holds it. Returns the open file: keep it."""
+    import fcntl
+
+    handle = open(data_dir / SERVICE_LOCK, "a+b")
+    fcntl.flock(handle.fileno(), fcntl.LOCK_SH)
+    return handle
+
+
+def service_running(data_dir: Path) -> bool:
+    """Whether a ``serve`` or ``worker`` holds :func:`hold_service_lock` on ``data_dir``."""
+    import fcntl
+
+    path = data_dir / SERVICE_LOCK
+    if not path.exists():
+        return False
+    with open(path, "a+b") as handle:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+    return False
 
 
 def close_to_others(data_dir: Path, *, umask: bool) -> None:

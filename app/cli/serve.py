@@ -133,12 +133,13 @@ def run(args: argparse.Namespace) -> int:
 
     from app.db import migrate
     from app.errors import InvalidRequestError
-    from app.storage import close_to_others
+    from app.storage import close_to_others, hold_service_lock
 
     if args.workers_in_process < 0:
         raise InvalidRequestError("--workers-in-process must be 0 or more.")
     settings = settings_with(data_dir=args.data_dir)
     close_to_others(settings.data_dir, umask=True)
+    running = hold_service_lock(settings.data_dir)  # noqa: F841 - held until the process ends
     logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
     migrate(settings)
 

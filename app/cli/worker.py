@@ -54,11 +54,12 @@ def install_stop_signals(stop_event: threading.Event) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from app.db import migrate
-    from app.storage import close_to_others
+    from app.storage import close_to_others, hold_service_lock
     from app.worker import run_worker
 
     settings: Settings = settings_with(data_dir=args.data_dir)
     close_to_others(settings.data_dir, umask=True)
+    running = hold_service_lock(settings.data_dir)  # noqa: F841 - held until the process ends
     logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
     migrate(settings)
     stop_event = threading.Event()

@@ -27,7 +27,7 @@ from api_support import (
 )
 from conftest import PG_SERVER, create_pg_database, drop_pg_database
 from fastapi.testclient import TestClient
-from sqlalchemy import select, text
+from sqlalchemy import create_engine, select, text
 
 from app.chain import verify_chain
 from app.cli import main
@@ -125,6 +125,26 @@ def _round_trip(
     capsys.readouterr()
     assert _cli(settings, monkeypatch, "restore", str(backup_dir)) == 2
     assert "already holds data" in capsys.readouterr().err
+    # ... and with --force, while the service runs (an operations review replaced the
+    # database under two workers; one failed a trial on a file not yet copied back)
+    from app.storage import hold_service_lock
+
+    running = hold_service_lock(settings.data_dir)  # what a serve or a worker holds
+    assert _cli(settings, monkeypatch, "restore", "--force", str(backup_dir)) == 2
+    assert "bradyscope is running on" in capsys.readouterr().err
+    running.close()
+    if not settings.is_sqlite:  # a worker on another machine: its connection
+        elsewhere = create_engine(str(settings.database_url))
+        try:
+            with elsewhere.connect():
+                assert _cli(settings, monkeypatch, "restore", "--force", str(backup_dir)) == 2
+            assert "other connection(s) to the database are open" in capsys.readouterr().err
+        finally:
+            elsewhere.dispose()
+    dispose_engines()
+    capsys.readouterr()
+    status = _cli(settings, monkeypatch, "restore", "--force", str(backup_dir))
+    assert status == 0, capsys.readouterr().err
 
 
 def test_backup_wipe_restore_sqlite(
