@@ -531,8 +531,10 @@ def analyze_recording(
     """
     from core.video import check_stereo_videos, probe_video
 
-    if max_gap_s < 0:
-        raise ValueError(f"max_gap_s must be >= 0, got {max_gap_s}")
+    if not (math.isfinite(max_gap_s) and max_gap_s >= 0):
+        raise InputError(f"the longest gap to fill must be 0 s or more, got {max_gap_s}.")
+    if offset_frames is not None and not math.isfinite(offset_frames):
+        raise InputError(f"the frame offset must be a number of frames, got {offset_frames}.")
     task = parse_task(task)
     if side not in ("right", "left"):
         raise ValueError(f"side must be 'right' or 'left', got {side!r}")
@@ -651,6 +653,8 @@ def analyze_recording(
         obs,
         fps=fps,
         max_gap_s=max_gap_s,
+        # gaps of merged images (depth only) are filled at least as far as the others
+        max_merged_gap_s=max(0.15, max_gap_s),
         swap_labels=swap_labels,
         marker_diameter_px=diameters,
         task=task,

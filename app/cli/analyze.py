@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -88,8 +89,10 @@ def run(args: argparse.Namespace) -> int:
     from core.errors import InputError
     from core.pipeline import analyze_recording, write_analysis
 
-    if args.max_gap_s < 0:
+    if not (math.isfinite(args.max_gap_s) and args.max_gap_s >= 0):
         raise InputError("--max-gap-s must be zero or positive.")
+    if args.offset_frames is not None and not math.isfinite(args.offset_frames):
+        raise InputError("--offset-frames must be a number of frames.")
     rig = read_rig(args.rig)
     with progress_bar() as progress:
         analysis = analyze_recording(

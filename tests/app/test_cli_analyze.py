@@ -202,3 +202,17 @@ def test_free_running_bad_input_is_one_sentence_and_exit_2(
     damaged.write_bytes(bytes(data))
     code, err = analyze(damaged, session.right_video)
     assert code == 2 and "has no frames between" in err and "damaged" in err
+
+
+def test_numbers_out_of_range_are_one_sentence_and_a_long_gap_is_filled(
+    session: SimulatedSession, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An operations review: --max-gap-s above 0.15 s (and nan) and --offset-frames nan
+    ended in a traceback; a longer gap is a choice the tracker should take."""
+    for extra in (["--max-gap-s", "nan"], ["--max-gap-s", "-1"], ["--offset-frames", "nan"]):
+        assert _analyze(session, tmp_path / "bad", *extra) == 2, extra
+        _one_sentence(capsys)
+    out = tmp_path / "long-gaps"
+    assert _analyze(session, out, "--max-gap-s", "0.5") == 0, capsys.readouterr().err
+    doc = json.loads((out / "result.json").read_text(encoding="utf-8"))
+    assert doc["metrics"]["frequency_hz"] > 0
