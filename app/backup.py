@@ -187,6 +187,24 @@ def backup(settings: Settings, target: Path) -> BackupSummary:
     if target.is_relative_to(settings.data_dir):
         raise InvalidRequestError("put the backup outside the data directory it backs up.")
     _empty_target(target)
+    try:
+        return _write_backup(settings, target)
+    except (OSError, sqlite3.Error) as exc:
+        # a half-written backup is no backup: leave the directory empty, as it was given
+        for child in list(target.iterdir()):
+            if child.is_dir():
+                shutil.rmtree(child)
+            else:
+                child.unlink()
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise BackupError(
+            f"the backup could not be written to {target} ({reason}); nothing was kept there:"
+            " free space or choose another place, and back up again."
+        ) from exc
+
+
+def _write_backup(settings: Settings, target: Path) -> BackupSummary:
+    """:func:`backup` into the empty directory ``target``."""
     revision = current_revision(settings)
     entries: list[dict[str, Any]] = []
     if settings.is_sqlite:

@@ -221,3 +221,37 @@ def test_pg_tools_older_than_the_server_are_refused(
     monkeypatch.setattr(backup, "_server_major", lambda settings: 16)
     with pytest.raises(backup.BackupError, match="postgresql-client-16"):
         backup.check_pg_tools(app_settings, "pg_dump")
+
+
+def test_a_backup_that_does_not_fit_leaves_nothing_and_says_so(
+    app_settings: Settings,
+    video_pair,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An operations review backed up onto a full disk: a traceback, and a directory
+    holding the database and part of the files, which a second try refused as not empty."""
+    import errno
+
+    from app import backup
+
+    _fill(app_settings, video_pair)
+    real_copy = backup._copy
+    copied: list[Path] = []
+
+    def copy_until_full(src: Path, dst: Path):
+        if copied:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        copied.append(dst)
+        return real_copy(src, dst)
+
+    monkeypatch.setattr(backup, "_copy", copy_until_full)
+    target = tmp_path / "backup"
+    assert _cli(app_settings, monkeypatch, "backup", str(target)) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "nothing was kept there" in err
+    assert "Traceback" not in err and "\n" not in err.strip()
+    assert target.is_dir() and list(target.iterdir()) == []
+    monkeypatch.setattr(backup, "_copy", real_copy)
+    assert _cli(app_settings, monkeypatch, "backup", str(target)) == 0  # the same place again
