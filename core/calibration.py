@@ -215,6 +215,7 @@ def _sampled_frames(
         stop=max(indices) + 1,
         times_out=times_out,
         decoder_threads=decoder_threads_for(2),
+        expected_count=src.frame_count,  # a truncated file is refused, as analyze refuses it
     )
     try:
         for i, frame in enumerate(frames):

@@ -436,3 +436,19 @@ def test_legacy_charuco_board_calibrates(legacy_charuco_images, tmp_path):
     assert rig.quality["sync"]["method"] == "images"
     true = read_rig(legacy_charuco_images / "rig_true.json")
     assert abs(rig.baseline_mm - true.baseline_mm) < 1.0  # mm, from 8 views at 640x512
+
+
+def test_a_truncated_board_video_is_refused_in_one_sentence(small_recording, tmp_path, capsys):
+    """An operations review: calibrate measured a cut MKV (the container still announcing
+    all its frames) without a word, where the upload and analyze refuse the same file."""
+    whole = small_recording / "chessboard_left.mkv"
+    cut = tmp_path / "cut_left.mkv"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    code = main(
+        ["calibrate", "--left", str(cut), "--right", str(small_recording / "chessboard_right.mkv"),
+         *CHESSBOARD_ARGS, "-o", str(tmp_path / "rig.json")]
+    )  # fmt: skip
+    assert code == 2
+    err = _one_sentence_error(capsys)
+    assert "cut_left.mkv ends after" in err and "truncated" in err
+    assert not (tmp_path / "rig.json").exists()
