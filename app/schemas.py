@@ -306,6 +306,11 @@ class TrialCreated(BaseModel):
     take: dict[Literal["left", "right"], TakeRead] = Field(
         default_factory=dict, description="The quick check of each camera's recording."
     )
+    stored_before: bool = Field(
+        default=False,
+        description="The take_id sent was stored before: this is that trial, nothing new"
+        " was stored (a retry after a lost answer).",
+    )
 
 
 class TrialRead(_Out):

@@ -45,6 +45,12 @@ TRIAL_BODY = multipart_body(
             " agility film the foot and leg from elsewhere). Its calibration measures the"
             " trial. Omit it for the session's rig.",
         },
+        "take_id": {
+            "type": "string",
+            "description": "Your key of this take (8 to 64 letters, digits, '-' or '_'), to"
+            " send it again safely after a lost answer: a take_id the session holds already"
+            " answers with that trial (stored_before: true) and stores nothing new.",
+        },
         "left_video": {**BINARY, "description": "Video of the left camera."},
         "right_video": {**BINARY, "description": "Video of the right camera."},
         "offset_frames": {
@@ -80,7 +86,13 @@ async def create_trial(
     def use_case(upload: ParsedUpload) -> TrialCreated:
         out = service.create_trial(db, actor, session_id, upload)
         return TrialCreated.model_validate(
-            {"id": out.trial.id, "job_id": out.job_id, "warnings": out.warnings, "take": out.take}
+            {
+                "id": out.trial.id,
+                "job_id": out.job_id,
+                "warnings": out.warnings,
+                "take": out.take,
+                "stored_before": out.stored_before,
+            }
         )
 
     return await run_api_upload(

@@ -25,7 +25,7 @@ from app import job_views, jobs
 from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, InvalidRequestError, NotFoundError, PermissionDeniedError
-from app.models import Job, Rig, Trial, Video, utcnow
+from app.models import SIDES, Job, Rig, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import calibration_for, rig_to_check_against
 from app.services.common import (
@@ -47,9 +47,10 @@ TRIAL_FILE_FIELDS = {
     "left_times": ".csv",
     "right_times": ".csv",
 }
-TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task", "rig_id"})
-PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS | {"take_id"}
-"""The capture page's uploads also carry ``take_id`` (docs/capture.md)."""
+TRIAL_TEXT_FIELDS = frozenset({"hand", "offset_frames", "task", "rig_id", "take_id"})
+"""``take_id``: the client's key of one take (the capture page's, an integrator's), which
+makes sending it again after a lost answer safe (docs/capture.md, docs/api.md)."""
+PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS
 _TAKE_ID = re.compile(r"[A-Za-z0-9_-]{8,64}")
 _ID = re.compile(r"[0-9]{1,9}")  # a row id (an int4 on PostgreSQL); no sign, no other digits
 
@@ -168,7 +169,7 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
     rig_id = _parse_rig(db, upload, session.rig_id)
     rig = rig_to_check_against(db, session, rig_id)
     pair = check_video_pair(upload, rig=rig)
-    warnings = pair.warnings
+    warnings = [*pair.warnings, *_sent_before(db, session.id, upload)]
     try:
         trial = Trial(
             session_id=session.id,
@@ -199,6 +200,26 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
         raise
     take = {side: pair.side(side).take() for side in ("left", "right")}
     return TrialOut(trial=trial, job_id=job.id, warnings=warnings, take=take)
+
+
+def _sent_before(db: Session, session_id: int, upload: ParsedUpload) -> list[str]:
+    """A warning when the session already holds a trial of the same two videos: sent twice
+    (a retry after a lost answer, a form posted twice) without a ``take_id``."""
+    digests = {upload.require_file(f"{side}_video").incoming.sha256 for side in SIDES}
+    rows = db.execute(
+        select(Video.trial_id, Video.sha256)
+        .join(Trial, Trial.id == Video.trial_id)
+        .where(Trial.session_id == session_id, Trial.deleted_at.is_(None),
+               Video.sha256.in_(digests))
+    ).all()  # fmt: skip
+    both = sorted(
+        {t for t, _ in rows if t is not None and {d for u, d in rows if u == t} == digests}
+    )
+    return [
+        f"trial {t} of this session holds the same two videos: if they were sent twice, hide"
+        " one of the two trials."
+        for t in both
+    ]
 
 
 def audit_rejected_upload(db: Session, actor: Actor, session_id: int) -> None:
@@ -317,10 +338,11 @@ def restore_trial(db: Session, actor: Actor, trial_id: int) -> Trial:
 
 
 def get_job(db: Session, actor: Actor, job_id: int) -> Job:
-    """A job's status. Holds no clinical values, so it is not audited (clients poll it);
-    the job of a hidden trial does not exist here, as on the job page."""
+    """A job's status. Holds no clinical values, so it is not audited (clients poll it).
+    The job of a hidden trial stays readable here: a client that hid the trial sees its
+    analysis cancelled ("failed", the error saying the recording was deleted)."""
     job = db.get(Job, job_id)
-    if job is None or (job.trial is not None and not trial_is_visible(job.trial)):
+    if job is None:
         raise NotFoundError(f"The job {job_id} does not exist; check the id.")
     db.rollback()
     return job

@@ -201,3 +201,27 @@ def test_rig_file_calibration_round_trip(api: Api) -> None:
     assert [c["version"] for c in listed] == [1, 2] and listed[1]["id"] == second["id"]
     assert api.client.post("/api/v1/rigs", json={"name": "CLINIC-r"}, headers=h).status_code == 409
     assert api.client.get("/api/v1/rigs", headers=h).json()["total"] == 1
+
+
+def test_a_take_sent_again_through_the_api_is_stored_once(api: Api, tmp_path) -> None:
+    """An operations review: a hospital client retrying after a timeout doubled the trial,
+    without a word. A take_id makes the retry safe; without one the second copy warns."""
+    from api_support import seed_recording_target, trial_files, write_video
+
+    seeded = seed_recording_target(api)
+    left, right = write_video(tmp_path / "l.mp4"), write_video(tmp_path / "r.mp4", shift_px=3)
+    url = f"/api/v1/sessions/{seeded.session_id}/trials"
+
+    def send(**fields: str):
+        return api.client.post(url, data={"hand": "left", **fields},
+                               files=trial_files(left, right), headers=api.headers)  # fmt: skip
+
+    first = send(take_id="his-gateway-0001")
+    again = send(take_id="his-gateway-0001")
+    assert first.status_code == again.status_code == 201, again.text
+    assert again.json()["id"] == first.json()["id"] and again.json()["stored_before"] is True
+    assert first.json()["stored_before"] is False
+    plain = send()
+    assert plain.status_code == 201 and plain.json()["id"] != first.json()["id"]
+    assert any(f"trial {first.json()['id']} of this session holds the same two videos" in w
+               for w in plain.json()["warnings"])  # fmt: skip
