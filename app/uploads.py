@@ -17,6 +17,7 @@ An upload goes through three steps, and a rejected one leaves nothing behind:
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -297,6 +298,11 @@ def _check_request(request: Request, *, n_files: int, n_fields: int, max_file_by
     return bytes(boundary)
 
 
+UPLOAD_STALL_S = 60.0
+"""An upload from which nothing arrives for this long (s) is dropped (400): a stalled
+client would hold its partial file and keep the server from shutting down."""
+
+
 async def receive_multipart(
     request: Request,
     *,
@@ -345,7 +351,16 @@ async def receive_multipart(
     stream = request.stream()
     try:
         parser = MultipartParser(boundary, receiver.callbacks())
-        async for chunk in stream:
+        while True:
+            try:
+                chunk = await asyncio.wait_for(anext(stream), UPLOAD_STALL_S)
+            except StopAsyncIteration:
+                break
+            except TimeoutError as exc:
+                raise UploadError(
+                    f"The upload stalled: nothing arrived for {UPLOAD_STALL_S:.0f} s; check the"
+                    " connection and retry."
+                ) from exc
             if chunk:
                 parser.write(chunk)
         parser.finalize()

@@ -121,6 +121,8 @@ def uvicorn_config(app: Any, *, host: str, port: int, verbose: bool = False) -> 
         proxy_headers=False,
         forwarded_allow_ips="",
         server_header=False,
+        # a stopping server waits this long (s) for requests still running, then ends
+        timeout_graceful_shutdown=30,
     )
     access = logging.getLogger("uvicorn.access")  # configured by uvicorn.Config
     if not any(isinstance(f, PathWithoutQuery) for f in access.filters):

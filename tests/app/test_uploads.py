@@ -375,3 +375,47 @@ def test_upload_for_a_rig_without_calibration_is_409(api: Api, video_pair) -> No
     assert r.status_code == 409
     assert "calibration" in r.json()["detail"]
     _assert_nothing_left(api)
+
+
+def test_an_upload_that_stalls_is_dropped_and_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
+    """An operations review held an upload at 70 % for 150 s: its partial file stayed the
+    whole time and a stopping server waited for it. Nothing arriving for UPLOAD_STALL_S
+    drops it (400) and removes what was received."""
+    import asyncio
+
+    from starlette.requests import Request
+
+    from app import uploads
+    from app.storage import Storage
+
+    monkeypatch.setattr(uploads, "UPLOAD_STALL_S", 0.3)
+    storage = Storage(tmp_path / "data", report_cache_bytes=1 << 20)
+    boundary = "b0undary"
+    head = (
+        f'--{boundary}\r\nContent-Disposition: form-data; name="left_video";'
+        ' filename="l.mp4"\r\nContent-Type: video/mp4\r\n\r\n'
+    ).encode() + b"\0" * 50_000
+    sent = []
+
+    async def receive():
+        if not sent:
+            sent.append(1)
+            return {"type": "http.request", "body": head, "more_body": True}
+        await asyncio.sleep(3600)  # the client holds the connection and sends nothing
+        raise AssertionError("not reached")
+
+    scope = {
+        "type": "http", "method": "POST", "path": "/x", "query_string": b"",
+        "headers": [(b"content-type", f"multipart/form-data; boundary={boundary}".encode()),
+                    (b"content-length", b"200000")],
+    }  # fmt: skip
+    request = Request(scope, receive)
+
+    async def upload():
+        return await uploads.receive_multipart(
+            request, storage=storage, file_fields={"left_video": ".video"}, max_file_bytes=1 << 30
+        )
+
+    with pytest.raises(uploads.UploadError, match="stalled: nothing arrived"):
+        asyncio.run(asyncio.wait_for(upload(), 10))
+    assert [p for p in storage.tmp_dir.rglob("*") if p.is_file()] == []
