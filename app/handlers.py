@@ -218,7 +218,11 @@ def analyze_trial(ctx: JobContext) -> None:
     proxy_files = _ProxiesAlongside(ctx, inputs.proxies_needed, inputs.video_fps)
     written: list[str] = []
     try:
-        analysis = _measure(ctx, inputs, swap=swap, proxies=proxy_files)
+        try:
+            analysis = _measure(ctx, inputs, swap=swap, proxies=proxy_files)
+        except BradyscopeError as exc:  # core names the stored files: say which camera's
+            exc.args = (inputs.described(str(exc)), *exc.args[1:])
+            raise
         document = dict(analysis.result_document())
         document.setdefault("calibration", inputs.calibration.document())
         if swap:

@@ -454,6 +454,14 @@ class TrialInputs:
     right_times: Path | None = None
     task: str = DEFAULT_TASK.value
     side: str = "right"
+    names: dict[str, str] = field(default_factory=dict)
+    """Stored file name -> what the clinician knows it as ("the left video (take3_l.mp4)")."""
+
+    def described(self, message: str) -> str:
+        """``message`` (of core, naming the stored files) in the clinician's words."""
+        for stored, known in self.names.items():
+            message = message.replace(stored, known)
+        return message
 
     @property
     def files(self) -> tuple[Path, ...]:
@@ -515,7 +523,19 @@ def analysis_inputs(
         right_times=times_file(storage, videos["right"]),
         task=trial.task,
         side=trial.hand,
+        names=_known_names(videos),
     )
+
+
+def _known_names(videos: dict[str, Video]) -> dict[str, str]:
+    """The stored files' names (server-made) as the clinician knows each file."""
+    names = {}
+    for side, v in videos.items():
+        original = f" ({v.original_filename})" if v.original_filename else ""
+        names[Path(v.path).name] = f"the {side} video{original}"
+        if v.times_path:
+            names[Path(v.times_path).name] = f"the {side} video's timestamps file"
+    return names
 
 
 def store_proxies(db: Session, trial_id: int, proxies: dict[str, str]) -> None:

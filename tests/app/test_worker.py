@@ -726,3 +726,23 @@ def test_a_calibration_error_names_the_form_s_fields_not_the_command_line_s():
     assert "check Columns and Rows (a ChArUco board counts squares) and ArUco dictionary" in words
     assert "swap Columns and Rows (Columns 6, Rows 9)" in words
     assert "Columns, Rows and Square size (mm) describe" in words
+
+
+def test_an_analysis_error_names_the_camera_and_the_file_the_clinician_sent(
+    app_settings, db_sessionmaker, storage, small_recording
+):
+    """An operations review: "82060f26d0964f51b768458abfabdb88.mp4 ends after 179 of 500
+    frames" on the trial page, the server's name of the file, not the clinician's."""
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
+        left = next(v for v in db.get(Trial, trial_id).videos if v.side == "left")
+        left.original_filename = "take3_left.mkv"
+        stored = storage.absolute(left.path)
+    whole = stored.read_bytes()
+    stored.write_bytes(whole[: len(whole) // 2])  # damaged on disk after the upload's checks
+    run_worker(app_settings, once=True)
+    job = _job(sm, job_id)
+    assert job.status == "failed", job.error
+    assert "the left video (take3_left.mkv) ends after" in job.error
+    assert stored.name not in job.error
