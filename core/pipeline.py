@@ -37,6 +37,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -786,13 +787,30 @@ def write_markers_csv(analysis: Analysis, path_or_file: str | Path | TextIO) -> 
 
 
 def write_analysis(analysis: Analysis, out_dir: str | Path) -> None:
-    """Write ``markers.csv`` and ``result.json`` into ``out_dir`` (created if needed)."""
+    """Write ``markers.csv`` and ``result.json`` into ``out_dir`` (created if needed).
+
+    Each file is written beside its name and renamed into place once complete: a full
+    disk leaves the files of an earlier run as they were, never half a file.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     buf = io.StringIO()
     write_markers_csv(analysis, buf)
-    (out / "markers.csv").write_text(buf.getvalue(), encoding="utf-8")
     doc = analysis.result_document()
-    (out / "result.json").write_text(
-        json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8"
-    )
+    texts = {
+        "markers.csv": buf.getvalue(),
+        "result.json": json.dumps(doc, indent=2, allow_nan=False) + "\n",
+    }
+    partial = {name: out / f".{name}.part" for name in texts}
+    try:
+        for name, text in texts.items():
+            with open(partial[name], "w", encoding="utf-8", newline="") as fh:
+                fh.write(text)
+                fh.flush()
+                os.fsync(fh.fileno())
+    except BaseException:
+        for path in partial.values():
+            path.unlink(missing_ok=True)
+        raise
+    for name, path in partial.items():
+        os.replace(path, out / name)
