@@ -1598,8 +1598,21 @@ def _quality(
         "source": collection.source,
         "method": "opencv calibrateCamera + stereoCalibrate (intrinsics free), 5-coefficient lens model",
         "sync": _sync_quality(collection),
-        "warnings": list(collection.warnings),
+        "warnings": [*collection.warnings, *_placement_warnings(rig)],
     }
+
+
+def _placement_warnings(rig: StereoRig) -> list[str]:
+    """A camera given as right that sits to the left of the one given as left: most likely
+    the two recordings were exchanged (the fit itself is as good either way)."""
+    x_mm = float(rig.right.center_world_mm[0])
+    if x_mm >= 0:
+        return []
+    return [
+        f"the camera given as right sits {-x_mm:.0f} mm to the left of the camera given as"
+        " left: if the two recordings were exchanged, calibrate again with them swapped"
+        " (analyses with this rig would measure the cameras the wrong way round)."
+    ]
 
 
 def _detected(track: BoardTrack | None, dets: Sequence[BoardDetection | None]) -> int:

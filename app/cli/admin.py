@@ -56,7 +56,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     asub = p.add_subparsers(dest="admin_command", required=True, metavar="ACTION")
 
-    u = asub.add_parser("create-user", help="create a clinician or admin account")
+    u = asub.add_parser("create-user", help="create a clinician, admin or auditor account")
     u.add_argument("email")
     u.add_argument("--role", choices=ROLES, required=True)
     u.add_argument("--name", default=None, help="display name")
@@ -114,6 +114,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ls.set_defaults(admin_func=list_api_keys)
 
     admin_records.register(asub)
+    for action in asub.choices.values():  # also after the action: admin ACTION --data-dir D
+        action.add_argument(
+            "--data-dir", type=Path, default=argparse.SUPPRESS, help=argparse.SUPPRESS
+        )
 
     p.set_defaults(func=run)
 

@@ -205,3 +205,18 @@ def test_the_access_log_keeps_no_query_string():
     finally:
         access.removeHandler(handler)
     assert records == ['127.0.0.1:5 - "GET /patients HTTP/1.1" 200']
+
+
+def test_admin_takes_the_data_directory_after_its_action_too(tmp_path, monkeypatch, capsys):
+    """An operations review: 'admin create-api-key qa --data-dir X' was refused; and
+    'admin migrate' printed nothing on success."""
+    monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
+    monkeypatch.delenv("BRADYSCOPE_DATA_DIR", raising=False)
+    after = tmp_path / "after"
+    assert main(["admin", "migrate", "--data-dir", str(after)]) == 0
+    assert (after / "bradyscope.sqlite3").is_file()
+    assert "is at revision" in capsys.readouterr().err
+    before = tmp_path / "before"
+    assert main(["admin", "--data-dir", str(before), "list-users"]) == 0
+    assert (before / "bradyscope.sqlite3").is_file()
+    dispose_engines()

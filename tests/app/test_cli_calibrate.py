@@ -452,3 +452,24 @@ def test_a_truncated_board_video_is_refused_in_one_sentence(small_recording, tmp
     err = _one_sentence_error(capsys)
     assert "cut_left.mkv ends after" in err and "truncated" in err
     assert not (tmp_path / "rig.json").exists()
+
+
+def test_board_videos_given_the_wrong_way_round_are_pointed_out(small_recording, tmp_path, capsys):
+    """An operations review: a calibration from the two board videos exchanged was
+    accepted as good, the right camera to the left; every analysis with it would fail."""
+    out = tmp_path / "rig.json"
+    code = main(
+        ["calibrate", "--left", str(small_recording / "chessboard_right.mkv"),
+         "--right", str(small_recording / "chessboard_left.mkv"), *CHESSBOARD_ARGS,
+         "-o", str(out)]
+    )  # fmt: skip
+    assert code == 0
+    warnings = read_rig(out).quality["warnings"]
+    assert any("sits" in w and "to the left of the camera given as left" in w for w in warnings)
+    printed = capsys.readouterr()
+    assert "to the left of the camera given as left" in printed.out + printed.err
+    right_way = tmp_path / "right-way.json"
+    assert main(["calibrate", "--left", str(small_recording / "chessboard_left.mkv"),
+                 "--right", str(small_recording / "chessboard_right.mkv"), *CHESSBOARD_ARGS,
+                 "-o", str(right_way)]) == 0  # fmt: skip
+    assert not any("to the left of" in w for w in read_rig(right_way).quality["warnings"])
