@@ -14,7 +14,7 @@ The real handlers of the worker (:mod:`app.worker` runs them, each with a
   (``app.reports.trend_cache``).
 
 What crosses to ``core`` and back is typed:
-:class:`app.services.trials.TrialInputs` and ``core.pipeline.Analysis``,
+:class:`app.services.trial_inputs.TrialInputs` and ``core.pipeline.Analysis``,
 :class:`app.services.calibrations.CalibrationInputs` and
 ``core.calibration.CalibrationResult``; the services read and store the rows.
 :data:`STAGES` weighs each job kind's stages for its progress fraction.
@@ -38,7 +38,7 @@ from sqlalchemy.orm import Session
 from app import jobs
 from app.errors import InvalidRequestError
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
-from app.services import calibrations, patients, results, revisions, trials
+from app.services import calibrations, patients, results, revisions, trial_inputs
 from core.calibration import calibrate_stereo_from_paths
 from core.errors import BradyscopeError, InputError
 from core.markers_csv import read_markers_csv
@@ -159,7 +159,7 @@ class _ProxiesAlongside:
 
 
 def _measure(
-    ctx: JobContext, inputs: trials.TrialInputs, *, swap: bool, proxies: _ProxiesAlongside
+    ctx: JobContext, inputs: trial_inputs.TrialInputs, *, swap: bool, proxies: _ProxiesAlongside
 ) -> Analysis:
     """``core.pipeline.analyze_recording`` on the trial, the ``proxies`` written from its
     frames; ``swap``: the stored right video (and its timestamps) measured as the rig's
@@ -184,7 +184,7 @@ def _measure(
 
 
 def _review_overlay(
-    analysis: Analysis, inputs: trials.TrialInputs, *, swap: bool
+    analysis: Analysis, inputs: trial_inputs.TrialInputs, *, swap: bool
 ) -> dict[str, Any]:
     """The review view's overlay, each rig camera's part naming the stored video it is drawn on."""
     overlay = overlay_document(analysis.overlays(inputs.rig), fps=analysis.fps)
@@ -208,7 +208,7 @@ def analyze_trial(ctx: JobContext) -> None:
     offset = payload.get("offset_frames")
     swap = bool(payload.get("swap_cameras"))
     with ctx.sessions() as db:
-        inputs = trials.analysis_inputs(
+        inputs = trial_inputs.analysis_inputs(
             db,
             ctx.storage,
             ctx.job.trial_id,
@@ -257,7 +257,7 @@ def analyze_trial(ctx: JobContext) -> None:
                 request=payload.get("revision_request"),
                 plots_path=plots_path,
             )
-            trials.store_proxies(db, inputs.trial_id, proxies)
+            trial_inputs.store_proxies(db, inputs.trial_id, proxies)
 
         ctx.finish(write)
     except BaseException:

@@ -208,6 +208,19 @@ NO_SUCH_PAGE = "There is no page at this address: check it, or go back to the pa
 """Not the address itself: a crafted one would put its words on the page."""
 
 
+def _page_refusals(app: FastAPI) -> None:
+    """A page without a logged-in user redirects to the login; one the user's role does
+    not open is a 403 page (both raised by the pages' ``PageUser``)."""
+
+    @app.exception_handler(LoginRequired)
+    async def login_required(request: Request, exc: LoginRequired) -> Response:
+        return login_redirect(request)
+
+    @app.exception_handler(PageForbidden)
+    async def page_forbidden(request: Request, exc: PageForbidden) -> Response:
+        return error_page(request, exc.user, status_code=403, message=str(exc))
+
+
 def _validation_response(request: Request, exc: RequestValidationError) -> Response:
     """The answer to a request whose path, query or body does not validate: the 404 page
     for a browser at an address that is no page, 400 for a body that is not JSON, else
@@ -413,14 +426,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(web_router)
     _document_shared_errors(app)
 
-    @app.exception_handler(LoginRequired)
-    async def login_required(request: Request, exc: LoginRequired) -> Response:
-        return login_redirect(request)  # a page (PageUser) without a logged-in user
-
-    @app.exception_handler(PageForbidden)
-    async def page_forbidden(request: Request, exc: PageForbidden) -> Response:
-        return error_page(request, exc.user, status_code=403, message=str(exc))
-
+    _page_refusals(app)
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app

@@ -245,7 +245,11 @@ def finish(
         raise OidcError(
             f"The identity provider's ID token is not valid ({exc}); start again."
         ) from exc
-    claims = token.claims
+    return _identity(settings, token.claims, str(remembered.get("next") or "/patients"))
+
+
+def _identity(settings: Settings, claims: dict[str, Any], next_url: str) -> Identity:
+    """Who the validated ID token's claims name; their e-mail address must be verified."""
     email = str(claims.get(settings.oidc_email_claim) or "").strip().lower()
     if not email:
         raise OidcError(
@@ -264,7 +268,7 @@ def finish(
         subject=str(claims["sub"]),
         email=email,
         name=str(name)[:200] if name else None,
-        next_url=str(remembered.get("next") or "/patients"),
+        next_url=next_url,
     )
 
 

@@ -183,6 +183,16 @@ def lower_thread_priority(steps: int) -> int | None:
     return now
 
 
+def _clean_tmp(storage: Storage) -> None:
+    """Remove the partial files of crashed processes (a day old)."""
+    try:
+        removed = storage.cleanup_tmp()
+        if removed:
+            log.info("removed %d stale temporary file(s) from %s", removed, storage.tmp_dir)
+    except OSError:
+        log.exception("could not clean %s", storage.tmp_dir)
+
+
 def run_worker(
     settings: Settings,
     *,
@@ -223,12 +233,7 @@ def run_worker(
     storage = Storage.from_settings(settings)
     count = 0
     log.info("worker %s started (kinds: %s)", worker_name, ", ".join(sorted(handlers)))
-    try:
-        removed = storage.cleanup_tmp()  # partial files of crashed processes, a day old
-        if removed:
-            log.info("removed %d stale temporary file(s) from %s", removed, storage.tmp_dir)
-    except OSError:
-        log.exception("could not clean %s", storage.tmp_dir)
+    _clean_tmp(storage)
     while not stop_event.is_set() and (max_jobs is None or count < max_jobs):
         try:
             jobs.reap_expired(sessions)

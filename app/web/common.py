@@ -286,6 +286,10 @@ def validation_message(exc: ValidationError, labels: Mapping[str, str] | None = 
     return "Please correct the form — " + "; ".join(parts) + "."
 
 
+async def _record_csrf_refusal(request: Request, actor: Actor) -> None:
+    await run_in_threadpool(with_own_db, request, record_csrf_refusal, actor, request.url.path)
+
+
 async def run_page_upload(
     request: Request,
     user: Actor | None,
@@ -334,7 +338,7 @@ async def run_page_upload(
 
     header_token = csrf_from_header(request)
     if header_token is not None and not csrf_matches(user, header_token):
-        await run_in_threadpool(with_own_db, request, record_csrf_refusal, actor, request.url.path)
+        await _record_csrf_refusal(request, actor)
         return await failed(403, CSRF_MESSAGE)
     if refusal is not None:
         return await failed(status_of(refusal), str(refusal))
@@ -361,9 +365,7 @@ async def run_page_upload(
         )
     except AppError as exc:
         if isinstance(exc, CsrfRefused):
-            await run_in_threadpool(
-                with_own_db, request, record_csrf_refusal, actor, request.url.path
-            )
+            await _record_csrf_refusal(request, actor)
         return await failed(status_of(exc), str(exc))
     except BradyscopeError as exc:  # a core error while checking the videos
         return await failed(422, str(exc))

@@ -23,7 +23,7 @@ from api_support import (  # noqa: F401 - fixtures
 from sqlalchemy import select
 
 from app.models import Video
-from app.services.trials import analysis_inputs
+from app.services.trial_inputs import analysis_inputs
 from app.storage import Storage
 
 N_FRAMES = 12  # frames of api_support's test videos
