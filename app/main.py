@@ -193,6 +193,13 @@ def _wants_html_page(request: Request) -> bool:
     )
 
 
+def _from_a_browser_page(request: Request) -> bool:
+    """A browser's request of a page or a page's form (not the API, not a script's call)."""
+    return not request.url.path.startswith(API_PREFIX) and "text/html" in request.headers.get(
+        "accept", ""
+    )
+
+
 def _html_error(request: Request, status: int, message: str) -> Response:
     """The error page (the site's layout, no navigation) for a browser asking for a page."""
     from app.web.common import error_page  # the web layer loads after the app is made
@@ -305,7 +312,12 @@ def _install_error_handlers(app: FastAPI) -> None:
             return RedirectResponse(f"/login?next={target}", status_code=303)
         if status >= 500:
             log.error("request %s failed: %s", request_id_var.get(), exc, exc_info=exc)
-        response = _error(status, str(exc) or type(exc).__name__)
+        message = str(exc) or type(exc).__name__
+        response = (  # a page, or a form posted without the page's script: the error page
+            _html_error(request, status, message)
+            if _from_a_browser_page(request)
+            else _error(status, message)
+        )
         retry_after = getattr(exc, "retry_after_s", None)
         if isinstance(exc, RateLimitedError) and retry_after is not None:
             response.headers["Retry-After"] = str(int(retry_after))

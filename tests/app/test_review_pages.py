@@ -375,3 +375,57 @@ def test_an_auditor_reads_the_audit_trail_and_nothing_of_the_patients(
     refused = [e for e in _events(db_sessionmaker, since) if e != ("list", "audit", "success")]
     assert refused == [("access", "route", "denied")] * 8
     assert client.get("/api/v1/patients").status_code == 403
+
+
+def test_a_storage_fault_under_a_form_posted_without_script_is_the_error_page(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    monkeypatch,
+):
+    """An operations review: a form posted without JavaScript on a full disk got the
+    507 as raw JSON, where every other refusal of a page is the site's error page."""
+    import errno
+
+    from app.services import patients
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(patients, "create_patient", full)
+    token = login(client)
+    r = client.post(
+        "/patients", data={"code": "PD-9", "csrf_token": token}, headers={"Accept": "text/html"}
+    )
+    assert r.status_code == 507 and r.headers["content-type"].startswith("text/html")
+    assert "storage is full" in r.text
+    api = client.post(
+        "/api/v1/patients", json={"code": "PD-9"},
+        headers={"X-CSRF-Token": token, "Accept": "text/html"},
+    )  # fmt: skip
+    assert api.status_code == 507 and "storage is full" in api.json()["detail"]
+
+
+def test_a_failed_trial_s_reason_and_retries_have_a_row_of_their_own(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+):
+    """A UI review: a failed trial's 17-line error sat in its Status cell and two retry
+    forms, each with a field named only "Reason", in its Open cell (768 px)."""
+    from app.models import Job
+
+    login(client)
+    t = seeded["trials"][(1, "left")]
+    error = "The videos look swapped: check the frame offset or retry with them exchanged."
+    with db_sessionmaker() as db:
+        trial = db.get(Trial, t)
+        db.add(Job(kind="analyze_trial", trial_id=t, status="failed", error=error))
+        session_id = trial.session_id
+        db.commit()
+    page = client.get(f"/sessions/{session_id}").text
+    row = re.search(rf'<tr class="trial-failure" data-failure="{t}">(.*?)</tr>', page, re.S)
+    assert row is not None
+    assert f"Why the last measurement failed: {error}" in row.group(1)  # it has a result
+    assert 'data-retry="swap_cameras"' in row.group(1) and 'data-retry="offset"' in row.group(1)
+    assert "Reason for the retry with swapped cameras</label>" in row.group(1)
+    assert "Reason for the retry with offset K</label>" in row.group(1)
