@@ -81,6 +81,9 @@ _counter = itertools.count(secrets.randbelow(10**12) * 1000)
 MAX_PATH_POINTS = 400
 #: Colours of the markers in the order of their task's labels, with their names for captions
 #: (finger tapping's thumb and index are the first two, as in :data:`COLOURS`).
+HEADROOM = 1.35
+"""The amplitude plot's height over its tallest bar: room for the legend above the bars."""
+
 MARKER_COLOURS = (("#d55e00", "orange"), ("#0072b2", "blue"), ("#009e73", "green"))
 
 
@@ -380,8 +383,9 @@ def tap_amplitude_plot(
         )
         ax.set_xlabel(f"{q.cycle} number")
         ax.set_ylabel(f"amplitude ({q.unit})")
-        ax.set_ylim(0, float(np.nanmax(amp)) * 1.2 if top is None else float(top))
-        ax.legend(loc="lower left", facecolor="white", frameon=True, edgecolor="none")
+        ax.set_ylim(0, float(np.nanmax(amp)) * HEADROOM if top is None else float(top))
+        # above the bars, in the headroom (lower left it hid the first bars' bases)
+        ax.legend(loc="upper center", ncols=2, facecolor="white", frameon=True, edgecolor="none")
         ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
     return to_svg(
         fig,
