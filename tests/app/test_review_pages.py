@@ -429,3 +429,26 @@ def test_a_failed_trial_s_reason_and_retries_have_a_row_of_their_own(
     assert 'data-retry="swap_cameras"' in row.group(1) and 'data-retry="offset"' in row.group(1)
     assert "Reason for the retry with swapped cameras</label>" in row.group(1)
     assert "Reason for the retry with offset K</label>" in row.group(1)
+
+
+def test_a_failed_calibration_is_headed_as_failed_not_as_valid(client, seeded, db_sessionmaker):  # noqa: F811
+    """A UI review: a failed calibration was headed "Version 2 — valid from ...", and its
+    error was an alert announced at every visit of the rig page."""
+    from datetime import UTC, datetime
+
+    from app.models import Calibration, Job
+
+    login(client)
+    with db_sessionmaker() as db:
+        cal = Calibration(rig_id=seeded["rig_id"], version=2, source="board_videos",
+                          status="pending", valid_from=datetime(2026, 3, 1, tzinfo=UTC))  # fmt: skip
+        db.add(cal)
+        db.flush()
+        db.add(Job(kind="calibrate", calibration_id=cal.id, status="failed",
+                   error="The board was found in 0 of 40 left frames."))  # fmt: skip
+        cal.status = "failed"
+        db.commit()
+    page = client.get(f"/rigs/{seeded['rig_id']}").text
+    assert "Version 2 — failed: not used for any recording" in page
+    assert "Version 2 — valid from" not in page
+    assert 'role="alert">The board was found' not in page and "The board was found" in page
