@@ -402,7 +402,7 @@ def postpone(sessions: sessionmaker[Session], job: ClaimedJob, message: str, del
                 "run_after": utcnow() + timedelta(seconds=delay_s),
                 "lease_owner": None,
                 "lease_expires_at": None,
-                "stage": "waiting for the server's storage",
+                "stage": "waiting for the server (its storage or database)",
                 "error": message,
             },
         )

@@ -230,7 +230,8 @@ def comparison_plots(
                     top=None if top_signal is None else 1.12 * top_signal,
                 ),
                 "amplitude": _amplitude_svg(
-                    d.analysis, top=None if top_amplitude is None else plots.HEADROOM * top_amplitude
+                    d.analysis,
+                    top=None if top_amplitude is None else plots.HEADROOM * top_amplitude,
                 ),
             }
         )

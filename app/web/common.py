@@ -108,9 +108,7 @@ def require_page_user(request: Request, db: SessionDep) -> Actor:
 def refuse_page(db: Session, user: Actor, request: Request) -> NoReturn:
     """Audit and refuse a page the user's role does not open."""
     audit_failure(db, user, "access", "route", request.url.path[:64], outcome="denied")
-    raise PageForbidden(
-        user, "Your account's role does not open patients' data; the audit trail is yours."
-    )
+    raise PageForbidden(user, "This account reads the audit trail only, not patients' data.")
 
 
 def scope_refusal(db: Session, user: Actor, request: Request, scope: str) -> AppError | None:
