@@ -36,7 +36,6 @@ from numpy.typing import NDArray
 from sqlalchemy.orm import Session
 
 from app import jobs
-from app.errors import InvalidRequestError
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
 from app.services import calibrations, patients, results, revisions, trial_inputs
 from core.calibration import calibrate_stereo_from_paths
@@ -267,10 +266,6 @@ def analyze_trial(ctx: JobContext) -> None:
         raise
 
 
-class CalibrationFailed(InvalidRequestError):
-    """A calibration that cannot be made from its board videos, in the form's words."""
-
-
 _OPTION_WORDS = (
     (re.compile(r"--cols (\d+) --rows (\d+)"), r"Columns \1, Rows \2"),
     (re.compile(r"--cols/--rows/--square-mm"), "Columns, Rows and Square size (mm)"),
@@ -311,7 +306,8 @@ def calibrate(ctx: JobContext) -> None:
             right_times=inputs.right_times,
         )
     except BradyscopeError as exc:  # core's words name the command line's options
-        raise CalibrationFailed(in_form_words(str(exc))) from exc
+        exc.args = (in_form_words(str(exc)), *exc.args[1:])
+        raise
     ctx.finish(lambda db: calibrations.store_calibration(db, inputs.calibration_id, outcome))
 
 
