@@ -87,7 +87,7 @@ class _ProxiesAlongside:
         self.warnings: list[str] = []
         self._writers: dict[str, ProxyWriter] = {}
         # An earlier attempt of this job, whose worker was killed, left its proxies
-        # half-written: removed here (Storage.cleanup_tmp removes any other after a day).
+        # half-written: removed here (Storage.cleanup_tmp removes any other after an hour).
         prefix = f"proxy-job{ctx.job.id}-"
         mine = f"{prefix}a{ctx.job.attempts}-"
         for old in ctx.storage.tmp_dir.glob(f"{prefix}*.part"):

@@ -242,8 +242,13 @@ class Storage:
         """Start receiving a file in chunks (see :class:`IncomingFile`)."""
         return IncomingFile(self, category, suffix, max_bytes=max_bytes)
 
-    def cleanup_tmp(self, *, older_than_s: float = 24 * 3600.0) -> int:
-        """Remove temporary files left by crashed processes; returns how many."""
+    def cleanup_tmp(self, *, older_than_s: float = 3600.0) -> int:
+        """Remove temporary files left by crashed processes; returns how many.
+
+        A file being received or written changes at least every minute (an upload silent
+        for ``app.uploads.UPLOAD_STALL_S`` is dropped), so one unchanged for an hour is
+        left by a process that died: a crash loop cannot fill the disk with them for a day.
+        """
         cutoff = time.time() - older_than_s
         removed = 0
         for entry in self.tmp_dir.iterdir():

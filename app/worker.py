@@ -184,7 +184,7 @@ def lower_thread_priority(steps: int) -> int | None:
 
 
 def _clean_tmp(storage: Storage) -> None:
-    """Remove the partial files of crashed processes (a day old)."""
+    """Remove the partial files of crashed processes (unchanged for an hour)."""
     try:
         removed = storage.cleanup_tmp()
         if removed:

@@ -115,3 +115,8 @@ def test_cleanup_tmp_removes_only_old_files(storage):
     os.utime(old, (0, 0))
     assert storage.cleanup_tmp(older_than_s=3600) == 1
     assert not old.exists() and new.exists()
+    # the default: an hour unchanged (a crash loop left .part files for a day before)
+    import time
+
+    os.utime(new, (time.time() - 3700, time.time() - 3700))
+    assert storage.cleanup_tmp() == 1 and not new.exists()
