@@ -11,11 +11,15 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import HTMLResponse
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from app.apikeys import AUDIT_READ
 from app.audit import audit_failure
 from app.auth import SessionDep
-from app.errors import AppError
+from app.errors import AppError, InvalidRequestError
+from app.models import Patient
+from app.schemas import MAX_ID
 from app.services import audit_log
 from app.web.common import AnyPageUser, error_page, render, status_of
 
@@ -28,12 +32,27 @@ def _time(text: str | None, name: str) -> datetime | None:
     return audit_log.parse_time(text, name) if text else None
 
 
+def _patient_id(db: Session, text: str) -> int | None:
+    """The patient the filter names, by code (as clinicians know them) or by id (as the
+    trail holds them); an erased patient's code is gone, its id still finds its events."""
+    if not text:
+        return None
+    if text.isdigit():
+        return int(text) if int(text) <= MAX_ID else 0
+    found = db.scalar(select(Patient.id).where(func.lower(Patient.code) == text.lower()))
+    if found is None:
+        raise InvalidRequestError(
+            f"No patient has the code “{text}”; give a code as the patient list shows it, or an id."
+        )
+    return int(found)
+
+
 @router.get("/admin/audit", response_class=HTMLResponse)
 def audit_page(
     request: Request,
     db: SessionDep,
     user: AnyPageUser,
-    patient_id: Annotated[str | None, Query(max_length=20)] = None,
+    patient_id: Annotated[str | None, Query(max_length=64)] = None,
     actor: Annotated[str | None, Query(max_length=80)] = None,
     since: Annotated[str | None, Query(max_length=40)] = None,
     until: Annotated[str | None, Query(max_length=40)] = None,
@@ -42,19 +61,24 @@ def audit_page(
     if not user.has_scope(AUDIT_READ):
         audit_failure(db, user, "access", "route", "/admin/audit", outcome="denied")
         return error_page(
-            request, user, status_code=403, message="Only administrators can read the audit trail."
+            request,
+            user,
+            status_code=403,
+            message="Only administrators and auditors can read the audit trail.",
         )
     form = {"patient_id": patient_id or "", "actor": actor or "", "since": since or "",
             "until": until or ""}  # fmt: skip
     try:
-        pid = int(patient_id) if patient_id else None
         f = audit_log.make_filter(
-            patient_id=pid, actor=actor, since=_time(since, "From"), until=_time(until, "Until")
+            patient_id=_patient_id(db, (patient_id or "").strip()),
+            actor=actor,
+            since=_time(since, "From"),
+            until=_time(until, "Until"),
         )
-    except ValueError:
-        return error_page(request, user, status_code=422, message="Patient id must be a number.")
-    except AppError as exc:
-        return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    except AppError as exc:  # the filter stays, with what to correct above it
+        return render(request, "audit.html", user, status_code=status_of(exc), active="audit",
+                      title="Audit trail", events=[], total=0, page=1, pages=1, form=form,
+                      error=str(exc))  # fmt: skip
     events, total = audit_log.list_events(
         db, user, f, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE
     )

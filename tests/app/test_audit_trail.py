@@ -238,6 +238,19 @@ def test_the_admin_page_shows_the_trail_to_admins_only(api: Api) -> None:
     assert admin.get("/api/v1/audit").status_code == 200
     assert 'href="/admin/audit"' in admin.get("/patients").text
     assert 'href="/admin/audit"' not in clinician.get("/patients").text
+    # A UI review: the filter took the internal id only, and a bad value replaced the
+    # page with an error page leading to the patient list. The code works as the id does;
+    # a code or a date that cannot be used is said above the filter, which stays.
+    by_code = admin.get("/admin/audit?patient_id=pd-7&actor=api_client")
+    by_id = admin.get("/admin/audit?patient_id=1&actor=api_client")
+    assert by_code.status_code == by_id.status_code == 200
+    assert ">patient 1<" in by_code.text and "1 event," in by_code.text
+    assert by_code.text.count("<tr>") == by_id.text.count("<tr>")
+    unknown = admin.get("/admin/audit?patient_id=PD-NONE&since=2026-01-31")
+    assert unknown.status_code == 422 and "No patient has the code “PD-NONE”" in unknown.text
+    assert 'value="PD-NONE"' in unknown.text and 'value="2026-01-31"' in unknown.text
+    bad_date = admin.get("/admin/audit?since=yesterday")
+    assert bad_date.status_code == 422 and 'value="yesterday"' in bad_date.text
 
 
 def test_export_audit_writes_json_lines(api: Api, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
