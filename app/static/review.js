@@ -166,9 +166,15 @@
       if (!lead.video.requestVideoFrameCallback) show(frameOf(time(), fps));
     });
 
+    // The frame readout is announced while paused (stepping, jumping to a tap), not 100
+    // times a second while playing.
+    var readout = frameOut ? frameOut.closest("[aria-live]") : null;
+    function announce(on) { if (readout) readout.setAttribute("aria-live", on ? "polite" : "off"); }
+    announce(true);
     function togglePlay() {
       if (lead.video.paused) {
         pending = null;
+        announce(false);
         var p = lead.video.play();
         if (follow) follow.video.play();
         if (p && p.catch) p.catch(function () {});
@@ -177,10 +183,12 @@
         lead.video.pause();
         if (follow) follow.video.pause();
         playButton.textContent = "Play";
+        announce(true);
         show(frameOf(time(), fps));
       }
     }
     lead.video.addEventListener("ended", function () {
+      announce(true);
       playButton.textContent = "Play";
       if (follow) follow.video.pause();
     });

@@ -154,7 +154,10 @@ def test_review_view(browser, served, recording, screenshot_dir):
         gaps.append(abs(t - cursor))
         page.wait_for_timeout(80)
     assert max(gaps) < 0.1, gaps  # s: within a few frames while playing
+    live = "() => document.querySelector('.review-position').getAttribute('aria-live')"
+    assert page.evaluate(live) == "off"  # not announced 100 times a second
     page.click("[data-action=play]")  # pause
+    assert page.evaluate(live) == "polite"  # stepping and jumping are announced
 
     # Step to the peak of a tap (markers far apart) with the keyboard and read the drawing back.
     tap = data["taps"][2]
