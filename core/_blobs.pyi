@@ -25,6 +25,28 @@ def pool_mask(image: NDArray[np.uint8], t: int, pool: int) -> NDArray[np.uint8]:
 def merged_windows(
     pts: NDArray[np.float64], reach: float, H: int, W: int
 ) -> tuple[NDArray[np.int32], NDArray[np.int32]]: ...
+def measure_regions(
+    image: NDArray[np.uint8],
+    regions: NDArray[np.int32],
+    pts: NDArray[np.float64],
+    point_region: NDArray[np.int32],
+    r2: float,
+    noise_step: int,
+    min_contrast: float,
+    diameter_px_min: float,
+    diameter_px_max: float,
+    max_elongation: float,
+    min_fill: float,
+    reject_border: bool,
+    ring_radius_px: int,
+    half_limit_px: int,
+    max_seeds_per_region: int,
+    refine: bool,
+    max_iter: int,
+    pad_px: float,
+    min_roundness: float,
+    max_hidden: float,
+) -> tuple[NDArray[np.float64], float, float]: ...
 def select(
     rows: NDArray[np.float64],
     pts: NDArray[np.float64],

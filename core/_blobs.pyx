@@ -783,25 +783,11 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
 
 # ------------------------------------------------------------------ entry point
 
-def search(const unsigned char[:, ::1] image, const int[:, ::1] regions, double thr,
-           double diameter_px_min, double diameter_px_max, double min_contrast,
-           double max_elongation, double min_fill, bint reject_border, int ring_radius_px,
-           int half_limit_px, int max_seeds_per_region, bint want_support):
-    """Find and measure the blobs of ``regions`` (rows ``x0, y0, x1, y1``, half-open).
-
-    Regions are searched in order; a seed inside the core of a blob measured
-    before (in any region) is skipped.  Returns ``(rows, supports)``: a
-    float64 array ``(N, len(COLUMNS))`` and, when ``want_support``, the
-    support mask of each blob on its rectangle (uint8 arrays), else ``None``.
-    """
-    cdef Frame f
-    cdef int k, nb, i, rw, rh, x0, y0, x1, y1
-    cdef size_t off = 0
-    cdef double[:, ::1] rv
-    cdef unsigned char[:, ::1] sv
-    if regions.shape[0] > 0 and regions.shape[1] != 4:
-        raise ValueError(f"regions must have shape (R, 4), got {tuple(regions.shape)}")
-    memset(&f, 0, sizeof(Frame))
+cdef void frame_init(Frame* f, const unsigned char[:, ::1] image, double diameter_px_min,
+                     double diameter_px_max, double min_contrast, double max_elongation,
+                     double min_fill, bint reject_border, int ring_radius_px, int half_limit_px,
+                     int max_seeds_per_region, bint want_support) noexcept:
+    memset(f, 0, sizeof(Frame))
     f.img = &image[0, 0]
     f.H = image.shape[0]
     f.W = image.shape[1]
@@ -815,14 +801,61 @@ def search(const unsigned char[:, ::1] image, const int[:, ::1] regions, double 
     f.prm.half_limit = half_limit_px
     f.prm.max_seeds = max_seeds_per_region
     f.want_support = want_support
+
+
+cdef void frame_free(Frame* f) noexcept:
+    free(f.cores.p)
+    free(f.core_bits.p)
+    free(f.rows.p)
+    free(f.supports.p)
+    free(f.work.p)
+
+
+cdef int check_regions(const int[:, ::1] regions, int W, int H) except -1:
+    cdef int k, x0, y0, x1, y1
+    if regions.shape[0] > 0 and regions.shape[1] != 4:
+        raise ValueError(f"regions must have shape (R, 4), got {tuple(regions.shape)}")
+    for k in range(regions.shape[0]):
+        x0, y0, x1, y1 = regions[k, 0], regions[k, 1], regions[k, 2], regions[k, 3]
+        if not (0 <= x0 < x1 <= W and 0 <= y0 < y1 <= H):
+            raise ValueError(f"region {k} = {(x0, y0, x1, y1)} is not inside the image")
+    return 0
+
+
+cdef int search_all(Frame* f, const int* regions, int R, double thr) except -1 nogil:
+    """:func:`search_region` on each of the ``R`` regions (``x0, y0, x1, y1`` rows), in order."""
+    cdef int k
+    for k in range(R):
+        f.region = k
+        search_region(f, regions[4 * k], regions[4 * k + 1], regions[4 * k + 2],
+                      regions[4 * k + 3], thr)
+    return 0
+
+
+def search(const unsigned char[:, ::1] image, const int[:, ::1] regions, double thr,
+           double diameter_px_min, double diameter_px_max, double min_contrast,
+           double max_elongation, double min_fill, bint reject_border, int ring_radius_px,
+           int half_limit_px, int max_seeds_per_region, bint want_support):
+    """Find and measure the blobs of ``regions`` (rows ``x0, y0, x1, y1``, half-open).
+
+    Regions are searched in order; a seed inside the core of a blob measured
+    before (in any region) is skipped.  Returns ``(rows, supports)``: a
+    float64 array ``(N, len(COLUMNS))`` and, when ``want_support``, the
+    support mask of each blob on its rectangle (uint8 arrays), else ``None``.
+    """
+    cdef Frame f
+    cdef int nb, i, rw, rh, R = regions.shape[0]
+    cdef size_t off = 0
+    cdef double[:, ::1] rv
+    cdef unsigned char[:, ::1] sv
+    check_regions(regions, image.shape[1], image.shape[0])
+    frame_init(&f, image, diameter_px_min, diameter_px_max, min_contrast, max_elongation,
+               min_fill, reject_border, ring_radius_px, half_limit_px, max_seeds_per_region,
+               want_support)
     try:
-        for k in range(regions.shape[0]):
-            x0, y0, x1, y1 = regions[k, 0], regions[k, 1], regions[k, 2], regions[k, 3]
-            if not (0 <= x0 < x1 <= f.W and 0 <= y0 < y1 <= f.H):
-                raise ValueError(f"region {k} = {(x0, y0, x1, y1)} is not inside the image")
-            f.region = k
-            with nogil:
-                search_region(&f, x0, y0, x1, y1, thr)
+        if R > 0:
+            with nogil:  # once for all regions: each hand-over of the GIL costs
+                search_all(&f, &regions[0, 0], R, thr)
         nb = <int>(f.rows.n // (NCOL * sizeof(double)))
         rows = np.empty((nb, NCOL), dtype=np.float64)
         if nb:
@@ -841,14 +874,109 @@ def search(const unsigned char[:, ::1] image, const int[:, ::1] regions, double 
                 supports.append(s)
         return rows, supports
     finally:
-        free(f.cores.p)
-        free(f.core_bits.p)
-        free(f.rows.p)
-        free(f.supports.p)
-        free(f.work.p)
+        frame_free(&f)
+
+
+def measure_regions(const unsigned char[:, ::1] image, const int[:, ::1] regions,
+                    const double[:, ::1] pts, const int[::1] point_region, double r2,
+                    int noise_step, double min_contrast, double diameter_px_min,
+                    double diameter_px_max, double max_elongation, double min_fill,
+                    bint reject_border, int ring_radius_px, int half_limit_px,
+                    int max_seeds_per_region, bint refine, int max_iter, double pad_px,
+                    double min_roundness, double max_hidden):
+    """One frame's windowed detection in one call, the GIL released once: the image's
+    median and noise (:func:`background_and_noise` at ``noise_step``), the seed
+    threshold ``median + max(min_contrast / 2, 4 sigma)``, :func:`search` of the
+    ``regions`` without supports, :func:`select` against ``pts`` (``point_region``
+    their region, ``r2`` the squared radius) and, when ``refine``, :func:`refine_rows`
+    of the kept rows with the threshold as dark level and the other blobs the searched
+    ones (edges 1).  The same numbers as those calls one after the other
+    (``tests/core/test_markers.py``).
+
+    Returns ``(rows (N, len(COLUMNS)), threshold, sigma)``.
+    """
+    cdef Frame f
+    cdef int R = regions.shape[0], K = pts.shape[0], H = image.shape[0], W = image.shape[1]
+    cdef int nb = 0, n_kept = 0, i, cap = 1
+    cdef double bg = 0.0, sigma = 0.0, thr = 0.0
+    cdef double* all_rows
+    cdef double* kept_p = NULL
+    cdef double* xy = NULL
+    cdef double* buf = NULL
+    cdef Py_ssize_t* keep = NULL
+    cdef double[:, ::1] kv
+    if noise_step < 1:
+        raise ValueError(f"noise_step must be >= 1, got {noise_step}")
+    if K > 0 and (pts.shape[1] != 2 or point_region.shape[0] < K):
+        raise ValueError("pts must have shape (K, 2) and point_region K entries")
+    check_regions(regions, W, H)
+    if R == 0:
+        return np.zeros((0, NCOL)), 0.0, 0.0
+    frame_init(&f, image, diameter_px_min, diameter_px_max, min_contrast, max_elongation,
+               min_fill, reject_border, ring_radius_px, half_limit_px, max_seeds_per_region,
+               False)
+    try:
+        with nogil:
+            bg_noise_c(&image[0, 0], H, W, noise_step, &bg, &sigma)
+            thr = bg + max(0.5 * min_contrast, 4.0 * sigma)
+            search_all(&f, &regions[0, 0], R, thr)
+            nb = <int>(f.rows.n // (NCOL * sizeof(double)))
+            all_rows = <double*>f.rows.p
+            if nb > 0:
+                keep = <Py_ssize_t*>malloc(nb * sizeof(Py_ssize_t))
+                kept_p = <double*>malloc(nb * NCOL * sizeof(double))
+                xy = <double*>malloc(2 * nb * sizeof(double))
+                if keep == NULL or kept_p == NULL or xy == NULL:
+                    with gil:
+                        raise MemoryError()
+                n_kept = select_c(all_rows, nb, &pts[0, 0] if K > 0 else NULL, K,
+                                  &point_region[0] if K > 0 else NULL, r2, keep)
+                for i in range(n_kept):
+                    memcpy(kept_p + i * NCOL, all_rows + keep[i] * NCOL, NCOL * sizeof(double))
+                if refine and n_kept > 0:
+                    for i in range(nb):
+                        xy[2 * i] = all_rows[i * NCOL]
+                        xy[2 * i + 1] = all_rows[i * NCOL + 1]
+                    cap = refine_cap(kept_p, n_kept, pad_px)
+                    buf = <double*>malloc(3 * cap * sizeof(double))
+                    if buf == NULL:
+                        with gil:
+                            raise MemoryError()
+                    refine_c(&image[0, 0], W, H, kept_p, n_kept, xy, nb, max_iter, thr, pad_px,
+                             min_roundness, sigma, 1, max_hidden, buf, cap)
+        rows = np.empty((n_kept, NCOL), dtype=np.float64)
+        if n_kept:
+            kv = rows
+            memcpy(&kv[0, 0], kept_p, n_kept * NCOL * sizeof(double))
+        return rows, thr, sigma
+    finally:
+        frame_free(&f)
+        free(keep)
+        free(kept_p)
+        free(xy)
+        free(buf)
 
 
 # ------------------------------------------------------------------ candidates
+
+cdef void bg_noise_c(const unsigned char* img, int H, int W, int step, double* bg,
+                     double* sigma) noexcept nogil:
+    """:func:`background_and_noise` on a C-contiguous image, ``step >= 1``."""
+    cdef int hist[256]
+    cdef int x, y, n, q25, q50
+    cdef int ny = (H + step - 1) // step, nx = (W + step - 1) // step
+    cdef const unsigned char* row
+    memset(hist, 0, sizeof(hist))
+    for y in range(ny):
+        row = img + <size_t>(y * step) * W
+        for x in range(nx):
+            hist[row[x * step]] += 1
+    n = ny * nx
+    q25 = kth(hist, (n + 3) // 4 - 1)
+    q50 = kth(hist, (n + 1) // 2 - 1)
+    bg[0] = <double>q50
+    sigma[0] = max((q50 - q25) / 0.6745, 0.7)
+
 
 def background_and_noise(const unsigned char[:, ::1] image, int step):
     """Median and noise sigma (gray levels) of ``image[::step, ::step]``.
@@ -857,20 +985,12 @@ def background_and_noise(const unsigned char[:, ::1] image, int step):
     the bright blobs are outliers on the upper side; at least 0.7 (the
     quantisation floor).
     """
-    cdef int hist[256]
-    cdef int H = image.shape[0], W = image.shape[1], x, y, n = 0, q25, q50
+    cdef double bg = 0.0, sigma = 0.0
     if step < 1:
         raise ValueError(f"step must be >= 1, got {step}")
-    cdef int ny = (H + step - 1) // step, nx = (W + step - 1) // step
-    memset(hist, 0, sizeof(hist))
     with nogil:
-        for y in range(ny):
-            for x in range(nx):
-                hist[image[y * step, x * step]] += 1
-        n = ny * nx
-        q25 = kth(hist, (n + 3) // 4 - 1)
-        q50 = kth(hist, (n + 1) // 2 - 1)
-    return float(q50), max((q50 - q25) / 0.6745, 0.7)
+        bg_noise_c(&image[0, 0], image.shape[0], image.shape[1], step, &bg, &sigma)
+    return bg, sigma
 
 
 def pool_mask(const unsigned char[:, ::1] image, int t, int pool):
@@ -972,38 +1092,52 @@ def merged_windows(const double[:, ::1] pts, double reach, int H, int W):
     return regions[:m], owner
 
 
-def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] point_region,
-           double r2):
-    """Indices of the rows to keep, in order: a blob whose centre lies farther than
-    ``sqrt(r2)`` from every point of its region is dropped (when points are given),
-    and of two centres closer than 1 px the first is kept."""
-    cdef int N = rows.shape[0], K = pts.shape[0], i, j, k, n_kept = 0, region
+cdef int select_c(const double* rows, int N, const double* pts, int K,
+                  const int* point_region, double r2, Py_ssize_t* keep) noexcept nogil:
+    """:func:`select` on C arrays (``rows`` N x NCOL, ``pts`` K x 2); the kept indices go
+    to ``keep`` (N of them at most), their number is returned."""
+    cdef int i, j, k, n_kept = 0, region, ok
     cdef double x, y, d2, best
-    keep = np.empty(N, dtype=np.intp)
-    cdef Py_ssize_t[::1] kp = keep
-    cdef int ok
     for i in range(N):
-        x = rows[i, 0]
-        y = rows[i, 1]
+        x = rows[i * NCOL]
+        y = rows[i * NCOL + 1]
         if K > 0 and x == x and y == y:  # (a NaN centre is not judged, as np.min would not)
-            region = <int>rows[i, 19]
+            region = <int>rows[i * NCOL + 19]
             best = EDT_INF
             for k in range(K):
                 if point_region[k] == region:
-                    d2 = (pts[k, 0] - x) * (pts[k, 0] - x) + (pts[k, 1] - y) * (pts[k, 1] - y)
+                    d2 = (pts[2 * k] - x) * (pts[2 * k] - x) + (pts[2 * k + 1] - y) * (pts[2 * k + 1] - y)
                     if d2 < best:
                         best = d2
             if best > r2:
                 continue
         ok = 1
         for j in range(n_kept):
-            k = kp[j]
-            if (x - rows[k, 0]) * (x - rows[k, 0]) + (y - rows[k, 1]) * (y - rows[k, 1]) < 1.0:
+            k = <int>keep[j]
+            if (x - rows[k * NCOL]) * (x - rows[k * NCOL]) + (y - rows[k * NCOL + 1]) * (y - rows[k * NCOL + 1]) < 1.0:
                 ok = 0
                 break
         if ok:
-            kp[n_kept] = i
+            keep[n_kept] = i
             n_kept += 1
+    return n_kept
+
+
+def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] point_region,
+           double r2):
+    """Indices of the rows to keep, in order: a blob whose centre lies farther than
+    ``sqrt(r2)`` from every point of its region is dropped (when points are given),
+    and of two centres closer than 1 px the first is kept."""
+    cdef int N = rows.shape[0], K = pts.shape[0], n_kept = 0
+    if N > 0 and rows.shape[1] != NCOL:
+        raise ValueError(f"rows must have {NCOL} columns, got {rows.shape[1]}")
+    if K > 0 and (pts.shape[1] != 2 or point_region.shape[0] < K):
+        raise ValueError("pts must have shape (K, 2) and point_region K entries")
+    keep = np.empty(N, dtype=np.intp)
+    cdef Py_ssize_t[::1] kp = keep
+    if N > 0:
+        n_kept = select_c(&rows[0, 0], N, &pts[0, 0] if K > 0 else NULL, K,
+                          &point_region[0] if K > 0 else NULL, r2, &kp[0])
     return keep[:n_kept]
 
 
@@ -1519,6 +1653,53 @@ def fit_discs(const unsigned char[:, ::1] image, const double[:, ::1] seeds,
     return out
 
 
+cdef int refine_cap(const double* rows, int N, double pad_px) noexcept nogil:
+    """Pixels of the largest fit window of :func:`refine_c` over ``rows``."""
+    cdef int i, hs, cap = 1
+    cdef double half
+    for i in range(N):
+        half = 0.5 * rows[i * NCOL + 2] / max(rows[i * NCOL + 4], 0.1) + pad_px
+        hs = <int>ceil(half) if half == half else 0
+        cap = max(cap, (2 * hs + 3) * (2 * hs + 3))
+    return cap
+
+
+cdef void refine_c(const unsigned char* img, int W, int H, double* rows, int N,
+                   const double* oth, int K, int max_iter, double dark_level, double pad_px,
+                   double min_roundness, double noise_sigma, int edges, double max_hidden,
+                   double* buf, int cap) noexcept nogil:
+    """:func:`refine_rows` on C arrays (``rows`` N x NCOL, ``oth`` K x 2); ``buf`` holds
+    ``3 * refine_cap(rows, N, pad_px)`` doubles."""
+    cdef int i, k
+    cdef double o[FIT_COLS]
+    cdef double diam, rnd, moved, contrast
+    cdef double* r
+    for i in range(N):
+        r = rows + i * NCOL
+        diam = r[2]
+        rnd = r[4]
+        if not rnd >= min_roundness:
+            r[20] = INFINITY  # not a disc: a streak, or cut or merged discs
+            continue
+        for k in range(FIT_COLS):
+            o[k] = NAN
+        if not fit_one(img, W, H, r[0], r[1], 0.5 * diam,
+                       0.5 * diam / max(rnd, 0.1) + pad_px, r[5],
+                       r[5] + r[3], oth, K, max_iter, dark_level, edges,
+                       max_hidden, buf, buf + cap, buf + 2 * cap, o):
+            continue
+        moved = sqrt((o[0] - r[0]) * (o[0] - r[0]) + (o[1] - r[1]) * (o[1] - r[1]))
+        contrast = o[4] - o[5]
+        if not (moved <= 0.25 * diam + 1.0 and contrast > 0
+                and fabs(o[2] / (0.5 * diam) - 1.0) < 0.5):
+            continue
+        r[0] = o[0]
+        r[1] = o[1]
+        r[20] = sqrt(max(o[8] * o[8] - noise_sigma * noise_sigma, 0.0)) / contrast
+        if o[13] > max_hidden:
+            r[20] = INFINITY  # a larger part hidden than the edge model is trusted for
+
+
 def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
                 const double[:, ::1] others, int max_iter, double dark_level, double pad_px,
                 double min_roundness, double noise_sigma, int edges=1,
@@ -1532,46 +1713,21 @@ def refine_rows(const unsigned char[:, ::1] image, double[:, ::1] rows,
     a marker whose fitted skin edge in front hides more than ``max_hidden`` of its
     disc keeps the plain fit's centre and gets an infinite residual (set aside)."""
     cdef int N = rows.shape[0], K = others.shape[0], H = image.shape[0], W = image.shape[1]
-    cdef int i, hs, cap = 1
-    cdef double o[FIT_COLS]
-    cdef double diam, rnd, half, moved, contrast
+    cdef int cap = 1
     if N > 0 and rows.shape[1] != NCOL:
         raise ValueError(f"rows must have {NCOL} columns, got {rows.shape[1]}")
     if others.shape[0] > 0 and others.shape[1] != 2:
         raise ValueError(f"others must have shape (K, 2), got {tuple(others.shape)}")
-    for i in range(N):
-        half = 0.5 * rows[i, 2] / max(rows[i, 4], 0.1) + pad_px
-        hs = <int>ceil(half) if half == half else 0
-        cap = max(cap, (2 * hs + 3) * (2 * hs + 3))
+    if N == 0:
+        return
+    cap = refine_cap(&rows[0, 0], N, pad_px)
     cdef double* buf = <double*>malloc(3 * cap * sizeof(double))
     if buf == NULL:
         raise MemoryError()
     cdef const double* oth = &others[0, 0] if K > 0 else NULL
     try:
         with nogil:
-            for i in range(N):
-                diam = rows[i, 2]
-                rnd = rows[i, 4]
-                if not rnd >= min_roundness:
-                    rows[i, 20] = INFINITY  # not a disc: a streak, or cut or merged discs
-                    continue
-                for hs in range(FIT_COLS):
-                    o[hs] = NAN
-                if not fit_one(&image[0, 0], W, H, rows[i, 0], rows[i, 1], 0.5 * diam,
-                               0.5 * diam / max(rnd, 0.1) + pad_px, rows[i, 5],
-                               rows[i, 5] + rows[i, 3], oth, K, max_iter, dark_level, edges,
-                               max_hidden, buf, buf + cap, buf + 2 * cap, o):
-                    continue
-                moved = sqrt((o[0] - rows[i, 0]) * (o[0] - rows[i, 0])
-                             + (o[1] - rows[i, 1]) * (o[1] - rows[i, 1]))
-                contrast = o[4] - o[5]
-                if not (moved <= 0.25 * diam + 1.0 and contrast > 0
-                        and fabs(o[2] / (0.5 * diam) - 1.0) < 0.5):
-                    continue
-                rows[i, 0] = o[0]
-                rows[i, 1] = o[1]
-                rows[i, 20] = sqrt(max(o[8] * o[8] - noise_sigma * noise_sigma, 0.0)) / contrast
-                if o[13] > max_hidden:
-                    rows[i, 20] = INFINITY  # a larger part hidden than the edge model is trusted for
+            refine_c(&image[0, 0], W, H, &rows[0, 0], N, oth, K, max_iter, dark_level, pad_px,
+                     min_roundness, noise_sigma, edges, max_hidden, buf, cap)
     finally:
         free(buf)

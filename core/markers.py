@@ -353,6 +353,9 @@ def _detected_rows(
         # seeds are blob maxima: within the radius plus a streak's half length
         reach = radius_px + 0.5 * params.diameter_px_max
         regions, point_region = _blobs.merged_windows(pts, reach, image.shape[0], image.shape[1])
+        if background is None and params.centre_method in ("centroid", "opaque_disc"):
+            # the common case, tracking: one compiled call, the GIL released once
+            return _measured_windows(image, params, pts, point_region, regions, radius_px)
         bg, sigma = _blobs.background_and_noise(image, 16) if len(regions) else (0.0, 0.0)
         thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
     if len(regions) == 0:
@@ -379,6 +382,43 @@ def _detected_rows(
     if params.centre_method == "opaque_disc" and len(kept):
         _fit_opaque_discs(image, kept, rows[:, _X : _Y + 1], thr, sigma)
     return kept
+
+
+def _measured_windows(
+    image: NDArray[np.uint8],
+    params: MarkerParams,
+    pts: FloatArray,
+    point_region: NDArray[np.int32],
+    regions: NDArray[np.int32],
+    radius_px: float,
+) -> FloatArray:
+    """The windowed branch of :func:`_detected_rows` for a centre found without the
+    blob's support (the centroid, or the opaque-disc fit): ``_blobs.measure_regions``
+    does the noise, search, selection and fits that the general branch does one call
+    at a time, with the same numbers."""
+    rows, _, _ = _blobs.measure_regions(
+        image,
+        regions,
+        pts,
+        point_region,
+        radius_px**2,
+        16,
+        params.min_contrast,
+        params.diameter_px_min,
+        params.diameter_px_max,
+        params.max_elongation,
+        params.min_fill,
+        params.reject_border,
+        _ring_radius(params),
+        math.ceil(params.diameter_px_max * params.max_elongation) + _MARGIN_PX + 2,
+        _MAX_SEEDS_PER_REGION,
+        params.centre_method == "opaque_disc",
+        _FIT_MAX_STEPS,
+        _FIT_PAD_PX,
+        _FIT_MIN_ROUNDNESS,
+        MAX_HIDDEN_SHARE,
+    )
+    return rows
 
 
 #: Opaque-disc fit: window half-size beyond the blob's half length (px), LM steps.

@@ -205,3 +205,75 @@ def test_a_marker_on_lit_skin_is_measured_once(monkeypatch: pytest.MonkeyPatch) 
         xy = rows[:, :2]
         near = np.linalg.norm(xy[:, None] - xy[None], axis=2) < 1.0  # px
         assert np.count_nonzero(near) == len(rows), f"{len(rows)} rows for one blob"
+
+
+def _one_call_at_a_time(
+    img: np.ndarray, pts: np.ndarray, radius_px: float, params: MarkerParams
+) -> np.ndarray:
+    """The windowed detection as the compiled calls one after another (before
+    ``_blobs.measure_regions`` made them one call)."""
+    import math
+
+    from core import markers
+
+    reach = radius_px + 0.5 * params.diameter_px_max
+    regions, point_region = _blobs.merged_windows(pts, reach, *img.shape)
+    bg, sigma = _blobs.background_and_noise(img, 16)
+    thr = bg + max(0.5 * params.min_contrast, 4.0 * sigma)
+    rows, _ = _blobs.search(img, regions, thr, params.diameter_px_min, params.diameter_px_max,
+                            params.min_contrast, params.max_elongation, params.min_fill,
+                            params.reject_border, markers._ring_radius(params),
+                            math.ceil(params.diameter_px_max * params.max_elongation) + 5,
+                            64, False)  # fmt: skip
+    kept = rows[_blobs.select(rows, pts, point_region, radius_px**2)]
+    if params.centre_method == "opaque_disc" and len(kept):
+        markers._fit_opaque_discs(img, kept, rows[:, :2], thr, sigma)
+    return kept
+
+
+@pytest.mark.parametrize("params", [MarkerParams(), CENTROID])
+def test_the_one_call_windowed_detection_gives_the_same_bits(params: MarkerParams) -> None:
+    """``_blobs.measure_regions`` (noise, search, selection and disc fits with the GIL
+    released once a frame) gives bit for bit the rows of the calls one after another:
+    markers on lit skin, at a finger's edge, partly hidden (a fit residual that sets
+    them aside), on the dark room, and two markers whose windows merge."""
+    from core.markers import _detected_rows
+
+    cases = [
+        ([0.3, 0.2, MARKER_Z_MM], [_finger(0.2)]),
+        ([0.3, 0.2, MARKER_Z_MM], [_finger(6.0)]),
+        # partly behind a finger in front (as in the test above)
+        ([0.3, 0.2, MARKER_Z_MM], [_finger(-3.0), _finger(6.9, z_mm=470.0, radius_mm=6.0)]),
+        ([0.3, 0.2, MARKER_Z_MM], [_finger(80.0)]),  # on the dark room
+    ]
+    n_fitted = n_hidden = 0
+    for k, (centre, fingers) in enumerate(cases):
+        img, truth, _ = _image(centre, fingers, seed=k)
+        second = CAM.project(np.array([[centre[0] + 4.0, centre[1] + 9.0, MARKER_Z_MM]]))[0]
+        img = np.maximum(img, _image([centre[0] + 4.0, centre[1] + 9.0, MARKER_Z_MM],
+                                     [_finger(80.0)], seed=9 + k)[0])  # fmt: skip
+        for pts in (truth[None], np.array([truth, second]), np.array([truth + 3.0])):
+            got = _detected_rows(img, params, pts, 25.0, None)
+            want = _one_call_at_a_time(img, np.ascontiguousarray(pts, dtype=float), 25.0, params)
+            assert got.shape == want.shape and len(got) > 0
+            assert got.tobytes() == want.tobytes()  # bit for bit, NaN included
+            n_fitted += int(np.isfinite(got[:, 20]).sum())
+            n_hidden += int((got[:, 20] > MAX_FIT_RESIDUAL).sum())
+    if params.centre_method == "opaque_disc":
+        assert n_fitted > n_hidden > 0  # whole and partly hidden markers were compared
+
+
+def test_the_one_call_windowed_detection_checks_its_arguments() -> None:
+    img = np.zeros((64, 64), np.uint8)
+    pts = np.array([[10.0, 10.0]])
+    region = np.array([[0, 0, 20, 20]], np.int32)
+    owner = np.zeros(1, np.int32)
+    args = (0.5, 3.0, 40.0, 4.0, 0.6, True, 23, 165, 64, True, 10, 3.0, 0.75, 0.15)
+    with pytest.raises(ValueError, match="noise_step"):
+        _blobs.measure_regions(img, region, pts, owner, 625.0, 0, 20.0, *args[1:])
+    with pytest.raises(ValueError, match="not inside the image"):
+        _blobs.measure_regions(img, region + 50, pts, owner, 625.0, 16, 20.0, *args[1:])
+    with pytest.raises(ValueError, match="point_region"):
+        _blobs.measure_regions(img, region, pts, owner[:0], 625.0, 16, 20.0, *args[1:])
+    rows, thr, sigma = _blobs.measure_regions(img, region, pts, owner, 625.0, 16, 20.0, *args[1:])
+    assert rows.shape == (0, len(_blobs.COLUMNS)) and thr == 10.0 and sigma == 0.7
