@@ -620,7 +620,8 @@ class Signature(Base):
     time zone); signatures are numbered 1, 2... per visit, a later one amending
     the one before. ``pdf_path`` holds the signed bytes, served unchanged;
     ``trial_revisions`` maps each signed trial (id as text) to its result
-    revision. The database refuses any UPDATE of a signature (migration 0009);
+    revision, ``signed_facts`` the ratings and session facts it printed. The
+    database refuses any UPDATE of a signature (migration 0009);
     rows go only with the erasure of the patient.
     """
 
@@ -646,6 +647,9 @@ class Signature(Base):
     pdf_path: Mapped[str] = mapped_column(String(500), unique=True)
     """The signed PDF, relative to the data directory."""
     trial_revisions: Mapped[dict[str, Any]] = mapped_column(JSON)
+    signed_facts: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """What the signed report printed beyond the results (``app.services.signatures``):
+    None for signatures made before migration 0017."""
 
 
 # --------------------------------------------------------------------------- audit

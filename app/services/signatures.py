@@ -9,8 +9,11 @@ revision of each trial was signed (:class:`app.models.Signature`). A signature
 row is never changed (the database refuses it) and its PDF is served byte for
 byte (``GET /sessions/{id}/report.pdf?signed=true``).
 
-A correction or re-analysis after signing, or a trial added to or hidden from
-the visit, makes an **amendment pending signature**: the signed report stays
+A correction or re-analysis after signing, a trial added to or hidden from the
+visit, or a change to anything else the signed report printed (a rating or its
+comment, a session's medication or DBS state, last levodopa, more affected side,
+dominant hand, time or clinician, the patient's code: ``Signature.signed_facts``)
+makes an **amendment pending signature**: the signed report stays
 retrievable, and signing again stores a second signed report that says which
 one it amends. Every signature and every download of a signed report is one
 audit event.
@@ -20,7 +23,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from datetime import date
+from datetime import date, datetime
 from typing import Any, Literal
 
 from sqlalchemy import select
@@ -33,11 +36,11 @@ from app.login import reauthenticate
 from app.models import RecordingSession, Signature, utcnow
 from app.reports.rendering import render_visit_pdf
 from app.reports.visit import SignatureLine
-from app.services.common import load_session, visit_trials
+from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.revisions import actor_label
 from app.services.visits import load_visit
 from app.storage import Storage
-from app.timezones import local_date
+from app.timezones import local_date, to_zone
 
 VisitStatus = Literal["unsigned", "signed", "amendment_pending"]
 
@@ -81,6 +84,82 @@ def _signatures(db: Session, patient_id: int, day: date) -> list[Signature]:
     )
 
 
+#: What the visit report prints of each session and trial beyond the results, with the
+#: words a change of it is told in.
+_SESSION_FACTS = (
+    ("recorded_at", "time"),
+    ("medication_state", "medication state"),
+    ("dbs_state", "DBS state"),
+    ("time_since_levodopa_min", "minutes since the last levodopa"),
+    ("more_affected_side", "more affected side"),
+    ("dominant_hand", "dominant hand"),
+    ("clinician_user_id", "clinician"),
+)
+_TRIAL_FACTS = (
+    ("clinician_rating", "rating"),
+    ("rating_comment", "rating comment"),
+    ("task", "task"),
+    ("hand", "side"),
+    ("session_id", "session"),
+)
+
+
+def _fact(value: Any) -> Any:
+    return value.isoformat() if isinstance(value, datetime) else value
+
+
+def visit_facts(session: RecordingSession, timezone: str) -> dict[str, Any]:
+    """What the visit report of ``session``'s visit prints beyond its trials' results
+    (JSON-ready): the patient code, each session's facts, each measured trial's."""
+    return {
+        "patient_code": session.patient.code,
+        "sessions": {
+            str(s.id): {name: _fact(getattr(s, name)) for name, _ in _SESSION_FACTS}
+            for s in visit_sessions(session, timezone)
+        },
+        "trials": {
+            str(t.id): {name: _fact(getattr(t, name)) for name, _ in _TRIAL_FACTS}
+            for t in visit_trials(session, timezone)
+        },
+    }
+
+
+def _shown(name: str, value: Any, timezone: str) -> str:
+    if value is None:
+        return "none"
+    if name == "recorded_at":
+        return to_zone(datetime.fromisoformat(value), timezone).strftime("%H:%M")
+    if name == "rating_comment":
+        return "a comment"  # said as changed, not quoted
+    return str(value)
+
+
+def _fact_changes(signed: dict[str, Any], now: dict[str, Any], timezone: str) -> list[str]:
+    """Each difference, in words, between the facts of a signature and those of now."""
+    out = []
+    if signed.get("patient_code") != now["patient_code"]:
+        out.append(f"the patient code changed (signed: {signed.get('patient_code')})")
+    for kind, fields in (("session", _SESSION_FACTS), ("trial", _TRIAL_FACTS)):
+        before_all, now_all = signed.get(kind + "s", {}), now[kind + "s"]
+        for key in sorted(set(before_all) & set(now_all), key=int):
+            for name, words in fields:
+                before, after = before_all[key].get(name), now_all[key].get(name)
+                if before != after:
+                    was, is_ = _shown(name, before, timezone), _shown(name, after, timezone)
+                    detail = "" if was == is_ else f" from {was} to {is_}"
+                    out.append(f"the {words} of {kind} {key} changed{detail}")
+        if kind == "session":  # trials come and go with their result (revisions)
+            out += [
+                f"session {k} joined the visit"
+                for k in sorted(set(now_all) - set(before_all), key=int)
+            ]
+            out += [
+                f"session {k} left the visit"
+                for k in sorted(set(before_all) - set(now_all), key=int)
+            ]
+    return out
+
+
 def _changes(signed: dict[str, int], now: dict[str, int]) -> list[str]:
     out = []
     for trial_id, revision in sorted(now.items(), key=lambda kv: int(kv[0])):
@@ -99,7 +178,13 @@ def visit_signing(db: Session, session: RecordingSession, timezone: str) -> Visi
     patient_id, day = _visit_key(session, timezone)
     signatures = _signatures(db, patient_id, day)
     current = {str(t.id): t.result.revision for t in visit_trials(session, timezone) if t.result}
-    changes = _changes(dict(signatures[-1].trial_revisions), current) if signatures else []
+    changes = []
+    if signatures:
+        newest = signatures[-1]
+        changes = _changes(dict(newest.trial_revisions), current)
+        if newest.signed_facts is not None:  # None: signed before migration 0017
+            now = visit_facts(session, timezone)
+            changes += _fact_changes(dict(newest.signed_facts), now, timezone)
     return VisitSigning(session, day, signatures, current, changes)
 
 
@@ -170,6 +255,7 @@ def sign_visit(
             size_bytes=len(pdf),
             pdf_path=stored.path,
             trial_revisions=dict(state.current),
+            signed_facts=visit_facts(session, timezone),
         )
         db.add(row)
         audit(db, actor, "sign", "visit", session.id, session.patient_id)
