@@ -114,7 +114,7 @@ def test_a_signature_made_before_the_facts_were_kept_compares_revisions_only(
                     "sha256",
                     "size_bytes",
                     "trial_revisions",
-                )  # fmt: skip
+                )
             },
             number=2,
             amends_number=1,
