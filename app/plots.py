@@ -353,7 +353,7 @@ def tap_amplitude_plot(
         return to_svg(
             fig, title=f"{q.cycle.capitalize()} amplitude: no {q.cycle}s", name="amplitude"
         )
-    n = np.arange(1, amp.size + 1, dtype=np.float64)
+    n = _numbers(taps)
     with plot_rc():
         ax = fig.add_subplot()
         # Unreliable taps (peak or closure on filled-in frames) are drawn pale:
@@ -386,7 +386,7 @@ def tap_amplitude_plot(
         ax.set_ylim(0, float(np.nanmax(amp)) * HEADROOM if top is None else float(top))
         # above the bars, in the headroom (lower left it hid the first bars' bases)
         ax.legend(loc="upper center", ncols=2, facecolor="white", frameon=True, edgecolor="none")
-        ax.set_xticks(n[:: max(1, math.ceil(amp.size / 10))])
+        ax.set_xticks(_ticks(n))
     return to_svg(
         fig,
         title=(
@@ -395,6 +395,20 @@ def tap_amplitude_plot(
         ),
         name="amplitude",
     )
+
+
+def _numbers(taps: Sequence[Mapping[str, Any]]) -> NDArray[np.float64]:
+    """The taps' (cycles') numbers in the recording, from 1, as the taps table and the
+    aperture plot number them: a tap a correction excluded leaves its number out."""
+    index = [tp.get("index") for tp in taps]
+    if all(isinstance(i, int) for i in index) and len(set(index)) == len(index):
+        return np.array(index, dtype=np.float64) + 1.0
+    return np.arange(1, len(taps) + 1, dtype=np.float64)
+
+
+def _ticks(n: NDArray[np.float64]) -> NDArray[np.float64]:
+    """At most about ten tap numbers on the axis."""
+    return n[:: max(1, math.ceil(n.size / 10))]
 
 
 def velocity_plot(taps: Sequence[Mapping[str, Any]], *, quantity: CycleQuantity = TAPPING) -> str:
@@ -407,7 +421,7 @@ def velocity_plot(taps: Sequence[Mapping[str, Any]], *, quantity: CycleQuantity 
         draw_empty(fig, f"No {q.cycle}s were found.")
         title = f"{towards.capitalize()} and {back} velocity: no {q.cycle}s"
         return to_svg(fig, title=title, name="velocity")
-    n = np.arange(1, len(taps) + 1)
+    n = _numbers(taps)
     v_open = np.array([_value(tp, q.velocity_keys[0]) for tp in taps])
     v_close = np.array([_value(tp, q.velocity_keys[1]) for tp in taps])
     with plot_rc():
@@ -420,7 +434,7 @@ def velocity_plot(taps: Sequence[Mapping[str, Any]], *, quantity: CycleQuantity 
         finite = finite[np.isfinite(finite)]
         ax.set_ylim(0, float(finite.max()) * 1.2 if finite.size else 1.0)
         ax.legend(loc="lower left", ncols=2, facecolor="white", frameon=True, edgecolor="none")
-        ax.set_xticks(n[:: max(1, math.ceil(len(taps) / 10))])
+        ax.set_xticks(_ticks(n))
     return to_svg(fig, title=f"Peak {towards} and {back} velocity per {q.cycle}", name="velocity")
 
 

@@ -130,6 +130,9 @@ class TrialResult:
         The side the cycle signal was measured for (``cycle_analysis.signal.side``:
         pronation–supination's direction of supination); None when the document does
         not say.
+    removed_cycles : int
+        Complete taps (cycles) a correction left out: excluded by the clinician or
+        outside the chosen window (``excluded_taps``, ``outside_window_taps``).
     """
 
     fps: float | None = None
@@ -145,6 +148,7 @@ class TrialResult:
     task: str = "finger_tapping"
     cycles: tuple[Mapping[str, object], ...] = ()
     side: str | None = None
+    removed_cycles: int = 0
 
     def metric(self, key: str) -> float | None:
         """The metric ``key`` as a float, None when absent or undefined."""
@@ -155,6 +159,12 @@ class TrialResult:
     def task_cycles(self) -> tuple[Mapping[str, object], ...]:
         """The taps of finger tapping, the cycles of the other tasks."""
         return self.taps if parse_task(self.task) is Task.FINGER_TAPPING else self.cycles
+
+    def counted_position(self, index: int) -> int:
+        """Where the tap (cycle) ``index`` (the document's, from 0) stands among the taps
+        counted, from 1: those a correction left out before it do not count."""
+        before = (_number(c.get("index")) for c in self.task_cycles)
+        return 1 + sum(1 for i in before if i is not None and i < index)
 
     @property
     def cycle_amplitudes(self) -> list[float]:
@@ -254,6 +264,8 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         task=_text(doc.get("task")) or "finger_tapping",
         cycles=tuple(c for c in _list(doc.get("cycles")) if isinstance(c, Mapping)),
         side=_text(_mapping(_mapping(doc.get("cycle_analysis")).get("signal")).get("side")),
+        removed_cycles=len(_list(doc.get("excluded_taps")))
+        + len(_list(doc.get("outside_window_taps"))),
         quality=ResultQuality(
             tracked_fraction=fraction("tracked_fraction"),
             measured_fraction=fraction("measured_fraction"),

@@ -110,9 +110,11 @@ class SummaryColumn:
                 int(self.value("hesitation_count") or 0), int(self.value("halt_count") or 0)
             )
         if aspect == "decrement":
+            # "after the 1st tap" is the first tap counted: taps a correction excluded
+            # before it are not the item's taps (docs/metrics.md)
             onset = self.value("amplitude_decrement_onset_tap")
             return decrement_band(
-                None if onset is None else int(onset) + 1,
+                None if onset is None else self.result.counted_position(int(onset)),
                 int(self.value("reliable_tap_count") or 0),
                 parse_task(self.task).cycle_word,
             )
@@ -142,8 +144,14 @@ def _formatted(column: SummaryColumn, key: str) -> str:
     value = column.value(key)
     task = parse_task(column.task)
     if key == "amplitude_decrement_onset_tap":
-        # Counted from 1 on every page and report (result.json counts from 0).
-        return "none" if value is None else f"after {task.cycle_word} {int(value) + 1}"
+        # Counted from 1 on every page and report (result.json counts from 0); the tap's
+        # number is the recording's, as in the taps table and the plots, and where a
+        # correction left taps out before it, its place among the taps counted too.
+        if value is None:
+            return "none"
+        number, counted = int(value) + 1, column.result.counted_position(int(value))
+        place = "" if counted == number else f" (the {_ordinal(counted)} counted)"
+        return f"after {task.cycle_word} {number}{place}"
     return format_metric(task_key(key, task), value, task.value)
 
 
@@ -181,14 +189,30 @@ def summary_rows(columns: Sequence[SummaryColumn]) -> list[SummaryRow]:
     return rows
 
 
+def _ordinal(n: int) -> str:
+    return f"{n}{'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}{'s' if n != 1 else ''}"
+
+
 def short_taps_note(column: SummaryColumn) -> str | None:
-    """A note when fewer than 10 taps (cycles) were completed (band 4 is the clinician's)."""
+    """A note when fewer than 10 taps (cycles) are counted (band 4 is the clinician's):
+    fewer completed in the recording, or fewer left by a correction, which it says."""
     n = column.taps_counted
     if n >= ITEM_REPETITIONS:
         return None
     word = parse_task(column.task).cycle_word
+    removed = column.result.removed_cycles
+    if removed:
+        return (
+            f"Only {_plural(n, word)} counted: a correction left out {removed} of the"
+            f" {_plural(len(column.result.task_cycles) + removed, 'complete ' + word)} in the"
+            f" recording; the item asks for {ITEM_REPETITIONS}."
+        )
     return (
-        f"Only {n} complete {word}{'s' if n != 1 else ''} in the recording; the item asks for"
+        f"Only {_plural(n, 'complete ' + word)} in the recording; the item asks for"
         f" {ITEM_REPETITIONS}."
     )
 

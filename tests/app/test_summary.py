@@ -138,3 +138,60 @@ def test_trial_report_opens_with_the_summary_and_names_the_software(render):
         html.count('id="h-definitions"') == 1
         and 'class="definition"' not in html.split('id="h-more"')[0]
     )  # definitions printed once: not in the main table, in the definitions section
+
+
+def _with_first_taps_excluded(col: SummaryColumn, k: int) -> SummaryColumn:
+    """``col`` as a correction that excluded its first ``k`` taps leaves it: the taps kept
+    keep their numbers, the excluded ones are listed apart, and the onset (a tap's
+    index) is the first tap kept."""
+    taps = list(col.result.taps)
+    first_10 = dict(col.result.metrics_first_10)
+    first_10["amplitude_decrement_onset_tap"] = taps[k]["index"]
+    first_10["tap_count"] = min(10, len(taps) - k)
+    result = dataclasses.replace(
+        col.result, taps=tuple(taps[k:]), metrics_first_10=first_10, removed_cycles=k
+    )
+    return dataclasses.replace(col, result=result)
+
+
+def test_the_decrement_band_counts_from_the_first_tap_kept_after_a_correction():
+    """A fall right after the first tap counted is "starting after the 1st tap" (band 3)
+    whatever number the recording gave that tap: excluding a false start before it does
+    not make it "midway" (the band counted the recording's numbers before)."""
+    col = _with_first_taps_excluded(_column(decrement_mm_per_tap=-0.8), 1)
+    rows = {r.key: r for r in summary_rows([col])}
+    assert rows["amplitude_decrement_onset_tap"].cells[0].text == "after tap 2 (the 1st counted)"
+    band = next(
+        r.cells[0].band for r in rows.values() if r.aspect == "decrement" and r.cells[0].band
+    )
+    assert band.level == 3
+    # without the correction: the same tap numbers as before, no "counted" aside
+    plain = {r.key: r for r in summary_rows([_column(decrement_mm_per_tap=-0.8)])}
+    assert plain["amplitude_decrement_onset_tap"].cells[0].text == "after tap 1"
+
+
+def test_the_short_recording_note_says_when_a_correction_left_the_taps_out():
+    from app.reports.summary import short_taps_note
+
+    col = _column()
+    n = len(col.result.taps)
+    assert n >= 10 and short_taps_note(col) is None
+    cut = _with_first_taps_excluded(col, n - 6)
+    assert short_taps_note(cut) == (
+        f"Only 6 taps counted: a correction left out {n - 6} of the {n} complete taps in the"
+        " recording; the item asks for 10."
+    )
+    short = dataclasses.replace(
+        col, result=dataclasses.replace(col.result, metrics_first_10={"tap_count": 6})
+    )
+    assert short_taps_note(short) == "Only 6 complete taps in the recording; the item asks for 10."
+
+
+def test_the_amplitude_and_velocity_plots_number_the_taps_as_the_recording_does():
+    """After a correction the plots' tap numbers are the taps table's (2-11 when tap 1 was
+    excluded), not 1-10: "after tap 2" in the summary is the bar labelled 2."""
+    from app.plots import _numbers
+
+    col = _with_first_taps_excluded(_column(), 1)
+    assert _numbers(col.result.taps)[:3].tolist() == [2.0, 3.0, 4.0]
+    assert _numbers([{"amplitude_mm": 1.0}, {"amplitude_mm": 2.0}]).tolist() == [1.0, 2.0]
