@@ -15,9 +15,17 @@ from core.errors import BradyscopeError
 
 
 class AppError(Exception):
-    """A request or command could not be served; ``str(exc)`` is the user-facing sentence."""
+    """A request or command could not be served; ``str(exc)`` is the user-facing sentence.
+
+    ``audited``: the use case has recorded the refusal in the audit trail itself, so
+    that the upload runner (:func:`app.uploads.run_upload`) does not record it again.
+    """
 
     http_status: int = 400
+
+    def __init__(self, message: str = "", *, audited: bool = False) -> None:
+        super().__init__(message)
+        self.audited = audited
 
 
 class InvalidRequestError(AppError):

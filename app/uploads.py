@@ -403,7 +403,8 @@ async def run_upload(
 
     ``on_rejected(exc)`` (run in the thread pool) records an upload refused for
     its content (a malformed body, too large, not a video, an invalid form...);
-    refusals the use case has audited itself (401, 403, 404) do not reach it.
+    refusals the use case has audited itself (401, 403, 404, and an error raised
+    with ``audited=True``) do not reach it.
 
     Raises
     ------
@@ -428,7 +429,12 @@ async def run_upload(
         finally:
             upload.close()
     except (AppError, BradyscopeError) as exc:
-        if on_rejected is not None and http_status_for(exc) not in _AUDITED_BY_USE_CASE:
+        audited = getattr(exc, "audited", False)
+        if (
+            on_rejected is not None
+            and not audited
+            and http_status_for(exc) not in _AUDITED_BY_USE_CASE
+        ):
             await run_in_threadpool(on_rejected, exc)
         raise
 

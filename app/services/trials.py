@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,9 +34,14 @@ from app.services.common import (
     trial_is_visible,
     visible_session,
 )
-from app.services.videos import add_videos, check_video_pair
+from app.services.videos import CheckedVideo, add_videos, check_video_pair
+from app.storage import Storage
 from app.uploads import InvalidUpload, ParsedUpload
+from core.camera import ImageSize
+from core.errors import InputError
 from core.tasks import DEFAULT_TASK, TASKS
+from core.timing import read_times_csv
+from core.video import VideoInfo
 
 TRIAL_FILE_FIELDS = {
     "left_video": ".video",
@@ -138,31 +144,97 @@ def _stored_take(db: Session, session_id: int, take_id: str | None) -> Trial | N
     return trial
 
 
+def _take_differences(
+    stored: Trial, upload: ParsedUpload, request: Mapping[str, object]
+) -> list[str]:
+    """What of the upload differs from the take stored under its ``take_id``: the fields
+    of ``request`` (hand, task, rig_id, offset_frames) and each file's SHA-256."""
+    differ = [name for name, value in request.items() if getattr(stored, name) != value]
+    videos = {v.side: v for v in stored.videos}
+    for side in SIDES:
+        video = videos.get(side)
+        sent = upload.require_file(f"{side}_video").incoming.sha256
+        if video is None or video.sha256 != sent:
+            differ.append(f"{side}_video")
+        times = upload.files.get(f"{side}_times")
+        if (times.incoming.sha256 if times else None) != (video.times_sha256 if video else None):
+            differ.append(f"{side}_times")
+    return differ
+
+
+def _stored_take_check(storage: Storage, trial: Trial) -> dict[str, dict[str, object]]:
+    """The quick check of a stored trial's recordings (``take``), as its upload answered it:
+    from its videos' rows and their stored timestamps files."""
+    take: dict[str, dict[str, object]] = {}
+    for video in trial.videos:
+        times = None
+        if video.times_path:
+            try:
+                times = read_times_csv(storage.absolute(video.times_path))
+            except (InputError, OSError):
+                continue  # the file is missing from storage: that side's check is not known
+        info = VideoInfo(
+            path=storage.absolute(video.path),
+            fps=video.fps,
+            frame_count=video.frame_count,
+            image_size=ImageSize(video.width, video.height),
+            fourcc=video.codec or "",
+        )
+        take[video.side] = CheckedVideo(info, times).take()
+    return take
+
+
+def _answer_stored_take(
+    db: Session,
+    actor: Actor,
+    stored: Trial,
+    upload: ParsedUpload,
+    request: Mapping[str, object],
+) -> TrialOut:
+    """The answer to a take sent again: the trial stored the first time, when the upload
+    is that take unchanged (a retry after a lost answer); else 409, audited as denied."""
+    patient_id = stored.session.patient_id
+    if not trial_is_visible(stored):  # sent again after its deletion
+        audit_failure(db, actor, "create", "trial", None, patient_id, outcome="denied")
+        raise ConflictError(
+            "This take was stored and then deleted; record a new take to upload it again.",
+            audited=True,
+        )
+    differ = _take_differences(stored, upload, request)
+    if differ:
+        audit_failure(db, actor, "create", "trial", stored.id, patient_id, outcome="denied")
+        raise ConflictError(
+            f"The take_id {stored.take_id} belongs to trial {stored.id} of this session, stored"
+            f" with another {', '.join(differ)}; give every take its own take_id (send this"
+            " one with a new take_id), or send that take unchanged to get its trial.",
+            audited=True,
+        )
+    job = job_views.latest_job(db, trial_id=stored.id)
+    take = _stored_take_check(upload.storage, stored)
+    audit(db, actor, "read", "trial", stored.id, patient_id)
+    db.commit()
+    return TrialOut(trial=stored, job_id=job.id if job else 0, take=take, stored_before=True)
+
+
 def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUpload) -> TrialOut:
     """Accept a trial upload: check both videos by decoding (and their timestamps files,
     if any), store them, queue the analysis.
 
     A take the capture page sends again (the same ``take_id`` in the session, after a
     lost connection) stores nothing: the answer is the trial stored first
-    (``stored_before``).
+    (``stored_before``), with its quick check. A ``take_id`` sent with another hand, task,
+    rig, offset or other files than its take was stored with is refused (409).
     """
     hand = _parse_hand(upload)
     task = _parse_task(upload)
     offset = _parse_offset(upload)
     take_id = _parse_take_id(upload)
     session = load_session(db, actor, session_id, "create")
-    stored = _stored_take(db, session.id, take_id)
-    if stored is not None and not trial_is_visible(stored):  # sent again after its deletion
-        audit_failure(db, actor, "create", "trial", None, session.patient_id, outcome="denied")
-        raise ConflictError(
-            "This take was stored and then deleted; record a new take to upload it again."
-        )
-    if stored is not None:
-        job = job_views.latest_job(db, trial_id=stored.id)
-        audit(db, actor, "read", "trial", stored.id, session.patient_id)
-        db.commit()
-        return TrialOut(trial=stored, job_id=job.id if job else 0, stored_before=True)
     rig_id = _parse_rig(db, upload, session.rig_id)
+    stored = _stored_take(db, session.id, take_id)
+    if stored is not None:
+        request = {"hand": hand, "task": task, "rig_id": rig_id, "offset_frames": offset}
+        return _answer_stored_take(db, actor, stored, upload, request)
     rig = rig_to_check_against(db, session, rig_id)
     pair = check_video_pair(upload, rig=rig)
     warnings = [*pair.warnings, *_sent_before(db, session.id, upload)]
