@@ -379,7 +379,9 @@ def tap_amplitude_plot(
             intercept + slope * n,
             color=COLOURS["halt"],
             lw=1.4,
-            label=f"decrement {slope:+.2f} {q.unit}/{q.cycle}",
+            # over all taps; the summary beside it gives the first 10 taps'
+            label=f"decrement {slope:+.2f} {q.unit}/{q.cycle}"
+            + (f", all {amp.size} {q.cycle}s" if amp.size > 10 else ""),
         )
         ax.set_xlabel(f"{q.cycle} number")
         ax.set_ylabel(f"amplitude ({q.unit})")
@@ -398,8 +400,7 @@ def tap_amplitude_plot(
 
 
 def _numbers(taps: Sequence[Mapping[str, Any]]) -> NDArray[np.float64]:
-    """The taps' (cycles') numbers in the recording, from 1, as the taps table and the
-    aperture plot number them: a tap a correction excluded leaves its number out."""
+    """The taps' numbers in the recording, from 1, as the taps table gives them."""
     index = [tp.get("index") for tp in taps]
     if all(isinstance(i, int) for i in index) and len(set(index)) == len(index):
         return np.array(index, dtype=np.float64) + 1.0
@@ -407,7 +408,6 @@ def _numbers(taps: Sequence[Mapping[str, Any]]) -> NDArray[np.float64]:
 
 
 def _ticks(n: NDArray[np.float64]) -> NDArray[np.float64]:
-    """At most about ten tap numbers on the axis."""
     return n[:: max(1, math.ceil(n.size / 10))]
 
 

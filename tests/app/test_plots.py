@@ -110,6 +110,12 @@ def test_amplitude_plot_draws_the_given_decrement(trial):
     # Without a slope it is fitted from the amplitudes (exactly linear here).
     fitted = plots.tap_amplitude_plot(result["taps"])
     assert "decrement -0.80 mm/tap" in fitted
+    # More than 10 taps: the legend says the line is over all of them, as the summary
+    # beside it gives the first 10 taps' slope (the two were read as one number).
+    n = len(result["taps"])
+    assert n > 10 and f"decrement -0.80 mm/tap, all {n} taps" in svg
+    ten = plots.tap_amplitude_plot(result["taps"][:10])
+    assert "decrement -0.80 mm/tap" in ten and "mm/tap, all" not in ten
 
 
 def test_ids_are_unique_when_plots_share_a_page(trial):
