@@ -388,6 +388,7 @@ def _scenarios(
     from core.simulation.hand import overlap_orientation_deg
     from core.simulation.kinematics import simulate_tapping
     from core.simulation.rig import default_rig
+    from core.simulation.session import camera_clocks
     from core.simulation.tasks import rig_geometry, simulate_task
 
     try:
@@ -395,10 +396,12 @@ def _scenarios(
         task = None if args.task == Task.FINGER_TAPPING.value else _task(args)
         imaging = _imaging(args)
         # Cheap checks that need the tap timeline (do the pauses fit?) before rendering.
-        if task is None:
+        truth = (
             simulate_tapping(tapping, seed=args.seed)
-        else:
-            simulate_task(task, seed=args.seed)
+            if task is None
+            else simulate_task(task, seed=args.seed)
+        )
+        camera_clocks(truth, imaging, args.seed)  # do the lost frames fit the videos?
         names = tapping.marker_names if task is None else task.marker_names
         for _, marker, _, _ in imaging.occlusions:
             if marker not in names:

@@ -363,7 +363,7 @@ def _blur_samples(
     return result
 
 
-def _camera_clocks(
+def camera_clocks(
     truth: TrialTruth, imaging: ImagingScenario, seed: int
 ) -> dict[str, CameraClock]:
     """When each camera captures its frames (:mod:`core.simulation.timing`).
@@ -421,7 +421,7 @@ class StereoRenderer:
         self.imaging = imaging
         self.seed = int(seed)
         self.model = model = truth.model
-        self.clocks: dict[str, CameraClock] = _camera_clocks(truth, imaging, seed)
+        self.clocks: dict[str, CameraClock] = camera_clocks(truth, imaging, seed)
         self.times: dict[str, FloatArray] = {c: self.clocks[c].true_s for c in CAMERA_NAMES}
         self.frame_counts = {c: len(self.times[c]) for c in CAMERA_NAMES}
         self.n_frames = self.frame_counts["left"]

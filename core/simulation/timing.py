@@ -135,7 +135,9 @@ def camera_clock(
     n_written = n_captured - len(timing.drop_after)
     if n_written < 2 or (timing.drop_after and timing.drop_after[-1] >= n_written - 1):
         raise ValueError(
-            f"drop_after {timing.drop_after} does not fit a video of {n_written} frames"
+            f"frames lost after frame {', '.join(map(str, timing.drop_after))} do not fit a"
+            f" video of {n_written} frames written (a lost frame must follow frame 0 to"
+            f" {n_written - 2})"
         )
     jitter = rng.normal(0.0, timing.jitter_s, n_captured) if timing.jitter_s > 0 else 0.0
     # Written frame i is captured frame i + (frames lost before it).

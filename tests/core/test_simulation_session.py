@@ -303,6 +303,12 @@ def test_cli_bad_input_is_one_sentence(tmp_path, capsys):
     status = cli_main(["simulate", "-o", str(tmp_path), "--overlap", "right:30"])
     assert status == 2
     assert "invalid scenario" in capsys.readouterr().err
+    # a lost frame past the video's end: said before anything is rendered, no traceback
+    status = cli_main(["simulate", "-o", str(tmp_path / "d"), "--drop", "left:99999"])
+    assert status == 2
+    err = capsys.readouterr().err
+    assert "invalid scenario" in err and "99999" in err and "Traceback" not in err
+    assert not (tmp_path / "d").exists()
     a_file = tmp_path / "not-a-folder"
     a_file.write_text("x")
     status = cli_main(["simulate", "-o", str(a_file), "--duration", "0.1"])
