@@ -13,6 +13,8 @@
 from __future__ import annotations
 
 import base64
+import hashlib
+import json
 import math
 import uuid
 from datetime import UTC, datetime
@@ -120,9 +122,9 @@ REPORT_ID_SYSTEM = "urn:bradyscope:trial-report"
 
 def _version(trial_id: int, what: str, revision: int) -> dict[str, Any]:
     """A measured resource's identifier, the same in every revision of the trial (so that
-    a receiving system replaces the values it holds), its version (the revision) and its
-    status: ``final``, or ``amended`` once a correction or a re-analysis has changed the
-    first result."""
+    a receiving system replaces the values it holds), its version (the revision, to which
+    :func:`_finish_versions` adds the digest of the content) and its status: ``final``, or
+    ``amended`` once a correction or a re-analysis has changed the first result."""
     system = REPORT_ID_SYSTEM if what == "report" else OBSERVATION_ID_SYSTEM
     value = str(trial_id) if what == "report" else f"{trial_id}/{what}"
     return {
@@ -173,8 +175,8 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     }
     entries += [*metric_entries, group]
     measured_urls = [str(e["fullUrl"]) for e in entries[1:]]
-    if data.clinician_rating is not None:
-        entries.append({"fullUrl": _urn(), "resource": _rating_observation(data, patient_url)})
+    if (rating := _rating_observation(data, patient_url)) is not None:
+        entries.append({"fullUrl": _urn(), "resource": rating})
     report = _diagnostic_report(
         data,
         patient_url,
@@ -184,15 +186,58 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
         pdf_bytes=pdf_bytes,
     )
     entries.append({"fullUrl": _urn(), "resource": report})
+    resources = [e["resource"] for e in entries]
+    _finish_versions(resources)
     doc: dict[str, Any] = {
         "resourceType": "Bundle",
         "type": "collection",  # no server-side processing asked for; a set of resources
         "timestamp": issued,
-        "identifier": {"system": "urn:bradyscope:trial", "value": str(data.trial_id)},
+        "identifier": _bundle_identifier(data, resources),
         "entry": entries,
     }
     Bundle.model_validate(doc)  # raises pydantic.ValidationError if the bundle is malformed
     return doc
+
+
+BUNDLE_ID_SYSTEM = "urn:bradyscope:trial-export"
+"""The system of ``Bundle.identifier``: ``<trial id>/<revision>/<digest>``, one value per
+content (a receiver that drops a Bundle it has seen drops only the same content again)."""
+# What a resource's version does not depend on: references to other entries (their
+# fullUrls are new uuids in every export); for the DiagnosticReport also the time of the
+# export and the PDF (made again from the same content, with another "generated on").
+_UNVERSIONED = frozenset({"meta", "subject", "hasMember", "result"})
+_UNVERSIONED_REPORT = _UNVERSIONED | {"issued", "presentedForm"}
+
+
+def _digest(value: object, n: int) -> str:
+    text = json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:n]
+
+
+def _finish_versions(resources: list[dict[str, Any]]) -> None:
+    """Give every Observation and the DiagnosticReport their ``meta.versionId``:
+    ``<revision or rating time>.<8 hex digits of the content>``, so that any edit of what
+    one says (a correction, the rating, the session's medication state) is a new version,
+    and the same content exported again is the same version."""
+    for res in resources:
+        if res["resourceType"] == "Patient":
+            continue
+        skip = _UNVERSIONED_REPORT if res["resourceType"] == "DiagnosticReport" else _UNVERSIONED
+        content = {k: v for k, v in res.items() if k not in skip}
+        res["meta"] = {"versionId": f"{res['meta']['versionId']}.{_digest(content, 8)}"}
+
+
+def _bundle_identifier(data: ReportData, resources: list[dict[str, Any]]) -> dict[str, str]:
+    """``Bundle.identifier`` of this content: the trial, the revision, and the digest of
+    every resource's identifier and version (the rating's among them) and the patient's
+    code. Two exports of the same content share it; any change gives another."""
+    versions = sorted(
+        (i["system"], i["value"], r.get("meta", {}).get("versionId", ""))
+        for r in resources
+        for i in r.get("identifier", [])
+    )
+    value = f"{data.trial_id}/{data.revision}/{_digest(versions, 16)}"
+    return {"system": BUNDLE_ID_SYSTEM, "value": value}
 
 
 def _task_group(
@@ -234,9 +279,22 @@ def _task_group(
 
 
 RATING_CODE_SYSTEM = "urn:bradyscope:clinician-rating"
+RATING_ID_SYSTEM = "urn:bradyscope:trial-rating"
+"""The system of the rating Observation's identifier, ``<trial id>/mds-updrs-<item>``: one
+per trial in every export, so that a receiver replaces (or withdraws) the rating it holds."""
 
 
-def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
+def _rating_version(rated_at: datetime | None) -> str:
+    """The base of the rating's ``meta.versionId``: when it was rated (UTC, to the second),
+    ``0`` when not known; :func:`_finish_versions` adds the content's digest."""
+    if rated_at is None:
+        return "0"
+    if rated_at.tzinfo is None:
+        rated_at = rated_at.replace(tzinfo=UTC)
+    return rated_at.astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+
+
+def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any] | None:
     """The clinician's own MDS-UPDRS rating of the trial: an Observation of its own.
 
     Distinct from the measured Observations: its own code system
@@ -244,12 +302,22 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
     "Clinician's rating", the clinician as ``performer``, an integer value
     0–4, and the comment as ``note``. The DiagnosticReport (the instrument's
     measurement) does not list it among its results.
+
+    A rating cleared after it was given (no rating, but a time it was changed) comes
+    back with the same identifier, no value and status ``entered-in-error`` (R4:
+    "withdrawn following previous final release"), so that a receiver that holds it
+    withdraws it; None when the trial was never rated.
     """
+    withdrawn = data.clinician_rating is None
+    if withdrawn and data.rated_at is None:
+        return None
     task = parse_task(data.task)
     item = task.updrs_item
     obs: dict[str, Any] = {
         "resourceType": "Observation",
-        "status": "final",
+        "meta": {"versionId": _rating_version(data.rated_at)},
+        "identifier": [{"system": RATING_ID_SYSTEM, "value": f"{data.trial_id}/mds-updrs-{item}"}],
+        "status": "entered-in-error" if withdrawn else "final",
         "category": [{"coding": [dict(EXAM_CATEGORY)], "text": "Clinician's rating"}],
         "code": {
             "coding": [
@@ -265,10 +333,13 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any]:
         "effectiveDateTime": _iso(data.recorded_at),
         "bodySite": {"text": f"{data.hand} {task.limb}"},
         "method": {"text": "Rated by the clinician on the MDS-UPDRS wording; not measured"},
-        "valueInteger": int(data.clinician_rating or 0),
     }
     if data.rated_at is not None:
         obs["issued"] = _iso(data.rated_at)
+    if withdrawn:
+        obs["note"] = [{"text": "The clinician withdrew this rating (cleared it in bradyscope)."}]
+        return obs
+    obs["valueInteger"] = int(data.clinician_rating or 0)
     if data.rated_by:
         obs["performer"] = [{"display": data.rated_by}]
     if data.rating_comment:

@@ -236,7 +236,9 @@ def test_fhir_values_are_the_results_and_a_revision_amends_the_same_resources():
         for e in doc["entry"]:
             r = e["resource"]
             if r["resourceType"] in ("Observation", "DiagnosticReport") and "identifier" in r:
-                out[(r["identifier"][0]["system"], r["identifier"][0]["value"])] = r
+                key = (r["identifier"][0]["system"], r["identifier"][0]["value"])
+                if key[0] != "urn:bradyscope:trial-rating":  # not a measurement (below)
+                    out[key] = r
         return out
 
     a, b = measured(first), measured(second)
@@ -246,8 +248,9 @@ def test_fhir_values_are_the_results_and_a_revision_amends_the_same_resources():
     assert ("urn:bradyscope:trial-observation", "7/frequency_hz") in a
     assert {r["status"] for r in a.values()} == {"final"}
     assert {r["status"] for r in b.values()} == {"amended"}
-    assert {r["meta"]["versionId"] for r in a.values()} == {"1"}
-    assert {r["meta"]["versionId"] for r in b.values()} == {"2"}
+    # The version: the revision, then the digest of the resource's content.
+    assert {r["meta"]["versionId"].split(".")[0] for r in a.values()} == {"1"}
+    assert {r["meta"]["versionId"].split(".")[0] for r in b.values()} == {"2"}
     # The clinician's rating is not a measurement: it keeps its own status.
     rating = [e["resource"] for e in second["entry"] if "clinician-rating" in str(e["resource"])]
     assert rating[0]["status"] == "final"
@@ -263,3 +266,99 @@ def test_fhir_values_are_the_results_and_a_revision_amends_the_same_resources():
         assert obs["valueQuantity"]["value"] == first_10[key], key
         assert obs["code"]["coding"][0]["code"] == f"{key}_first_10"
         assert obs["code"]["coding"][0]["display"].endswith(", first 10 taps")
+
+
+def _rating(doc: dict) -> dict | None:
+    found = [
+        e["resource"]
+        for e in doc["entry"]
+        if e["resource"].get("code", {}).get("coding", [{}])[0].get("system")
+        == "urn:bradyscope:clinician-rating"
+    ]
+    assert len(found) <= 1
+    return found[0] if found else None
+
+
+def test_fhir_rating_is_identified_versioned_and_withdrawn_when_cleared():
+    """A receiver replaces the rating it holds by its identifier, sees a changed rating as a
+    new version, and withdraws a cleared one (reviewers found no identifier, no version,
+    and a cleared rating that simply vanished from the next export)."""
+    from dataclasses import replace
+    from datetime import UTC, datetime
+
+    from fhir.resources.R4B.observation import Observation
+
+    rated = replace(
+        sample_report_data(), rated_at=datetime(2025, 3, 14, 10, 5, tzinfo=UTC), rated_by="Dr. A"
+    )
+    first = _rating(exports.fhir_bundle(rated, None))
+    assert first is not None
+    assert first["identifier"] == [
+        {"system": "urn:bradyscope:trial-rating", "value": "7/mds-updrs-3.4"}
+    ]
+    assert first["meta"]["versionId"].startswith("20250314T100500Z.")
+    assert first["status"] == "final" and first["valueInteger"] == 2
+    assert first["performer"] == [{"display": "Dr. A"}]
+    # The same rating exported again: the same version.
+    assert _rating(exports.fhir_bundle(rated, None))["meta"] == first["meta"]
+    changed = replace(rated, clinician_rating=3, rated_at=datetime(2025, 3, 15, 8, 0, tzinfo=UTC))
+    second = _rating(exports.fhir_bundle(changed, None))
+    assert second["identifier"] == first["identifier"]
+    assert second["meta"]["versionId"] != first["meta"]["versionId"]
+    assert second["valueInteger"] == 3
+    # Cleared: the same identifier comes back withdrawn, with no value.
+    cleared = replace(
+        rated, clinician_rating=None, rated_at=datetime(2025, 3, 16, 8, 0, tzinfo=UTC)
+    )
+    gone = _rating(exports.fhir_bundle(cleared, None))
+    assert gone is not None, "a cleared rating must be withdrawn, not left out"
+    Observation.model_validate(gone)
+    assert gone["identifier"] == first["identifier"]
+    assert gone["status"] == "entered-in-error"
+    assert "valueInteger" not in gone and "performer" not in gone
+    assert gone["meta"]["versionId"].startswith("20250316T080000Z.")
+    assert gone["issued"] == "2025-03-16T08:00:00+00:00"
+    # Never rated: nothing to withdraw.
+    never = replace(rated, clinician_rating=None, rating_comment=None, rated_at=None)
+    assert _rating(exports.fhir_bundle(never, None)) is None
+
+
+def test_fhir_bundle_identifier_names_its_content_and_the_report_its_trial():
+    """A receiver that drops a Bundle whose identifier it has seen drops only the same
+    content again: a revision or a rating gives another identifier (it was always
+    ``urn:bradyscope:trial|7``), while the DiagnosticReport keeps the trial's."""
+    from dataclasses import replace
+    from datetime import UTC, datetime
+
+    base = replace(sample_report_data(), rated_at=datetime(2025, 3, 14, 10, 5, tzinfo=UTC))
+
+    def ids(data):
+        doc = exports.fhir_bundle(data, b"%PDF-1.7 fake")
+        (report,) = [
+            e["resource"]
+            for e in doc["entry"]
+            if e["resource"]["resourceType"] == "DiagnosticReport"
+        ]
+        return doc["identifier"], report["identifier"]
+
+    bundle, report = ids(base)
+    assert bundle["system"] == "urn:bradyscope:trial-export"
+    assert bundle["value"].startswith("7/1/")
+    assert report == [{"system": "urn:bradyscope:trial-report", "value": "7"}]
+    # Exported again later (another time, another PDF): the same content, the same identifier.
+    again = replace(base, generated_at=datetime(2025, 4, 1, tzinfo=UTC))
+    assert ids(again) == (bundle, report)
+    others = {
+        "revision": replace(base, revision=2),
+        "rating": replace(base, clinician_rating=3, rated_at=datetime(2025, 3, 15, tzinfo=UTC)),
+        "cleared rating": replace(base, clinician_rating=None),
+        "comment": replace(base, rating_comment="Slowing from the 4th tap."),
+        "patient code": replace(base, patient_code="PD-0043"),
+    }
+    seen = {bundle["value"]}
+    for what, data in others.items():
+        other, other_report = ids(data)
+        assert other["value"] not in seen, what
+        assert other_report == report, what
+        seen.add(other["value"])
+    assert ids(others["revision"])[0]["value"].startswith("7/2/")

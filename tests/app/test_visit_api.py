@@ -112,10 +112,18 @@ def test_fhir_bundle_holds_the_clinicians_rating_as_its_own_observation(api: Api
     assert len(measured) == len(document["metrics"]) + len(document["metrics_first_10"])
     (report,) = [r for _, r in resources if r["resourceType"] == "DiagnosticReport"]
     assert url not in {ref["reference"] for ref in report["result"]}  # not a measurement
-    # Without a rating there is no rating Observation.
+    # A cleared rating comes back withdrawn, under the same identifier, with no value.
     api.client.patch(f"/api/v1/trials/{trial_id}", json={"clinician_rating": None}, headers=h)
     bundle = api.client.get(f"/api/v1/trials/{trial_id}/fhir", headers=h).json()
-    assert not any("clinician-rating" in str(e["resource"].get("code")) for e in bundle["entry"])
+    Bundle.model_validate(bundle)
+    (withdrawn,) = [
+        e["resource"]
+        for e in bundle["entry"]
+        if "clinician-rating" in str(e["resource"].get("code"))
+    ]
+    assert withdrawn["identifier"] == rating["identifier"]
+    assert withdrawn["meta"]["versionId"] != rating["meta"]["versionId"]
+    assert withdrawn["status"] == "entered-in-error" and "valueInteger" not in withdrawn
 
 
 def _visit(api: Api) -> dict:
