@@ -20,7 +20,7 @@ from app.actors import Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Trial
-from app.reports.catalogue import format_metric, is_tap_number, metric_rows
+from app.reports.comparison import comparison_rows
 from app.reports.data import ReportData
 from app.reports.figures import comparison_plots
 from app.reports.rendering import report_context
@@ -62,30 +62,17 @@ def trial_label(trial: Trial) -> str:
 
 
 def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
-    rows_a = {r.key: r for r in metric_rows(data.analysis)}
-    rows_b = {r.key: r for r in metric_rows(other.analysis)}
-    rows = []
-    for key in [k for k in rows_a if k in rows_b]:
-        a, b = data.analysis.metric(key), other.analysis.metric(key)
-        diff, pct = "–", "–"
-        if a is not None and b is not None and not is_tap_number(key):
-            diff = format_metric(key, b - a, data.task)
-            if not diff.startswith(("-", "+", "–")):
-                diff = "+" + diff
-            if a != 0:
-                pct = f"{100 * (b - a) / abs(a):+.0f} %"
-        rows.append(
-            {
-                "label": rows_a[key].label,
-                "a": rows_a[key].value,
-                "b": rows_b[key].value,
-                "diff": diff,
-                "pct": pct,
-                "unit": rows_a[key].unit,
-            }
-        )
+    """The comparison of this trial with ``other``: the visit report's definitions, first
+    10 taps (:mod:`app.reports.comparison`), and both trials' plots on the same scales."""
+    pair, rows = comparison_rows(data, other)
     plots_a, plots_b = comparison_plots(data, other)
-    return {"rows": rows, "plots_a": plots_a, "plots_b": plots_b, "task": other.task}
+    return {
+        "pair": pair,
+        "rows": rows,
+        "plots_a": plots_a,
+        "plots_b": plots_b,
+        "task": other.task,
+    }
 
 
 def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]:
