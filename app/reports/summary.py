@@ -74,6 +74,10 @@ class SummaryColumn:
     result : TrialResult
     clinician_rating : int or None
     rating_comment : str or None
+    label_detail : str or None
+        What tells this trial from another of the same side and medication state
+        beside it (``"trial #13, 10:42 CET"``), added to :attr:`label`; None: nothing
+        to tell apart (``app.reports.visit.distinct_labels`` sets it).
     """
 
     trial_id: int
@@ -83,12 +87,20 @@ class SummaryColumn:
     result: TrialResult
     clinician_rating: int | None = None
     rating_comment: str | None = None
+    label_detail: str | None = None
 
     @property
-    def label(self) -> str:
+    def base_label(self) -> str:
         """``"Left hand, medication off"`` (``"Left foot, ..."`` for toe tapping)."""
         limb = parse_task(self.task).limb
         return f"{self.hand.capitalize()} {limb}, medication {self.medication_state}"
+
+    @property
+    def label(self) -> str:
+        """:attr:`base_label`, and ``" — trial #13, 10:42 CET"`` when it has a
+        :attr:`label_detail` (another trial of the same side and state is beside it)."""
+        detail = f" — {self.label_detail}" if self.label_detail else ""
+        return self.base_label + detail
 
     def value(self, key: str) -> float | None:
         """A metric over the first 10 taps (None when undefined or absent); ``key`` is a

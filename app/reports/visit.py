@@ -16,6 +16,7 @@ and reproduced.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, date, datetime
@@ -32,6 +33,8 @@ from app.reports.summary import (
     short_taps_note,
     summary_rows,
 )
+from app.timezones import to_zone
+from core.tasks import parse_task
 
 MEDICATION_ORDER = ("off", "on", "unknown")
 HAND_ORDER = ("right", "left")
@@ -120,6 +123,9 @@ class TaskGroup:
     medication: tuple[tuple[str, tuple[Comparison, ...]], ...]
     """Per hand with both states: on − off, % of off."""
     notes: tuple[str, ...]
+    pairs: tuple[str, ...] = ()
+    """Which trials the asymmetry and the medication response compare, where a side has
+    several trials in one medication state (the newest of each is compared)."""
 
 
 def _order(column: SummaryColumn) -> tuple[int, int, int]:
@@ -137,8 +143,66 @@ def _newest(columns: Sequence[SummaryColumn], hand: str, med: str) -> SummaryCol
     return max(found, key=lambda c: c.trial_id) if found else None
 
 
+def distinct_labels(
+    columns: Sequence[SummaryColumn], trials: Sequence[ReportData]
+) -> list[SummaryColumn]:
+    """``columns`` with the trial number and time added to each label that two of them
+    share (two trials of the same side and medication state): ``"Right hand, medication
+    off — trial #13, 10:42 CET"``, the time in the clinic's zone."""
+    shared = Counter(c.base_label for c in columns)
+    when = {t.trial_id: to_zone(t.recorded_at, t.timezone) for t in trials}
+    return [
+        replace(c, label_detail=f"trial #{c.trial_id}, {when[c.trial_id]:%H:%M %Z}")
+        if shared[c.base_label] > 1 and c.trial_id in when
+        else c
+        for c in columns
+    ]
+
+
+def _pair_note(what: str, compared: Sequence[SummaryColumn], of: Sequence[SummaryColumn]) -> str:
+    """Which two trials a comparison uses, and which of the same sides and states it leaves."""
+    ids = {c.trial_id for c in compared}
+    left_out = [c.label for c in of if c.trial_id not in ids]
+    return (
+        f"{what}: " + " against ".join(c.label for c in compared) + " (the newest of each);"
+        f" not compared: {'; '.join(left_out)}."
+    )
+
+
+Compared = tuple[str, tuple[Comparison, ...]]
+
+
+def _comparisons(
+    cols: Sequence[SummaryColumn],
+) -> tuple[list[Compared], list[Compared], list[str]]:
+    """The asymmetry per medication state, the medication response per side, and which
+    trials they use where a side and state has several."""
+    limb = parse_task(cols[0].task).limb if cols else "hand"
+    asymmetry: list[Compared] = []
+    medication: list[Compared] = []
+    pairs: list[str] = []
+    for med in MEDICATION_ORDER:
+        right, left = _newest(cols, "right", med), _newest(cols, "left", med)
+        if right is not None and left is not None:
+            asymmetry.append((med, tuple(asymmetry_rows(right, left))))
+            of = [c for c in cols if c.medication_state == med]
+            if len(of) > 2:
+                pairs.append(
+                    _pair_note(f"Right–left asymmetry, medication {med}", (right, left), of)
+                )
+    for hand in HAND_ORDER:
+        on, off = _newest(cols, hand, "on"), _newest(cols, hand, "off")
+        if on is not None and off is not None:
+            medication.append((hand, tuple(medication_rows(on, off))))
+            of = [c for c in cols if c.hand == hand and c.medication_state in ("on", "off")]
+            if len(of) > 2:
+                pairs.append(_pair_note(f"Medication response, {hand} {limb}", (on, off), of))
+    return asymmetry, medication, pairs
+
+
 def task_groups(trials: Sequence[ReportData]) -> list[TaskGroup]:
-    """The visit's trials grouped by task (finger tapping first), columns off→on, right→left."""
+    """The visit's trials grouped by task (finger tapping first), columns off→on, right→left;
+    a label two trials share gets their trial numbers and times (:func:`distinct_labels`)."""
     columns = [summary_column(t) for t in trials]
     tasks = sorted(
         {c.task for c in columns},
@@ -146,17 +210,8 @@ def task_groups(trials: Sequence[ReportData]) -> list[TaskGroup]:
     )
     groups = []
     for task in tasks:
-        cols = sorted((c for c in columns if c.task == task), key=_order)
-        asymmetry = []
-        for med in MEDICATION_ORDER:
-            right, left = _newest(cols, "right", med), _newest(cols, "left", med)
-            if right is not None and left is not None:
-                asymmetry.append((med, tuple(asymmetry_rows(right, left))))
-        medication = []
-        for hand in HAND_ORDER:
-            on, off = _newest(cols, hand, "on"), _newest(cols, hand, "off")
-            if on is not None and off is not None:
-                medication.append((hand, tuple(medication_rows(on, off))))
+        cols = distinct_labels(sorted((c for c in columns if c.task == task), key=_order), trials)
+        asymmetry, medication, pairs = _comparisons(cols)
         notes = tuple(
             f"{c.label}: {note}" for c in cols if (note := short_taps_note(c)) is not None
         )
@@ -169,6 +224,7 @@ def task_groups(trials: Sequence[ReportData]) -> list[TaskGroup]:
                 asymmetry=tuple(asymmetry),
                 medication=tuple(medication),
                 notes=notes,
+                pairs=tuple(pairs),
             )
         )
     return groups

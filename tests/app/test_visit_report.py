@@ -1,0 +1,85 @@
+"""The visit report's words, from its data (no database): what a printed page names."""
+
+from __future__ import annotations
+
+import dataclasses
+import html as html_lib
+import re
+from datetime import timedelta
+
+from sample_trial import sample_report_data, synthetic_trial
+
+from app.reports.data import ReportData
+from app.reports.rendering import render_visit_html
+from app.reports.visit import SessionFacts, VisitData, task_groups
+from core.version import software_version
+
+
+def _trial(trial_id: int, hand: str, med: str, minutes: int, **kw) -> ReportData:
+    base = sample_report_data()
+    _, doc = synthetic_trial(**kw)
+    return dataclasses.replace(
+        base,
+        trial_id=trial_id,
+        hand=hand,
+        medication_state=med,
+        result=doc,
+        recorded_at=base.recorded_at + timedelta(minutes=minutes),  # 09:30 UTC + minutes
+        timezone="Europe/Prague",
+        clinician_rating=None,
+        rating_comment=f"comment of #{trial_id}",
+    )
+
+
+def _visit(*trials: ReportData, **kw) -> VisitData:
+    first = trials[0]
+    return VisitData(
+        patient_code="PD-0042",
+        session_id=1,
+        visit_date=first.recorded_at.date(),
+        timezone="Europe/Prague",
+        sessions=(SessionFacts(1, first.recorded_at, "off", "none"),),
+        trials=trials,
+        software_version=software_version(),
+        generated_at=first.generated_at,
+        **kw,
+    )
+
+
+def _text(html: str) -> str:
+    return re.sub(r"\s+", " ", html_lib.unescape(re.sub(r"<[^>]+>", " ", html)))
+
+
+def test_two_trials_of_one_side_and_state_are_told_apart_and_the_asymmetry_names_its_pair():
+    first = _trial(12, "right", "off", 0, amplitude0_mm=30.0)  # 10:30 in Prague (CET)
+    again = _trial(13, "right", "off", 12, amplitude0_mm=35.0)  # 10:42
+    left = _trial(11, "left", "off", 5, amplitude0_mm=45.0)
+    (group,) = task_groups([first, again, left])
+    labels = [c.label for c in group.columns]
+    assert len(set(labels)) == 3, labels
+    assert "Right hand, medication off — trial #12, 10:30 CET" in labels
+    assert "Right hand, medication off — trial #13, 10:42 CET" in labels
+    assert "Left hand, medication off" in labels  # alone in its side and state: as before
+    (note,) = group.pairs
+    assert note.startswith("Right–left asymmetry, medication off: Right hand, medication off —")
+    assert "trial #13, 10:42 CET against Left hand, medication off (the newest" in note
+    assert note.endswith("not compared: Right hand, medication off — trial #12, 10:30 CET.")
+
+    html = render_visit_html(_visit(first, again, left))
+    summary = re.search(r"<table class=\"summary[^>]*>.*?</thead>", html, re.S).group(0)
+    heads = re.findall(r'<th scope="col" class="num">([^<]+)</th>', summary)
+    assert len(heads) == 3 and len(set(heads)) == 3, heads
+    ratings = re.search(r"<table class=\"compact ratings\".*?</table>", html, re.S).group(0)
+    rows = re.findall(r'<tr><th scope="row">([^<]+)</th>', ratings)
+    assert len(rows) == 3 and len(set(rows)) == 3, rows
+    assert "not compared: Right hand, medication off — trial #12" in html_lib.unescape(html)
+
+
+def test_one_trial_per_side_and_state_keeps_its_short_label_and_no_pair_note():
+    right, left = _trial(3, "right", "off", 0), _trial(9, "left", "off", 5)
+    (group,) = task_groups([right, left])
+    assert [c.label for c in group.columns] == [
+        "Right hand, medication off",
+        "Left hand, medication off",
+    ]
+    assert group.pairs == ()
