@@ -29,6 +29,7 @@ from app.web.common import (
     status_of,
     validation_message,
 )
+from core.tasks import parse_task
 
 router = APIRouter()
 
@@ -51,7 +52,11 @@ def review_page(
         "review.html",
         user,
         active="patients",
-        title=f"Review {patient.code}: trial {trial.id}, {trial.hand} hand",
+        title=(
+            f"Review {patient.code}: trial {trial.id}, {parse_task(trial.task).label.lower()},"
+            f" {trial.hand} {parse_task(trial.task).limb},"
+            f" medication {trial.session.medication_state}"
+        ),
         trial=trial,
         patient=patient,
         page=page,

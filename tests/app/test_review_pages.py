@@ -452,3 +452,28 @@ def test_a_failed_calibration_is_headed_as_failed_not_as_valid(client, seeded, d
     assert "Version 2 — failed: not used for any recording" in page
     assert "Version 2 — valid from" not in page
     assert 'role="alert">The board was found' not in page and "The board was found" in page
+
+
+def test_the_review_heading_names_the_medication_state_dbs_and_time(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+):
+    """Two reviews of the same hand, off and on medication, are told apart by their heading."""
+    login(client)
+    off, on = seeded["trials"][(0, "right")], seeded["trials"][(1, "right")]
+    with db_sessionmaker() as db:
+        db.get(Trial, on).session.dbs_state = "on"
+        db.commit()
+    headings = {}
+    for t, med in ((off, "off"), (on, "on")):
+        page = client.get(f"/trials/{t}/review").text
+        h1 = re.sub(r"<[^>]+>", "", re.search(r"<h1>(.*?)</h1>", page, re.S).group(1))
+        crumbs = re.sub(r"<[^>]+>", "", re.search(r'<nav class="crumbs".*?</nav>', page).group(0))
+        assert f"right hand, medication {med}" in h1, h1
+        assert f"right hand, medication {med}" in crumbs, crumbs
+        assert "09:00 UTC" in h1 and f"(trial #{t})" in h1
+        assert f"medication {med}" in re.search(r"<title>(.*?)</title>", page).group(1)
+        headings[med] = h1
+    assert "DBS on" in headings["on"] and "DBS" not in headings["off"]  # "none": not said
+    assert headings["off"] != headings["on"]
