@@ -4,17 +4,17 @@
 - C3D and TRC, the marker trajectories for motion-capture tools, are
   :mod:`app.trajectories`'.
 - :func:`fhir_bundle` builds a FHIR R4 Bundle (a DiagnosticReport, one
-  Observation per metric with UCUM units, the Patient by its pseudonymous
-  code and the PDF report as ``presentedForm``), validated with the R4B models
-  of ``fhir.resources`` (R4B 4.3 is wire-compatible with R4 4.0.1 for these
-  resources).
+  Observation per metric with UCUM units, the clinician's rating, the Patient by
+  its pseudonymous code and the PDF report as ``presentedForm``), validated with
+  the R4B models of ``fhir.resources`` (R4B 4.3 is wire-compatible with R4 4.0.1
+  for these resources). Every Observation carries the session's medication and
+  DBS states (:mod:`app.fhir_state`); identifiers and versions, by which a
+  receiver matches what it holds, are :mod:`app.fhir_versions`'.
 """
 
 from __future__ import annotations
 
 import base64
-import hashlib
-import json
 import math
 import uuid
 from datetime import UTC, datetime
@@ -22,6 +22,13 @@ from typing import Any
 
 from fhir.resources.R4B.bundle import Bundle
 
+from app.fhir_state import UCUM_SYSTEM, state_components
+from app.fhir_versions import (
+    bundle_identifier,
+    finish_versions,
+    measured_identity,
+    rating_identity,
+)
 from app.reports.catalogue import ALIAS_KEYS, display_value, metric_spec
 from app.reports.data import ReportData
 from core.tasks import Task, parse_task, task_key
@@ -54,7 +61,6 @@ def _method(task: Task) -> str:
     return f"Stereo-video {task.label.lower()} (MDS-UPDRS {task.updrs_item} task), bradyscope"
 
 
-UCUM_SYSTEM = "http://unitsofmeasure.org"
 LOINC_SYSTEM = "http://loinc.org"
 
 
@@ -76,6 +82,7 @@ def _observation(
     trial_id: int = 0,
     revision: int = 1,
     first_10: bool = False,
+    components: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     spec = metric_spec(key, task.value)
     label, ucum, unit = spec.label, spec.ucum, spec.unit
@@ -83,7 +90,7 @@ def _observation(
         key, label = f"{key}{FIRST_10_SUFFIX}", f"{label}, first 10 {task.cycle_word}s"
     obs: dict[str, Any] = {
         "resourceType": "Observation",
-        **_version(trial_id, key, revision),
+        **measured_identity(trial_id, key, revision),
         "category": [{"coding": [dict(EXAM_CATEGORY)]}],
         "code": {
             "coding": [{"system": metric_code_system(task), "code": key, "display": label}],
@@ -113,25 +120,9 @@ def _observation(
         }
     if spec.definition:
         obs["note"] = [{"text": spec.definition}]
+    if components:
+        obs["component"] = components
     return obs
-
-
-OBSERVATION_ID_SYSTEM = "urn:bradyscope:trial-observation"
-REPORT_ID_SYSTEM = "urn:bradyscope:trial-report"
-
-
-def _version(trial_id: int, what: str, revision: int) -> dict[str, Any]:
-    """A measured resource's identifier, the same in every revision of the trial (so that
-    a receiving system replaces the values it holds), its version (the revision, to which
-    :func:`_finish_versions` adds the digest of the content) and its status: ``final``, or
-    ``amended`` once a correction or a re-analysis has changed the first result."""
-    system = REPORT_ID_SYSTEM if what == "report" else OBSERVATION_ID_SYSTEM
-    value = str(trial_id) if what == "report" else f"{trial_id}/{what}"
-    return {
-        "meta": {"versionId": str(revision)},
-        "identifier": [{"system": system, "value": value}],
-        "status": "final" if revision <= 1 else "amended",
-    }
 
 
 def _iso(value: datetime) -> str:
@@ -187,57 +178,16 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     )
     entries.append({"fullUrl": _urn(), "resource": report})
     resources = [e["resource"] for e in entries]
-    _finish_versions(resources)
+    finish_versions(resources)
     doc: dict[str, Any] = {
         "resourceType": "Bundle",
         "type": "collection",  # no server-side processing asked for; a set of resources
         "timestamp": issued,
-        "identifier": _bundle_identifier(data, resources),
+        "identifier": bundle_identifier(data.trial_id, data.revision, resources),
         "entry": entries,
     }
     Bundle.model_validate(doc)  # raises pydantic.ValidationError if the bundle is malformed
     return doc
-
-
-BUNDLE_ID_SYSTEM = "urn:bradyscope:trial-export"
-"""The system of ``Bundle.identifier``: ``<trial id>/<revision>/<digest>``, one value per
-content (a receiver that drops a Bundle it has seen drops only the same content again)."""
-# What a resource's version does not depend on: references to other entries (their
-# fullUrls are new uuids in every export); for the DiagnosticReport also the time of the
-# export and the PDF (made again from the same content, with another "generated on").
-_UNVERSIONED = frozenset({"meta", "subject", "hasMember", "result"})
-_UNVERSIONED_REPORT = _UNVERSIONED | {"issued", "presentedForm"}
-
-
-def _digest(value: object, n: int) -> str:
-    text = json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:n]
-
-
-def _finish_versions(resources: list[dict[str, Any]]) -> None:
-    """Give every Observation and the DiagnosticReport their ``meta.versionId``:
-    ``<revision or rating time>.<8 hex digits of the content>``, so that any edit of what
-    one says (a correction, the rating, the session's medication state) is a new version,
-    and the same content exported again is the same version."""
-    for res in resources:
-        if res["resourceType"] == "Patient":
-            continue
-        skip = _UNVERSIONED_REPORT if res["resourceType"] == "DiagnosticReport" else _UNVERSIONED
-        content = {k: v for k, v in res.items() if k not in skip}
-        res["meta"] = {"versionId": f"{res['meta']['versionId']}.{_digest(content, 8)}"}
-
-
-def _bundle_identifier(data: ReportData, resources: list[dict[str, Any]]) -> dict[str, str]:
-    """``Bundle.identifier`` of this content: the trial, the revision, and the digest of
-    every resource's identifier and version (the rating's among them) and the patient's
-    code. Two exports of the same content share it; any change gives another."""
-    versions = sorted(
-        (i["system"], i["value"], r.get("meta", {}).get("versionId", ""))
-        for r in resources
-        for i in r.get("identifier", [])
-    )
-    value = f"{data.trial_id}/{data.revision}/{_digest(versions, 16)}"
-    return {"system": BUNDLE_ID_SYSTEM, "value": value}
 
 
 def _task_group(
@@ -248,18 +198,8 @@ def _task_group(
     task = parse_task(data.task)
     return {
         "resourceType": "Observation",
-        **_version(data.trial_id, "panel", data.revision),
-        "category": [
-            {
-                "coding": [
-                    {
-                        "system": "http://terminology.hl7.org/CodeSystem/observation-category",
-                        "code": "exam",
-                        "display": "Exam",
-                    }
-                ]
-            }
-        ],
+        **measured_identity(data.trial_id, "panel", data.revision),
+        "category": [{"coding": [dict(EXAM_CATEGORY)]}],
         "code": {
             "coding": [
                 {
@@ -275,23 +215,11 @@ def _task_group(
         "bodySite": {"text": _body_site(task, data.hand)},
         "method": {"text": _method(task)},
         "hasMember": [{"reference": u} for u in member_urls],
+        "component": _state(data),
     }
 
 
 RATING_CODE_SYSTEM = "urn:bradyscope:clinician-rating"
-RATING_ID_SYSTEM = "urn:bradyscope:trial-rating"
-"""The system of the rating Observation's identifier, ``<trial id>/mds-updrs-<item>``: one
-per trial in every export, so that a receiver replaces (or withdraws) the rating it holds."""
-
-
-def _rating_version(rated_at: datetime | None) -> str:
-    """The base of the rating's ``meta.versionId``: when it was rated (UTC, to the second),
-    ``0`` when not known; :func:`_finish_versions` adds the content's digest."""
-    if rated_at is None:
-        return "0"
-    if rated_at.tzinfo is None:
-        rated_at = rated_at.replace(tzinfo=UTC)
-    return rated_at.astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
 
 
 def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any] | None:
@@ -315,8 +243,7 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any] | 
     item = task.updrs_item
     obs: dict[str, Any] = {
         "resourceType": "Observation",
-        "meta": {"versionId": _rating_version(data.rated_at)},
-        "identifier": [{"system": RATING_ID_SYSTEM, "value": f"{data.trial_id}/mds-updrs-{item}"}],
+        **rating_identity(data.trial_id, item, data.rated_at),
         "status": "entered-in-error" if withdrawn else "final",
         "category": [{"coding": [dict(EXAM_CATEGORY)], "text": "Clinician's rating"}],
         "code": {
@@ -333,6 +260,7 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any] | 
         "effectiveDateTime": _iso(data.recorded_at),
         "bodySite": {"text": f"{data.hand} {task.limb}"},
         "method": {"text": "Rated by the clinician on the MDS-UPDRS wording; not measured"},
+        "component": _state(data),
     }
     if data.rated_at is not None:
         obs["issued"] = _iso(data.rated_at)
@@ -345,6 +273,12 @@ def _rating_observation(data: ReportData, patient_ref: str) -> dict[str, Any] | 
     if data.rating_comment:
         obs["note"] = [{"text": data.rating_comment}]
     return obs
+
+
+def _state(data: ReportData) -> list[dict[str, Any]]:
+    """The medication and DBS states of the session (and the time since levodopa), as a
+    ``component`` of every Observation (:mod:`app.fhir_state`)."""
+    return state_components(data.medication_state, data.dbs_state, data.time_since_levodopa_min)
 
 
 def _urn() -> str:
@@ -382,6 +316,7 @@ def _observation_entries(
                     trial_id=data.trial_id,
                     revision=data.revision,
                     first_10=first_10,
+                    components=_state(data),
                 ),
             }
         )
@@ -400,7 +335,7 @@ def _diagnostic_report(
     task = parse_task(data.task)
     report: dict[str, Any] = {
         "resourceType": "DiagnosticReport",
-        **_version(data.trial_id, "report", data.revision),
+        **measured_identity(data.trial_id, "report", data.revision),
         "category": [
             {
                 "coding": [

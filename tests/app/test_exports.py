@@ -362,3 +362,67 @@ def test_fhir_bundle_identifier_names_its_content_and_the_report_its_trial():
         assert other_report == report, what
         seen.add(other["value"])
     assert ids(others["revision"])[0]["value"].startswith("7/2/")
+
+
+def _states(obs: dict) -> dict:
+    """An Observation's session-state components by code: the value's code, the minutes,
+    or the data-absent reason."""
+    out = {}
+    for c in obs.get("component", []):
+        (coding,) = c["code"]["coding"]
+        assert coding["system"] == "urn:bradyscope:session-state"
+        if "valueCodeableConcept" in c:
+            (value,) = c["valueCodeableConcept"]["coding"]
+            out[coding["code"]] = (value["system"], value["code"])
+        elif "valueQuantity" in c:
+            q = c["valueQuantity"]
+            out[coding["code"]] = (q["value"], q["system"], q["code"])
+        else:
+            out[coding["code"]] = ("absent", c["dataAbsentReason"]["coding"][0]["code"])
+    return out
+
+
+def test_fhir_every_observation_says_the_medication_and_dbs_state():
+    """Two values of the right hand on the same day are told apart by ON/OFF on each
+    Observation (a reviewer found the state only in the report's free-text conclusion)."""
+    from dataclasses import replace
+    from datetime import UTC, datetime
+
+    from fhir.resources.R4B.bundle import Bundle
+
+    off = replace(sample_report_data(), rated_at=datetime(2025, 3, 14, 10, 5, tzinfo=UTC))
+    on = replace(off, medication_state="on", dbs_state="on", time_since_levodopa_min=60)
+    unknown = replace(
+        off, medication_state="unknown", dbs_state="unknown", time_since_levodopa_min=None
+    )
+    expected = {
+        "off": {
+            "medication-state": ("urn:bradyscope:medication-state", "off"),
+            "dbs-state": ("urn:bradyscope:dbs-state", "none"),
+            "time-since-levodopa": (720, "http://unitsofmeasure.org", "min"),
+        },
+        "on": {
+            "medication-state": ("urn:bradyscope:medication-state", "on"),
+            "dbs-state": ("urn:bradyscope:dbs-state", "on"),
+            "time-since-levodopa": (60, "http://unitsofmeasure.org", "min"),
+        },
+        "unknown": {
+            "medication-state": ("absent", "unknown"),
+            "dbs-state": ("absent", "unknown"),
+        },
+    }
+    versions = {}
+    for name, data in (("off", off), ("on", on), ("unknown", unknown)):
+        doc = exports.fhir_bundle(data, None)
+        Bundle.model_validate(doc)
+        observations = [
+            e["resource"] for e in doc["entry"] if e["resource"]["resourceType"] == "Observation"
+        ]
+        # every metric, first-10 value, the panel and the rating
+        assert len(observations) == 11 + len(data.result["metrics_first_10"]) + 1 + 1
+        for obs in observations:
+            assert _states(obs) == expected[name], (name, obs["code"]["coding"][0]["code"])
+        versions[name] = {o["identifier"][0]["value"]: o["meta"]["versionId"] for o in observations}
+    # The session's state edited: the same resources, each in a new version.
+    assert versions["off"].keys() == versions["on"].keys()
+    assert all(versions["off"][k] != versions["on"][k] for k in versions["off"])
