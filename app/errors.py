@@ -11,6 +11,9 @@ subclasses; :func:`http_status_for` gives their status too (bad input → 422).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 from core.errors import BradyscopeError
 
 
@@ -29,9 +32,29 @@ class AppError(Exception):
 
 
 class InvalidRequestError(AppError):
-    """The request is well-formed but its content is not acceptable."""
+    """The request is well-formed but its content is not acceptable.
+
+    ``issues``: the invalid fields as a validation error lists them (``{"loc": ["body",
+    "rig_id"], "msg": ..., "type": ...}``), answered as ``errors`` beside ``detail``;
+    ``field`` (in ``where``: ``body`` or ``query``) adds one with this message.
+    """
 
     http_status = 422
+
+    def __init__(
+        self,
+        message: str = "",
+        *,
+        field: str | None = None,
+        where: str = "body",
+        kind: str = "value_error",
+        issues: Sequence[dict[str, Any]] = (),
+        audited: bool = False,
+    ) -> None:
+        super().__init__(message, audited=audited)
+        self.issues = [*issues]
+        if field is not None:
+            self.issues.append({"loc": [where, field], "msg": message, "type": kind})
 
 
 class AuthenticationError(AppError):

@@ -32,7 +32,7 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from app import db as app_db
 from app.api import api_router
 from app.audit import client_ip_var, request_id_var
-from app.errors import AppError, PayloadTooLargeError, RateLimitedError
+from app.errors import AppError, InvalidRequestError, PayloadTooLargeError, RateLimitedError
 from app.faults import check_health, storage_fault
 from app.settings import Settings, get_settings
 from app.storage import Storage
@@ -313,10 +313,12 @@ def _install_error_handlers(app: FastAPI) -> None:
         if status >= 500:
             log.error("request %s failed: %s", request_id_var.get(), exc, exc_info=exc)
         message = str(exc) or type(exc).__name__
+        # The invalid fields, as a validation error names them (docs/api.md, Errors).
+        issues = exc.issues if isinstance(exc, InvalidRequestError) else []
         response = (  # a page, or a form posted without the page's script: the error page
             _html_error(request, status, message)
             if _from_a_browser_page(request)
-            else _error(status, message)
+            else _error(status, message, **({"errors": issues} if issues else {}))
         )
         retry_after = getattr(exc, "retry_after_s", None)
         if isinstance(exc, RateLimitedError) and retry_after is not None:

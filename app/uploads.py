@@ -42,6 +42,9 @@ T = TypeVar("T")
 
 MAX_FIELD_BYTES = 64 * 1024  # a plain form field (hand, board, ...), not a file
 MAX_PARTS = 16
+IGNORED_FIELDS = frozenset({"csrf_token"})
+"""Parts read and dropped where a route does not take them: a browser's CSRF token (the
+API reads it from the ``X-CSRF-Token`` header). Any other unknown part refuses the upload."""
 _AUDITED_BY_USE_CASE = frozenset({401, 403, 404})
 # After a body was refused for its size, keep reading (and dropping) at most
 # this much so that the client can still read the 413 answer.
@@ -119,6 +122,10 @@ class ParsedUpload:
     files: dict[str, StagedFile] = field(default_factory=dict)
     labels: dict[str, str] = field(default_factory=dict)
     """The form's own labels of its parts (a page's form): messages name them instead."""
+    unknown: list[str] = field(default_factory=list)
+    """Parts the route does not take (dropped unread), in the order they came."""
+    accepted: frozenset[str] = frozenset()
+    """The parts the route takes (files and fields)."""
     _published: list[str] = field(default_factory=list)
 
     def label(self, name: str) -> str:
@@ -146,6 +153,26 @@ class ParsedUpload:
         """Remove the temporary files that were not published (always call it at the end)."""
         for staged in self.files.values():
             staged.incoming.abort()
+
+    def refuse_unknown_fields(self) -> None:
+        """Refuse (422, naming each) parts the route does not take, as the JSON routes refuse
+        fields they do not know: a misspelt ``takeid`` or ``offset_frame`` is not dropped."""
+        if not self.unknown:
+            return
+        names = list(dict.fromkeys(self.unknown))
+        raise InvalidUpload(
+            f"The upload has {'a field' if len(names) == 1 else 'fields'} this route does not"
+            f" take: {', '.join(repr(n) for n in names)}; remove {'it' if len(names) == 1 else 'them'}"
+            f" or correct the name (the fields are {', '.join(sorted(self.accepted))}).",
+            issues=[
+                {
+                    "loc": ["body", n],
+                    "msg": "Extra inputs are not permitted",
+                    "type": "extra_forbidden",
+                }
+                for n in names
+            ],
+        )
 
     def require_file(self, name: str) -> StagedFile:
         if name not in self.files:
@@ -178,7 +205,7 @@ class _Receiver:
         self.file_fields = file_fields
         self.text_fields = text_fields
         self.max_file_bytes = max_file_bytes
-        self.result = ParsedUpload(storage)
+        self.result = ParsedUpload(storage, accepted=frozenset(file_fields) | text_fields)
         self._parts = 0
         self._header_name = b""
         self._header_value = b""
@@ -228,7 +255,9 @@ class _Receiver:
             self._incoming = self.storage.receive(category, suffix, max_bytes=self.max_file_bytes)
             self.result.files[self._name] = StagedFile(self._name, self._filename, self._incoming)
         elif self._name not in self.text_fields:
-            self._skip = True  # unknown fields are ignored, like unknown JSON keys
+            self._skip = True  # read and dropped; refused after the body (all are named)
+            if self._name not in IGNORED_FIELDS:
+                self.result.unknown.append(self._name)
 
     def on_part_data(self, data: bytes, start: int, end: int) -> None:
         if self._skip:
@@ -322,7 +351,8 @@ async def receive_multipart(
         stored files, so publishing is an atomic rename).
     file_fields : mapping of str to str
         Accepted file parts, each with the default suffix of its stored file
-        (``{"left_video": ".video"}``). Other parts are read and dropped.
+        (``{"left_video": ".video"}``). Other parts are read and dropped, and named
+        in ``ParsedUpload.unknown`` (except :data:`IGNORED_FIELDS`).
     text_fields : set of str
         Accepted plain-text parts.
     max_file_bytes : int
@@ -397,8 +427,9 @@ async def run_upload(
 
     Streams the body into storage (:func:`receive_multipart`), lets
     ``accept(upload)`` check or adjust the received form (e.g. its CSRF
-    token), then runs ``use_case(upload)`` in the thread pool (it publishes the
-    files and commits their rows). Whatever fails, every file of the upload is
+    token), refuses parts the route does not take
+    (:meth:`ParsedUpload.refuse_unknown_fields`), then runs ``use_case(upload)`` in
+    the thread pool (it publishes the files and commits their rows). Whatever fails, every file of the upload is
     removed again; the temporary files are always cleaned up.
 
     ``on_rejected(exc)`` (run in the thread pool) records an upload refused for
@@ -422,6 +453,7 @@ async def run_upload(
         try:
             if accept is not None:
                 accept(upload)
+            upload.refuse_unknown_fields()
             return await run_in_threadpool(use_case, upload)
         except BaseException:
             upload.discard()

@@ -23,7 +23,12 @@ def multipart_body(
             "description": description,
             "content": {
                 "multipart/form-data": {
-                    "schema": {"type": "object", "properties": properties, "required": required}
+                    "schema": {
+                        "type": "object",
+                        "properties": properties,
+                        "required": required,
+                        "additionalProperties": False,  # another field is refused (422)
+                    }
                 }
             },
         }

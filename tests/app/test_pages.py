@@ -610,9 +610,16 @@ def test_calibration_upload_needs_one_kind_of_input(client, seeded):
     r = client.post(
         f"/rigs/{seeded['rig_id']}/calibrations",
         data={"csrf_token": token},
-        files={"x": ("x", b"", "text/plain")},
+        # the form's file inputs left empty, as a browser sends them
+        files={"rig_json": ("", b"", "application/octet-stream")},
     )
     assert r.status_code == 422 and "either a rig file" in r.text
+    r = client.post(  # a part no form of the page has is refused, named
+        f"/rigs/{seeded['rig_id']}/calibrations",
+        data={"csrf_token": token},
+        files={"x": ("x", b"", "text/plain")},
+    )
+    assert r.status_code == 422 and "this route does not take: &#39;x&#39;" in r.text
     r = client.post(
         f"/rigs/{seeded['rig_id']}/calibrations",
         data={"csrf_token": token},

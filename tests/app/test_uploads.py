@@ -419,3 +419,75 @@ def test_an_upload_that_stalls_is_dropped_and_leaves_nothing(tmp_path: Path, mon
     with pytest.raises(uploads.UploadError, match="stalled: nothing arrived"):
         asyncio.run(asyncio.wait_for(upload(), 10))
     assert [p for p in storage.tmp_dir.rglob("*") if p.is_file()] == []
+
+
+@pytest.mark.parametrize(
+    ("extra", "named"),
+    [
+        ({"foo": "bar"}, ["foo"]),
+        ({"takeid": "take-0001", "offset_frame": "3"}, ["takeid", "offset_frame"]),
+    ],
+)
+def test_an_upload_with_a_field_the_route_does_not_take_is_refused(
+    api: Api, video_pair, extra: dict, named: list[str]
+) -> None:
+    """A misspelt field was dropped without a word (the trial stored without its take_id or
+    offset); the JSON routes refuse extra fields with extra_forbidden, the uploads too."""
+    seeded = seed_recording_target(api)
+    events = len(api.audit_events())
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "left", **extra},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == 422, r.text
+    body = r.json()
+    assert body["errors"] == [
+        {"loc": ["body", n], "msg": "Extra inputs are not permitted", "type": "extra_forbidden"}
+        for n in named
+    ]
+    assert all(repr(n) in body["detail"] for n in named) and "take_id" in body["detail"]
+    _assert_nothing_left(api)
+    outcomes = [(e.action, e.resource_type, e.outcome) for e in api.audit_events()[events:]]
+    assert outcomes == [("create", "trial", "invalid")]
+
+
+def test_a_calibration_upload_with_a_misspelt_field_is_refused(api: Api) -> None:
+    import json
+
+    from api_support import rig_document
+
+    rig = api.client.post("/api/v1/rigs", json={"name": "clinic-D"}, headers=api.headers).json()
+    r = api.client.post(
+        f"/api/v1/rigs/{rig['id']}/calibrations",
+        data={"valid_form": "2026-01-01T00:00:00Z"},
+        files={"rig_json": ("rig.json", json.dumps(rig_document()).encode(), "application/json")},
+        headers=api.headers,
+    )
+    assert r.status_code == 422, r.text
+    assert [e["loc"] for e in r.json()["errors"]] == [["body", "valid_form"]]
+    assert "valid_from" in r.json()["detail"]  # the fields it takes are listed
+    assert (
+        api.client.get(f"/api/v1/rigs/{rig['id']}/calibrations", headers=api.headers).json() == []
+    )
+
+
+def test_a_csrf_token_field_is_not_an_unknown_field(api: Api, video_pair) -> None:
+    """A browser's script may send its form's csrf_token with an upload to the API (which
+    reads the token from the X-CSRF-Token header): it is dropped, not refused."""
+    seeded = seed_recording_target(api)
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "left", "csrf_token": "anything"},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    assert r.status_code == 201, r.text
+
+
+def test_the_openapi_document_says_uploads_take_no_other_field(api: Api) -> None:
+    doc = api.client.get("/openapi.json").json()
+    for path in ("/api/v1/sessions/{session_id}/trials", "/api/v1/rigs/{rig_id}/calibrations"):
+        body = doc["paths"][path]["post"]["requestBody"]["content"]["multipart/form-data"]
+        assert body["schema"]["additionalProperties"] is False
