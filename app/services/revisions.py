@@ -156,11 +156,34 @@ def _edit(revision: int, kind: str, by: str, reason: str, change: dict[str, Any]
 
 
 def _change_of(data: RevisionCreate) -> dict[str, Any]:
+    """The fields the request changes; a re-analysis field sent as null asks for nothing."""
     return {
         k: v
         for k, v in data.model_dump(exclude_unset=True, exclude={"reason"}).items()
-        if k in CORRECTION_FIELDS or k in REANALYSIS_FIELDS
+        if k in CORRECTION_FIELDS or (k in REANALYSIS_FIELDS and v is not None)
     }
+
+
+def _cameras_swapped(trial: Trial) -> bool:
+    """Whether the newest analysis of the trial measured its videos swapped."""
+    base = latest_analysis(trial)
+    return base is not None and bool(base.document.get("cameras_swapped"))
+
+
+def _drop_unchanged_swap(trial: Trial, change: dict[str, Any]) -> None:
+    """Remove ``swap_cameras`` from ``change`` when the newest analysis measured the videos
+    that way already (``false``: as stored); 422 when nothing is left to change."""
+    swapped = _cameras_swapped(trial)
+    if "swap_cameras" not in change or change["swap_cameras"] != swapped:
+        return
+    del change["swap_cameras"]
+    if not change:
+        how = "with the two videos swapped" if swapped else "as they are stored"
+        raise InvalidRequestError(
+            f"The newest analysis of trial {trial.id} measured its videos {how} already;"
+            f" nothing would change. Send swap_cameras: {str(not swapped).lower()} to measure"
+            " them the other way round, or offset_frames to measure them with another offset."
+        )
 
 
 def create_revision(
@@ -171,8 +194,9 @@ def create_revision(
     Raises
     ------
     InvalidRequestError
-        Nothing to change, correction and re-analysis fields mixed, a tap that
-        does not exist, or no tap left (422).
+        Nothing to change (also ``swap_cameras`` as the newest analysis measured the
+        videos already, or a re-analysis field sent as null), correction and re-analysis
+        fields mixed, a tap that does not exist, or no tap left (422).
     ConflictError
         No result to correct yet, or an analysis of the trial is still running (409).
     """
@@ -182,13 +206,14 @@ def create_revision(
             "Say what to change: exclude_taps, dismiss_pauses, window_s or swap_labels to"
             " correct the result, or offset_frames or swap_cameras to measure the videos again."
         )
+    trial = load_trial(db, actor, trial_id, "update")
+    _drop_unchanged_swap(trial, change)
     reanalysis = any(k in change for k in REANALYSIS_FIELDS)
     if reanalysis and any(k in change for k in CORRECTION_FIELDS):
         raise InvalidRequestError(
             "A re-analysis (offset_frames, swap_cameras) measures the videos again and cannot be"
             " combined with corrections of taps; send them as two revisions."
         )
-    trial = load_trial(db, actor, trial_id, "update")
     if reanalysis:
         return _queue_reanalysis(db, actor, trial, data, change)
     return _correct(db, actor, trial, data, change, storage)

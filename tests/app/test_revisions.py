@@ -170,6 +170,10 @@ def test_a_correction_stores_its_plots_and_the_report_reads_them(api: Api, video
         ({"exclude_taps": [1], "swap_cameras": True, "reason": REASON}, 422, "two revisions"),
         ({"window_s": [5.0, 1.0], "reason": REASON}, 422, "window_s"),
         ({"exclude_taps": [], "reason": REASON}, 422, "nothing would change"),
+        # a re-analysis that asks for nothing is not one (it measured the same again)
+        ({"swap_cameras": False, "reason": REASON}, 422, "nothing would change"),
+        ({"swap_cameras": None, "reason": REASON}, 422, "Say what to change"),
+        ({"offset_frames": None, "reason": REASON}, 422, "Say what to change"),
     ],
 )
 def test_bad_revisions_are_refused_and_store_nothing(api: Api, video_pair, body, status, text):
@@ -178,6 +182,33 @@ def test_bad_revisions_are_refused_and_store_nothing(api: Api, video_pair, body,
     assert r.status_code == status, r.text
     assert text in r.text
     assert api.count(Result) == 1
+
+
+def test_swap_cameras_is_refused_when_the_analysis_measured_the_videos_so(
+    api: Api, video_pair
+) -> None:
+    """swap_cameras says how the videos are measured: as the newest analysis did is no change
+    (422, no job); the other way round is a re-analysis; false beside a correction is none."""
+    trial_id = _trial(api, video_pair)
+    url, h = f"/api/v1/trials/{trial_id}/revisions", api.headers
+    mixed = api.client.post(
+        url, json={"swap_cameras": False, "exclude_taps": [1], "reason": REASON}, headers=h
+    )
+    assert mixed.status_code == 201 and mixed.json()["revision"] == 2, mixed.text
+    with api.sessions() as db:  # as if the newest analysis had measured them swapped
+        result = db.get(Trial, trial_id).results[0]
+        result.document = {**result.document, "cameras_swapped": True}
+        db.commit()
+    jobs = api.count(Job)
+    same = api.client.post(url, json={"swap_cameras": True, "reason": REASON}, headers=h)
+    assert same.status_code == 422 and "swapped already" in same.json()["detail"], same.text
+    assert "swap_cameras: false" in same.json()["detail"] and api.count(Job) == jobs
+    back = api.client.post(url, json={"swap_cameras": False, "reason": REASON}, headers=h)
+    assert back.status_code == 201 and back.json()["job_id"] is not None, back.text
+    with api.sessions() as db:
+        payload = db.get(Job, back.json()["job_id"]).payload
+    assert "swap_cameras" not in payload  # measured as stored
+    assert payload["revision_request"]["change"] == {"swap_cameras": False}
 
 
 def test_reanalysis_is_a_job_and_keeps_the_current_result(api: Api, video_pair) -> None:
