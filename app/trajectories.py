@@ -4,7 +4,12 @@ Both carry the trial's ``markers.csv`` (:class:`core.markers_csv.MarkerTable`) f
 Vicon Nexus, Mokka, OpenSim...: coordinates in mm in the rig's world frame (the left
 camera's frame: x right, y down, z away from the camera); missing samples are marked
 invalid (C3D residual -1, empty TRC cells), interpolated ones residual 0 in C3D (its
-"not a measured point"). docs/reports.md, "Exports".
+"not a measured point").
+
+Both formats have one frame rate and no time per frame: frame k is at k / rate. A
+recording with lost frames or a variable frame rate is therefore written on a uniform
+grid (:func:`on_uniform_grid`): each decoded frame in the slot its capture time falls
+in, each lost frame an invalid sample. docs/reports.md, "Exports".
 """
 
 from __future__ import annotations
@@ -17,15 +22,78 @@ import ezc3d
 import numpy as np
 from numpy.typing import NDArray
 
-from core.markers_csv import MarkerTable
+from core.markers_csv import MISSING, MarkerTable
+from core.timing import FROM_CONTAINER, FrameTimes
+
+#: The nominal rate is kept while it places the last frame within this share of a frame
+#: interval of its capture time; otherwise the rate is the one the capture times give.
+RATE_TOLERANCE = 0.1
 
 
 def _num(value: float, digits: int) -> str:
     return "" if not math.isfinite(value) else f"{value:.{digits}f}"
 
 
+def on_uniform_grid(table: MarkerTable) -> MarkerTable:
+    """The trajectories on a uniform time grid: frame k at ``k / fps``, lost frames missing.
+
+    The lost frames are found in the capture times (``table.frame_time_s``) by the rule
+    of the analysis (:class:`core.timing.FrameTimes`: an interval of 1.5 nominal ones or
+    more), so they are the ``sync.dropped_frames_left`` of result.json; each lost frame
+    becomes a ``missing`` sample (NaN position). The rate is ``table.fps`` (result.json's
+    ``fps``) unless it places the last frame more than :data:`RATE_TOLERANCE` of an
+    interval away from its capture time (a rate taken from the median of jittered
+    intervals); then it is the least-squares rate of the capture times over the grid.
+
+    Parameters
+    ----------
+    table : MarkerTable
+        As read from ``markers.csv``: one row per decoded frame.
+
+    Returns
+    -------
+    MarkerTable
+        ``frames`` consecutive from the first frame's slot, ``frame_time_s`` None (so
+        ``time_s`` is ``frames / fps``); ``table`` itself when it has no capture times
+        (already ``frame / fps``) or fewer than two frames.
+    """
+    t = table.frame_time_s
+    if t is None or t.size < 2:
+        return table
+    try:
+        times = FrameTimes(t, table.fps, FROM_CONTAINER)
+    except ValueError:  # times that do not increase: nothing to place them by
+        return table
+    lost = np.zeros(t.size, dtype=np.int64)
+    np.add.at(lost, np.asarray(times.dropped_after, dtype=np.int64), 1)
+    offsets = np.arange(t.size) + np.concatenate([[0], np.cumsum(lost)[:-1]])  # from slot 0
+    rate = float(table.fps)
+    span = float(offsets[-1])
+    if abs(span / rate - float(times.t_s[-1])) > RATE_TOLERANCE / rate:
+        rate = 1.0 / float(np.polyfit(offsets, times.t_s, 1)[0])
+    first = round(float(t[0]) * rate)
+    n, m = int(offsets[-1]) + 1, len(table.labels)
+    positions = np.full((n, m, 3), np.nan)
+    status = np.full((n, m), MISSING, dtype="<U12")
+    reprojection = np.full((n, m), np.nan)
+    positions[offsets], status[offsets] = table.positions_mm, table.status
+    reprojection[offsets] = table.reprojection_px
+    return MarkerTable(
+        fps=rate,
+        frames=np.arange(first, first + n, dtype=np.int64),
+        labels=table.labels,
+        positions_mm=positions,
+        status=status,
+        reprojection_px=reprojection,
+    )
+
+
 def write_c3d(path: str | Path, table: MarkerTable, *, focal_px: float | None = None) -> Path:
-    """Write the trajectories as a C3D file (ezc3d), in mm, frame rate ``table.fps``.
+    """Write the trajectories as a C3D file (ezc3d), in mm, on a uniform time grid.
+
+    ``POINT:RATE`` is the grid's rate and frame k is at k / rate
+    (:func:`on_uniform_grid`): a lost frame is an invalid sample, so that the frames
+    after it keep their time.
 
     Each sample's fourth word says what it is, as the C3D format defines it (its
     camera mask in the high byte, its residual in ``POINT:SCALE`` steps in the low
@@ -40,10 +108,11 @@ def write_c3d(path: str | Path, table: MarkerTable, *, focal_px: float | None = 
     - missing: -1 (C3D's "invalid") and zero coordinates.
 
     ``POINT:SCALE`` is -(largest coordinate / 32000) as the format asks (negative:
-    float storage). The first frame number in the header is the first left-video
-    frame + 1.
+    float storage). The first frame number in the header is the grid's first frame + 1
+    (1 for a recording measured from its first frame).
     """
     path = Path(path)
+    table = on_uniform_grid(table)
     c3d = ezc3d.c3d()
     t, m = table.frames.size, len(table.labels)
     pts = np.zeros((4, m, t))
@@ -104,24 +173,27 @@ def _finish_c3d(path: Path, scale: float, words: NDArray[np.float32]) -> None:
 
 
 def write_trc(path: str | Path, table: MarkerTable) -> Path:
-    """Write the trajectories as an OpenSim TRC file (tab separated, mm).
+    """Write the trajectories as an OpenSim TRC file (tab separated, mm), on a uniform
+    time grid (:func:`on_uniform_grid`).
 
-    Frame numbers start at 1 as the format expects; ``Time`` is the left-video
-    time in s. Missing samples are empty cells.
+    Frame numbers start at 1 as the format expects; ``Time`` is k / ``DataRate`` (s, the
+    left video's clock, frame k of the grid), as readers that take the rate assume.
+    Missing samples, and the lost frames' samples, are empty cells.
     """
     path = Path(path)
+    table = on_uniform_grid(table)
     t, m = table.frames.size, len(table.labels)
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
         "OrigDataStartFrame\tOrigNumFrames",
-        f"{table.fps:.6g}\t{table.fps:.6g}\t{t}\t{m}\tmm\t{table.fps:.6g}\t"
+        f"{table.fps:.10g}\t{table.fps:.10g}\t{t}\t{m}\tmm\t{table.fps:.10g}\t"
         f"{int(table.frames[0]) + 1 if t else 1}\t{t}",
         "Frame#\tTime\t" + "\t".join(f"{name}\t\t" for name in table.labels).rstrip("\t"),
         "\t\t" + "\t".join(f"X{k}\tY{k}\tZ{k}" for k in range(1, m + 1)),
         "",
     ]
-    time_s = table.time_s
+    time_s = table.frames / table.fps
     for i in range(t):
         cells = [str(i + 1), f"{time_s[i]:.6f}"]
         for j in range(m):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import io
+import json
 
 import numpy as np
 import pytest
@@ -426,3 +427,136 @@ def test_fhir_every_observation_says_the_medication_and_dbs_state():
     # The session's state edited: the same resources, each in a new version.
     assert versions["off"].keys() == versions["on"].keys()
     assert all(versions["off"][k] != versions["on"][k] for k in versions["off"])
+
+
+def _lost_frames_table(markers, lost_after: tuple[int, ...], *, fps: float, jitter_s: float):
+    """``markers`` as a camera that lost one frame after each of ``lost_after`` (frame
+    numbers of the written video) records it: the rows of the lost instants removed, the
+    others with their capture times (seeded jitter) and frame numbers of the video, the
+    rate ``fps`` as result.json gives it (a median of jittered intervals can be off).
+    Returns the table and each row's true slot (its instant's number at 60 fps)."""
+    video = np.arange(markers.frames.size - len(lost_after))
+    slots = video + (np.asarray(lost_after)[None, :] < video[:, None]).sum(axis=1)
+    t_s = slots / 60.0 + np.random.default_rng(5).normal(scale=jitter_s, size=slots.size)
+    t_s -= t_s[0]
+    table = markers_csv.MarkerTable(
+        fps=fps,
+        frames=np.arange(slots.size, dtype=np.int64),
+        labels=markers.labels,
+        positions_mm=markers.positions_mm[slots],
+        status=markers.status[slots],
+        reprojection_px=markers.reprojection_px[slots],
+        frame_time_s=t_s,
+    )
+    return table, slots
+
+
+@pytest.mark.filterwarnings("ignore:No analog data found:UserWarning")
+def test_c3d_and_trc_keep_each_frame_at_its_time_after_lost_frames(tmp_path):
+    """Frame k of a C3D or TRC file is at k / rate: a lost frame is an invalid sample, not
+    a frame less. A reviewer found a recording with 3 lost frames written as 297 frames at
+    60.1 Hz: a reader put frame 101 at 1.664 s (taken at 1.699 s), all after frame 200
+    ~50 ms early, and the TRC declared 60.1 Hz beside an irregular Time column."""
+    import dataclasses
+
+    import c3d
+
+    markers = dataclasses.replace(synthetic_trial()[0], fps=60.0)  # Hz
+    table, slots = _lost_frames_table(markers, (100, 101, 200), fps=60.1, jitter_s=0.001)
+    assert table.frames.size == markers.frames.size - 3
+    path = trajectories.write_c3d(tmp_path / "lost.c3d", table)
+    with open(path, "rb") as fh:
+        reader = c3d.Reader(fh)
+        rate = reader.point_rate
+        first_frame = reader.first_frame
+        pts = np.stack([p.copy() for _, p, _ in reader.read_frames()])  # (T, M, 5)
+    assert pts.shape[0] == markers.frames.size  # 300 frames: the lost ones are there
+    assert rate == pytest.approx(60.0, abs=0.01)  # Hz: the capture times' rate, not 60.1
+    assert first_frame == 1
+    lost = np.setdiff1d(np.arange(markers.frames.size), slots)
+    np.testing.assert_array_equal(lost, [101, 103, 203])  # after video frames 100, 101, 200
+    assert (pts[lost][:, :, 3] == -1).all() and (pts[lost][:, :, :3] == 0).all()  # invalid
+    valid = np.isfinite(table.positions_mm).all(axis=2)
+    # Each written frame in the slot of its instant: k / rate is its capture time.
+    np.testing.assert_allclose(pts[slots][valid][:, :3], table.positions_mm[valid], atol=1e-3)
+    np.testing.assert_allclose(slots / rate, table.frame_time_s, atol=0.004)  # s: 1-ms jitter
+    # The TRC: the same grid, a regular Time column at its DataRate, lost frames empty.
+    trc = trajectories.write_trc(tmp_path / "lost.trc", table)
+    lines = trc.read_text().splitlines()
+    header = dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=True))
+    assert int(header["NumFrames"]) == markers.frames.size
+    assert float(header["DataRate"]) == pytest.approx(rate, abs=1e-3)
+    rows = [ln.split("\t") for ln in lines[6:]]
+    times = np.array([float(r[1]) for r in rows])
+    np.testing.assert_allclose(times, np.arange(len(rows)) / float(header["DataRate"]), atol=2e-6)
+    assert all(rows[k][2:] == [""] * 6 for k in lost)
+    _, _, pos = trajectories.read_trc(trc)
+    np.testing.assert_allclose(pos[slots][valid], table.positions_mm[valid], atol=5e-5)  # mm
+    assert np.isnan(pos[lost]).all()
+
+
+def test_uniform_grid_keeps_a_table_without_lost_frames_as_it_is():
+    """Convention: a recording without capture times, or whose times are its frames at
+    its rate, is written frame for frame at its own rate (what was right stays)."""
+    markers = synthetic_trial()[0]
+    assert trajectories.on_uniform_grid(markers) is markers  # no capture times: frame / fps
+    from dataclasses import replace
+
+    timed = replace(markers, frame_time_s=markers.frames / markers.fps)
+    grid = trajectories.on_uniform_grid(timed)
+    assert grid.fps == markers.fps  # the nominal rate, not a fitted 99.99999...
+    np.testing.assert_array_equal(grid.frames, markers.frames)
+    np.testing.assert_array_equal(grid.status, markers.status)
+    np.testing.assert_array_equal(grid.positions_mm, markers.positions_mm)
+
+
+@pytest.mark.filterwarnings("ignore:No analog data found:UserWarning")
+def test_c3d_of_a_measured_recording_with_lost_frames_matches_the_capture_times(tmp_path):
+    """End to end, as the reviewer did: a simulated take whose left camera lost a frame
+    after its frames 100, 101 and 200 (variable frame rate, 1 ms of capture jitter),
+    measured by the analysis, exported through markers.csv and result.json. Each of the
+    C3D's frames is at k / POINT:RATE within the jitter of the instant the camera took it."""
+    import ezc3d
+
+    from core.camera import ImageSize, read_rig
+    from core.pipeline import analyze_recording, write_analysis
+    from core.simulation.kinematics import TappingScenario
+    from core.simulation.session import ImagingScenario, simulate_session
+    from core.simulation.timing import CameraTiming
+
+    left = CameraTiming(jitter_s=0.001, vfr=True, drop_after=(100, 101, 200))
+    sim = simulate_session(
+        tmp_path / "sim",
+        seed=3,
+        tapping=TappingScenario(duration_s=5.0, fps=60.0),
+        imaging=ImagingScenario(
+            image_size=ImageSize(640, 512),
+            codec="h264",
+            left_timing=left,
+            right_timing=CameraTiming(jitter_s=0.001, vfr=True),
+        ),
+    )
+    analysis = analyze_recording(read_rig(sim.rig_path), sim.left_video, sim.right_video)
+    write_analysis(analysis, tmp_path / "out")
+    doc = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert doc["sync"]["dropped_frames_left"] == [100, 101, 200]
+    table = markers_csv.read_markers_csv(tmp_path / "out" / "markers.csv", fps=doc["fps"])
+    assert table.frames.size == 297  # the decoded frames
+
+    c3d = ezc3d.c3d(str(trajectories.write_c3d(tmp_path / "trial.c3d", table)))
+    rate = c3d["parameters"]["POINT"]["RATE"]["value"][0]
+    points = c3d["data"]["points"]  # (4, M, T)
+    assert points.shape[2] == 300  # every instant the camera took, lost ones included
+    assert rate == pytest.approx(60.0, rel=1e-3)  # Hz
+    true_s = np.asarray(sim.truth["cameras"]["left"]["true_time_s"])  # s, each decoded frame
+    slots = np.rint(true_s * 60.0).astype(int)  # the instant's number at the camera's rate
+    lost = np.setdiff1d(np.arange(300), slots)
+    np.testing.assert_array_equal(lost, [101, 103, 203])
+    # Invalid: residual -1, which ezc3d reads as NaN coordinates (zeros in the file: above).
+    assert (c3d["data"]["meta_points"]["residuals"][0][:, lost] < 0).all()
+    assert np.isnan(points[:3][:, :, lost]).all()
+    # Each decoded frame is in the slot of its instant, k / rate its capture time.
+    valid = np.isfinite(table.positions_mm).all(axis=2)  # (T, M)
+    xyz = np.transpose(points[:3][:, :, slots], (2, 1, 0))  # (T, M, 3)
+    np.testing.assert_allclose(xyz[valid], table.positions_mm[valid], atol=1e-3)  # mm
+    np.testing.assert_allclose(slots / rate, true_s - true_s[0], atol=0.004)  # s, 1-ms jitter
