@@ -5,14 +5,21 @@ from __future__ import annotations
 import dataclasses
 import html as html_lib
 import re
+import shutil
+import subprocess
 from datetime import timedelta
 
+import pytest
 from sample_trial import sample_report_data, synthetic_trial
 
 from app.reports.data import ReportData
-from app.reports.rendering import render_visit_html
+from app.reports.rendering import render_report_pdf, render_visit_html, render_visit_pdf
 from app.reports.visit import SessionFacts, VisitData, task_groups
 from core.version import software_version
+
+needs_poppler = pytest.mark.skipif(
+    shutil.which("pdftotext") is None, reason="poppler-utils (pdftotext) is not installed"
+)
 
 
 def _trial(trial_id: int, hand: str, med: str, minutes: int, **kw) -> ReportData:
@@ -83,3 +90,54 @@ def test_one_trial_per_side_and_state_keeps_its_short_label_and_no_pair_note():
         "Left hand, medication off",
     ]
     assert group.pairs == ()
+
+
+def _pdf_pages(pdf: bytes, tmp_path) -> list[str]:
+    path = tmp_path / "report.pdf"
+    path.write_bytes(pdf)
+    text = subprocess.run(
+        ["pdftotext", "-layout", str(path), "-"], check=True, capture_output=True, text=True
+    ).stdout
+    return [" ".join(page.split()) for page in text.split("\f") if page.strip()]
+
+
+@needs_poppler
+def test_every_page_of_the_trial_report_names_patient_task_side_date_and_state(tmp_path):
+    data = dataclasses.replace(sample_report_data(), timezone="Europe/Prague")
+    pages = _pdf_pages(render_report_pdf(data), tmp_path)
+    assert len(pages) > 2
+    running = (
+        "PD-0042 · Finger tapping (MDS-UPDRS 3.4) · right hand · medication off"
+        " · 2025-03-14 10:30 CET · trial #7"
+    )
+    for number, page in enumerate(pages, 1):
+        assert page.startswith(running), (number, page[:200])
+
+
+@needs_poppler
+def test_every_page_of_the_visit_report_names_what_it_shows(tmp_path):
+    right = _trial(3, "right", "off", 0)
+    left = _trial(9, "left", "on", 120)
+    html = render_visit_html(_visit(right, left))
+    # the per-trial heading names the task: two tasks of one hand read apart
+    assert "Finger tapping: right hand, medication off — trial #3" in html_lib.unescape(html)
+    pages = _pdf_pages(render_visit_pdf(_visit(right, left)), tmp_path)
+    assert pages[0].startswith(
+        "PD-0042 · visit of 2025-03-14 · summary of 2 trials: finger tapping · right and left"
+        " · medication off and on"
+    ), pages[0][:200]
+    heads = {
+        3: "PD-0042 · Finger tapping (MDS-UPDRS 3.4) · right hand · medication off"
+        " · 2025-03-14 10:30 CET · trial #3",
+        9: "PD-0042 · Finger tapping (MDS-UPDRS 3.4) · left hand · medication on"
+        " · 2025-03-14 12:30 CET · trial #9",
+    }
+    definitions = "PD-0042 · visit of 2025-03-14 · definitions"
+    shown = [
+        next((h for h in (*heads.values(), definitions) if p.startswith(h)), None) for p in pages
+    ]
+    assert None not in shown[1:], [p[:120] for p in pages]
+    assert set(shown[1:]) == {*heads.values(), definitions}
+    for trial, head in heads.items():  # each trial's detail begins on a page headed by it
+        first = next(p for p in pages if f"— trial #{trial}," in p)
+        assert first.startswith(head), first[:200]
