@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
+from pydantic import Field
 
 from app.actors import Actor
-from app.api.responses import AUTH, Limit, Offset, errors, page
+from app.api.responses import AUTH, Limit, Offset, errors
 from app.apikeys import AUDIT_READ
 from app.auth import SessionDep, require_scope
 from app.schemas import MAX_ID, AuditEventRead, Page, UtcDateTime
@@ -18,15 +19,39 @@ router = APIRouter(prefix="/audit", tags=["audit"])
 AuditReader = Annotated[Actor, Depends(require_scope(AUDIT_READ))]
 
 
+MAX_SEQ = 2**63 - 1  # a BigInteger
+
+
+class AuditPage(Page[AuditEventRead]):
+    """A page of the trail; follow ``next`` for the following one (stable while events
+    are added: it names the sequence number to continue from)."""
+
+    next: str | None = Field(
+        default=None,
+        description="The address (path and query) of the next page, by sequence number;"
+        " null after the last page.",
+        examples=["/api/v1/audit?limit=50&before_seq=1234"],
+    )
+
+
+def _link(request: Request, cursor: dict[str, int] | None) -> str | None:
+    if cursor is None:
+        return None
+    url = request.url.remove_query_params(["offset", "before_seq", "after_seq"])
+    url = url.include_query_params(**cursor)
+    return f"{url.path}?{url.query}"
+
+
 @router.get(
     "",
-    response_model=Page[AuditEventRead],
+    response_model=AuditPage,
     responses=errors(*AUTH),
     summary="Read the audit trail, newest first (filters by patient, actor and time)",
 )
 def list_audit_events(
     actor: AuditReader,
     db: SessionDep,
+    request: Request,
     patient_id: Annotated[
         int | None, Query(ge=1, le=MAX_ID, description="Only events about this patient.")
     ] = None,
@@ -42,9 +67,35 @@ def list_audit_events(
         UtcDateTime | None, Query(description="At or after this time (ISO 8601; UTC if no zone).")
     ] = None,
     until: Annotated[UtcDateTime | None, Query(description="Before this time.")] = None,
+    before_seq: Annotated[
+        int | None,
+        Query(
+            ge=1,
+            le=MAX_SEQ,
+            description="Only events numbered below this (older), newest first: the next"
+            " page of a page whose last item has this seq.",
+        ),
+    ] = None,
+    after_seq: Annotated[
+        int | None,
+        Query(
+            ge=0,
+            le=MAX_SEQ,
+            description="Only events numbered above this (newer), oldest first: to read"
+            " what was added since the event with this seq.",
+        ),
+    ] = None,
     limit: Limit = 50,
     offset: Offset = 0,
-) -> Page[AuditEventRead]:
+) -> AuditPage:
     f = audit_log.make_filter(patient_id=patient_id, actor=actor_filter, since=since, until=until)
-    items, total = audit_log.list_events(db, actor, f, limit=limit, offset=offset)
-    return page(AuditEventRead, items, total, limit=limit, offset=offset)
+    trail = audit_log.read_trail(
+        db, actor, f, limit=limit, offset=offset, before_seq=before_seq, after_seq=after_seq
+    )
+    return AuditPage(
+        items=[AuditEventRead.model_validate(e) for e in trail.items],
+        total=trail.total,
+        limit=limit,
+        offset=offset,
+        next=_link(request, trail.next),
+    )

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import Select, select
+from sqlalchemy import Select, func, or_, select
 from sqlalchemy.orm import Session
 
 from app.audit import AnyActor, audit
@@ -95,6 +95,72 @@ def list_events(
     audit(db, actor, "list", "audit", None, f.patient_id)
     db.commit()
     return items, total
+
+
+@dataclass(frozen=True)
+class TrailPage:
+    """A page of the trail read by sequence number, and where the next page starts.
+
+    ``next`` holds the query parameters of the next page (``before_seq`` or ``after_seq``,
+    and ``offset`` among the events older than the chain), None after the last page.
+    """
+
+    items: list[AuditEvent]
+    total: int
+    next: dict[str, int] | None
+
+
+def read_trail(
+    db: Session,
+    actor: AnyActor,
+    f: AuditFilter,
+    *,
+    limit: int,
+    offset: int = 0,
+    before_seq: int | None = None,
+    after_seq: int | None = None,
+) -> TrailPage:
+    """One page of events by their number ``seq``, audited, committed: newest first and
+    older than ``before_seq`` (the first page without it), or oldest first and newer than
+    ``after_seq``. A page read so does not move when events are added meanwhile (each read
+    of the trail adds one). ``total`` counts the events matching the filter and the cursor.
+
+    Events from before the chain existed (revision 0010) have no number; they are older
+    than every numbered one, come after them newest first and never after ``after_seq``.
+    """
+    if before_seq is not None and after_seq is not None:
+        raise InvalidRequestError(
+            "Give before_seq (older events, newest first) or after_seq (newer events, oldest"
+            " first), not both.",
+            field="after_seq",
+            where="query",
+        )
+    query = _query(f)
+    if after_seq is not None:
+        query = query.where(AuditEvent.seq > after_seq)
+        order: tuple[Any, ...] = (AuditEvent.seq.asc(),)
+    else:
+        if before_seq is not None:
+            query = query.where(or_(AuditEvent.seq < before_seq, AuditEvent.seq.is_(None)))
+        order = (AuditEvent.seq.is_(None), AuditEvent.seq.desc(), AuditEvent.id.desc())
+    items, total = paginate(db, query, *order, limit=limit, offset=offset)
+    following = None
+    if offset + len(items) < total:
+        following = _next_cursor(db, query, items[-1], offset + len(items), after_seq is not None)
+    audit(db, actor, "list", "audit", None, f.patient_id)
+    db.commit()
+    return TrailPage(items, total, following)
+
+
+def _next_cursor(
+    db: Session, query: Select[Any], last: AuditEvent, read: int, forward: bool
+) -> dict[str, int]:
+    """Where the page after ``last`` starts (``read``: events of ``query`` read so far)."""
+    if last.seq is not None:
+        return {"after_seq" if forward else "before_seq": int(last.seq)}
+    # Among the unnumbered events, which no new event joins: an offset is stable there.
+    numbered = select(func.count()).select_from(query.where(AuditEvent.seq.is_not(None)).subquery())
+    return {"before_seq": 1, "offset": read - int(db.scalar(numbered) or 0)}
 
 
 def iter_events(db: Session, f: AuditFilter) -> Iterator[AuditEvent]:
