@@ -363,9 +363,7 @@ def _blur_samples(
     return result
 
 
-def camera_clocks(
-    truth: TrialTruth, imaging: ImagingScenario, seed: int
-) -> dict[str, CameraClock]:
+def camera_clocks(truth: TrialTruth, imaging: ImagingScenario, seed: int) -> dict[str, CameraClock]:
     """When each camera captures its frames (:mod:`core.simulation.timing`).
 
     ``offset_frames`` is the right camera's start in frames of the scenario's rate.
