@@ -52,9 +52,13 @@ def get_result(
     summary="The markers.csv document (one row per frame and marker)",
 )
 def get_markers_csv(
-    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+    trial_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    revision: RevisionQuery = None,
 ) -> FileResponse:
-    path = service.markers_csv_path(db, actor, trial_id, request.app.state.storage)
+    path = service.markers_csv_path(db, actor, trial_id, request.app.state.storage, revision)
     return FileResponse(
         path, media_type="text/csv; charset=utf-8", filename=f"trial-{trial_id}-markers.csv"
     )
@@ -120,9 +124,15 @@ def get_report_pdf(
     },
     summary="The trial's result as a FHIR R4 Bundle",
 )
-def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request) -> Response:
+def get_fhir(
+    trial_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    revision: RevisionQuery = None,
+) -> Response:
     bundle = service.fhir_bundle(
-        db, actor, trial_id, request.app.state.storage, timezone=_tz(request)
+        db, actor, trial_id, request.app.state.storage, revision, timezone=_tz(request)
     )
     return JSONResponse(bundle, media_type="application/fhir+json")
 
@@ -136,9 +146,14 @@ def get_fhir(trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Req
     summary="The marker trajectories as a C3D file (motion-capture tools)",
 )
 def get_markers_c3d(
-    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+    trial_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    revision: RevisionQuery = None,
 ) -> Response:
-    body = trajectories.trajectory_file(db, actor, trial_id, "c3d", request.app.state.storage)
+    storage = request.app.state.storage
+    body = trajectories.trajectory_file(db, actor, trial_id, "c3d", storage, revision)
     return attachment(body, "application/octet-stream", f"trial-{trial_id}-markers.c3d")
 
 
@@ -149,7 +164,12 @@ def get_markers_c3d(
     summary="The marker trajectories as an OpenSim TRC file",
 )
 def get_markers_trc(
-    trial_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
+    trial_id: IdPath,
+    actor: ResultReader,
+    db: SessionDep,
+    request: Request,
+    revision: RevisionQuery = None,
 ) -> Response:
-    body = trajectories.trajectory_file(db, actor, trial_id, "trc", request.app.state.storage)
+    storage = request.app.state.storage
+    body = trajectories.trajectory_file(db, actor, trial_id, "trc", storage, revision)
     return attachment(body, "text/plain; charset=utf-8", f"trial-{trial_id}-markers.trc")

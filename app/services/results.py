@@ -46,9 +46,18 @@ from core.tasks import parse_task
 T = TypeVar("T")
 
 
-def _result_of(
+def result_of(
     db: Session, actor: Actor, trial_id: int, action: str, revision: int | None = None
 ) -> tuple[Trial, Result]:
+    """The trial and its current result, or its revision ``revision``.
+
+    Raises
+    ------
+    NotFoundError
+        No such trial (audited), or no such revision (audited).
+    ConflictError
+        The trial has no result: its analysis failed, or has not finished yet.
+    """
     trial = load_trial(db, actor, trial_id, action)
     result = trial.result
     if result is not None and revision is not None:
@@ -304,16 +313,18 @@ def get_result(
 
     409 until the first analysis has succeeded; 404 for a revision that does not exist.
     """
-    trial, result = _result_of(db, actor, trial_id, action, revision)
+    trial, result = result_of(db, actor, trial_id, action, revision)
     document = served_document(result)
     audit(db, actor, action, "result", trial.id, trial.session.patient_id)
     db.commit()
     return document
 
 
-def markers_csv_path(db: Session, actor: Actor, trial_id: int, storage: Storage) -> Path:
-    """The stored ``markers.csv`` of the trial."""
-    trial, result = _result_of(db, actor, trial_id, "export")
+def markers_csv_path(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, revision: int | None = None
+) -> Path:
+    """The stored ``markers.csv`` of the trial's current result, or of ``revision``."""
+    trial, result = result_of(db, actor, trial_id, "export", revision)
     path = storage.absolute(result.markers_path) if result.markers_path else None
     if path is None or not path.is_file():
         raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
@@ -328,7 +339,7 @@ def _report_data(
     revision: int | None,
     timezone: str,
 ) -> tuple[Trial, ReportData]:
-    trial, result = _result_of(db, actor, trial_id, "export", revision)
+    trial, result = result_of(db, actor, trial_id, "export", revision)
     return trial, load_report_data(db, trial, storage, result, timezone=timezone)
 
 
@@ -366,10 +377,17 @@ def report_pdf(
 
 
 def fhir_bundle(
-    db: Session, actor: Actor, trial_id: int, storage: Storage, *, timezone: str = "UTC"
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    storage: Storage,
+    revision: int | None = None,
+    *,
+    timezone: str = "UTC",
 ) -> dict[str, Any]:
-    """A FHIR R4 Bundle (DiagnosticReport + Observations, the PDF attached)."""
-    trial, data = _report_data(db, actor, trial_id, storage, None, timezone)
+    """A FHIR R4 Bundle (DiagnosticReport + Observations, the PDF attached) of the current
+    result or of ``revision`` (its resources carry the revision as their version)."""
+    trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
     from app.exports import fhir_bundle as make_fhir_bundle  # fhir.resources: ~1 s to import
 
     cache = ReportPdfCache.of(storage)

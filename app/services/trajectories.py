@@ -17,8 +17,7 @@ from app.actors import Actor
 from app.errors import NotFoundError
 from app.models import Calibration
 from app.reports.data import ReportData
-from app.services.common import load_trial
-from app.services.results import exported, load_report_data
+from app.services.results import exported, load_report_data, result_of
 from app.storage import Storage
 from core.camera import rig_from_dict
 
@@ -35,11 +34,17 @@ def left_focal_px(db: Session, data: ReportData) -> float | None:
 
 
 def trajectory_file(
-    db: Session, actor: Actor, trial_id: int, kind: Literal["c3d", "trc"], storage: Storage
+    db: Session,
+    actor: Actor,
+    trial_id: int,
+    kind: Literal["c3d", "trc"],
+    storage: Storage,
+    revision: int | None = None,
 ) -> bytes:
-    """The trial's marker trajectories as a C3D or TRC file (audited as ``c3d_file``/``trc_file``)."""
-    trial = load_trial(db, actor, trial_id, "export")
-    data = load_report_data(db, trial, storage, markers=True)
+    """The marker trajectories of the trial's current result, or of its revision
+    ``revision``, as a C3D or TRC file (audited as ``c3d_file``/``trc_file``)."""
+    trial, result = result_of(db, actor, trial_id, "export", revision)
+    data = load_report_data(db, trial, storage, result, markers=True)
     if data.markers is None:
         raise NotFoundError(f"The markers file of trial {trial.id} is missing from storage.")
     with tempfile.TemporaryDirectory() as tmp:
