@@ -93,6 +93,9 @@ class VisitData:
     generated_at : datetime (UTC)
     signature : SignatureLine or None
         Who signed this report, when, and which revisions (None: not signed).
+    signatures_on_record : tuple of SignatureLine
+        The visit's signatures (oldest first) when this copy is not a signed one: a
+        copy made later says that it is not the signed record and where that is.
     """
 
     patient_code: str
@@ -104,6 +107,7 @@ class VisitData:
     software_version: str
     generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     signature: SignatureLine | None = None
+    signatures_on_record: tuple[SignatureLine, ...] = ()
 
     def signed(self, line: SignatureLine) -> VisitData:
         """This visit as signed by ``line`` (the report's signature box filled in)."""

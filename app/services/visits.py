@@ -9,15 +9,17 @@ Each report is audited as one ``export`` of the session it was asked for.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.audit import audit
-from app.models import RecordingSession, User
+from app.models import RecordingSession, Signature, User
 from app.reports.pdf_cache import ReportPdfCache
 from app.reports.rendering import render_visit_html, render_visit_pdf, visit_key
-from app.reports.visit import SessionFacts, VisitData
+from app.reports.visit import SessionFacts, SignatureLine, VisitData
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.results import load_report_data
 from app.storage import Storage
@@ -62,11 +64,36 @@ def load_visit(
     )
 
 
+def signatures_on_record(
+    db: Session, session: RecordingSession, timezone: str
+) -> tuple[SignatureLine, ...]:
+    """The signatures of ``session``'s visit, oldest first, as the report prints them
+    (read only; :mod:`app.services.signatures` makes them and judges what changed)."""
+    day = local_date(session.recorded_at, timezone)
+    rows = db.scalars(
+        select(Signature)
+        .where(Signature.patient_id == session.patient_id, Signature.visit_date == day.isoformat())
+        .order_by(Signature.number)
+    )
+    return tuple(
+        SignatureLine(
+            signed_by=row.signed_by,
+            signed_at=row.signed_at,
+            number=row.number,
+            amends=row.amends_number,
+            revisions=tuple(sorted((int(k), int(v)) for k, v in row.trial_revisions.items())),
+        )
+        for row in rows
+    )
+
+
 def _visit(
     db: Session, actor: Actor, session_id: int, storage: Storage, timezone: str
 ) -> tuple[RecordingSession, VisitData]:
+    """The visit as a copy made now: not the signed record, which it names if there is one."""
     session = load_session(db, actor, session_id, "export")
-    return session, load_visit(db, session, storage, timezone=timezone)
+    visit = load_visit(db, session, storage, timezone=timezone)
+    return session, replace(visit, signatures_on_record=signatures_on_record(db, session, timezone))
 
 
 def visit_report_html(

@@ -25,7 +25,7 @@ from app.reports.data import ReportData
 from app.reports.figures import comparison_plots
 from app.reports.rendering import report_context
 from app.schemas import MAX_ID, IdPath, TrialRatingUpdate
-from app.services import results, trajectories, trials
+from app.services import results, trajectories, trials, visits
 from app.services.common import load_trial
 from app.storage import Storage
 from app.web.common import (
@@ -139,6 +139,8 @@ def trial_page(
             patient=patient,
             job=page.job,
         )
+    # the visit's signatures, so that the visit report offered is the signed one where it is
+    signed = visits.signatures_on_record(db, trial.session, settings_of(request).timezone)
     comparison = None
     if page.comparison is not None:
         comparison = _comparison(page.data, page.comparison.data)
@@ -163,6 +165,7 @@ def trial_page(
             else None
         ),
         downloads=DOWNLOADS,
+        signed_visit=signed[-1] if signed else None,
         **report_context(page.data),
     )
 

@@ -14,7 +14,7 @@ from sample_trial import sample_report_data, synthetic_trial
 
 from app.reports.data import ReportData
 from app.reports.rendering import render_report_pdf, render_visit_html, render_visit_pdf
-from app.reports.visit import SessionFacts, VisitData, task_groups
+from app.reports.visit import SessionFacts, SignatureLine, VisitData, task_groups
 from core.version import software_version
 
 needs_poppler = pytest.mark.skipif(
@@ -141,3 +141,26 @@ def test_every_page_of_the_visit_report_names_what_it_shows(tmp_path):
     for trial, head in heads.items():  # each trial's detail begins on a page headed by it
         first = next(p for p in pages if f"— trial #{trial}," in p)
         assert first.startswith(head), first[:200]
+
+
+def test_a_copy_made_now_says_it_is_not_the_signed_record_and_where_that_is():
+    right, left = _trial(3, "right", "off", 0), _trial(9, "left", "off", 5)
+    unsigned = _text(render_visit_html(_visit(right, left)))
+    assert "Not signed. No clinician has signed this visit report" in unsigned
+    line = SignatureLine(
+        signed_by="Dr. Sign",
+        signed_at=right.recorded_at + timedelta(hours=3),
+        number=1,
+        revisions=((3, 1), (9, 1)),
+    )
+    later = _text(render_visit_html(_visit(right, left, signatures_on_record=(line,))))
+    assert (
+        "Not the signed record. This visit was signed as signature 1 on 2025-03-14 13:30 CET by"
+        " Dr. Sign; this copy was generated later" in later
+    )
+    assert "/sessions/1/signed/1.pdf" in later
+    # its signature box is not left blank to be taken for an unsigned record
+    assert "Not in this copy: signed electronically as signature 1 by Dr. Sign" in later
+    signed = _text(render_visit_html(_visit(right, left).signed(line)))
+    assert "Not signed" not in signed and "Not the signed record" not in signed
+    assert "Electronically signed by Dr. Sign" in signed
