@@ -129,3 +129,58 @@ def test_a_take_of_the_sessions_rig_named_or_not_is_the_same_take(api: Api, take
         rig_id = db.get(Trial, stored.json()["id"]).session.rig_id
     again = send(data | {"rig_id": str(rig_id)}, trial_files(*first))
     assert again.status_code == 201 and again.json()["stored_before"] is True, again.text
+
+
+def _vfr_video(path: Path, t_s: np.ndarray, *, shift_px: int = 0) -> Path:
+    """An H.264 video whose frames carry the presentation times ``t_s`` (variable frame
+    rate: a lost frame is a longer interval), a dot moving on grey."""
+    from api_support import VIDEO_FPS, VIDEO_SIZE
+
+    from core.video import VideoWriter
+
+    size = VIDEO_SIZE
+    yy, xx = np.mgrid[0 : size.height, 0 : size.width]
+    with VideoWriter(path, fps=VIDEO_FPS, image_size=size, codec="h264") as writer:
+        for i, t in enumerate(t_s):
+            frame = np.full((size.height, size.width), 60, np.uint8)
+            frame[(xx - 20 - shift_px - 3 * i) ** 2 + (yy - size.height / 2) ** 2 < 36] = 230
+            writer.write(frame, time_s=float(t))
+    return path
+
+
+def test_the_quick_check_of_a_variable_frame_rate_take_reads_the_container_times(
+    api: Api, take, tmp_path: Path
+) -> None:
+    """Without a timestamps file, the check counts the frames a camera lost as the analysis
+    does, from the container's times: a reviewer found ``time_source: "fps"`` and
+    ``dropped_frames: null`` for a take whose analysis found them."""
+    from core.timing import frame_times_from_timestamps
+    from core.video import iter_frames
+
+    send, _, _ = take
+    slots = np.delete(np.arange(33), [10, 21, 22])  # lost after frames 9, 19 and 19 again
+    jitter = np.random.default_rng(8).normal(scale=0.001, size=slots.size)  # s
+    left = _vfr_video(tmp_path / "vfr-left.mp4", 0.01 + slots / 30.0 + jitter)
+    right = _vfr_video(tmp_path / "vfr-right.mp4", np.arange(30) / 30.0, shift_px=2)
+    data = {"hand": "right", "take_id": "take-vfr"}
+    r = send(data, trial_files(left, right))
+    assert r.status_code == 201, r.text
+    check = r.json()["take"]
+    assert check["left"]["time_source"] == "container", check
+    assert check["left"]["dropped_frames"] == 3, check
+    assert check["left"]["frame_count"] == 30
+    assert check["left"]["duration_s"] == pytest.approx(33 / 30, abs=0.005)  # s, lost included
+    assert check["left"]["fps"] == pytest.approx(30.0, abs=0.5)  # Hz, median of jittered steps
+    # A constant-rate file's times cannot tell: as before.
+    assert check["right"]["time_source"] == "fps" and check["right"]["dropped_frames"] is None
+    # What the analysis finds from the decoded frames' timestamps (core.pipeline's rule).
+    stamps: list[float] = []
+    for _ in iter_frames(left, times_out=stamps):
+        pass
+    decoded = frame_times_from_timestamps(stamps, fps=30.0)
+    assert decoded.source == "container" and len(decoded.dropped_after) == 3
+    assert check["left"]["fps"] == round(decoded.fps, 2)
+    # The take sent again answers the same check, read again from the stored files.
+    again = send(data, trial_files(left, right))
+    assert again.status_code == 201 and again.json()["stored_before"] is True
+    assert again.json()["take"] == check
