@@ -71,6 +71,21 @@ class SignatureLine:
 
 
 @dataclass(frozen=True)
+class HiddenTrial:
+    """A trial of the visit that was hidden: not reported, but named with who hid it and why
+    (a signature then tells what it left out, not only what it signed)."""
+
+    trial_id: int
+    task: str
+    hand: str
+    medication_state: str
+    recorded_at: datetime
+    hidden_at: datetime
+    hidden_by: str | None = None
+    reason: str | None = None
+
+
+@dataclass(frozen=True)
 class VisitData:
     """Everything the visit report shows.
 
@@ -96,6 +111,8 @@ class VisitData:
     signatures_on_record : tuple of SignatureLine
         The visit's signatures (oldest first) when this copy is not a signed one: a
         copy made later says that it is not the signed record and where that is.
+    hidden : tuple of HiddenTrial
+        The visit's hidden trials, listed with who hid them, when and why.
     """
 
     patient_code: str
@@ -108,6 +125,7 @@ class VisitData:
     generated_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     signature: SignatureLine | None = None
     signatures_on_record: tuple[SignatureLine, ...] = ()
+    hidden: tuple[HiddenTrial, ...] = ()
 
     def signed(self, line: SignatureLine) -> VisitData:
         """This visit as signed by ``line`` (the report's signature box filled in)."""

@@ -8,7 +8,7 @@ code stays reserved so that it cannot be given to somebody else by mistake.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
 
 from sqlalchemy import func, select
@@ -197,10 +197,12 @@ def patient_list(db: Session, actor: Actor, *, q: str, limit: int, offset: int) 
 
 @dataclass(frozen=True)
 class SessionRow:
-    """A session on its patient's page, with its visible trials."""
+    """A session on its patient's page, with its visible trials and its hidden ones (a side
+    whose trials were all hidden reads "hidden", not as never recorded)."""
 
     session: RecordingSession
     trials: list[Trial]
+    hidden: list[Trial] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -348,7 +350,14 @@ def patient_overview(db: Session, actor: Actor, patient_id: int) -> PatientOverv
         key=lambda s: (s.recorded_at, s.id),
         reverse=True,
     )
-    rows = [SessionRow(s, [t for t in s.trials if t.deleted_at is None]) for s in sessions]
+    rows = [
+        SessionRow(
+            s,
+            [t for t in s.trials if t.deleted_at is None],
+            [t for t in s.trials if t.deleted_at is not None],
+        )
+        for s in sessions
+    ]
     newest = job_views.latest_jobs(db, trial_ids=[t.id for r in rows for t in r.trials])
     overview = PatientOverview(
         patient=patient,

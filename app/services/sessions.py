@@ -12,7 +12,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app import job_views, jobs
-from app.actors import ADMIN_SCOPE, Actor
+from app.actors import Actor
 from app.audit import audit
 from app.errors import AppError, InvalidRequestError
 from app.models import Calibration, Job, RecordingSession, Rig, Trial, utcnow
@@ -151,7 +151,7 @@ class SessionOverview:
     calibration: Calibration | None
     calibration_problem: str | None
     hidden: list[Trial] = field(default_factory=list)
-    """Hidden trials, listed for admins only (who can restore them)."""
+    """Hidden trials, each with who hid it, when and why (an admin can restore them)."""
 
 
 def session_overview(db: Session, actor: Actor, session_id: int) -> SessionOverview:
@@ -169,9 +169,7 @@ def session_overview(db: Session, actor: Actor, session_id: int) -> SessionOverv
         trials=[TrialRow(t, newest.get(t.id)) for t in trials],
         calibration=calibration,
         calibration_problem=problem,
-        hidden=[t for t in row.trials if t.deleted_at is not None]
-        if actor.has_scope(ADMIN_SCOPE)
-        else [],
+        hidden=[t for t in row.trials if t.deleted_at is not None],
     )
     audit(db, actor, "read", "session", row.id, row.patient_id)
     db.commit()

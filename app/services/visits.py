@@ -19,7 +19,7 @@ from app.audit import audit
 from app.models import RecordingSession, Signature, User
 from app.reports.pdf_cache import ReportPdfCache
 from app.reports.rendering import render_visit_html, render_visit_pdf, visit_key
-from app.reports.visit import SessionFacts, SignatureLine, VisitData
+from app.reports.visit import HiddenTrial, SessionFacts, SignatureLine, VisitData
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.results import load_report_data
 from app.storage import Storage
@@ -35,7 +35,8 @@ def _clinician(db: Session, user_id: int | None) -> str | None:
 def load_visit(
     db: Session, session: RecordingSession, storage: Storage, *, timezone: str = "UTC"
 ) -> VisitData:
-    """The visit of ``session``: its sessions and every trial of them with a result."""
+    """The visit of ``session``: its sessions, every trial of them with a result, and the
+    hidden ones (named with who hid them, when and why)."""
     sessions = visit_sessions(session, timezone)
     return VisitData(
         patient_code=session.patient.code,
@@ -61,6 +62,21 @@ def load_visit(
             for t in visit_trials(session, timezone)
         ),
         software_version=software_version(),
+        hidden=tuple(
+            HiddenTrial(
+                trial_id=t.id,
+                task=t.task,
+                hand=t.hand,
+                medication_state=s.medication_state,
+                recorded_at=s.recorded_at,
+                hidden_at=t.deleted_at,
+                hidden_by=t.deleted_by,
+                reason=t.deleted_reason,
+            )
+            for s in sessions
+            for t in sorted(s.trials, key=lambda t: t.id)
+            if t.deleted_at is not None
+        ),
     )
 
 

@@ -180,7 +180,10 @@ def patient_page(request: Request, db: SessionDep, user: PageUser, patient_id: I
         active="patients",
         title=f"Patient {overview.patient.code}",
         patient=overview.patient,
-        rows=[{"session": r.session, "trials": r.trials} for r in overview.sessions],
+        rows=[
+            {"session": r.session, "trials": r.trials, "hidden": r.hidden}
+            for r in overview.sessions
+        ],
         trend_groups=[g for g in groups if g["trends"] or g["table"]],
         job_ids=overview.job_ids,
         format_metric=format_metric,

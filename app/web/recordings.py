@@ -20,7 +20,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Resp
 from sqlalchemy.orm import Session
 
 from app import job_views
-from app.actors import Actor
+from app.actors import ADMIN_SCOPE, Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Job, Trial
@@ -59,17 +59,27 @@ def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
     return None
 
 
-def _task_grid(trials: list[Trial]) -> list[dict[str, Any]]:
+def _newest_of(trials: list[Trial], task: Task, side: str) -> Trial | None:
+    mine = [t for t in trials if t.task == task.value and t.hand == side]
+    return max(mine, key=lambda t: t.id) if mine else None
+
+
+def _task_grid(trials: list[Trial], hidden: list[Trial]) -> list[dict[str, Any]]:
     """One row per task (MDS-UPDRS 3.4–3.8): the newest trial of each side, and the
-    right–left comparison of the task when both sides have a result."""
+    right–left comparison of the task when both sides have a result; a side whose trials
+    were all hidden shows the newest hidden one (it was recorded: "hidden", not "not
+    recorded")."""
     rows = []
     for task in Task:
         of_task = [t for t in trials if t.task == task.value]
-        sides: dict[str, Trial | None] = {}
-        for side in ("right", "left"):
-            mine = [t for t in of_task if t.hand == side]
-            sides[side] = max(mine, key=lambda t: t.id) if mine else None
-        rows.append({"title": task.heading, "sides": sides, "pair": _hand_pair(of_task)})
+        rows.append(
+            {
+                "title": task.heading,
+                "sides": {side: _newest_of(trials, task, side) for side in ("right", "left")},
+                "hidden": {side: _newest_of(hidden, task, side) for side in ("right", "left")},
+                "pair": _hand_pair(of_task),
+            }
+        )
     return rows
 
 
@@ -106,12 +116,13 @@ def _session_response(
             for row in overview.trials
         ],
         hidden_trials=overview.hidden,
+        can_restore=user.has_scope(ADMIN_SCOPE),
         signing=signatures.visit_signing(db, session, str(settings_of(request).timezone)),
         calibration=overview.calibration,
         calibration_problem=overview.calibration_problem,
         hands=("left", "right"),
         done_hands={t.hand for t in trials if t.status != "failed"},
-        task_grid=_task_grid(trials),
+        task_grid=_task_grid(trials, overview.hidden),
         task_labels={task.value: task.label for task in Task},
         task_choices=[(task.value, task.heading) for task in Task],
         other_rigs=[r for r in all_rigs(db) if r.id != session.rig_id],

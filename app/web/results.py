@@ -16,7 +16,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from app.actors import Actor
+from app.actors import ADMIN_SCOPE, Actor
 from app.auth import SessionDep
 from app.errors import AppError, NotFoundError
 from app.models import Trial
@@ -25,7 +25,7 @@ from app.reports.data import ReportData
 from app.reports.figures import comparison_plots
 from app.reports.rendering import report_context
 from app.schemas import MAX_ID, IdPath, TrialRatingUpdate
-from app.services import results, trajectories, trials, visits
+from app.services import hidden_trials, results, trajectories, trials, visits
 from app.services.common import load_trial
 from app.storage import Storage
 from app.web.common import (
@@ -116,6 +116,19 @@ def trial_page(
     compare_id = int(compare) if compare and compare.strip().isdigit() else None
     if compare_id is not None and not 0 < compare_id <= MAX_ID:
         compare_id = None  # no such trial: said so below
+    hidden = hidden_trials.hidden_trial_page(db, user, trial_id)
+    if hidden is not None:  # who hid it, when and why, and how it comes back
+        return render(
+            request,
+            "trial_hidden.html",
+            user,
+            status_code=410,
+            active="patients",
+            title=f"Trial {hidden.id} (hidden) — {hidden.session.patient.code}",
+            trial=hidden,
+            patient=hidden.session.patient,
+            can_restore=user.has_scope(ADMIN_SCOPE),
+        )
     try:
         page = results.trial_page(
             db,

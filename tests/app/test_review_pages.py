@@ -90,7 +90,7 @@ def test_hide_restore_and_edit_from_the_session_page(client, seeded, db_sessionm
     )
     assert r.status_code == 303
     assert _events(db_sessionmaker, since) == [("delete", "trial", "success")]
-    assert client.get(f"/trials/{t}").status_code == 404
+    assert client.get(f"/trials/{t}").status_code == 410  # says it was hidden, and why
     # A clinician cannot restore it; the refusal is audited.
     since = _last_event_id(db_sessionmaker)
     assert client.post(f"/trials/{t}/restore", data={"csrf_token": csrf}).status_code == 403
