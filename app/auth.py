@@ -293,7 +293,7 @@ def get_optional_user(request: Request, db: SessionDep) -> Actor | None:
 OptionalUser = Annotated[Actor | None, Depends(get_optional_user)]
 
 
-def require_scope(*scopes: str) -> Callable[..., Any]:
+def require_scope(*scopes: str, refusal: str | None = None) -> Callable[..., Any]:
     """A dependency returning the :class:`Actor` if it holds *every* one of ``scopes``.
 
     Example::
@@ -301,7 +301,9 @@ def require_scope(*scopes: str) -> Callable[..., Any]:
         @router.get("/patients")
         def list_patients(actor: Annotated[Actor, Depends(require_scope("patients:read"))]): ...
 
-    A refusal is recorded in the audit trail (outcome ``denied``) and answered 403.
+    A refusal is recorded in the audit trail (outcome ``denied``) and answered 403 with
+    ``refusal``, or by default a sentence naming the missing scopes (give ``refusal`` for
+    ``admin``, which no API key holds and nobody grants: say who does it, and where).
     """
     unknown = set(scopes) - set(SCOPES) - {ADMIN_SCOPE}
     if unknown:
@@ -311,6 +313,8 @@ def require_scope(*scopes: str) -> Callable[..., Any]:
         missing = [s for s in scopes if not actor.has_scope(s)]
         if missing:
             audit_failure(db, actor, "access", "route", request.url.path[:64], outcome="denied")
+            if refusal is not None:
+                raise PermissionDeniedError(refusal)
             raise PermissionDeniedError(
                 f"This {'API key' if actor.type == 'api_client' else 'account'} lacks the"
                 f" scope {', '.join(missing)}; ask the administrator to grant it."

@@ -117,9 +117,30 @@ def validate_times(path: Path, *, label: str, n_frames: int | None) -> FrameTime
             " timestamps file holds one short line per frame (frame,time_s)."
         )
     try:
-        return read_times_csv(path, n_frames=n_frames)
+        times = read_times_csv(path, n_frames=n_frames)
     except InputError as exc:
         raise InvalidUpload(_capital(_sentence(exc).replace(path.name, label))) from exc
+    _refuse_milliseconds(times, label)
+    return times
+
+
+MS_LIKE_INTERVAL_S = (1.0, 1000.0)
+"""A median frame interval in this range (s) is a camera's 1000 to 1 frames per second
+written in milliseconds: no recording is taken at less than one frame a second."""
+
+
+def _refuse_milliseconds(times: FrameTimes, label: str) -> None:
+    """Refuse a timestamps file whose times look like milliseconds (a frame interval about
+    1000 times a camera's): else the pair would be refused for lasting hours."""
+    interval = times.interval_s  # the median interval
+    low, high = MS_LIKE_INTERVAL_S
+    if low <= interval <= high:
+        raise InvalidUpload(
+            f"{_capital(label)} seems to be written in milliseconds: its frames are"
+            f" {interval:.4g} apart, {1000 / interval:.3g} frames per second in milliseconds but"
+            f" one frame every {interval:.4g} s in seconds. The column time_s takes seconds:"
+            " divide its times by 1000 and upload it again."
+        )
 
 
 def _capital(text: str) -> str:

@@ -177,7 +177,9 @@ class ParsedUpload:
     def require_file(self, name: str) -> StagedFile:
         if name not in self.files:
             raise InvalidUpload(
-                f"The upload lacks the file {self.label(name)}; attach it and retry."
+                f"The upload lacks the file {self.label(name)}; attach it and retry.",
+                field=name,
+                kind="missing",
             )
         return self.files[name]
 
@@ -185,8 +187,16 @@ class ParsedUpload:
         value = self.fields.get(name)
         if value is None or value.strip() == "":
             if name in self.labels:
-                raise InvalidUpload(f"Fill in {self.label(name)} and send the form again.")
-            raise InvalidUpload(f"The upload lacks the form field {name!r}; fill it in and retry.")
+                raise InvalidUpload(
+                    f"Fill in {self.label(name)} and send the form again.",
+                    field=name,
+                    kind="missing",
+                )
+            raise InvalidUpload(
+                f"The upload lacks the form field {name!r}; fill it in and retry.",
+                field=name,
+                kind="missing",
+            )
         return value.strip()
 
 

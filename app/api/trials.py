@@ -20,7 +20,17 @@ from app.uploads import ParsedUpload
 from core.tasks import TASKS
 
 router = APIRouter(tags=["trials"])
-Admin = Annotated[Actor, Depends(require_scope(ADMIN_SCOPE))]
+Restorer = Annotated[
+    Actor,
+    Depends(
+        require_scope(
+            ADMIN_SCOPE,
+            refusal="Restoring a hidden trial is done by an administrator, logged in to the"
+            " browser: the trial's session page lists its hidden trials, each with a Restore"
+            " button. No API key can do it (none holds the scope admin).",
+        )
+    ),
+]
 
 TRIAL_BODY = multipart_body(
     {
@@ -163,7 +173,7 @@ def delete_trial(
     responses=errors(*AUTH, 404),
     summary="Restore a hidden trial (administrators only)",
 )
-def restore_trial(trial_id: IdPath, actor: Admin, db: SessionDep) -> TrialRead:
+def restore_trial(trial_id: IdPath, actor: Restorer, db: SessionDep) -> TrialRead:
     trial = service.restore_trial(db, actor, trial_id)
     return TrialRead(**service.trial_view(db, trial))
 

@@ -42,7 +42,9 @@ def parse_actor(text: str | None) -> tuple[str | None, str | None]:
     if match is None:
         raise InvalidRequestError(
             f"actor must be one of {', '.join(ACTOR_TYPES)}, optionally with ':id'"
-            " (e.g. user:3, api_client:2, system:cli:root)."
+            " (e.g. user:3, api_client:2, system:cli:root).",
+            field="actor",
+            where="query",
         )
     return match.group(1), match.group(2)
 
@@ -68,7 +70,7 @@ def make_filter(
 ) -> AuditFilter:
     actor_type, actor_id = parse_actor(actor)
     if since is not None and until is not None and until < since:
-        raise InvalidRequestError("until is before since; swap them.")
+        raise InvalidRequestError("until is before since; swap them.", field="until", where="query")
     return AuditFilter(patient_id, actor_type, actor_id, since, until)
 
 

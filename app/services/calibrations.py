@@ -148,7 +148,8 @@ def _valid_from(upload: ParsedUpload, *, first: bool) -> datetime:
             value = datetime.fromisoformat(raw.replace("Z", "+00:00"))
         except ValueError as exc:
             raise InvalidUpload(
-                "valid_from must be an ISO 8601 date-time such as 2026-01-31T08:00:00Z."
+                "valid_from must be an ISO 8601 date-time such as 2026-01-31T08:00:00Z.",
+                field="valid_from",
             ) from exc
         return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
     # A rig's first calibration also covers sessions recorded before it was uploaded.
@@ -166,7 +167,8 @@ def _number(
     if value is None or not math.isfinite(value) or not low <= value <= high:
         what = "a whole number" if kind is int else "a number"
         raise InvalidUpload(
-            f"{upload.labels.get(name, name)} must be {what} between {low:g} and {high:g}."
+            f"{upload.labels.get(name, name)} must be {what} between {low:g} and {high:g}.",
+            field=name,
         )
     return value
 
@@ -174,7 +176,8 @@ def _number(
 def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
     board = upload.require_field("board").lower()
     if board not in BOARDS:
-        raise InvalidUpload(f"board must be 'chessboard' or 'charuco', not {board[:20]!r}.")
+        what = f"board must be 'chessboard' or 'charuco', not {board[:20]!r}."
+        raise InvalidUpload(what, field="board")
     fields: dict[str, Any] = {
         "board": board,
         "cols": _number(upload, "cols", int, 2, 200),
@@ -184,14 +187,18 @@ def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
     if board == "charuco":
         fields["marker_mm"] = _number(upload, "marker_mm", float, 0.05, 1000.0)
         if fields["marker_mm"] >= fields["square_mm"]:
-            raise InvalidUpload("marker_mm must be smaller than square_mm for a ChArUco board.")
+            raise InvalidUpload(
+                "marker_mm must be smaller than square_mm for a ChArUco board.", field="marker_mm"
+            )
         dictionary = (upload.fields.get("dictionary") or DEFAULT_DICTIONARY).strip()
         if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
-            raise InvalidUpload(f"dictionary {dictionary[:40]!r} is not an ArUco dictionary name.")
+            what = f"dictionary {dictionary[:40]!r} is not an ArUco dictionary name."
+            raise InvalidUpload(what, field="dictionary")
         fields["dictionary"] = dictionary
         legacy = (upload.fields.get("legacy") or "").strip().lower()
         if legacy not in ("", "0", "false", "off", "no", "1", "true", "on", "yes"):
-            raise InvalidUpload(f"legacy must be true or false, not {legacy[:20]!r}.")
+            what = f"legacy must be true or false, not {legacy[:20]!r}."
+            raise InvalidUpload(what, field="legacy")
         if legacy in ("1", "true", "on", "yes"):
             fields["legacy"] = True  # a board printed with OpenCV before 4.6
     try:  # the measurement library's own rules for a board, too

@@ -7,10 +7,10 @@ from typing import Any, TypeVar
 from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session
 
-from app import jobs
+from app import job_views, jobs
 from app.actors import Actor
 from app.audit import audit_failure
-from app.errors import NotFoundError
+from app.errors import ConflictError, NotFoundError
 from app.models import Job, Patient, RecordingSession, Rig, Trial
 from app.timezones import local_date
 
@@ -82,6 +82,25 @@ def load_trial(db: Session, actor: Actor, trial_id: int, action: str) -> Trial:
     if row is None:
         raise not_found(db, actor, action, "trial", trial_id, "The trial")
     return row
+
+
+def no_result(db: Session, trial: Trial) -> ConflictError:
+    """Why ``trial`` has no result to serve or correct, and what to do: its analysis failed
+    (waiting will not help: measure it again), or it has not finished yet (wait)."""
+    if trial.status == "failed":
+        job = job_views.latest_job(db, trial_id=trial.id)
+        error = (job.error or "").strip().rstrip(".") if job is not None else ""
+        return ConflictError(
+            f"The analysis of trial {trial.id} failed{': ' + error if error else ''}, so it has"
+            " no result. Measure it again once the cause is fixed: a re-analysis with the"
+            " cameras' offset (offset_frames) or with the two videos swapped (swap_cameras:"
+            f" true), POST /api/v1/trials/{trial.id}/revisions or the session page's retry;"
+            " or record the take again."
+        )
+    return ConflictError(
+        f"The trial {trial.id} has no result yet (status {trial.status}); poll its job and"
+        " retry when it has succeeded."
+    )
 
 
 def load_rig(db: Session, actor: Actor, rig_id: int, action: str) -> Rig:

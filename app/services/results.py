@@ -34,6 +34,7 @@ from app.reports.result import read_result
 from app.reports.summary import SummaryColumn, neighbours
 from app.services.common import (
     load_trial,
+    no_result,
     visible_trial,
     visit_analyses_pending,
     visit_trials,
@@ -71,14 +72,7 @@ def result_of(
             )
         result = found
     if result is None:
-        if trial.status == "failed":
-            job = job_views.latest_job(db, trial_id=trial.id)
-            reason = f": {job.error}" if job is not None and job.error else "."
-            raise ConflictError(f"The analysis of trial {trial.id} failed{reason}")
-        raise ConflictError(
-            f"The trial {trial.id} has no result yet (status {trial.status}); poll its job and"
-            " retry when it has succeeded."
-        )
+        raise no_result(db, trial)
     return trial, result
 
 
@@ -133,7 +127,12 @@ def trial_column(trial: Trial, result: Result | None = None) -> SummaryColumn:
     block (no markers are read)."""
     result = result or trial.result
     if result is None:
-        raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
+        db = Session.object_session(trial)
+        raise (
+            no_result(db, trial)
+            if db is not None
+            else ConflictError(f"The trial {trial.id} has no result yet (status {trial.status}).")
+        )
     return SummaryColumn(
         trial_id=trial.id,
         task=trial.task,
@@ -167,7 +166,7 @@ def load_report_data(
     """
     result = result or trial.result
     if result is None:
-        raise ConflictError(f"The trial {trial.id} has no result yet; wait for its analysis.")
+        raise no_result(db, trial)
     session = trial.session
     this = trial_column(trial, result)
     beside = tuple(

@@ -40,7 +40,7 @@ from app.errors import ConflictError, InvalidRequestError, NotFoundError
 from app.models import Result, Trial, User, utcnow
 from app.reports.figures import plots_document
 from app.schemas import RevisionCreate
-from app.services.common import load_trial
+from app.services.common import load_trial, no_result
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv, write_markers_csv
 from core.overlay import swap_overlay_labels
@@ -317,9 +317,7 @@ def _correct(
     current = trial.result
     base = latest_analysis(trial)
     if current is None or base is None:
-        raise ConflictError(
-            f"The trial {trial.id} has no result to correct yet; wait for its analysis."
-        )
+        raise no_result(db, trial)  # failed: measure it again; else wait for the analysis
     from core.corrections import correct_metrics, revised_document, swap_labels
 
     task = parse_task(base.document.get("task"))

@@ -55,6 +55,7 @@ makes sending it again after a lost answer safe (docs/capture.md, docs/api.md)."
 PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS
 _TAKE_ID = re.compile(r"[A-Za-z0-9_-]{8,64}")
 _ID = re.compile(r"[0-9]{1,9}")  # a row id (an int4 on PostgreSQL); no sign, no other digits
+MAX_OFFSET_FRAMES = 10_000  # as RevisionCreate.offset_frames
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,9 @@ def check_trial_target(db: Session, actor: Actor, session_id: int) -> None:
 def _parse_hand(upload: ParsedUpload) -> str:
     hand = upload.require_field("hand").lower()
     if hand not in ("left", "right"):
-        raise InvalidUpload(f"hand must be 'left' or 'right', not {hand[:20]!r}.")
+        raise InvalidUpload(
+            f"hand must be 'left' or 'right', not {hand[:20]!r}.", field="hand", kind="enum"
+        )
     return hand
 
 
@@ -94,7 +97,9 @@ def _parse_task(upload: ParsedUpload) -> str:
     if not raw:
         return DEFAULT_TASK.value
     if raw not in TASKS:
-        raise InvalidUpload(f"task must be one of {', '.join(TASKS)}, not {raw[:40]!r}.")
+        raise InvalidUpload(
+            f"task must be one of {', '.join(TASKS)}, not {raw[:40]!r}.", field="task", kind="enum"
+        )
     return raw
 
 
@@ -103,10 +108,19 @@ def _parse_rig(db: Session, upload: ParsedUpload, session_rig_id: int) -> int | 
     raw = (upload.fields.get("rig_id") or "").strip()
     if not raw:
         return None
+    if not (raw.isascii() and raw.isdigit()):
+        raise InvalidUpload(
+            f"rig_id must be a rig's id, a whole number such as 3, not {raw[:20]!r}; give the id"
+            " of the rig that recorded the trial (GET /api/v1/rigs), or leave it out for the"
+            " session's rig.",
+            field="rig_id",
+            kind="int_parsing",
+        )
     if not _ID.fullmatch(raw) or db.get(Rig, int(raw)) is None:
         raise InvalidUpload(
             f"rig_id {raw[:20]!r} names no rig; give the id of the rig that recorded the trial"
-            " (GET /api/v1/rigs), or leave it out for the session's rig."
+            " (GET /api/v1/rigs), or leave it out for the session's rig.",
+            field="rig_id",
         )
     return None if int(raw) == session_rig_id else int(raw)
 
@@ -119,9 +133,12 @@ def _parse_offset(upload: ParsedUpload) -> float | None:
         value = float(raw)
     except ValueError:
         value = math.nan
-    if not math.isfinite(value) or abs(value) > 10_000:
+    if not math.isfinite(value) or abs(value) > MAX_OFFSET_FRAMES:
         raise InvalidUpload(
-            "offset_frames must be a number of frames (right frame j = left frame j + K)."
+            f"offset_frames must be a number of frames from -{MAX_OFFSET_FRAMES} to"
+            f" {MAX_OFFSET_FRAMES} (right frame j = left frame j + K), not {raw[:20]!r};"
+            " leave it out to estimate the offset from the marker motion.",
+            field="offset_frames",
         )
     return value
 
@@ -131,7 +148,11 @@ def _parse_take_id(upload: ParsedUpload) -> str | None:
     if not raw:
         return None
     if not _TAKE_ID.fullmatch(raw):
-        raise InvalidUpload("take_id must be 8 to 64 letters, digits, '-' or '_'.")
+        raise InvalidUpload(
+            "take_id must be 8 to 64 letters, digits, '-' or '_'.",
+            field="take_id",
+            kind="string_pattern_mismatch",
+        )
     return raw
 
 

@@ -119,8 +119,9 @@ def test_a_trial_names_the_rig_that_recorded_it(api: Api, video_pair) -> None:
     ("rig_id", "status", "words"),
     [
         ("9999", 422, "rig_id '9999' names no rig"),
-        ("legs", 422, "names no rig"),
-        ("²", 422, "names no rig"),  # a digit to str.isdigit, not to int()
+        ("legs", 422, "rig_id must be a rig's id, a whole number"),
+        ("²", 422, "a whole number"),  # a digit to str.isdigit, not to int()
+        ("1.0", 422, "a whole number such as 3, not '1.0'"),
         ("99999999999999999999", 422, "names no rig"),  # beyond a PostgreSQL integer
         (None, 409, ""),
     ],
