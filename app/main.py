@@ -301,6 +301,40 @@ def _document_shared_errors(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
+PUBLIC_API_PATHS = frozenset({API_PREFIX + "/auth/login"})
+"""The API's routes that need no credentials (docs/api.md, Authentication)."""
+
+BEARER_SCHEME = {
+    "type": "http",
+    "scheme": "bearer",
+    "bearerFormat": "bsk_<12 hex>_<43 characters>",
+    "description": "An API key, created by an administrator with `bradyscope admin"
+    " create-api-key NAME [--scopes ...]`. (The browser pages send their session cookie"
+    " and, on changes, its X-CSRF-Token instead.)",
+}
+
+
+def _document_security(app: FastAPI) -> None:
+    """Add to the OpenAPI document how to authenticate: the Bearer scheme, required by every
+    API route but the login (so that generated clients send the key)."""
+    default = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = default()
+        schema.setdefault("components", {}).setdefault("securitySchemes", {})["bearerAuth"] = (
+            BEARER_SCHEME
+        )
+        for path, operations in schema.get("paths", {}).items():
+            if path.startswith(API_PREFIX) and path not in PUBLIC_API_PATHS:
+                for op in operations.values():
+                    op["security"] = [{"bearerAuth": []}]
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
     async def app_error(request: Request, exc: AppError) -> Response:
@@ -439,6 +473,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(web_router)
     _document_shared_errors(app)
+    _document_security(app)
 
     _page_refusals(app)
     if STATIC_DIR.is_dir():

@@ -15,6 +15,15 @@ from app.services import trajectories
 router = APIRouter(prefix="/trials/{trial_id}", tags=["results"])
 
 EXPORT_ERRORS = json_errors(*AUTH, 404, 409)
+
+
+class FhirJSONResponse(JSONResponse):
+    """A FHIR resource as JSON: ``application/fhir+json``, the FHIR R4 media type (the
+    OpenAPI document then lists this type alone for the route's 200)."""
+
+    media_type = "application/fhir+json"
+
+
 RevisionQuery = Annotated[
     int | None,
     Query(
@@ -114,7 +123,7 @@ def get_report_pdf(
 
 @router.get(
     "/fhir",
-    response_class=JSONResponse,
+    response_class=FhirJSONResponse,
     responses={
         200: {
             "content": {"application/fhir+json": {"schema": {"type": "object"}}},
@@ -134,7 +143,7 @@ def get_fhir(
     bundle = service.fhir_bundle(
         db, actor, trial_id, request.app.state.storage, revision, timezone=_tz(request)
     )
-    return JSONResponse(bundle, media_type="application/fhir+json")
+    return FhirJSONResponse(bundle)
 
 
 @router.get(

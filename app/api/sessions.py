@@ -119,7 +119,8 @@ def get_visit_report_html(
             "content": {"application/pdf": {"schema": {"type": "string", "format": "binary"}}},
             "description": "PDF; page 1 is the one-page visit summary.",
         },
-        **json_errors(*AUTH, 404),
+        # 409: signed=true and the stored signed report no longer matches its SHA-256
+        **json_errors(*AUTH, 404, 409),
     },
     summary="The visit report (every trial of the session's day) as PDF",
 )
