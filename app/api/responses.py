@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Annotated, Any, TypeVar
 
-from fastapi import Query
+from fastapi import Query, Request
 from fastapi.responses import Response
 from pydantic import BaseModel
 
@@ -60,6 +60,16 @@ def page(schema: type[S], rows: Iterable[Any], total: int, *, limit: int, offset
     return Page[schema](  # type: ignore[valid-type]
         items=[schema.model_validate(row) for row in rows], total=total, limit=limit, offset=offset
     )
+
+
+def not_modified(request: Request, etag: str) -> bool:
+    """Whether the request's ``If-None-Match`` names ``etag`` (or is ``*``): the client holds
+    this version, answer 304 (RFC 9110: weak comparison, ``W/`` ignored)."""
+    sent = request.headers.get("if-none-match")
+    if not sent:
+        return False
+    tags = {tag.strip().removeprefix("W/") for tag in sent.split(",")}
+    return "*" in tags or etag.removeprefix("W/") in tags
 
 
 def attachment(body: bytes, media_type: str, filename: str, **headers: str) -> Response:

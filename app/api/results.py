@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+from hashlib import sha256
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
-from app.api.responses import AUTH, IdPath, attachment, errors, file_responses, json_errors
+from app.api.responses import (
+    AUTH,
+    IdPath,
+    attachment,
+    errors,
+    file_responses,
+    json_errors,
+    not_modified,
+)
 from app.auth import ResultReader, SessionDep
 from app.services import results as service
 from app.services import trajectories
@@ -51,11 +60,13 @@ def get_result(
     return service.get_result(db, actor, trial_id, revision)
 
 
+@router.head("/markers.csv", include_in_schema=False)  # the GET's headers (docs/api.md)
 @router.get(
     "/markers.csv",
     response_class=FileResponse,
     responses={
         200: {"content": {"text/csv": {"schema": {"type": "string"}}}, "description": "CSV"},
+        304: {"description": "Not modified: If-None-Match names the file's ETag."},
         **EXPORT_ERRORS,
     },
     summary="The markers.csv document (one row per frame and marker)",
@@ -66,10 +77,20 @@ def get_markers_csv(
     db: SessionDep,
     request: Request,
     revision: RevisionQuery = None,
-) -> FileResponse:
+) -> Response:
     path = service.markers_csv_path(db, actor, trial_id, request.app.state.storage, revision)
+    stat = path.stat()
+    # The file of one revision: its stored name, time and size (a new revision's is another).
+    version = f"{path.name}:{stat.st_mtime_ns}:{stat.st_size}".encode()
+    etag = f'"{sha256(version).hexdigest()[:32]}"'
+    if not_modified(request, etag):
+        return Response(status_code=304, headers={"ETag": etag})
     return FileResponse(
-        path, media_type="text/csv; charset=utf-8", filename=f"trial-{trial_id}-markers.csv"
+        path,
+        media_type="text/csv; charset=utf-8",
+        filename=f"trial-{trial_id}-markers.csv",
+        stat_result=stat,
+        headers={"ETag": etag},
     )
 
 
@@ -96,6 +117,7 @@ def get_report_html(
     )
 
 
+@router.head("/report.pdf", include_in_schema=False)
 @router.get(
     "/report.pdf",
     response_class=Response,
@@ -146,6 +168,7 @@ def get_fhir(
     return FhirJSONResponse(bundle)
 
 
+@router.head("/markers.c3d", include_in_schema=False)
 @router.get(
     "/markers.c3d",
     response_class=Response,
@@ -166,6 +189,7 @@ def get_markers_c3d(
     return attachment(body, "application/octet-stream", f"trial-{trial_id}-markers.c3d")
 
 
+@router.head("/markers.trc", include_in_schema=False)
 @router.get(
     "/markers.trc",
     response_class=Response,

@@ -111,6 +111,7 @@ def get_visit_report_html(
     )
 
 
+@router.head("/{session_id}/report.pdf", include_in_schema=False)  # the GET's headers
 @router.get(
     "/{session_id}/report.pdf",
     response_class=Response,
