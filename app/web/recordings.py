@@ -27,6 +27,7 @@ from app.models import Job, Trial
 from app.schemas import IdPath
 from app.services import sessions, signatures, trials, visits
 from app.services.rigs import all_rigs
+from app.timezones import local_date
 from app.uploads import ParsedUpload
 from app.web.common import (
     PATIENT_PAGES_SCOPE,
@@ -101,13 +102,14 @@ def _session_response(
         return not_found_page(request, user, exc)
     session = overview.session
     trials = [row.trial for row in overview.trials]
+    tz = str(settings_of(request).timezone)
     return render(
         request,
         "session.html",
         user,
         status_code=status,
         active="patients",
-        title=f"Session {session.recorded_at:%Y-%m-%d} — {session.patient.code}",
+        title=f"Session {local_date(session.recorded_at, tz):%Y-%m-%d} — {session.patient.code}",
         error=error,
         session=session,
         patient=session.patient,
@@ -117,7 +119,7 @@ def _session_response(
         ],
         hidden_trials=overview.hidden,
         can_restore=user.has_scope(ADMIN_SCOPE),
-        signing=signatures.visit_signing(db, session, str(settings_of(request).timezone)),
+        signing=signatures.visit_signing(db, session, tz),
         calibration=overview.calibration,
         calibration_problem=overview.calibration_problem,
         hands=("left", "right"),

@@ -28,6 +28,7 @@ from app.schemas import MAX_ID, IdPath, TrialRatingUpdate
 from app.services import hidden_trials, results, trajectories, trials, visits
 from app.services.common import load_trial
 from app.storage import Storage
+from app.timezones import local_date
 from app.web.common import (
     CSRF_MESSAGE,
     PageUser,
@@ -55,10 +56,13 @@ DOWNLOADS: dict[str, tuple[str, str, str]] = {
 }
 
 
-def trial_label(trial: Trial) -> str:
+def trial_label(trial: Trial, timezone: str) -> str:
+    """``"2026-10-29, right hand, medication off"``, the day in the clinic's ``timezone``
+    (a session at 00:30 in Prague is on the day the other pages show, not UTC's day before)."""
     s = trial.session
     limb = parse_task(trial.task).limb
-    return f"{s.recorded_at:%Y-%m-%d}, {trial.hand} {limb}, medication {s.medication_state}"
+    day = local_date(s.recorded_at, timezone)
+    return f"{day:%Y-%m-%d}, {trial.hand} {limb}, medication {s.medication_state}"
 
 
 def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
@@ -75,7 +79,7 @@ def _comparison(data: ReportData, other: ReportData) -> dict[str, Any]:
     }
 
 
-def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]:
+def _suggested(trial: Trial, candidates: list[Trial], timezone: str) -> list[tuple[Trial, str]]:
     """Candidates for comparison: the trials of the same task, the most useful first (other
     side, same session; other medication)."""
 
@@ -104,7 +108,7 @@ def _suggested(trial: Trial, candidates: list[Trial]) -> list[tuple[Trial, str]]
     out = []
     for t in sorted(same_task, key=rank):
         hint = hints[rank(t)[0]]
-        out.append((t, trial_label(t) + (f" ({hint})" if hint else "")))
+        out.append((t, trial_label(t, timezone) + (f" ({hint})" if hint else "")))
     return out
 
 
@@ -153,22 +157,23 @@ def trial_page(
             job=page.job,
         )
     # the visit's signatures, so that the visit report offered is the signed one where it is
-    signed = visits.signatures_on_record(db, trial.session, settings_of(request).timezone)
+    tz = settings_of(request).timezone
+    signed = visits.signatures_on_record(db, trial.session, tz)
     comparison = None
     if page.comparison is not None:
         comparison = _comparison(page.data, page.comparison.data)
-        comparison["label"] = trial_label(page.comparison.trial)
+        comparison["label"] = trial_label(page.comparison.trial, tz)
         comparison["trial"] = page.comparison.trial
     return render(
         request,
         "trial.html",
         user,
         active="patients",
-        title=f"{patient.code}: {trial_label(trial)}",
+        title=f"{patient.code}: {trial_label(trial, tz)}",
         trial=trial,
         patient=patient,
-        label=trial_label(trial),
-        candidates=_suggested(trial, list(page.candidates)),
+        label=trial_label(trial, tz),
+        candidates=_suggested(trial, list(page.candidates), tz),
         comparison=comparison,
         compare_id=compare_id,
         compare_error=page.compare_error
