@@ -121,7 +121,7 @@ def get_calibration(calibration_id: IdPath, actor: CurrentActor, db: SessionDep)
 @router.get(
     "/calibrations/{calibration_id}/rig.json",
     response_model=dict[str, Any],
-    responses=errors(*AUTH, 404),
+    responses=errors(*AUTH, 404, 409),
     summary="The rig file (bradyscope.rig/1) of a ready calibration",
 )
 def get_calibration_rig_file(

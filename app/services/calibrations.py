@@ -147,10 +147,8 @@ def _valid_from(upload: ParsedUpload, *, first: bool) -> datetime:
         try:
             value = datetime.fromisoformat(raw.replace("Z", "+00:00"))
         except ValueError as exc:
-            raise InvalidUpload(
-                "valid_from must be an ISO 8601 date-time such as 2026-01-31T08:00:00Z.",
-                field="valid_from",
-            ) from exc
+            what = "valid_from must be an ISO 8601 date-time such as 2026-01-31T08:00:00Z."
+            raise InvalidUpload(what, field="valid_from") from exc
         return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
     # A rig's first calibration also covers sessions recorded before it was uploaded.
     return datetime(1970, 1, 1, tzinfo=UTC) if first else utcnow()
@@ -371,12 +369,15 @@ def get_calibration(db: Session, actor: Actor, calibration_id: int) -> dict[str,
 
 
 def rig_file_of(db: Session, actor: Actor, calibration_id: int) -> dict[str, Any]:
-    """The rig file document of a ready calibration (422 while it is being computed)."""
+    """The rig file document of a ready calibration (409 while it is computed, or failed)."""
     view = get_calibration(db, actor, calibration_id)
     cal = db.get(Calibration, calibration_id)
     if cal is None or cal.rig_json is None:
-        raise InvalidRequestError(
-            f"The calibration {calibration_id} has no rig file (status {view['status']})."
+        state = f"failed: {view['error']}" if view["status"] == "failed" else "is being computed"
+        raise ConflictError(
+            f"The calibration {calibration_id} has no rig file: it {state.rstrip('.')}. Retry"
+            f" when GET /api/v1/calibrations/{calibration_id} says ready (a failed one needs"
+            " its board videos again, or a rig file)."
         )
     return dict(cal.rig_json)
 

@@ -24,7 +24,7 @@ from api_support import (  # noqa: F401 - fixtures
 )
 from sqlalchemy import select
 
-from app.models import Job, Trial, Video
+from app.models import Calibration, Job, Trial, Video
 from core.camera import ImageSize
 
 
@@ -265,6 +265,17 @@ def test_calibration_from_board_videos_queues_a_calibrate_job(api: Api, video_pa
     listed = api.client.get(f"/api/v1/rigs/{rig['id']}/calibrations", headers=h).json()
     assert [c["board"]["dictionary"] for c in listed] == ["DICT_4X4_1000"]
     assert len(api.stored_files()) == 2
+    # Its rig file is not ready yet: 409, as every "not ready" of the API (docs/api.md).
+    rig_file = api.client.get(f"/api/v1/calibrations/{body['id']}/rig.json", headers=h)
+    assert rig_file.status_code == 409 and "is being computed" in rig_file.json()["detail"]
+    with api.sessions() as db:  # as the worker leaves a calibration that failed
+        db.get(Job, body["job_id"]).status = "failed"
+        db.get(Job, body["job_id"]).error = "the board was found in 4 of 120 left frames."
+        db.get(Calibration, body["id"]).status = "failed"
+        db.commit()
+    rig_file = api.client.get(f"/api/v1/calibrations/{body['id']}/rig.json", headers=h)
+    assert rig_file.status_code == 409, rig_file.text
+    assert "failed: the board was found in 4 of 120 left frames. Retry" in rig_file.json()["detail"]
 
 
 def test_board_videos_with_timestamps_files_are_timed_by_them(api: Api, tmp_path: Path) -> None:
