@@ -7,6 +7,7 @@ from lists; rows, files and the audit trail are kept.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -36,7 +37,24 @@ def _check_calibration(db: Session, calibration_id: int, rig_id: int) -> None:
         )
 
 
+MAX_AHEAD = timedelta(days=1)
+"""How far ahead of the server's clock a session's ``recorded_at`` may be: a day, for a
+clock set wrong or a local time sent without its zone (read as UTC)."""
+
+
+def _check_recorded_at(recorded_at: datetime) -> None:
+    """Refuse a recording time in the future (2099: a typo, or a date format misread)."""
+    if recorded_at > utcnow() + MAX_AHEAD:
+        raise InvalidRequestError(
+            f"The recording's date and time (recorded_at), {recorded_at:%Y-%m-%d %H:%M} UTC,"
+            " is more than a day ahead of now; give when the recording was made (ISO 8601,"
+            " UTC when no zone is given).",
+            field="recorded_at",
+        )
+
+
 def create_session(db: Session, actor: Actor, data: SessionCreate) -> RecordingSession:
+    _check_recorded_at(data.recorded_at)
     patient = load_patient(db, actor, data.patient_id, "create")
     if db.get(Rig, data.rig_id) is None:
         raise not_found(db, actor, "create", "rig", data.rig_id, "The rig")

@@ -225,3 +225,29 @@ def test_json_bodies_are_capped_at_1_mib(api: Api) -> None:
     r = api.client.post("/api/v1/patients", content=chunked(), headers=h)
     assert r.status_code == 413
     assert api.client.get("/api/v1/patients", headers=api.headers).json()["total"] == 0
+
+
+def test_a_session_recorded_in_the_future_is_refused(api: Api) -> None:
+    """A session dated 2099 was accepted (a typo, or a date format read the wrong way): it
+    would head every list and report. A day of slack for a clock or a zone left out."""
+    from datetime import timedelta
+
+    from app.models import RecordingSession, utcnow
+
+    h = api.headers
+    patient = api.client.post("/api/v1/patients", json={"code": "PD-F"}, headers=h).json()
+    rig = api.client.post("/api/v1/rigs", json={"name": "rig-F"}, headers=h).json()
+
+    def create(when: str):  # type: ignore[no-untyped-def]
+        body = {"patient_id": patient["id"], "rig_id": rig["id"], "recorded_at": when}
+        return api.client.post("/api/v1/sessions", json=body, headers=h)
+
+    r = create("2099-01-01T09:30:00Z")
+    assert r.status_code == 422, r.text
+    assert "2099-01-01 09:30 UTC, is more than a day ahead of now" in r.json()["detail"]
+    assert r.json()["errors"][0]["loc"] == ["body", "recorded_at"]
+    assert api.count(RecordingSession) == 0
+    soon = (utcnow() + timedelta(hours=23)).strftime("%Y-%m-%dT%H:%M:%S")  # UTC, no zone
+    assert create(soon).status_code == 201
+    late = (utcnow() + timedelta(hours=25)).strftime("%Y-%m-%dT%H:%M:%SZ")
+    assert create(late).status_code == 422
