@@ -72,11 +72,12 @@ def reauthenticate(
     Raises
     ------
     PermissionDeniedError
-        ``actor`` is not a browser user (API keys cannot re-authenticate).
+        ``actor`` is not a browser user (API keys cannot re-authenticate), or the password
+        is wrong (403: the login itself stands; a 401 would read as an expired session).
     RateLimitedError
         Too many wrong passwords (429).
     AuthenticationError
-        The password is wrong, or the account was deactivated (401).
+        The account was deactivated (401: its session is over).
     """
     if actor.type != "user":
         raise PermissionDeniedError("Only a logged-in person can confirm with a password.")
@@ -91,7 +92,9 @@ def reauthenticate(
     if not verify_password(user.password_hash, password):
         audit(db, actor, "reauthenticate", "user", user.id, outcome="denied")
         db.commit()
-        raise AuthenticationError("The password is wrong.")
+        raise PermissionDeniedError(
+            "The password is wrong; type the password you log in with to confirm, and retry."
+        )
     throttle.record_success(db, settings, user.email, ip)
     audit(db, actor, "reauthenticate", "user", user.id)
     db.commit()

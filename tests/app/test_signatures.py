@@ -53,7 +53,8 @@ def test_sign_correct_amend_and_sign_again(api: Api, video_pair, tmp_path) -> No
     assert client.get(signed_pdf).status_code == 404  # nothing signed yet
     before = {e.id for e in api.audit_events()}
     wrong = client.post(sign, json={"password": "not it"}, headers=user)
-    assert wrong.status_code == 401
+    # 403, not 401: the login stands (a client reads 401 as an expired session)
+    assert wrong.status_code == 403 and "password is wrong" in wrong.json()["detail"]
     assert api.count(Signature) == 0
     # An API key cannot sign: signing needs a person's password.
     key = api.client.post(sign, json={"password": PASSWORD}, headers=api.headers)
@@ -124,6 +125,27 @@ def test_sign_correct_amend_and_sign_again(api: Api, video_pair, tmp_path) -> No
         assert r.status_code == 200 and r.content == pdf1.content
         doc = fresh.get(f"/api/v1/trials/{trial_id}/result?revision=1", headers=api.headers)
         assert doc.json()["revision"] == 1
+
+
+def test_a_wrong_password_is_403_and_the_login_stands(api: Api, video_pair) -> None:
+    """A 401 reads as an expired session to a client (it would log in again): the
+    password typed again to sign is wrong, the login is not."""
+    session_id = _session_of(api, _trial(api, video_pair))
+    make_user(api.sessions, "dr.sign@example.org", PASSWORD)
+    client = TestClient(api.app)
+    user = _login(client, "dr.sign@example.org")
+    wrong = client.post(
+        f"/api/v1/sessions/{session_id}/sign", json={"password": "not it"}, headers=user
+    )
+    assert wrong.status_code == 403 and "password is wrong" in wrong.json()["detail"]
+    assert client.get("/api/v1/auth/me").status_code == 200
+    page = client.post(  # the session page's form: its error page says the same
+        f"/sessions/{session_id}/sign",
+        data={"password": "not it", "csrf_token": user["X-CSRF-Token"]},
+        headers={"Accept": "text/html"},
+    )
+    assert page.status_code == 403 and "The password is wrong" in page.text
+    assert api.count(Signature) == 0
 
 
 def test_only_clinicians_sign(api: Api, video_pair) -> None:
