@@ -181,14 +181,15 @@ def distinct_labels(
     ]
 
 
-def _pair_note(what: str, compared: Sequence[SummaryColumn], of: Sequence[SummaryColumn]) -> str:
-    """Which two trials a comparison uses, and which of the same sides and states it leaves."""
+def _pair_note(
+    what: str, compared: Sequence[SummaryColumn], of: Sequence[SummaryColumn], by: str
+) -> str:
+    """Which two trials a comparison uses (each named by its ``by`` attribute: ``hand`` or
+    ``medication_state``), and which of the same sides and states it leaves out."""
     ids = {c.trial_id for c in compared}
-    left_out = [c.label for c in of if c.trial_id not in ids]
-    return (
-        f"{what}: " + " against ".join(c.label for c in compared) + " (the newest of each);"
-        f" not compared: {'; '.join(left_out)}."
-    )
+    used = " against ".join(f"trial #{c.trial_id} ({getattr(c, by)})" for c in compared)
+    left_out = ", ".join(f"#{c.trial_id}" for c in of if c.trial_id not in ids)
+    return f"{what}: {used}, the newest of each; not compared: trial {left_out}."
 
 
 Compared = tuple[str, tuple[Comparison, ...]]
@@ -210,7 +211,7 @@ def _comparisons(
             of = [c for c in cols if c.medication_state == med]
             if len(of) > 2:
                 pairs.append(
-                    _pair_note(f"Right–left asymmetry, medication {med}", (right, left), of)
+                    _pair_note(f"Right–left asymmetry, medication {med}", (right, left), of, "hand")
                 )
     for hand in HAND_ORDER:
         on, off = _newest(cols, hand, "on"), _newest(cols, hand, "off")
@@ -218,7 +219,11 @@ def _comparisons(
             medication.append((hand, tuple(medication_rows(on, off))))
             of = [c for c in cols if c.hand == hand and c.medication_state in ("on", "off")]
             if len(of) > 2:
-                pairs.append(_pair_note(f"Medication response, {hand} {limb}", (on, off), of))
+                pairs.append(
+                    _pair_note(
+                        f"Medication response, {hand} {limb}", (on, off), of, "medication_state"
+                    )
+                )
     return asymmetry, medication, pairs
 
 
