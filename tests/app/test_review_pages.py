@@ -132,7 +132,7 @@ def test_sign_from_the_session_page_then_an_amendment_is_pending(client, seeded,
     page = client.get(f"/sessions/{session_id}").text
     assert 'data-signing="unsigned"' in page and f'action="/sessions/{session_id}/sign"' in page
     wrong = client.post(f"/sessions/{session_id}/sign", data={"csrf_token": csrf, "password": "x"})
-    assert wrong.status_code == 401
+    assert wrong.status_code == 403 and "The password is wrong" in wrong.text  # login stands
     r = client.post(
         f"/sessions/{session_id}/sign",
         data={"csrf_token": csrf, "password": PASSWORD},
