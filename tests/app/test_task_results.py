@@ -118,7 +118,8 @@ def test_the_result_page_plots_the_task_s_own_quantity(
     amplitude = _plot(html, "amplitude")
     assert {f"amplitude ({unit})", "cycle number"} <= set(_texts(amplitude))
     slope = doc["metrics"]["amplitude_decrement_per_cycle"]
-    assert f"decrement {slope:+.2f} {unit}/cycle" in _texts(amplitude)
+    over_all = f", all {n} cycles" if n > 10 else ""  # the summary beside it: the first 10
+    assert f"decrement {slope:+.2f} {unit}/cycle{over_all}" in _texts(amplitude)
     assert f"<title>Amplitude of {n} cycles with decrement line" in amplitude
 
     velocity = _plot(html, "velocity")
