@@ -440,6 +440,23 @@ def _compute_metrics(
         return None, [f"tapping metrics could not be computed: {exc}"]
 
 
+def _few_whole_taps(metrics: dict[str, Any], task: Task) -> list[str]:
+    """A warning when most taps (cycles) are not measured whole: their amplitude and speed
+    are left out (filled-in frames at the widest opening or a closure), which the metrics
+    alone would only show as missing values."""
+    n, whole = int(metrics.get("tap_count") or 0), int(metrics.get("reliable_tap_count") or 0)
+    if n < 3 or whole >= 0.5 * n:
+        return []
+    word = task.cycle_word
+    measured = f"are over those {whole} only" if whole else "could not be measured"
+    return [
+        f"only {whole} of the {n} {word}s were measured whole (the others have filled-in"
+        f" frames at their widest opening or a closure), so amplitude and speed {measured};"
+        " check that the markers stay in view of both cameras, are not partly hidden and do"
+        " not sit beside a glint (nail polish, a ring)"
+    ]
+
+
 def _compute_task_metrics(
     task: Task,
     positions_mm: FloatArray,
@@ -705,6 +722,9 @@ def analyze_recording(
             max_gap_s=max_gap_s,
         )
     warnings.extend(metric_warnings)
+    measured_taps = metrics if metrics is not None else (task_metrics and task_metrics.tapping)
+    if measured_taps is not None:
+        warnings.extend(_few_whole_taps(measured_taps.metrics, task))
     report(progress, "metrics", 1, 1)
 
     reproj = tracks.reprojection_px[measured_any]

@@ -577,3 +577,18 @@ def test_a_failing_frame_sink_stops_both_cameras(
         )
     assert len(seen) == 5
     assert _live_detection_threads() == []
+
+
+def test_most_taps_not_measured_whole_is_said() -> None:
+    """Taps with filled-in frames at their widest opening or a closure are left out of
+    amplitude and speed; when most are, the metrics alone only showed missing values (a
+    nail glint beside 6-px markers: 12 taps, none whole, no warning)."""
+    from core.pipeline import _few_whole_taps
+    from core.tasks import Task
+
+    (said,) = _few_whole_taps({"tap_count": 12, "reliable_tap_count": 0}, Task.FINGER_TAPPING)
+    assert said.startswith("only 0 of the 12 taps") and "could not be measured" in said
+    (said,) = _few_whole_taps({"tap_count": 9, "reliable_tap_count": 4}, Task.TOE_TAPPING)
+    assert said.startswith("only 4 of the 9 cycles") and "over those 4 only" in said
+    assert _few_whole_taps({"tap_count": 12, "reliable_tap_count": 6}, Task.FINGER_TAPPING) == []
+    assert _few_whole_taps({"tap_count": 2, "reliable_tap_count": 0}, Task.FINGER_TAPPING) == []
