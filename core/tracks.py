@@ -805,7 +805,9 @@ def fill_gaps(
         Measured frames on each side that shape the spline (at least).
     poly_degree : int
         Degree of the time polynomial fitted across a gap with single-view
-        observations.
+        observations, at most ``1 + 2 n`` where ``n`` is the fewer of the measured
+        frames it has on either side (one measured frame past a gap let degree 7
+        swing 15 mm off on a nail-glint recording; 0.1 mm with degree 3).
     path_window_frames : int
         Measured frames this far on either side of a gap sample the marker's
         path for single-view points.
@@ -872,7 +874,7 @@ def fill_gaps(
                     single_view_camera,
                     single_view_px,
                     est,
-                    degree=poly_degree,
+                    degree=min(poly_degree, 1 + 2 * min(len(before), len(after))),
                     path_mm=path,
                 )
         pos[t_fill] = est
