@@ -287,17 +287,13 @@ class TakeRead(BaseModel):
 
     frame_count: int
     duration_s: float = Field(description="Seconds.")
-    fps: float = Field(
-        description="Frame rate reached (Hz): from the capture times (the timestamps file's,"
-        " else the container's) when they carry per-frame information."
-    )
+    fps: float = Field(description="Frame rate reached (Hz): from the capture times if given.")
     dropped_frames: int | None = Field(
         description="Frames lost (gaps in the capture times); null when the video's"
         " timestamps cannot tell."
     )
     time_source: Literal["file", "container", "fps"] = Field(
-        description="Where the frame times come from: the timestamps file, the video's own"
-        " variable-frame-rate timestamps (container), or i / fps."
+        description="The frame times: the timestamps file's, the video's own (container), i / fps."
     )
 
 
