@@ -203,9 +203,10 @@ def sign_visit(
     Raises
     ------
     PermissionDeniedError
-        Not a clinician (an admin or an API key cannot sign; audited as denied).
+        Not a clinician (an admin or an API key cannot sign; audited as denied), or the
+        password is wrong (from ``reauthenticate``: 403, the login stands).
     AuthenticationError, RateLimitedError
-        The password is wrong, or too many wrong passwords (from ``reauthenticate``).
+        The account was deactivated, or too many wrong passwords (``reauthenticate``).
     ConflictError
         Nothing to sign (no measured trial), or nothing changed since the newest signature.
     """
