@@ -238,7 +238,9 @@ def _queue_reanalysis(
     }
     if data.offset_frames is not None:
         payload["offset_frames"] = float(data.offset_frames)
-    if data.swap_cameras:
+    # swap_cameras not given stays as the newest analysis measured the videos: an offset
+    # asked for on a swapped trial measured it unswapped again
+    if change.get("swap_cameras", _cameras_swapped(trial)):
         payload["swap_cameras"] = True
     job = jobs.enqueue(db, "analyze_trial", trial_id=trial.id, payload=payload)
     if trial.result is None:

@@ -209,6 +209,15 @@ def test_swap_cameras_is_refused_when_the_analysis_measured_the_videos_so(
         payload = db.get(Job, back.json()["job_id"]).payload
     assert "swap_cameras" not in payload  # measured as stored
     assert payload["revision_request"]["change"] == {"swap_cameras": False}
+    with api.sessions() as db:  # that job done: an offset alone keeps the videos swapped
+        db.get(Job, back.json()["job_id"]).status = "succeeded"
+        db.commit()
+    offset = api.client.post(url, json={"offset_frames": 2, "reason": REASON}, headers=h)
+    assert offset.status_code == 201, offset.text
+    with api.sessions() as db:
+        payload = db.get(Job, offset.json()["job_id"]).payload
+    assert payload["swap_cameras"] is True and payload["offset_frames"] == 2.0
+    assert payload["revision_request"]["change"] == {"offset_frames": 2}
 
 
 def test_reanalysis_is_a_job_and_keeps_the_current_result(api: Api, video_pair) -> None:
