@@ -30,7 +30,7 @@ from app.quantities import quantity_of
 from app.reports.figures import signal_series
 from app.reports.result import read_result
 from app.services.common import load_trial
-from app.services.revisions import RevisionInfo, history, served_document
+from app.services.revisions import RevisionInfo, cameras_swapped, history, served_document
 from app.storage import Storage
 from core.markers_csv import MarkerTable, read_markers_csv
 from core.protocols import protocol_for
@@ -168,6 +168,8 @@ def review_page(
             for k, label in enumerate(protocol_for(parse_task(read.task)).labels)
         },
         "videos": {side: f"/trials/{trial.id}/video/{side}" for side in videos},
+        # how the newest analysis measured the videos (the re-analysis form starts there)
+        "cameras_swapped": cameras_swapped(trial),
     }
     page = ReviewPage(
         trial=trial,

@@ -164,7 +164,7 @@ def _change_of(data: RevisionCreate) -> dict[str, Any]:
     }
 
 
-def _cameras_swapped(trial: Trial) -> bool:
+def cameras_swapped(trial: Trial) -> bool:
     """Whether the newest analysis of the trial measured its videos swapped."""
     base = latest_analysis(trial)
     return base is not None and bool(base.document.get("cameras_swapped"))
@@ -173,9 +173,11 @@ def _cameras_swapped(trial: Trial) -> bool:
 def _drop_unchanged_swap(trial: Trial, change: dict[str, Any]) -> None:
     """Remove ``swap_cameras`` from ``change`` when the newest analysis measured the videos
     that way already (``false``: as stored); 422 when nothing is left to change."""
-    swapped = _cameras_swapped(trial)
+    swapped = cameras_swapped(trial)
     if "swap_cameras" not in change or change["swap_cameras"] != swapped:
         return
+    if latest_analysis(trial) is None:
+        return  # nothing measured yet (a failed trial): false is the retry as stored
     del change["swap_cameras"]
     if not change:
         how = "with the two videos swapped" if swapped else "as they are stored"
@@ -240,7 +242,7 @@ def _queue_reanalysis(
         payload["offset_frames"] = float(data.offset_frames)
     # swap_cameras not given stays as the newest analysis measured the videos: an offset
     # asked for on a swapped trial measured it unswapped again
-    if change.get("swap_cameras", _cameras_swapped(trial)):
+    if change.get("swap_cameras", cameras_swapped(trial)):
         payload["swap_cameras"] = True
     job = jobs.enqueue(db, "analyze_trial", trial_id=trial.id, payload=payload)
     if trial.result is None:

@@ -112,7 +112,7 @@ def revision_create(
     window_end_s: Annotated[str, Form(max_length=20)] = "",
     swap_labels: Annotated[str, Form(max_length=5)] = "",
     offset_frames: Annotated[str, Form(max_length=20)] = "",
-    swap_cameras: Annotated[str, Form(max_length=5)] = "",
+    swap_cameras: Annotated[str, Form(max_length=10)] = "",
     csrf_token: Annotated[str, Form(max_length=200)] = "",
 ) -> Response:
     if csrf_refused(db, user, csrf_token, request):
@@ -122,7 +122,8 @@ def revision_create(
             data = RevisionCreate(
                 reason=reason,
                 offset_frames=float(offset_frames) if offset_frames.strip() else None,
-                swap_cameras=True if swap_cameras else None,
+                # the form says how to measure the videos: as stored, or swapped
+                swap_cameras={"swapped": True, "as-stored": False}.get(swap_cameras),
             )
         else:
             data = RevisionCreate(

@@ -477,3 +477,35 @@ def test_the_review_heading_names_the_medication_state_dbs_and_time(
         headings[med] = h1
     assert "DBS on" in headings["on"] and "DBS" not in headings["off"]  # "none": not said
     assert headings["off"] != headings["on"]
+
+
+def test_the_review_form_swaps_the_cameras_and_undoes_it(client, seeded, db_sessionmaker):  # noqa: F811
+    """The re-analysis form says how the newest analysis measured the two videos and
+    measures them the chosen way: swapped, and back as uploaded (the form could only ask
+    for a swap, so a swap made by mistake could not be undone in the browser)."""
+    from app.models import Job
+
+    csrf = login(client)
+    t = seeded["trials"][(1, "right")]
+
+    def form(how: str) -> dict[str, str]:
+        return {"csrf_token": csrf, "kind": "reanalyse", "swap_cameras": how, "reason": "check"}
+
+    page = client.get(f"/trials/{t}/review").text
+    assert re.search(r'value="as-stored" checked', page) and 'value="swapped" checked' not in page
+    r = client.post(f"/trials/{t}/revisions", data=form("swapped"), follow_redirects=False)
+    assert r.status_code == 303, r.text[:500]
+    with db_sessionmaker() as db, db.begin():
+        job = db.scalars(select(Job).where(Job.trial_id == t).order_by(Job.id.desc())).first()
+        assert job.payload["swap_cameras"] is True
+        job.status = "succeeded"  # as if the worker had measured them swapped:
+        newest = db.scalars(select(Result).where(Result.trial_id == t)).all()[-1]
+        newest.document = {**newest.document, "cameras_swapped": True}
+    page = client.get(f"/trials/{t}/review").text
+    assert 'value="swapped" checked' in page  # the form starts where the analysis is
+    r = client.post(f"/trials/{t}/revisions", data=form("as-stored"), follow_redirects=False)
+    assert r.status_code == 303, r.text[:500]
+    with db_sessionmaker() as db:
+        job = db.scalars(select(Job).where(Job.trial_id == t).order_by(Job.id.desc())).first()
+        assert "swap_cameras" not in job.payload  # measured as uploaded
+        assert job.payload["revision_request"]["change"] == {"swap_cameras": False}

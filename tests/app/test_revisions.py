@@ -295,3 +295,30 @@ def test_hide_and_restore_follow_the_roles(api: Api, video_pair) -> None:
     assert api.client.get(f"/api/v1/trials/{trial_id}", headers=h).status_code == 200
     # The result and its revisions came back with the trial.
     assert api.client.get(f"/api/v1/trials/{trial_id}/result", headers=h).json()["revision"] == 1
+
+
+def test_a_trial_whose_analysis_failed_is_retried_as_stored(api: Api, video_pair) -> None:
+    """No analysis yet (it failed, say for want of a calibration): swap_cameras false is the
+    retry as stored, not 'measured as stored already' (nothing was measured)."""
+    seeded = seed_recording_target(api)
+    r = api.client.post(
+        f"/api/v1/sessions/{seeded.session_id}/trials",
+        data={"hand": "left"},
+        files=trial_files(*video_pair),
+        headers=api.headers,
+    )
+    trial_id = int(r.json()["id"])
+    with api.sessions() as db:
+        for job in db.scalars(select(Job).where(Job.trial_id == trial_id)):
+            job.status = "failed"
+        db.get(Trial, trial_id).status = "failed"
+        db.commit()
+    retry = api.client.post(
+        f"/api/v1/trials/{trial_id}/revisions",
+        json={"swap_cameras": False, "reason": "the calibration is there now"},
+        headers=api.headers,
+    )
+    assert retry.status_code == 201 and retry.json()["job_id"] is not None, retry.text
+    with api.sessions() as db:
+        payload = db.get(Job, retry.json()["job_id"]).payload
+    assert "swap_cameras" not in payload
