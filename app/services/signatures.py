@@ -12,7 +12,8 @@ byte (``GET /sessions/{id}/report.pdf?signed=true``).
 A correction or re-analysis after signing, a trial added to or hidden from the
 visit, or a change to anything else the signed report printed (a rating or its
 comment, a session's medication or DBS state, last levodopa, more affected side,
-dominant hand, time or clinician, the patient's code: ``Signature.signed_facts``)
+dominant hand, time or clinician, the patient's code, a trial without a result hidden
+or shown again: ``Signature.signed_facts``)
 makes an **amendment pending signature**: the signed report stays
 retrievable, and signing again stores a second signed report that says which
 one it amends. Every signature and every download of a signed report is one
@@ -121,6 +122,13 @@ def visit_facts(session: RecordingSession, timezone: str) -> dict[str, Any]:
             str(t.id): {name: _fact(getattr(t, name)) for name, _ in _TRIAL_FACTS}
             for t in visit_trials(session, timezone)
         },
+        # the report lists every hidden trial of the visit, with the reason
+        "hidden": {
+            str(t.id): t.deleted_reason
+            for s in visit_sessions(session, timezone)
+            for t in s.trials
+            if t.deleted_at is not None
+        },
     }
 
 
@@ -157,6 +165,14 @@ def _fact_changes(signed: dict[str, Any], now: dict[str, Any], timezone: str) ->
                 f"session {k} left the visit"
                 for k in sorted(set(before_all) - set(now_all), key=int)
             ]
+    # trials without a result that were hidden or shown again (those with one: revisions)
+    hidden_before, hidden_now = signed.get("hidden"), now["hidden"]
+    if hidden_before is not None:
+        measured = set(signed.get("trials", {})) | set(now["trials"])
+        for key in sorted(set(hidden_now) ^ set(hidden_before), key=int):
+            if key not in measured:
+                done = "hidden" if key in hidden_now else "shown again"
+                out.append(f"trial {key} (not measured) was {done}")
     return out
 
 

@@ -127,3 +127,30 @@ def test_a_signature_made_before_the_facts_were_kept_compares_revisions_only(
         f"/api/v1/trials/{trial_id}", json={"clinician_rating": 2}, headers=api.headers
     )
     assert _state(client, session_id)["status"] == "signed"
+
+
+def test_hiding_a_trial_that_was_never_measured_is_an_amendment(api: Api, video_pair) -> None:
+    """The visit report lists hidden trials with their reason, measured or not: hiding a
+    failed trial after signing changes the report, so it makes an amendment pending."""
+    from api_support import trial_files
+
+    client, user, session_id, _ = _signing(api, video_pair)
+    failed = api.client.post(
+        f"/api/v1/sessions/{session_id}/trials",
+        data={"hand": "right"},
+        files=trial_files(*reversed(video_pair)),
+        headers=api.headers,
+    )
+    assert failed.status_code == 201, failed.text
+    failed_id = failed.json()["id"]
+    _sign(client, user, session_id)
+    r = api.client.request(
+        "DELETE",
+        f"/api/v1/trials/{failed_id}",
+        json={"reason": "a false start"},
+        headers=api.headers,
+    )
+    assert r.status_code in (200, 204), r.text
+    state = _state(client, session_id)
+    assert state["status"] == "amendment_pending"
+    assert state["changes"] == [f"trial {failed_id} (not measured) was hidden"]
