@@ -31,6 +31,7 @@ from app.fhir_versions import (
 )
 from app.reports.catalogue import ALIAS_KEYS, display_value, metric_spec
 from app.reports.data import ReportData
+from app.reports.rendering import report_key
 from core.tasks import Task, parse_task, task_key
 
 # Identifier systems of bradyscope's own codes (URNs: valid URIs that need no web server).
@@ -178,7 +179,7 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     )
     entries.append({"fullUrl": _urn(), "resource": report})
     resources = [e["resource"] for e in entries]
-    finish_versions(resources)
+    finish_versions(resources, report_content=report_key(data) if pdf_bytes is not None else None)
     doc: dict[str, Any] = {
         "resourceType": "Bundle",
         "type": "collection",  # no server-side processing asked for; a set of resources

@@ -28,7 +28,8 @@ BUNDLE_ID_SYSTEM = "urn:bradyscope:trial-export"
 
 # What a resource's version does not depend on: references to other entries (their
 # fullUrls are new uuids in every export); for the DiagnosticReport also the time of the
-# export and the PDF (made again from the same content, with another "generated on").
+# export and the PDF's bytes (made again from the same content, with another "generated
+# on"): what the PDF shows counts instead (finish_versions' report_content).
 _UNVERSIONED = frozenset({"meta", "subject", "hasMember", "result"})
 _UNVERSIONED_REPORT = _UNVERSIONED | {"issued", "presentedForm"}
 
@@ -66,14 +67,20 @@ def _digest(value: object, n: int) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:n]
 
 
-def finish_versions(resources: list[dict[str, Any]]) -> None:
+def finish_versions(resources: list[dict[str, Any]], *, report_content: str | None = None) -> None:
     """Complete the ``meta.versionId`` of every resource that has one (in place):
-    ``<base>.<8 hex digits of its content>``."""
+    ``<base>.<8 hex digits of its content>``. ``report_content`` stands for the attached
+    PDF in the DiagnosticReport's content (``app.reports.rendering.report_key``: what
+    the report shows, made at a fixed time): the PDF shows what no Observation carries
+    (the session's notes, the clinician, the trials beside it)."""
     for res in resources:
         if "meta" not in res:
             continue
-        skip = _UNVERSIONED_REPORT if res["resourceType"] == "DiagnosticReport" else _UNVERSIONED
+        report = res["resourceType"] == "DiagnosticReport"
+        skip = _UNVERSIONED_REPORT if report else _UNVERSIONED
         content = {k: v for k, v in res.items() if k not in skip}
+        if report and report_content is not None:
+            content["presentedForm"] = report_content
         res["meta"] = {"versionId": f"{res['meta']['versionId']}.{_digest(content, 8)}"}
 
 

@@ -355,6 +355,9 @@ def test_fhir_bundle_identifier_names_its_content_and_the_report_its_trial():
         "cleared rating": replace(base, clinician_rating=None),
         "comment": replace(base, rating_comment="Slowing from the 4th tap."),
         "patient code": replace(base, patient_code="PD-0043"),
+        # what only the attached PDF shows: the DiagnosticReport's version follows it
+        "session notes": replace(base, notes="Tremor at rest on the left."),
+        "clinician": replace(base, clinician="dr.other@example.org"),
     }
     seen = {bundle["value"]}
     for what, data in others.items():
