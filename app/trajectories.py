@@ -108,8 +108,8 @@ def write_c3d(path: str | Path, table: MarkerTable, *, focal_px: float | None = 
     - missing: -1 (C3D's "invalid") and zero coordinates.
 
     ``POINT:SCALE`` is -(largest coordinate / 32000) as the format asks (negative:
-    float storage). The first frame number in the header is the grid's first frame + 1
-    (1 for a recording measured from its first frame).
+    float storage). The header's first frame number is left as ezc3d writes it (the
+    grid's first frame is the recording's first, as the analysis measures from it).
     """
     path = Path(path)
     table = on_uniform_grid(table)
