@@ -132,7 +132,9 @@ def _iso(value: datetime) -> str:
     return value.isoformat(timespec="seconds")
 
 
-def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
+def fhir_bundle(
+    data: ReportData, pdf_bytes: bytes | None, *, report_content: str | None = None
+) -> dict[str, Any]:
     """A FHIR R4 ``collection`` Bundle for one trial.
 
     Contents: the Patient (only its pseudonymous code as identifier), one
@@ -140,6 +142,8 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     ``urn:bradyscope:finger-tapping-metric``), and a DiagnosticReport that
     references them and carries the PDF report as ``presentedForm``. The
     result is validated with ``fhir.resources.R4B`` before it is returned.
+    ``report_content``: what the PDF shows (``app.reports.rendering.report_key(data)``,
+    made here when not given), which the report's version follows.
 
     Returns
     -------
@@ -179,7 +183,9 @@ def fhir_bundle(data: ReportData, pdf_bytes: bytes | None) -> dict[str, Any]:
     )
     entries.append({"fullUrl": _urn(), "resource": report})
     resources = [e["resource"] for e in entries]
-    finish_versions(resources, report_content=report_key(data) if pdf_bytes is not None else None)
+    if pdf_bytes is not None and report_content is None:
+        report_content = report_key(data)  # what the PDF shows (the caller may have it)
+    finish_versions(resources, report_content=report_content if pdf_bytes is not None else None)
     doc: dict[str, Any] = {
         "resourceType": "Bundle",
         "type": "collection",  # no server-side processing asked for; a set of resources

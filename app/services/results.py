@@ -213,15 +213,17 @@ def load_report_data(
 # --------------------------------------------------------------------------- PDF reports
 
 
-def _cached_pdf(data: ReportData, cache: ReportPdfCache) -> tuple[bytes, bool]:
+def _cached_pdf(
+    data: ReportData, cache: ReportPdfCache, key: str | None = None
+) -> tuple[bytes, bool]:
     """The PDF report of ``data``: from ``cache``, or made now and kept there.
 
-    Returns the bytes and whether they were made now (then call
-    :func:`_forget_if_erased` after a commit).
+    ``key``: ``report_key(data)`` when the caller has it already. Returns the bytes and
+    whether they were made now (then call :func:`_forget_if_erased` after a commit).
     """
     if data.patient_id is None:
         raise ValueError(f"the report data of trial {data.trial_id} names no patient")
-    key = report_key(data)
+    key = report_key(data) if key is None else key
     kept = cache.get(data.patient_id, data.trial_id, key)
     if kept is not None:
         return kept, False
@@ -390,8 +392,11 @@ def fhir_bundle(
     from app.exports import fhir_bundle as make_fhir_bundle  # fhir.resources: ~1 s to import
 
     cache = ReportPdfCache.of(storage)
-    pdf, made = _cached_pdf(data, cache)
-    bundle = exported(db, actor, trial, "fhir_bundle", make_fhir_bundle(data, pdf))
+    key = report_key(data)  # the PDF's cache key, and what the report's version follows
+    pdf, made = _cached_pdf(data, cache, key)
+    bundle = exported(
+        db, actor, trial, "fhir_bundle", make_fhir_bundle(data, pdf, report_content=key)
+    )
     if made:
         _forget_if_erased(db, cache, data)
     return bundle
