@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from datetime import date, datetime
 from typing import Any, Literal
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.actors import Actor
@@ -39,7 +38,7 @@ from app.reports.rendering import render_visit_pdf
 from app.reports.visit import SignatureLine
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.revisions import actor_label
-from app.services.visits import load_visit
+from app.services.visits import load_visit, visit_signatures
 from app.storage import Storage
 from app.timezones import local_date, to_zone
 
@@ -73,16 +72,6 @@ class VisitSigning:
 
 def _visit_key(session: RecordingSession, timezone: str) -> tuple[int, date]:
     return session.patient_id, local_date(session.recorded_at, timezone)
-
-
-def _signatures(db: Session, patient_id: int, day: date) -> list[Signature]:
-    return list(
-        db.scalars(
-            select(Signature)
-            .where(Signature.patient_id == patient_id, Signature.visit_date == day.isoformat())
-            .order_by(Signature.number)
-        )
-    )
 
 
 #: What the visit report prints of each session and trial beyond the results, with the
@@ -192,7 +181,7 @@ def _changes(signed: dict[str, int], now: dict[str, int]) -> list[str]:
 def visit_signing(db: Session, session: RecordingSession, timezone: str) -> VisitSigning:
     """The signing state of ``session``'s visit (no audit: the caller's use case audits)."""
     patient_id, day = _visit_key(session, timezone)
-    signatures = _signatures(db, patient_id, day)
+    signatures = visit_signatures(db, patient_id, day)
     current = {str(t.id): t.result.revision for t in visit_trials(session, timezone) if t.result}
     changes = []
     if signatures:

@@ -10,6 +10,7 @@ Each report is audited as one ``export`` of the session it was asked for.
 from __future__ import annotations
 
 from dataclasses import replace
+from datetime import date
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -80,17 +81,23 @@ def load_visit(
     )
 
 
+def visit_signatures(db: Session, patient_id: int, day: date) -> list[Signature]:
+    """The signatures of the patient's visit on ``day`` (clinic zone), oldest first."""
+    return list(
+        db.scalars(
+            select(Signature)
+            .where(Signature.patient_id == patient_id, Signature.visit_date == day.isoformat())
+            .order_by(Signature.number)
+        )
+    )
+
+
 def signatures_on_record(
     db: Session, session: RecordingSession, timezone: str
 ) -> tuple[SignatureLine, ...]:
     """The signatures of ``session``'s visit, oldest first, as the report prints them
     (read only; :mod:`app.services.signatures` makes them and judges what changed)."""
-    day = local_date(session.recorded_at, timezone)
-    rows = db.scalars(
-        select(Signature)
-        .where(Signature.patient_id == session.patient_id, Signature.visit_date == day.isoformat())
-        .order_by(Signature.number)
-    )
+    rows = visit_signatures(db, session.patient_id, local_date(session.recorded_at, timezone))
     return tuple(
         SignatureLine(
             signed_by=row.signed_by,
