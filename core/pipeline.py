@@ -39,7 +39,7 @@ import json
 import math
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -787,11 +787,18 @@ def _frame_times(
     """Capture times of a decoded video: its timestamps file, else its container (core.timing)."""
     if csv_path is not None:
         return fit_to_frames(read_times_csv(csv_path, n_frames=n_frames), n_frames)
-    if not info.has_timestamps:
-        stamps = []
-    ts = frame_times_from_timestamps(
-        stamps[:n_frames] if len(stamps) >= n_frames else [], fps=info.fps, name=info.path.name
-    )
+    return container_frame_times(info, stamps, n_frames)
+
+
+def container_frame_times(info: VideoInfo, stamps: Sequence[float], n_frames: int) -> FrameTimes:
+    """Capture times of a video from its container's frame timestamps ``stamps`` (s, in
+    display order; ignored when the container has none): read by
+    :func:`core.timing.frame_times_from_timestamps` (``"container"`` with lost frames when
+    they deviate from a constant rate, else ``i / fps``) and fitted to ``n_frames``. The
+    analysis passes the decoder's timestamps; the upload's check the packets' (the same
+    times, to the time base's resolution)."""
+    usable = list(stamps) if info.has_timestamps and len(stamps) >= n_frames else []
+    ts = frame_times_from_timestamps(usable[:n_frames], fps=info.fps, name=info.path.name)
     return fit_to_frames(ts, n_frames)
 
 

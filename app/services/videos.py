@@ -25,7 +25,7 @@ from app.storage import Storage
 from app.upload_checks import validate_stereo_pair, validate_times, validate_video
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig
-from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps
+from core.timing import FrameTimes
 from core.video import VideoInfo
 
 SIDES = ("left", "right")
@@ -110,18 +110,14 @@ def _packet_times_s(path: Path) -> list[float]:
 def container_frame_times(info: VideoInfo) -> FrameTimes:
     """A video's frame times from its container, by the analysis's rule.
 
-    Like ``core.pipeline``: the timestamps of the first ``info.frame_count`` frames
-    (none if fewer), read by :func:`core.timing.frame_times_from_timestamps` (``source``
-    ``"container"`` with lost frames when they deviate from a constant rate, else
-    ``i / fps``), fitted to the frame count. The analysis takes them from the decoder,
-    here from the packets: the same times, to the time base's resolution.
+    :func:`core.pipeline.container_frame_times` on the packets' timestamps (the
+    analysis takes them from the decoder: the same times, to the time base's
+    resolution).
     """
-    n = info.frame_count
+    from core.pipeline import container_frame_times as from_container  # the analysis's rule
+
     stamps = _packet_times_s(info.path) if info.has_timestamps else []
-    times = frame_times_from_timestamps(
-        stamps[:n] if len(stamps) >= n else [], fps=info.fps, name=info.path.name
-    )
-    return fit_to_frames(times, n)
+    return from_container(info, stamps, info.frame_count)
 
 
 @dataclass(frozen=True)
