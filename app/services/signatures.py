@@ -12,12 +12,11 @@ byte (``GET /sessions/{id}/report.pdf?signed=true``).
 A correction or re-analysis after signing, a trial added to or hidden from the
 visit, or a change to anything else the signed report printed (a rating or its
 comment, a session's medication or DBS state, last levodopa, more affected side,
-dominant hand, time or clinician, the patient's code, a trial without a result hidden
-or shown again: ``Signature.signed_facts``)
-makes an **amendment pending signature**: the signed report stays
-retrievable, and signing again stores a second signed report that says which
-one it amends. Every signature and every download of a signed report is one
-audit event.
+dominant hand, time or clinician, the patient's code, a trial without a result
+hidden or shown again: ``Signature.signed_facts``) makes an **amendment pending
+signature**: the signed report stays retrievable, and signing again stores a
+second signed report that says which one it amends. Every signature and every
+download of a signed report is one audit event.
 """
 
 from __future__ import annotations
@@ -128,6 +127,8 @@ def _shown(name: str, value: Any, timezone: str) -> str:
         return to_zone(datetime.fromisoformat(value), timezone).strftime("%H:%M")
     if name == "rating_comment":
         return "a comment"  # said as changed, not quoted
+    if name == "clinician_user_id":
+        return "a clinician"  # an account id says nothing on a page: "changed" alone
     return str(value)
 
 

@@ -154,3 +154,15 @@ def test_hiding_a_trial_that_was_never_measured_is_an_amendment(api: Api, video_
     state = _state(client, session_id)
     assert state["status"] == "amendment_pending"
     assert state["changes"] == [f"trial {failed_id} (not measured) was hidden"]
+
+
+def test_a_change_of_clinician_is_said_without_account_ids(api: Api, video_pair) -> None:
+    client, user, session_id, _ = _signing(api, video_pair)
+    _sign(client, user, session_id)
+    other = make_user(api.sessions, "dr.other@example.org", PASSWORD)
+    with api.sessions() as db:
+        db.get(RecordingSession, session_id).clinician_user_id = other
+        db.commit()
+    assert _state(client, session_id)["changes"] == [
+        f"the clinician of session {session_id} changed from none to a clinician"
+    ]
