@@ -8,27 +8,13 @@ markers.csv sent an ETag but ignored ``If-None-Match`` (the whole file again), a
 from __future__ import annotations
 
 import pytest
-from api_support import (  # noqa: F401 - fixtures
-    Api,
-    add_result,
-    api,
-    seed_recording_target,
-    trial_files,
-    video_pair,
-)
+from api_support import Api, api, video_pair  # noqa: F401 - fixtures
+from test_revisions import _trial
 
 
 @pytest.fixture
 def measured(api: Api, video_pair) -> int:
-    seeded = seed_recording_target(api)
-    r = api.client.post(
-        f"/api/v1/sessions/{seeded.session_id}/trials",
-        data={"hand": "left"},
-        files=trial_files(*video_pair),
-        headers=api.headers,
-    )
-    add_result(api, r.json()["id"])
-    return int(r.json()["id"])
+    return _trial(api, video_pair)
 
 
 def test_markers_csv_answers_304_to_its_etag(api: Api, measured: int) -> None:

@@ -9,17 +9,11 @@ and got the current revision without a word. Each revision keeps its own traject
 from __future__ import annotations
 
 import pytest
-from api_support import (  # noqa: F401 - fixtures
-    Api,
-    add_result,
-    api,
-    seed_recording_target,
-    trial_files,
-    video_pair,
-)
+from api_support import Api, api, video_pair  # noqa: F401 - fixtures
 from sqlalchemy import select
+from test_revisions import _trial
 
-from app.models import AuditEvent, Job
+from app.models import AuditEvent
 
 EXPORTS = ("markers.csv", "markers.c3d", "markers.trc")
 
@@ -27,19 +21,7 @@ EXPORTS = ("markers.csv", "markers.c3d", "markers.trc")
 @pytest.fixture
 def revised(api: Api, video_pair) -> int:
     """A trial with revision 1 (its analysis) and revision 2 (thumb and index swapped)."""
-    seeded = seed_recording_target(api)
-    r = api.client.post(
-        f"/api/v1/sessions/{seeded.session_id}/trials",
-        data={"hand": "left"},
-        files=trial_files(*video_pair),
-        headers=api.headers,
-    )
-    trial_id = int(r.json()["id"])
-    add_result(api, trial_id)
-    with api.sessions() as db:  # no analysis job runs here
-        for job in db.scalars(select(Job).where(Job.trial_id == trial_id)):
-            job.status = "succeeded"
-        db.commit()
+    trial_id = _trial(api, video_pair)
     swap = api.client.post(
         f"/api/v1/trials/{trial_id}/revisions",
         json={"swap_labels": True, "reason": "thumb and index were the wrong way round"},
