@@ -14,6 +14,7 @@ from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from app import oidc
+from app.actors import Actor
 from app.audit import ANONYMOUS, audit_failure
 from app.auth import SESSION_COOKIE, SessionDep
 from app.chain import load_key
@@ -70,10 +71,23 @@ def _login_form(
     return response
 
 
+AUDIT_HOME = "/admin/audit"
+"""Where a user whose role reads no patients' data (an auditor) lands: the one page of theirs."""
+
+
+def _landing(user: Actor, next_url: str | None = None) -> str:
+    """Where a logged-in user goes: ``next_url`` (checked) or the patient list; an auditor
+    to the audit trail, since every clinical page would refuse them (403, audited)."""
+    if not user.has_scope(PATIENT_PAGES_SCOPE):
+        return AUDIT_HOME
+    return safe_next(next_url)
+
+
 @router.get("/login", response_class=HTMLResponse)
 def login_page(request: Request, db: SessionDep, next: str | None = None) -> Response:
-    if page_user(request, db) is not None:
-        return RedirectResponse(safe_next(next), status_code=303)
+    user = page_user(request, db)
+    if user is not None:
+        return RedirectResponse(_landing(user, next), status_code=303)
     return _login_form(request, next_url=safe_next(next))
 
 
@@ -106,8 +120,7 @@ def login_submit(
             status_code=status_of(exc),
             error=str(exc),
         )
-    if not result.actor.has_scope(PATIENT_PAGES_SCOPE):  # an auditor: to the one page of theirs
-        response.headers["location"] = "/admin/audit"
+    response.headers["location"] = _landing(result.actor, next)
     response.delete_cookie(LOGIN_CSRF_COOKIE, path="/login")
     return response
 
@@ -183,6 +196,7 @@ def oidc_callback(
         )
         failed.delete_cookie(oidc.STATE_COOKIE, path=oidc.CALLBACK_PATH)
         return failed
+    response.headers["location"] = _landing(result.actor, identity.next_url)
     set_session_cookie(response, result.token, settings=settings)
     response.delete_cookie(oidc.STATE_COOKIE, path=oidc.CALLBACK_PATH)
     return response
@@ -203,11 +217,14 @@ def logout(
     user = page_user(request, db)
     response = RedirectResponse("/login?msg=You+are+logged+out.", status_code=303)
     if user is not None and csrf_refused(db, user, csrf_token, request):
-        return RedirectResponse("/patients", status_code=303)
+        return RedirectResponse(_landing(user), status_code=303)
     logout_from_request(db, request, response)
     return response
 
 
 @router.get("/")
-def home() -> Response:
-    return RedirectResponse("/patients", status_code=303)
+def home(request: Request, db: SessionDep) -> Response:
+    """The patient list; an auditor's home is the audit trail. Without a login, the patient
+    list's own redirect to the login page."""
+    user = page_user(request, db)
+    return RedirectResponse(_landing(user) if user is not None else "/patients", status_code=303)

@@ -377,6 +377,32 @@ def test_an_auditor_reads_the_audit_trail_and_nothing_of_the_patients(
     assert client.get("/api/v1/patients").status_code == 403
 
 
+def test_a_logged_in_auditors_home_is_the_audit_trail(client, seeded, db_sessionmaker):  # noqa: F811
+    """A security review: a logged-in auditor going to / or /login was sent to /patients,
+    a 403 page and a denial in the trail; their home is the audit trail."""
+    from api_support import make_user
+    from test_pages import _csrf
+
+    make_user(db_sessionmaker, "dpo@example.org", "tidal mirror lantern oak", role="auditor")
+    page = client.get("/login")
+    r = client.post(
+        "/login",
+        data={"email": "dpo@example.org", "password": "tidal mirror lantern oak",
+              "csrf_token": _csrf(page.text)},
+        follow_redirects=False,
+    )  # fmt: skip
+    assert r.headers["location"] == "/admin/audit"
+    since = _last_event_id(db_sessionmaker)
+    for url in ("/", "/login", "/login?next=/patients/1"):
+        r = client.get(url, follow_redirects=False)
+        assert r.status_code == 303 and r.headers["location"] == "/admin/audit", url
+    assert _events(db_sessionmaker, since) == []  # no refusal recorded
+    client.cookies.clear()
+    assert client.get("/", follow_redirects=False).headers["location"] == "/patients"
+    login(client)
+    assert client.get("/", follow_redirects=False).headers["location"] == "/patients"
+
+
 def test_a_storage_fault_under_a_form_posted_without_script_is_the_error_page(
     client,  # noqa: F811
     seeded,  # noqa: F811
