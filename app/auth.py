@@ -36,12 +36,13 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from app.actors import ADMIN_SCOPE, ROLE_SCOPES, Actor
 from app.apikeys import SCOPES, parse_api_key, verify_api_key
 from app.audit import audit_failure
-from app.errors import AuthenticationError, PermissionDeniedError
+from app.errors import AppError, AuthenticationError, PermissionDeniedError
 from app.models import ApiClient, BrowserSession, User, utcnow
 from app.settings import Settings
 
@@ -291,6 +292,20 @@ def get_optional_user(request: Request, db: SessionDep) -> Actor | None:
 
 
 OptionalUser = Annotated[Actor | None, Depends(get_optional_user)]
+
+
+def get_optional_caller(request: Request, db: SessionDep) -> Actor | None:
+    """The authenticated caller (API key or browser session) of a public route such as
+    ``/health``, or ``None``: no credentials, wrong ones, or a database that cannot tell.
+    Never refuses: the route answers everyone, and tells a caller more."""
+    try:
+        return _authenticate(request, db)
+    except (AppError, SQLAlchemyError):
+        db.rollback()
+        return None
+
+
+OptionalCaller = Annotated[Actor | None, Depends(get_optional_caller)]
 
 
 def require_scope(*scopes: str, refusal: str | None = None) -> Callable[..., Any]:

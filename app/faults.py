@@ -16,7 +16,10 @@ written, because every read writes its audit event: failing closed is right,
 and the answer says why.
 
 :func:`check_health` is what ``GET /health`` answers: the database answers a
-query, and a file can be written, fsynced and removed in the data directory.
+query, and a file can be written, fsynced and removed in the data directory (at
+most every :data:`WRITE_CHECK_INTERVAL_S` seconds; the verdict is kept in between).
+The answer names no path, and tells the data directory's free space only to an
+authenticated caller.
 """
 
 from __future__ import annotations
@@ -24,9 +27,11 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import threading
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
+from time import monotonic
 from typing import Any
 
 from sqlalchemy import text
@@ -123,9 +128,11 @@ class Health:
     def ok(self) -> bool:
         return not self.problems
 
-    def as_document(self) -> dict[str, Any]:
+    def as_document(self, *, free_bytes: bool = False) -> dict[str, Any]:
+        """The JSON answer; ``free_bytes``: with ``data_dir_free_bytes`` (for an
+        authenticated caller: it tells how fast recordings arrive, nobody else's business)."""
         doc: dict[str, Any] = {"status": "ok" if self.ok else "unavailable", **self.checks}
-        if self.free_bytes is not None:
+        if free_bytes and self.free_bytes is not None:
             doc["data_dir_free_bytes"] = self.free_bytes
         if self.problems:
             doc["detail"] = " ".join(self.problems)
@@ -143,7 +150,21 @@ def _check_database(engine: Engine) -> str | None:
     return None
 
 
-def _check_writable(data_dir: Path) -> str | None:
+WRITE_CHECK_INTERVAL_S = 5.0
+"""The data directory's write check runs at most this often; calls in between answer its
+last verdict, so unauthenticated callers of ``/health`` cannot make the server write and
+fsync files in a loop."""
+
+_write_checks: dict[Path, tuple[float, str | None]] = {}
+_write_checks_lock = threading.Lock()
+
+
+def _probe_write(data_dir: Path) -> str | None:
+    """Write, fsync and remove a file in the data directory: None, or what failed.
+
+    The answer names no path: ``/health`` is public, and the data directory's location
+    is the operator's business (the server's log and ``BRADYSCOPE_DATA_DIR`` tell them).
+    """
     probe = data_dir / "tmp" / f".health-{uuid.uuid4().hex}"
     try:
         probe.parent.mkdir(parents=True, exist_ok=True)
@@ -158,12 +179,25 @@ def _check_writable(data_dir: Path) -> str | None:
         return (
             f"Data directory: {fault}"
             if fault is not None
-            else (f"Data directory: {data_dir} cannot be written ({exc.strerror}).")
+            else f"Data directory: it cannot be written ({exc.strerror})."
         )
     finally:
         with contextlib.suppress(OSError):  # absent when it could not be made
             probe.unlink()
     return None
+
+
+def _check_writable(data_dir: Path) -> str | None:
+    """:func:`_probe_write`'s verdict, made at most every :data:`WRITE_CHECK_INTERVAL_S`
+    seconds per data directory (concurrent callers wait for one probe)."""
+    with _write_checks_lock:
+        now = monotonic()
+        last = _write_checks.get(data_dir)
+        if last is not None and now - last[0] < WRITE_CHECK_INTERVAL_S:
+            return last[1]
+        problem = _probe_write(data_dir)
+        _write_checks[data_dir] = (monotonic(), problem)
+        return problem
 
 
 def check_health(engine: Engine, data_dir: Path) -> Health:

@@ -32,6 +32,7 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from app import db as app_db
 from app.api import api_router
 from app.audit import client_ip_var, request_id_var
+from app.auth import OptionalCaller
 from app.errors import AppError, InvalidRequestError, PayloadTooLargeError, RateLimitedError
 from app.faults import check_health, storage_fault
 from app.settings import Settings, get_settings
@@ -462,9 +463,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="The database answers and the data directory takes a file (no authentication)",
         responses={503: {"description": "A check failed; `detail` says which and why."}},
     )
-    def health() -> JSONResponse:
+    def health(caller: OptionalCaller) -> JSONResponse:
         result = check_health(engine, settings.data_dir)
-        return JSONResponse(result.as_document(), status_code=200 if result.ok else 503)
+        document = result.as_document(free_bytes=caller is not None)
+        return JSONResponse(document, status_code=200 if result.ok else 503)
 
     @app.get("/favicon.ico", include_in_schema=False)
     def favicon() -> Response:

@@ -35,6 +35,7 @@ from conftest import make_test_settings
 from fastapi.routing import APIRoute, iter_route_contexts
 from fastapi.testclient import TestClient
 
+from app import faults
 from app.cli import main
 from app.db import dispose_engines, get_sessionmaker
 from app.main import create_app
@@ -46,8 +47,12 @@ from core.errors import RigFileError
 
 
 @pytest.fixture
-def small_disk(tmp_path: Path, _migrated_sqlite_template: Path) -> Iterator[Path]:
-    """A 24 MB tmpfs holding a migrated data directory; unmounted afterwards."""
+def small_disk(
+    tmp_path: Path, _migrated_sqlite_template: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[Path]:
+    """A 24 MB tmpfs holding a migrated data directory; unmounted afterwards. ``/health``
+    probes it at every call here (its verdict must follow the disk filled and freed)."""
+    monkeypatch.setattr(faults, "WRITE_CHECK_INTERVAL_S", 0.0)
     mount_point = tmp_path / f"disk-{uuid.uuid4().hex[:8]}"
     mount_point.mkdir()
     proc = subprocess.run(
@@ -175,7 +180,6 @@ def test_health_checks_the_database(app_settings, db_sessionmaker) -> None:
     app = create_app(app_settings)
     with TestClient(app) as client:
         body = client.get("/health").json()
-        assert body.pop("data_dir_free_bytes") > 0
         assert body == {"status": "ok", "database": "ok", "storage": "ok"}
     broken = app_settings.model_copy(
         update={"database_url": "postgresql+psycopg://nobody@127.0.0.1:1/none"}
@@ -184,6 +188,52 @@ def test_health_checks_the_database(app_settings, db_sessionmaker) -> None:
         r = client.get("/health")
         assert r.status_code == 503 and r.json()["database"] == "failed"
         assert "Database" in r.json()["detail"]
+
+
+def test_health_tells_free_space_to_authenticated_callers_only(app_settings, db_sessionmaker):
+    """A security review: ``/health`` (no authentication) told anyone the data directory's
+    free bytes, which follow the clinic's recordings; a load balancer needs the verdict."""
+    key = make_api_key(db_sessionmaker, scopes=("results:read",))
+    with TestClient(create_app(app_settings)) as client:
+        assert "data_dir_free_bytes" not in client.get("/health").json()
+        bad = client.get("/health", headers={"Authorization": "Bearer bsk_nope"})
+        assert bad.status_code == 200 and "data_dir_free_bytes" not in bad.json()
+        body = client.get("/health", headers={"Authorization": f"Bearer {key}"}).json()
+        assert body.pop("data_dir_free_bytes") > 0
+        assert body == {"status": "ok", "database": "ok", "storage": "ok"}
+
+
+def test_health_writes_a_file_at_most_every_few_seconds(
+    app_settings, db_sessionmaker, monkeypatch
+) -> None:
+    """A security review: each unauthenticated call wrote, fsynced and removed a file; a
+    loop of calls kept the disk busy. The write check's verdict is kept a few seconds."""
+    synced = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd))[1])
+    clock = [1000.0]
+    monkeypatch.setattr(faults, "monotonic", lambda: clock[0])
+    with TestClient(create_app(app_settings)) as client:
+        for _ in range(20):
+            assert client.get("/health").status_code == 200
+        assert len(synced) == 1
+        clock[0] += faults.WRITE_CHECK_INTERVAL_S
+        assert client.get("/health").status_code == 200
+        assert len(synced) == 2
+    assert faults.WRITE_CHECK_INTERVAL_S <= 10  # seconds: a failing disk still shows soon
+
+
+def test_a_data_directory_that_cannot_be_written_is_said_without_its_path(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """A security review: the public answer named the data directory's absolute path."""
+    monkeypatch.setattr(faults, "WRITE_CHECK_INTERVAL_S", 0.0)
+    blocked = tmp_path / "secret-location"
+    blocked.mkdir()
+    (blocked / "tmp").write_text("a file where the directory should be")
+    problem = faults._check_writable(blocked)
+    assert problem is not None and "cannot be written" in problem
+    assert str(tmp_path) not in problem and "secret-location" not in problem
 
 
 # --------------------------------------------------------------------------- finding 8
