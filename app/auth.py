@@ -5,7 +5,8 @@ Two kinds of callers, one :class:`Actor`:
 - **API clients** send ``Authorization: Bearer bsk_<prefix>_<secret>``
   (:mod:`app.apikeys`). The key is looked up by its prefix and compared by
   hash; a revoked key is refused (401). Each client holds *scopes*; a route
-  names the scope it needs with :func:`require_scope` (403 without it).
+  names the scope it needs with :func:`require_scope` (403 without it). A key
+  with an owner acts with at most its owner's role's scopes, checked at each use.
 - **Browsers** log in with e-mail and password (argon2, :mod:`app.passwords`)
   and get a server-side session: the cookie holds a random token, the
   database only its SHA-256 (``BrowserSession.id``). The cookie is HttpOnly,
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from datetime import timedelta
 from typing import Annotated, Any
 
@@ -86,8 +87,16 @@ def request_settings(request: Request) -> Settings:
 # --------------------------------------------------------------------------- API keys
 
 
+def owned_key_scopes(scopes: Iterable[str], owner_role: str) -> frozenset[str]:
+    """What an API key owned by a user of ``owner_role`` may do: its own scopes that the
+    role holds too. A key never does more than the person answerable for it could."""
+    return frozenset(scopes) & ROLE_SCOPES.get(owner_role, frozenset())
+
+
 def authenticate_api_key(db: Session, token: str) -> Actor:
-    """The API client owning ``token``.
+    """The API client owning ``token``, with its scopes; a key with an owner has only
+    those its owner's role holds too (:func:`owned_key_scopes`), read at each use, so a
+    change of the owner's role applies at the key's next request.
 
     Raises :class:`AuthenticationError` if the key is unknown, revoked, expired,
     or its owner's account was deactivated.
@@ -108,6 +117,7 @@ def authenticate_api_key(db: Session, token: str) -> Actor:
         raise AuthenticationError(
             f"The API key expired on {client.expires_at:%Y-%m-%d}; ask the administrator for a new one."
         )
+    scopes = frozenset(client.scopes or ())
     if client.owner_user_id is not None:
         owner = db.get(User, client.owner_user_id)
         if owner is None or not owner.is_active:
@@ -115,18 +125,14 @@ def authenticate_api_key(db: Session, token: str) -> Actor:
                 "The API key's owner no longer has an active account; ask the administrator"
                 " for a new key."
             )
+        scopes = owned_key_scopes(scopes, owner.role)
     if client.last_used_at is None or now - client.last_used_at > _TOUCH_INTERVAL:
         # Committed at once (nothing else is pending yet): a request that writes nothing
         # else, or writes through its own session (an upload), must count as a use too, or
         # an administrator would see a key in use as "never" used and revoke the wrong one.
         client.last_used_at = now
         db.commit()
-    return Actor(
-        type="api_client",
-        id=client.id,
-        name=client.name,
-        scopes=frozenset(client.scopes or ()),
-    )
+    return Actor(type="api_client", id=client.id, name=client.name, scopes=scopes)
 
 
 # --------------------------------------------------------------------------- browser sessions

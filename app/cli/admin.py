@@ -12,7 +12,9 @@ start-up lock), so it works on a fresh data directory.
   stop working), ``set-role EMAIL ROLE``, ``unlock EMAIL`` (lifts the login
   delays and lock of an account, from every address).
 - ``create-api-key NAME [--scopes S ...] [--owner EMAIL] [--expires-days N]``:
-  prints the new key once, on stdout; only its hash is stored.
+  prints the new key once, on stdout; only its hash is stored. An owned key may
+  not hold a scope its owner's role lacks, and at each use works with only those
+  its owner's role holds then (``set-role`` narrows it at once).
 - ``revoke-api-key NAME``, ``list-api-keys`` (owner, expiry, last use).
 - The record as a whole (``migrate``, ``check-migrations``, ``export-audit``,
   ``verify-audit``, ``erase-patient``, ``apply-retention``, ``backup``,
@@ -100,9 +102,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--scopes",
         nargs="+",
         choices=SCOPES,
-        default=list(DEFAULT_SCOPES),
+        default=None,
         metavar="SCOPE",
-        help=f"granted scopes among {', '.join(SCOPES)} (default: {', '.join(DEFAULT_SCOPES)})",
+        help=f"granted scopes among {', '.join(SCOPES)} (default: {', '.join(DEFAULT_SCOPES)},"
+        " those of them the owner's role holds when there is an owner); an owned key never"
+        " does more than its owner's role",
     )
     k.set_defaults(admin_func=create_api_key)
 
@@ -283,8 +287,32 @@ def set_role(settings: Settings, args: argparse.Namespace) -> int:
         # A role change takes effect at once: the sessions carry the old scopes' CSRF state.
         _end_sessions(db, user.id)
         _audit_admin(db, f"set_role:{args.role}", user.id)
+        narrowed = _narrowed_keys(db, user)
     print(f"{email}: role {before} -> {args.role} (logged out everywhere)", file=sys.stderr)
+    for line in narrowed:
+        print(line, file=sys.stderr)
     return 0
+
+
+def _narrowed_keys(db: Session, owner: User) -> list[str]:
+    """A line per active API key of ``owner`` holding scopes the owner's role lacks: the
+    key keeps them stored but works without them from its next request on."""
+    from app.auth import owned_key_scopes
+    from app.models import ApiClient
+
+    lines = []
+    keys = db.scalars(
+        select(ApiClient).where(ApiClient.owner_user_id == owner.id, ApiClient.revoked_at.is_(None))
+    )
+    for key in keys:
+        allowed = owned_key_scopes(key.scopes, owner.role)
+        lacking = sorted(set(key.scopes) - allowed)
+        if lacking:
+            lines.append(
+                f"API key {key.name!r}: works without {', '.join(lacking)} from now on (scopes:"
+                f" {', '.join(sorted(allowed)) or 'none'})"
+            )
+    return lines
 
 
 def unlock_user(settings: Settings, args: argparse.Namespace) -> int:
@@ -303,6 +331,34 @@ def unlock_user(settings: Settings, args: argparse.Namespace) -> int:
     return 0
 
 
+def _key_scopes(requested: list[str] | None, owner: User | None) -> list[str]:
+    """The scopes of a new key: those asked for (or the default ones), sorted. A key with an
+    owner may not hold a scope the owner's role lacks (it would never work: see
+    :func:`app.auth.owned_key_scopes`); asked for, that is refused; by default, such
+    scopes are left out, and a role holding none of the defaults must name its scopes."""
+    from app.apikeys import DEFAULT_SCOPES
+    from app.auth import owned_key_scopes
+
+    scopes = sorted(set(requested if requested is not None else DEFAULT_SCOPES))
+    if owner is None:
+        return scopes
+    allowed = owned_key_scopes(scopes, owner.role)
+    lacking = [s for s in scopes if s not in allowed]
+    if requested is not None and lacking:
+        raise InvalidRequestError(
+            f"the owner {owner.email} has the role {owner.role}, which lacks"
+            f" {', '.join(lacking)}; a key never does more than its owner, so give only"
+            " scopes the role holds (or another owner)."
+        )
+    if not allowed:
+        raise InvalidRequestError(
+            f"the owner {owner.email} has the role {owner.role}, which holds none of the"
+            " default scopes; name the key's scopes with --scopes (an auditor's key:"
+            " --scopes audit:read)."
+        )
+    return sorted(allowed)
+
+
 def create_api_key(settings: Settings, args: argparse.Namespace) -> int:
     from app.apikeys import generate_api_key, hash_api_key
     from app.db import session_scope
@@ -318,7 +374,8 @@ def create_api_key(settings: Settings, args: argparse.Namespace) -> int:
     key, prefix = generate_api_key()
     try:
         with session_scope(settings) as db:
-            owner_id = _user(db, _normal_email(args.owner)).id if args.owner else None
+            owner = _user(db, _normal_email(args.owner)) if args.owner else None
+            scopes = _key_scopes(args.scopes, owner)
             if db.scalar(select(ApiClient.id).where(ApiClient.name == name)) is not None:
                 raise ConflictError(
                     f"an API client named {name!r} already exists; choose another name or "
@@ -328,8 +385,8 @@ def create_api_key(settings: Settings, args: argparse.Namespace) -> int:
                 name=name,
                 key_prefix=prefix,
                 key_hash=hash_api_key(key),
-                scopes=sorted(set(args.scopes)),
-                owner_user_id=owner_id,
+                scopes=scopes,
+                owner_user_id=owner.id if owner is not None else None,
                 expires_at=expires_at,
             )
             db.add(client)
@@ -341,7 +398,7 @@ def create_api_key(settings: Settings, args: argparse.Namespace) -> int:
         raise ConflictError(f"an API client named {name!r} already exists.") from exc
     print(key)
     print(
-        f"API key for {name!r} (scopes: {', '.join(sorted(set(args.scopes)))}), valid until"
+        f"API key for {name!r} (scopes: {', '.join(scopes)}), valid until"
         f" {expires_at:%Y-%m-%d}. It is shown only now; store it safely.",
         file=sys.stderr,
     )
@@ -366,6 +423,7 @@ def revoke_api_key(settings: Settings, args: argparse.Namespace) -> int:
 
 
 def list_api_keys(settings: Settings, args: argparse.Namespace) -> int:
+    from app.auth import owned_key_scopes
     from app.db import session_scope
     from app.models import ApiClient, User, utcnow
 
@@ -387,8 +445,14 @@ def list_api_keys(settings: Settings, args: argparse.Namespace) -> int:
             )
             expires = f"{c.expires_at:%Y-%m-%d}" if c.expires_at else "never"
             used = f"{c.last_used_at:%Y-%m-%d %H:%M}" if c.last_used_at else "never"
+            scopes = " ".join(c.scopes)
+            if owner is not None:  # what the owner's role lacks does not work
+                allowed = owned_key_scopes(c.scopes, owner.role)
+                scopes = " ".join(
+                    x if x in allowed else f"({x}: not {owner.role})" for x in c.scopes
+                )
             print(
                 f"{c.name}\tbsk_{c.key_prefix}_…\t{state}\t{owner_text}\t{expires}\t{used}"
-                f"\t{' '.join(c.scopes)}"
+                f"\t{scopes}"
             )
     return 0

@@ -38,7 +38,15 @@ from app.errors import (
 )
 from app.login import login_user, reauthenticate
 from app.main import create_app
-from app.models import ApiClient, AuditEvent, BrowserSession, LoginThrottle, User, utcnow
+from app.models import (
+    ApiClient,
+    AuditEvent,
+    BrowserSession,
+    LoginThrottle,
+    Patient,
+    User,
+    utcnow,
+)
 from app.passwords import check_password_strength
 from app.settings import Settings
 
@@ -433,6 +441,48 @@ def test_api_keys_have_an_owner_an_expiry_and_a_last_use(
     r = api.client.get("/api/v1/patients", headers=h)
     assert r.status_code == 401 and "owner" in r.json()["detail"]
     assert _cli(api.settings, monkeypatch, "create-api-key", "x", "--owner", "no@example.org") == 2
+
+
+def test_an_owned_key_does_no_more_than_its_owners_role(
+    api: Api, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A security review: a key owned by a clinician kept every data scope after the
+    clinician became an auditor (it listed and created patients), and a key made for an
+    auditor got the five data scopes by default."""
+    make_user(api.sessions, "doc@example.org", PASSWORD)
+    make_user(api.sessions, "dpo@example.org", PASSWORD, role="auditor")
+    assert (
+        _cli(api.settings, monkeypatch, "create-api-key", "owned", "--owner", "doc@example.org")
+        == 0
+    )
+    key = capsys.readouterr().out.strip()
+    h = {"Authorization": f"Bearer {key}"}
+    assert api.client.get("/api/v1/patients", headers=h).status_code == 200
+    assert _cli(api.settings, monkeypatch, "set-role", "doc@example.org", "auditor") == 0
+    assert "works without patients:read" in capsys.readouterr().err
+    assert api.client.get("/api/v1/patients", headers=h).status_code == 403  # at once
+    r = api.client.post("/api/v1/patients", json={"code": "OWNED-1"}, headers=h)
+    assert r.status_code == 403 and api.count(Patient) == 0
+    assert _cli(api.settings, monkeypatch, "set-role", "doc@example.org", "clinician") == 0
+    assert api.client.get("/api/v1/patients", headers=h).status_code == 200  # stored scopes kept
+
+    # creation: the role's scopes only; asked for beyond them, refused with the reason
+    assert (
+        _cli(api.settings, monkeypatch, "create-api-key", "a1", "--owner", "dpo@example.org") == 2
+    )
+    assert "--scopes audit:read" in capsys.readouterr().err
+    args = ("create-api-key", "a2", "--owner", "dpo@example.org", "--scopes", "audit:read",
+            "patients:read")  # fmt: skip
+    assert _cli(api.settings, monkeypatch, *args) == 2
+    assert "lacks patients:read" in capsys.readouterr().err
+    assert _cli(api.settings, monkeypatch, *args[:-1]) == 0
+    auditor_key = capsys.readouterr().out.strip()
+    a = {"Authorization": f"Bearer {auditor_key}"}
+    assert api.client.get("/api/v1/audit", headers=a).status_code == 200
+    assert api.client.get("/api/v1/patients", headers=a).status_code == 403
+    with api.sessions() as db:
+        scopes = {c.name: c.scopes for c in db.scalars(select(ApiClient))}
+    assert "a1" not in scopes and scopes["a2"] == ["audit:read"]
 
 
 # --------------------------------------------------------------------------- re-authentication
