@@ -84,7 +84,7 @@ def _task_grid(trials: list[Trial], hidden: list[Trial]) -> list[dict[str, Any]]
     return rows
 
 
-def _session_response(
+def session_response(
     request: Request,
     db: Session,
     user: Actor,
@@ -92,8 +92,10 @@ def _session_response(
     *,
     status: int = 200,
     error: str | None = None,
+    sign_error: str | None = None,
 ) -> Response:
-    """The session page (audited as a read of the session)."""
+    """The session page (audited as a read of the session); ``error`` at the top of the
+    page, ``sign_error`` next to the signing form's password (a refused signature)."""
     try:
         overview = sessions.session_overview(db, user, session_id)
     except NotFoundError as exc:
@@ -111,6 +113,7 @@ def _session_response(
         active="patients",
         title=f"Session {local_date(session.recorded_at, tz):%Y-%m-%d} — {session.patient.code}",
         error=error,
+        sign_error=sign_error,
         session=session,
         patient=session.patient,
         trials=[
@@ -133,7 +136,7 @@ def _session_response(
 
 @router.get("/sessions/{session_id}", response_class=HTMLResponse)
 def session_page(request: Request, db: SessionDep, user: PageUser, session_id: IdPath) -> Response:
-    return _session_response(request, db, user, session_id)
+    return session_response(request, db, user, session_id)
 
 
 @router.get("/sessions/{session_id}/visit-report.{kind}")
@@ -209,7 +212,7 @@ async def trial_upload(request: Request, session_id: IdPath) -> Response:
         refusal=refusal,
         file_fields=trials.TRIAL_FILE_FIELDS,
         text_fields=trials.PAGE_TRIAL_TEXT_FIELDS,
-        fail=lambda db, actor, status, message: _session_response(
+        fail=lambda db, actor, status, message: session_response(
             request, db, actor, session_id, status=status, error=message
         ),
         use_case=lambda db, actor, upload: _create_trial(db, request, actor, session_id, upload),

@@ -3,7 +3,9 @@
 ``POST /sessions/{id}/sign`` asks for the clinician's password again
 (``app.services.signatures.sign_visit``); ``/sessions/{id}/signed/{n}.pdf``
 serves signed report ``n`` byte for byte. One audit event each (signing also
-records the re-authentication).
+records the re-authentication). A refused signature (a wrong password, too many
+attempts, nothing changed since the last signature) brings the clinician back to the
+session page with the reason next to the password field, not to a page with no way on.
 """
 
 from __future__ import annotations
@@ -14,10 +16,11 @@ from fastapi import APIRouter, Form, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from app.auth import SessionDep
-from app.errors import AppError
+from app.errors import AppError, AuthenticationError, NotFoundError
 from app.schemas import IdPath
 from app.services import signatures, visits
 from app.web.common import CSRF_MESSAGE, PageUser, csrf_refused, error_page, status_of
+from app.web.recordings import session_response
 
 router = APIRouter()
 
@@ -43,9 +46,14 @@ def sign_visit(
             settings=request.app.state.settings,
             ip=request.client.host[:45] if request.client else None,
         )
-    except AppError as exc:
+    except (NotFoundError, AuthenticationError) as exc:  # no session to go back to; logged out
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))
+    except AppError as exc:
+        db.rollback()
+        return session_response(
+            request, db, user, session_id, status=status_of(exc), sign_error=str(exc)
+        )
     return RedirectResponse(
         f"/sessions/{session_id}?msg=Visit+signed+(signature+{row.number}).", status_code=303
     )

@@ -54,3 +54,29 @@ def test_after_signing_the_pages_offer_the_signed_copy_and_the_live_one_says_so(
         assert "Visit report as it is now (not signed" in html, url
     signed = client.get(f"/sessions/{session_id}/signed/1.pdf")
     assert signed.status_code == 200 and signed.content.startswith(b"%PDF")
+
+
+def test_a_wrong_signing_password_comes_back_to_the_session_page_with_the_error_by_the_field(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+):
+    """A clinic day ended on a "Not allowed" page whose only link led to the patient list."""
+    csrf = login(client)
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, seeded["trials"][(1, "right")]).session_id
+    r = client.post(
+        f"/sessions/{session_id}/sign",
+        data={"csrf_token": csrf, "password": "not my password"},
+        follow_redirects=False,
+    )
+    assert r.status_code == 403
+    assert "Not allowed" not in r.text and "Return to the patient list" not in r.text
+    form = re.search(r"<form [^>]*data-sign-form>.*?</form>", r.text, re.S)
+    assert form, "the session page's signing form is not there"
+    field = re.search(r'<input id="sign-password"[^>]*>', form.group(0)).group(0)
+    assert 'aria-describedby="sign-error"' in field and 'aria-invalid="true"' in field
+    error = re.search(r'<p class="form-error" id="sign-error"[^>]*>([^<]+)</p>', form.group(0))
+    assert error and "The password is wrong" in error.group(1)
+    assert "Upload the left hand" in r.text  # the whole session page, not a stub
+    assert "Visit signed" not in r.text
