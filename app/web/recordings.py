@@ -12,6 +12,7 @@ CSRF token comes in the ``X-CSRF-Token`` header (script) or as the form's
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -48,37 +49,74 @@ from core.tasks import Task
 router = APIRouter()
 
 
-def _hand_pair(trials: list[Trial]) -> tuple[int, int] | None:
-    """(right, left) trial ids with results, newest of each side, for a right/left comparison
-    (trials of one task)."""
-    newest: dict[str, Trial] = {}
-    for t in trials:
-        if t.result is not None and (t.hand not in newest or t.id > newest[t.hand].id):
-            newest[t.hand] = t
-    if "right" in newest and "left" in newest:
-        return newest["right"].id, newest["left"].id
-    return None
+def _takes(n: int, what: str) -> str:
+    """``"1 failed take"``, ``"2 failed takes"``; ``what`` with ``{}`` for the noun."""
+    return f"{n} " + what.format("take" if n == 1 else "takes")
 
 
-def _newest_of(trials: list[Trial], task: Task, side: str) -> Trial | None:
-    mine = [t for t in trials if t.task == task.value and t.hand == side]
-    return max(mine, key=lambda t: t.id) if mine else None
+@dataclass(frozen=True)
+class SideCell:
+    """What the task grid says of one side of one task.
+
+    ``state``: measured (a trial has a result: its newest is linked, whatever came after),
+    measuring (none has a result, one is queued or running), failed (every take failed),
+    hidden (every take was hidden) or "not recorded". ``notes``: the side's other takes
+    in words ("1 failed take"), so that a failed retry neither hides a good measurement
+    nor goes unmentioned.
+    """
+
+    state: str
+    trial: Trial | None = None
+    notes: tuple[str, ...] = ()
+
+
+def _side_cell(visible: list[Trial], hidden: list[Trial]) -> SideCell:
+    """The cell of one side from its visible and hidden trials (of one task)."""
+    measured = [t for t in visible if t.result is not None]
+    pending = [t for t in visible if t.result is None and t.status in ("queued", "running")]
+    failed = [t for t in visible if t.result is None and t.status == "failed"]
+    again = [t for t in measured if t.status in ("queued", "running")]
+    counts = (
+        (len(failed), "failed {}"),
+        (len(pending), "{} being measured"),
+        (len(again), "{} being measured again"),
+        (len(hidden), "hidden {}"),
+    )
+    if measured:
+        shown, state = max(measured, key=lambda t: t.id), "measured"
+    elif pending:
+        shown, state = max(pending, key=lambda t: t.id), "measuring"
+        counts = counts[:1] + counts[3:]
+    elif failed:
+        shown, state = max(failed, key=lambda t: t.id), "failed"
+        counts = ((len(failed) - 1, "other failed {}"), counts[3])
+    elif hidden:
+        return SideCell("hidden", max(hidden, key=lambda t: t.id))
+    else:
+        return SideCell("not recorded")
+    return SideCell(state, shown, tuple(_takes(n, what) for n, what in counts if n))
 
 
 def _task_grid(trials: list[Trial], hidden: list[Trial]) -> list[dict[str, Any]]:
-    """One row per task (MDS-UPDRS 3.4–3.8): the newest trial of each side, and the
-    right–left comparison of the task when both sides have a result; a side whose trials
-    were all hidden shows the newest hidden one (it was recorded: "hidden", not "not
-    recorded")."""
+    """One row per task (MDS-UPDRS 3.4–3.8): each side's :class:`SideCell`, and the
+    right–left comparison of the task when both sides are measured (the two trials their
+    cells link to: the newest with a result of each side)."""
     rows = []
     for task in Task:
-        of_task = [t for t in trials if t.task == task.value]
+        sides = {
+            side: _side_cell(
+                [t for t in trials if t.task == task.value and t.hand == side],
+                [t for t in hidden if t.task == task.value and t.hand == side],
+            )
+            for side in ("right", "left")
+        }
+        right, left = sides["right"].trial, sides["left"].trial
+        both = all(cell.state == "measured" for cell in sides.values())
         rows.append(
             {
                 "title": task.heading,
-                "sides": {side: _newest_of(trials, task, side) for side in ("right", "left")},
-                "hidden": {side: _newest_of(hidden, task, side) for side in ("right", "left")},
-                "pair": _hand_pair(of_task),
+                "sides": sides,
+                "pair": (right.id, left.id) if both and right and left else None,
             }
         )
     return rows

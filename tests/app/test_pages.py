@@ -348,6 +348,67 @@ def test_session_page_offers_the_left_right_comparison(client, seeded, db_sessio
     assert "Right–left asymmetry: (right − left) / mean of both" in page.text
 
 
+def _add_take(db, session_id: int, task: str, hand: str, status: str, *, hidden: bool = False):
+    """A trial without a result: failed (with its job's error), queued or running."""
+    trial = Trial(session_id=session_id, task=task, hand=hand, status=status)
+    if hidden:
+        trial.deleted_at, trial.deleted_reason = datetime(2025, 3, 1, 10, tzinfo=UTC), "x"
+    db.add(trial)
+    db.flush()
+    error = "the cameras disagree" if status == "failed" else None
+    db.add(Job(kind="analyze_trial", trial_id=trial.id, status=status, error=error))
+    return trial.id
+
+
+def _grid_cells(html: str) -> dict[tuple[str, str], str]:
+    """The task grid's text per (task row, side), and "compare" per row with the link."""
+    grid = re.search(r'<table class="list task-grid".*?</table>', html, re.S).group(0)
+    cells = {}
+    for row in re.findall(r"<tr>\s*<th scope=\"row\">.*?</tr>", grid, re.S):
+        title = re.search(r'<th scope="row">([^<]+)</th>', row).group(1)
+        for side, text in re.findall(r'<td data-side="(\w+)"[^>]*>(.*?)</td>', row, re.S):
+            cells[(title, side)] = " ".join(re.sub(r"<[^>]+>", " ", text).split())
+        cells[(title, "compare")] = "yes" if "data-compare-hands" in row else "no"
+    return cells
+
+
+def test_session_grid_says_measured_with_the_failed_retry_not_failed(
+    client, seeded, db_sessionmaker
+):
+    """A right take that failed after a good one made the grid say Right = "failed", yet
+    "Compare right and left" was offered (clinic review, item 6)."""
+    right, left = seeded["trials"][(1, "right")], seeded["trials"][(1, "left")]
+    with db_sessionmaker() as db, db.begin():
+        sid = db.get(Trial, right).session_id
+        _add_take(db, sid, "finger_tapping", "right", "failed")  # after the good one
+        _add_take(db, sid, "finger_tapping", "left", "queued")
+        _add_take(db, sid, "finger_tapping", "left", "failed", hidden=True)
+        _add_take(db, sid, "hand_movements", "right", "failed")
+        _add_take(db, sid, "hand_movements", "right", "running")
+        _add_take(db, sid, "hand_movements", "left", "failed")
+        _add_take(db, sid, "hand_movements", "left", "failed")
+        _add_take(db, sid, "toe_tapping", "right", "failed", hidden=True)
+        _add_take(db, sid, "toe_tapping", "left", "failed")
+        _add_take(db, sid, "toe_tapping", "left", "failed", hidden=True)
+    login(client)
+    html = client.get(f"/sessions/{sid}").text
+    cells = _grid_cells(html)
+    tapping, hand, toe = (
+        f"{t} (MDS-UPDRS 3.{n})"
+        for t, n in (("Finger tapping", 4), ("Hand movements", 5), ("Toe tapping", 7))
+    )
+    assert cells[(tapping, "right")] == "measured (1 failed take)"
+    assert cells[(tapping, "left")] == "measured (1 take being measured, 1 hidden take)"
+    assert cells[(tapping, "compare")] == "yes"  # both sides measured, as the grid says
+    assert f'href="/trials/{right}?compare={left}#compare"' in html
+    assert cells[(hand, "right")] == "measuring (1 failed take)"
+    assert cells[(hand, "left")] == "failed (1 other failed take)"
+    assert cells[(hand, "compare")] == "no"
+    assert cells[(toe, "right")] == "hidden"
+    assert cells[(toe, "left")] == "failed (1 hidden take)"
+    assert cells[("Leg agility (MDS-UPDRS 3.8)", "right")] == "not recorded"
+
+
 def test_trial_page_has_every_plot_metrics_and_quality(client, seeded, db_sessionmaker):
     login(client)
     t = seeded["trials"][(1, "right")]
