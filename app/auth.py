@@ -41,7 +41,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from app.actors import ADMIN_SCOPE, ROLE_SCOPES, Actor
-from app.apikeys import SCOPES, parse_api_key, verify_api_key
+from app.apikeys import DATA_SCOPES, SCOPES, parse_api_key, verify_api_key
 from app.audit import audit_failure
 from app.errors import AppError, AuthenticationError, PermissionDeniedError
 from app.models import ApiClient, BrowserSession, User, utcnow
@@ -346,9 +346,32 @@ def require_scope(*scopes: str, refusal: str | None = None) -> Callable[..., Any
     return dependency
 
 
+def require_any_scope(*scopes: str) -> Callable[..., Any]:
+    """A dependency returning the :class:`Actor` if it holds *one* of ``scopes`` (else 403,
+    audited as :func:`require_scope`'s refusals)."""
+    unknown = set(scopes) - set(SCOPES)
+    if unknown:
+        raise ValueError(f"unknown scopes {sorted(unknown)}; known: {list(SCOPES)}")
+
+    def dependency(actor: CurrentActor, db: SessionDep, request: Request) -> Actor:
+        if not any(actor.has_scope(s) for s in scopes):
+            audit_failure(db, actor, "access", "route", request.url.path[:64], outcome="denied")
+            raise PermissionDeniedError(
+                f"This {'API key' if actor.type == 'api_client' else 'account'} holds none of"
+                f" the scopes {', '.join(scopes)}; ask the administrator to grant one."
+            )
+        return actor
+
+    dependency.__name__ = "require_one_of_" + "_".join(s.replace(":", "_") for s in scopes)
+    return dependency
+
+
 # The actors of the routes, one alias per scope (shared by the API routers).
 PatientReader = Annotated[Actor, Depends(require_scope("patients:read"))]
 PatientWriter = Annotated[Actor, Depends(require_scope("patients:write"))]
 RecordingWriter = Annotated[Actor, Depends(require_scope("recordings:write"))]
 ResultReader = Annotated[Actor, Depends(require_scope("results:read"))]
 RigWriter = Annotated[Actor, Depends(require_scope("rigs:write"))]
+DataReader = Annotated[Actor, Depends(require_any_scope(*DATA_SCOPES))]
+"""Rigs, calibrations and job status: any data scope (what the clinical pages' roles hold);
+a key or account reading only the audit trail (an auditor) is refused, as on the pages."""

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Request, status
 
 from app.api.responses import AUTH, IdPath, Limit, Offset, errors, page
 from app.api.uploads import BINARY, multipart_body, run_api_upload
-from app.auth import CurrentActor, RigWriter, SessionDep
+from app.auth import DataReader, RigWriter, SessionDep
 from app.schemas import CalibrationCreated, CalibrationRead, Page, RigCreate, RigRead
 from app.services import calibrations
 from app.services import rigs as service
@@ -58,7 +58,7 @@ def create_rig(data: RigCreate, actor: RigWriter, db: SessionDep) -> RigRead:
 
 @router.get("/rigs", response_model=Page[RigRead], responses=errors(*AUTH), summary="List rigs")
 def list_rigs(
-    actor: CurrentActor, db: SessionDep, limit: Limit = 50, offset: Offset = 0
+    actor: DataReader, db: SessionDep, limit: Limit = 50, offset: Offset = 0
 ) -> Page[RigRead]:
     items, total = service.list_rigs(db, actor, limit=limit, offset=offset)
     return page(RigRead, items, total, limit=limit, offset=offset)
@@ -67,7 +67,7 @@ def list_rigs(
 @router.get(
     "/rigs/{rig_id}", response_model=RigRead, responses=errors(*AUTH, 404), summary="Read a rig"
 )
-def get_rig(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> RigRead:
+def get_rig(rig_id: IdPath, actor: DataReader, db: SessionDep) -> RigRead:
     return RigRead.model_validate(service.get_rig(db, actor, rig_id))
 
 
@@ -104,7 +104,7 @@ async def create_calibration(
     responses=errors(*AUTH, 404),
     summary="List a rig's calibrations, oldest version first",
 )
-def list_calibrations(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> list[CalibrationRead]:
+def list_calibrations(rig_id: IdPath, actor: DataReader, db: SessionDep) -> list[CalibrationRead]:
     return [CalibrationRead(**v) for v in calibrations.list_calibrations(db, actor, rig_id)]
 
 
@@ -114,7 +114,7 @@ def list_calibrations(rig_id: IdPath, actor: CurrentActor, db: SessionDep) -> li
     responses=errors(*AUTH, 404),
     summary="Read a calibration (status, quality, its job)",
 )
-def get_calibration(calibration_id: IdPath, actor: CurrentActor, db: SessionDep) -> CalibrationRead:
+def get_calibration(calibration_id: IdPath, actor: DataReader, db: SessionDep) -> CalibrationRead:
     return CalibrationRead(**calibrations.get_calibration(db, actor, calibration_id))
 
 
@@ -125,6 +125,6 @@ def get_calibration(calibration_id: IdPath, actor: CurrentActor, db: SessionDep)
     summary="The rig file (bradyscope.rig/1) of a ready calibration",
 )
 def get_calibration_rig_file(
-    calibration_id: IdPath, actor: CurrentActor, db: SessionDep
+    calibration_id: IdPath, actor: DataReader, db: SessionDep
 ) -> dict[str, Any]:
     return calibrations.rig_file_of(db, actor, calibration_id)

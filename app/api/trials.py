@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response, status
 from app.actors import ADMIN_SCOPE, Actor
 from app.api.responses import AUTH, IdPath, errors
 from app.api.uploads import BINARY, multipart_body, run_api_upload
-from app.auth import CurrentActor, SessionDep, require_scope
+from app.auth import DataReader, SessionDep, require_scope
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Deleter
 from app.auth import PatientWriter as Rater
@@ -183,6 +183,8 @@ def restore_trial(trial_id: IdPath, actor: Restorer, db: SessionDep) -> TrialRea
     response_model=JobRead,
     responses=errors(*AUTH, 404),
     summary="A job's status, progress (0-1), stage and error",
+    description="A trial's job needs the scope results:read and is recorded as a read of"
+    " the trial (404 when the trial is hidden); a calibration's job, any data scope.",
 )
-def get_job(job_id: IdPath, actor: CurrentActor, db: SessionDep) -> JobRead:
+def get_job(job_id: IdPath, actor: DataReader, db: SessionDep) -> JobRead:
     return JobRead.model_validate(service.get_job(db, actor, job_id))

@@ -31,6 +31,7 @@ from app.services.common import (
     cancel_trial_jobs,
     load_session,
     load_trial,
+    not_found,
     trial_is_visible,
     visible_session,
 )
@@ -56,6 +57,7 @@ PAGE_TRIAL_TEXT_FIELDS = TRIAL_TEXT_FIELDS
 _TAKE_ID = re.compile(r"[A-Za-z0-9_-]{8,64}")
 _ID = re.compile(r"[0-9]{1,9}")  # a row id (an int4 on PostgreSQL); no sign, no other digits
 MAX_OFFSET_FRAMES = 10_000  # as RevisionCreate.offset_frames
+RESULTS_READ = "results:read"
 
 
 @dataclass(frozen=True)
@@ -427,13 +429,28 @@ def restore_trial(db: Session, actor: Actor, trial_id: int) -> Trial:
 
 
 def get_job(db: Session, actor: Actor, job_id: int) -> Job:
-    """A job's status. Holds no clinical values, so it is not audited (clients poll it).
-    The job of a hidden trial stays readable here: a client that hid the trial sees its
-    analysis cancelled ("failed", the error saying the recording was deleted)."""
+    """A job's status (the API). A trial's job (its analysis, its report) tells what the
+    trial's results tell of it (its failure, in words), so it needs ``results:read`` and is
+    audited as a read of the trial; the job of a hidden trial, session or patient answers
+    404 like the trial. A calibration's job holds no patient data (not audited); the route
+    has checked the data scope that reading calibrations needs."""
     job = db.get(Job, job_id)
     if job is None:
-        raise NotFoundError(f"The job {job_id} does not exist; check the id.")
-    db.rollback()
+        raise not_found(db, actor, "read", "job", job_id, "The job")
+    if job.trial is None:
+        db.rollback()
+        return job
+    if not actor.has_scope(RESULTS_READ):
+        audit_failure(db, actor, "read", "trial", job.trial.id, outcome="denied")
+        raise PermissionDeniedError(
+            f"This {'API key' if actor.type == 'api_client' else 'account'} lacks the scope"
+            f" {RESULTS_READ}, which the status of a trial's job needs; ask the administrator"
+            " to grant it."
+        )
+    if not trial_is_visible(job.trial):
+        raise not_found(db, actor, "read", "job", job_id, "The job")
+    audit(db, actor, "read", "trial", job.trial.id, job.trial.session.patient_id)
+    db.commit()
     return job
 
 

@@ -16,6 +16,9 @@ from api_support import (  # noqa: F401 - pytest fixtures
     trial_files,
     video_pair,
 )
+from sqlalchemy import select
+
+from app.models import AuditEvent, Job, Patient
 
 
 def _upload(api: Api, video_pair, hand: str = "left") -> dict:
@@ -60,12 +63,22 @@ def _job(api: Api, job_id: int) -> dict:
     return r.json()
 
 
+def _stored_job(api: Api, job_id: int) -> dict:
+    """A job as stored (the API hides the job of a hidden trial, session or patient)."""
+    with api.sessions() as db:
+        job = db.get(Job, job_id)
+        assert job is not None
+        return {"status": job.status, "error": job.error or ""}
+
+
 def test_deleting_a_trial_cancels_its_queued_job(api: Api, video_pair) -> None:
     up = _upload(api, video_pair)
     assert _job(api, up["job_id"])["status"] == "queued"
     assert api.client.delete(f"/api/v1/trials/{up['id']}", headers=api.headers).status_code == 204
-    job = _job(api, up["job_id"])
+    job = _stored_job(api, up["job_id"])
     assert job["status"] == "failed" and "deleted" in job["error"]
+    # the job of a hidden trial is hidden like the trial (security review item 4)
+    assert api.client.get(f"/api/v1/jobs/{up['job_id']}", headers=api.headers).status_code == 404
 
 
 def test_deleting_a_session_or_patient_cancels_the_jobs_of_its_trials(api: Api, video_pair) -> None:
@@ -77,7 +90,7 @@ def test_deleting_a_session_or_patient_cancels_the_jobs_of_its_trials(api: Api, 
     claimed = jobs.claim_next(api.sessions, worker_name="test", lease_s=60.0)
     assert claimed is not None and claimed.id == up["job_id"]
     assert api.client.delete(f"/api/v1/sessions/{up['session_id']}", headers=h).status_code == 204
-    job = _job(api, up["job_id"])
+    job = _stored_job(api, up["job_id"])
     assert job["status"] == "failed" and "deleted" in job["error"]
     with pytest.raises(jobs.LeaseLostError):
         jobs.heartbeat(api.sessions, claimed, lease_s=60.0)
@@ -102,7 +115,7 @@ def test_deleting_a_session_or_patient_cancels_the_jobs_of_its_trials(api: Api, 
     )
     assert r.status_code == 201, r.text
     assert api.client.delete(f"/api/v1/patients/{patient_id}", headers=h).status_code == 204
-    job = _job(api, r.json()["job_id"])
+    job = _stored_job(api, r.json()["job_id"])
     assert job["status"] == "failed" and "deleted" in job["error"]
 
 
@@ -225,3 +238,37 @@ def test_a_take_sent_again_through_the_api_is_stored_once(api: Api, tmp_path) ->
     assert plain.status_code == 201 and plain.json()["id"] != first.json()["id"]
     assert any(f"trial {first.json()['id']} of this session holds the same two videos" in w
                for w in plain.json()["warnings"])  # fmt: skip
+
+
+def test_job_status_follows_the_rights_of_the_trials_results(api: Api, video_pair) -> None:
+    """A security review: job status (a trial's id, its analysis error) was served to any
+    valid key, an audit-only one or a rigs:write-only one too, for a hidden patient too,
+    and was not audited; rigs and calibrations were served to an audit-only key."""
+    up = _upload(api, video_pair)
+    url = f"/api/v1/jobs/{up['job_id']}"
+    rigs_only = {
+        "Authorization": f"Bearer {make_api_key(api.sessions, name='r', scopes=('rigs:write',))}"
+    }
+    audit_only = {
+        "Authorization": f"Bearer {make_api_key(api.sessions, name='a', scopes=('audit:read',))}"
+    }
+    for h in (rigs_only, audit_only):
+        assert api.client.get(url, headers=h).status_code == 403
+    for path in ("/api/v1/rigs", "/api/v1/rigs/1", "/api/v1/rigs/1/calibrations"):
+        assert api.client.get(path, headers=audit_only).status_code == 403, path
+        assert api.client.get(path, headers=rigs_only).status_code == 200, path
+    with api.sessions() as db:
+        patient_id = db.scalar(select(Patient.id))
+        before = db.scalar(select(AuditEvent.id).order_by(AuditEvent.id.desc()))
+    r = api.client.get(url, headers=api.headers)
+    assert r.status_code == 200 and r.json()["trial_id"] == up["id"]
+    with api.sessions() as db:
+        new = list(db.scalars(select(AuditEvent).where(AuditEvent.id > before)))
+    assert [(e.action, e.resource_type, e.resource_id, e.patient_id) for e in new] == [
+        ("read", "trial", str(up["id"]), patient_id)
+    ]
+    assert (
+        api.client.delete(f"/api/v1/patients/{patient_id}", headers=api.headers).status_code == 204
+    )
+    r = api.client.get(url, headers=api.headers)
+    assert r.status_code == 404 and "deleted" not in r.text  # the trial's analysis error

@@ -13,8 +13,9 @@ from sqlalchemy import func, select
 from app.models import AuditEvent, Patient, Result
 
 NOTES = "tremor worse after coffee, lives alone"  # a clinical free text that must never be audited
-# API routes that serve no patient data (not audited): rigs and calibrations, job
-# status (polled), who-am-I and login/logout (audited as login/logout themselves).
+# API routes that serve no patient data (not audited): rigs and calibrations, who-am-I
+# and login/logout (audited as login/logout themselves). A trial's job status is a read
+# of the trial (a calibration's job is not audited: no patient data).
 NOT_PATIENT_DATA = {
     ("POST", "/api/v1/auth/login"),
     ("POST", "/api/v1/auth/logout"),
@@ -26,7 +27,6 @@ NOT_PATIENT_DATA = {
     ("GET", "/api/v1/rigs/{rig_id}/calibrations"),
     ("GET", "/api/v1/calibrations/{calibration_id}"),
     ("GET", "/api/v1/calibrations/{calibration_id}/rig.json"),
-    ("GET", "/api/v1/jobs/{job_id}"),
     # the audit trail itself (scope audit:read; its reads are audited, see test_audit_trail.py)
     ("GET", "/api/v1/audit"),
 }
@@ -64,6 +64,7 @@ CASES = [
     Case("POST", "/api/v1/sessions/{session_id}/trials", "create", "trial"),
     Case("GET", "/api/v1/sessions/{session_id}/trials", "list", "trial"),
     Case("GET", "/api/v1/trials/{trial_id}", "read", "trial"),
+    Case("GET", "/api/v1/jobs/{job_id}", "read", "trial"),
     Case("PATCH", "/api/v1/trials/{trial_id}", "update", "trial"),
     Case("GET", "/api/v1/trials/{trial_id}/result", "read", "result"),
     Case("GET", "/api/v1/trials/{trial_id}/markers.csv", "export", "markers_csv"),
@@ -98,6 +99,7 @@ def world(api: Api, video_pair) -> dict[str, int]:
         "rig_id": seeded.rig_id,
         "session_id": seeded.session_id,
         "trial_id": r.json()["id"],
+        "job_id": r.json()["job_id"],
     }
 
 
