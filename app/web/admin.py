@@ -1,6 +1,6 @@
 """The administrator's page of the audit trail (``/admin/audit``), with filters and pages.
 
-Only users holding ``audit:read`` (admins) see it; anyone else gets 403, and
+Only users holding ``audit:read`` (admins, auditors) see it; anyone else gets 403, and
 the refusal is audited like an API refusal. Reading the page is audited too.
 """
 
@@ -14,6 +14,7 @@ from fastapi.responses import HTMLResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.apikeys import AUDIT_READ
 from app.audit import audit_failure
 from app.auth import SessionDep
@@ -21,7 +22,7 @@ from app.errors import AppError, InvalidRequestError
 from app.models import Patient
 from app.schemas import MAX_ID
 from app.services import audit_log
-from app.web.common import AnyPageUser, error_page, render, status_of
+from app.web.common import PATIENT_PAGES_SCOPE, AnyPageUser, error_page, render, status_of
 
 router = APIRouter()
 
@@ -32,13 +33,25 @@ def _time(text: str | None, name: str) -> datetime | None:
     return audit_log.parse_time(text, name) if text else None
 
 
-def _patient_id(db: Session, text: str) -> int | None:
+def _patient_id(db: Session, user: Actor, text: str) -> int | None:
     """The patient the filter names, by code (as clinicians know them) or by id (as the
-    trail holds them); an erased patient's code is gone, its id still finds its events."""
+    trail holds them); an erased patient's code is gone, its id still finds its events.
+
+    Only a user who reads patients (an admin) may name a code: the code of a patient is
+    their data, and an auditor who could filter by any code would learn which codes exist.
+    An auditor gives the id (the trail's events show ids; a clinician tells the id of a
+    code); a code from them is answered alike whether a patient holds it or not.
+    """
     if not text:
         return None
     if text.isdigit():
         return int(text) if int(text) <= MAX_ID else 0
+    if not user.has_scope(PATIENT_PAGES_SCOPE):
+        raise InvalidRequestError(
+            "Give the patient's id, a number as the events show it (“patient 12”): the"
+            " audit trail knows patients by id, and a code is looked up only by those who"
+            " read patients' data; a clinician or an administrator can tell a code's id."
+        )
     found = db.scalar(select(Patient.id).where(func.lower(Patient.code) == text.lower()))
     if found is None:
         raise InvalidRequestError(
@@ -70,7 +83,7 @@ def audit_page(
             "until": until or ""}  # fmt: skip
     try:
         f = audit_log.make_filter(
-            patient_id=_patient_id(db, (patient_id or "").strip()),
+            patient_id=_patient_id(db, user, (patient_id or "").strip()),
             actor=actor,
             since=_time(since, "From"),
             until=_time(until, "Until"),

@@ -253,6 +253,23 @@ def test_the_admin_page_shows_the_trail_to_admins_only(api: Api) -> None:
     assert bad_date.status_code == 422 and 'value="yesterday"' in bad_date.text
 
 
+def test_an_auditor_cannot_test_whether_a_patient_code_exists(api: Api) -> None:
+    """A security review: an auditor's filter by code answered 200 for a code in use and
+    422 "No patient has the code" for one that is not, so an auditor could test codes.
+    An auditor filters by id; a code from them gets one answer, held or not."""
+    make_user(api.sessions, "dpo@example.org", PASSWORD, role="auditor")
+    api.client.post("/api/v1/patients", json={"code": "PD-7"}, headers=api.headers)
+    auditor = TestClient(api.app)
+    _login(auditor, "dpo@example.org")
+    held = auditor.get("/admin/audit?patient_id=PD-7")
+    free = auditor.get("/admin/audit?patient_id=PD-NONE")
+    assert held.status_code == free.status_code == 422
+    assert held.text.replace("PD-7", "CODE") == free.text.replace("PD-NONE", "CODE")
+    assert "No patient has the code" not in held.text and "patient&#39;s id" in held.text
+    by_id = auditor.get("/admin/audit?patient_id=1")
+    assert by_id.status_code == 200 and ">patient 1<" in by_id.text
+
+
 def test_export_audit_writes_json_lines(api: Api, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     api.client.post("/api/v1/patients", json={"code": "PD-8"}, headers=api.headers)
     assert _cli(api.settings, monkeypatch, "export-audit") == 0
