@@ -29,7 +29,7 @@ from app.reports.data import ReportData, quality_rows, summary_column
 from app.reports.figures import report_plots
 from app.reports.summary import short_taps_note, summary_rows
 from app.reports.task_metrics import primary_specs
-from app.reports.visit import VisitData, task_groups
+from app.reports.visit import VisitData, task_groups, trial_time
 from app.templating import jinja_env
 from core.tasks import TASKS, Task, parse_task
 from core.version import software_version
@@ -169,6 +169,7 @@ def visit_context(visit: VisitData) -> dict[str, Any]:
             "metric_rows": metric_rows(data.analysis),
             "quality_rows": quality_rows(data),
             "warnings": list(data.analysis.quality.warnings),
+            "when": trial_time(data.uploaded_at, data.recorded_at, visit.timezone, with_day=True),
         }
         for group in task_groups(visit.trials)
         for column in group.columns

@@ -83,6 +83,11 @@ class HiddenTrial:
     hidden_at: datetime
     hidden_by: str | None = None
     reason: str | None = None
+    uploaded_at: datetime | None = None
+
+    def when(self, timezone: str) -> str:
+        """The trial's own time (:func:`trial_time`), with its day."""
+        return trial_time(self.uploaded_at, self.recorded_at, timezone, with_day=True)
 
 
 @dataclass(frozen=True)
@@ -165,16 +170,31 @@ def _newest(columns: Sequence[SummaryColumn], hand: str, med: str) -> SummaryCol
     return max(found, key=lambda c: c.trial_id) if found else None
 
 
+def trial_time(
+    uploaded_at: datetime | None, session_at: datetime, timezone: str, *, with_day: bool = False
+) -> str:
+    """A trial's own time in the clinic's zone, as the visit report names it: ``"uploaded
+    10:42 CET"`` (``with_day``: ``"uploaded 2026-03-01 10:42 CET"``), the day added when it
+    is not the session's (recordings uploaded later); the session's time when the upload
+    time is not known."""
+    session_local = to_zone(session_at, timezone)
+    if uploaded_at is None:
+        return f"{session_local:%Y-%m-%d %H:%M %Z}" if with_day else f"{session_local:%H:%M %Z}"
+    local = to_zone(uploaded_at, timezone)
+    day = with_day or local.date() != session_local.date()
+    return f"uploaded {local:%Y-%m-%d %H:%M %Z}" if day else f"uploaded {local:%H:%M %Z}"
+
+
 def distinct_labels(
     columns: Sequence[SummaryColumn], trials: Sequence[ReportData]
 ) -> list[SummaryColumn]:
-    """``columns`` with the trial number and time added to each label that two of them
-    share (two trials of the same side and medication state): ``"Right hand, medication
-    off — trial #13, 10:42 CET"``, the time in the clinic's zone."""
+    """``columns`` with the trial number and its own time added to each label that two of
+    them share (two trials of the same side and medication state): ``"Right hand,
+    medication off — trial #13, uploaded 10:42 CET"`` (:func:`trial_time`)."""
     shared = Counter(c.base_label for c in columns)
-    when = {t.trial_id: to_zone(t.recorded_at, t.timezone) for t in trials}
+    when = {t.trial_id: trial_time(t.uploaded_at, t.recorded_at, t.timezone) for t in trials}
     return [
-        replace(c, label_detail=f"trial #{c.trial_id}, {when[c.trial_id]:%H:%M %Z}")
+        replace(c, label_detail=f"trial #{c.trial_id}, {when[c.trial_id]}")
         if shared[c.base_label] > 1 and c.trial_id in when
         else c
         for c in columns

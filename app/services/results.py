@@ -188,6 +188,7 @@ def load_report_data(
         hand=trial.hand,
         task=trial.task,
         recorded_at=session.recorded_at,
+        uploaded_at=trial.created_at,
         medication_state=session.medication_state,
         dbs_state=session.dbs_state,
         clinician_rating=trial.clinician_rating,

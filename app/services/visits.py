@@ -73,6 +73,7 @@ def load_visit(
                 hidden_at=t.deleted_at,
                 hidden_by=t.deleted_by,
                 reason=t.deleted_reason,
+                uploaded_at=t.created_at,
             )
             for s in sessions
             for t in sorted(s.trials, key=lambda t: t.id)

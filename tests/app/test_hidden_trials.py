@@ -76,9 +76,11 @@ def test_a_hidden_trial_says_who_hid_it_when_why_and_how_it_comes_back(
     # The visit report names it, with the reason.
     report = _text(client.get(f"/sessions/{session_id}/visit-report.html").text)
     assert "Hidden trials (not reported)" in report
+    with db_sessionmaker() as db:  # the trial's own time (its upload), not the session's
+        uploaded = db.get(Trial, trial_id).created_at
     assert (
-        f"Trial #{trial_id}: finger tapping, left hand, medication on, 2025-03-01 09:00 UTC"
-        f" — hidden " in report
+        f"Trial #{trial_id}: finger tapping, left hand, medication on,"
+        f" uploaded {uploaded:%Y-%m-%d %H:%M} UTC — hidden " in report
     )
     assert f"by clinician@example.org: “{REASON}”" in report
 

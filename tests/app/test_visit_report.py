@@ -7,7 +7,7 @@ import html as html_lib
 import re
 import shutil
 import subprocess
-from datetime import timedelta
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from sample_trial import sample_report_data, synthetic_trial
@@ -165,3 +165,38 @@ def test_a_copy_made_now_says_it_is_not_the_signed_record_and_where_that_is():
     signed = _text(render_visit_html(_visit(right, left).signed(line)))
     assert "Not signed" not in signed and "Not the signed record" not in signed
     assert "Electronically signed by Dr. Sign" in signed
+
+
+@needs_poppler
+def test_two_trials_of_a_side_are_told_apart_by_their_own_time_not_the_sessions(tmp_path):
+    """Both read "21:47 UTC", the session's start, though taken at 21:48 and 21:51."""
+    session_at = datetime(2026, 11, 28, 21, 47, tzinfo=UTC)
+
+    def take(trial_id: int, uploaded_at: datetime) -> ReportData:
+        return dataclasses.replace(
+            _trial(trial_id, "right", "off", 0),
+            recorded_at=session_at,
+            uploaded_at=uploaded_at,
+            timezone="UTC",
+        )
+
+    first = take(17, session_at + timedelta(minutes=1))
+    again = take(19, session_at + timedelta(minutes=4))
+    later = take(23, datetime(2026, 11, 30, 8, 5, tzinfo=UTC))  # uploaded two days later
+    (group,) = task_groups([first, again, later])
+    assert [c.label for c in group.columns] == [
+        "Right hand, medication off — trial #17, uploaded 21:48 UTC",
+        "Right hand, medication off — trial #19, uploaded 21:51 UTC",
+        "Right hand, medication off — trial #23, uploaded 2026-11-30 08:05 UTC",
+    ]
+    visit = dataclasses.replace(
+        _visit(first, again, later),
+        timezone="UTC",
+        visit_date=session_at.date(),
+        sessions=(SessionFacts(1, session_at, "off", "none"),),
+    )
+    text = " ".join(_pdf_pages(render_visit_pdf(visit), tmp_path))
+    assert "trial #17, uploaded 2026-11-28 21:48 UTC, result revision" in text
+    assert "trial #19, uploaded 2026-11-28 21:51 UTC, result revision" in text
+    assert "· uploaded 2026-11-28 21:51 UTC · trial #19" in text  # the page's running head
+    assert "trial #17, 2026-11-28 21:47" not in text
