@@ -11,11 +11,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import cv2
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -32,8 +31,8 @@ from app.models import (
     Video,
     calibration_verdict,
     next_calibration_version,
-    utcnow,
 )
+from app.services.calibration_form import board_fields, valid_from_field
 from app.services.common import load_rig
 from app.services.videos import add_videos, check_video_pair, times_file
 from app.storage import Storage
@@ -56,8 +55,6 @@ CALIBRATION_FILE_FIELDS = {
 CALIBRATION_TEXT_FIELDS = frozenset(
     {"board", "cols", "rows", "square_mm", "marker_mm", "dictionary", "legacy", "valid_from"}
 )
-BOARDS = ("chessboard", "charuco")
-DEFAULT_DICTIONARY = "DICT_4X4_1000"
 
 
 # --------------------------------------------------------------------------- which one
@@ -107,6 +104,15 @@ def calibration_for(
     return cal
 
 
+def _first(db: Session, rig_id: int) -> bool:
+    """Whether a new calibration of the rig would be its first: none is ready or being
+    computed (a failed one does not count; its replacement covers the earlier sessions)."""
+    usable = select(Calibration.id).where(
+        Calibration.rig_id == rig_id, Calibration.status.in_(("ready", "pending"))
+    )
+    return db.scalars(usable.limit(1)).first() is None
+
+
 def rig_to_check_against(
     db: Session, session: RecordingSession, rig_id: int | None = None
 ) -> StereoRig | None:
@@ -139,79 +145,6 @@ def rig_to_check_against(
 
 
 # --------------------------------------------------------------------------- upload
-
-
-def _valid_from(upload: ParsedUpload, *, first: bool) -> datetime:
-    raw = (upload.fields.get("valid_from") or "").strip()
-    if raw:
-        try:
-            value = datetime.fromisoformat(raw.replace("Z", "+00:00"))
-        except ValueError as exc:
-            what = "valid_from must be an ISO 8601 date-time such as 2026-01-31T08:00:00Z."
-            raise InvalidUpload(what, field="valid_from") from exc
-        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
-    # A rig's first calibration also covers sessions recorded before it was uploaded.
-    return datetime(1970, 1, 1, tzinfo=UTC) if first else utcnow()
-
-
-def _number(
-    upload: ParsedUpload, name: str, kind: type[int] | type[float], low: float, high: float
-) -> Any:
-    raw = upload.require_field(name)
-    try:
-        value = kind(raw)
-    except ValueError:
-        value = None
-    if value is None or not math.isfinite(value) or not low <= value <= high:
-        what = "a whole number" if kind is int else "a number"
-        raise InvalidUpload(
-            f"{upload.labels.get(name, name)} must be {what} between {low:g} and {high:g}.",
-            field=name,
-        )
-    return value
-
-
-def _board_fields(upload: ParsedUpload) -> dict[str, Any]:
-    board = upload.require_field("board").lower()
-    if board not in BOARDS:
-        what = f"board must be 'chessboard' or 'charuco', not {board[:20]!r}."
-        raise InvalidUpload(what, field="board")
-    fields: dict[str, Any] = {
-        "board": board,
-        "cols": _number(upload, "cols", int, 2, 200),
-        "rows": _number(upload, "rows", int, 2, 200),
-        "square_mm": _number(upload, "square_mm", float, 0.1, 1000.0),
-    }
-    if board == "charuco":
-        fields["marker_mm"] = _number(upload, "marker_mm", float, 0.05, 1000.0)
-        if fields["marker_mm"] >= fields["square_mm"]:
-            raise InvalidUpload(
-                "marker_mm must be smaller than square_mm for a ChArUco board.", field="marker_mm"
-            )
-        dictionary = (upload.fields.get("dictionary") or DEFAULT_DICTIONARY).strip()
-        if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
-            what = f"dictionary {dictionary[:40]!r} is not an ArUco dictionary name."
-            raise InvalidUpload(what, field="dictionary")
-        fields["dictionary"] = dictionary
-        legacy = (upload.fields.get("legacy") or "").strip().lower()
-        if legacy not in ("", "0", "false", "off", "no", "1", "true", "on", "yes"):
-            what = f"legacy must be true or false, not {legacy[:20]!r}."
-            raise InvalidUpload(what, field="legacy")
-        if legacy in ("1", "true", "on", "yes"):
-            fields["legacy"] = True  # a board printed with OpenCV before 4.6
-    try:  # the measurement library's own rules for a board, too
-        BoardSpec(
-            kind="charuco" if board == "charuco" else "chessboard",
-            cols=fields["cols"],
-            rows=fields["rows"],
-            square_mm=fields["square_mm"],
-            marker_mm=fields.get("marker_mm"),
-            dictionary=fields.get("dictionary"),
-            legacy=bool(fields.get("legacy", False)),
-        )
-    except ValueError as exc:
-        raise InvalidUpload(f"The board description is invalid: {exc}.") from exc
-    return fields
 
 
 def audit_rejected_upload(db: Session, actor: Actor, rig_id: int) -> None:
@@ -280,7 +213,7 @@ def _from_rig_file(
 def _from_board_videos(
     db: Session, actor: Actor, rig: Rig, upload: ParsedUpload, valid_from: datetime
 ) -> tuple[Calibration, int]:
-    board = _board_fields(upload)
+    board = board_fields(upload)
     pair = check_video_pair(upload)
     cal = Calibration(
         rig_id=rig.id,
@@ -320,11 +253,7 @@ def create_calibration(
             "Send either a rig file (rig_json) or two board videos (left_video and right_video"
             " with board, cols, rows, square_mm), not both and not neither."
         )
-    first = (
-        db.scalars(select(Calibration.id).where(Calibration.rig_id == rig.id).limit(1)).first()
-        is None
-    )
-    valid_from = _valid_from(upload, first=first)
+    valid_from = valid_from_field(upload, first=_first(db, rig.id))
     if has_rig_file:
         return _from_rig_file(db, actor, rig, upload, valid_from), None
     return _from_board_videos(db, actor, rig, upload, valid_from)

@@ -267,7 +267,7 @@ def test_two_identical_videos_are_refused(api: Api, tmp_path):
 
 
 def test_calibration_form_errors_name_the_form_labels():
-    from app.services.calibrations import _board_fields
+    from app.services.calibration_form import board_fields as _board_fields
     from app.uploads import InvalidUpload, ParsedUpload
     from app.web.rigs import CALIBRATION_FORM_LABELS
 
