@@ -14,7 +14,10 @@ Life cycle of a :class:`app.models.Job` row::
   claiming; SQLite serialises writers, so both are race-free. Claimable means
   ``queued`` and due, or ``running`` with an **expired lease** (its worker died)
   and attempts left. Each claim gets a fresh, unique ``lease_owner`` token and
-  increments ``attempts``.
+  increments ``attempts``. An analysis is not claimable while a calibration
+  that may measure it is being computed (:func:`waits_for_calibration`): it
+  stays queued behind that ``calibrate`` job, spending nothing, and runs once
+  the calibration is ready (or failed: then the analysis says so).
 - **heartbeat** (:func:`heartbeat`) extends the lease and stores progress; it
   raises :class:`LeaseLostError` when the lease now belongs to someone else.
 - **complete** (:func:`complete`) marks success *inside the transaction that
@@ -52,6 +55,7 @@ from typing import Any
 from sqlalchemy import and_, case, exists, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.job_waits import say_waiting, waits_for_calibration
 from app.models import Calibration, Job, Result, Trial, utcnow
 
 log = logging.getLogger(__name__)
@@ -144,13 +148,16 @@ def enqueue_report_pdf(db: Session, trial_id: int) -> Job | None:
 
 
 def _claimable(now: datetime) -> Any:
-    return or_(
-        and_(Job.status == "queued", Job.run_after <= now),
-        and_(
-            Job.status == "running",
-            Job.lease_expires_at < now,
-            Job.attempts < Job.max_attempts,
+    return and_(
+        or_(
+            and_(Job.status == "queued", Job.run_after <= now),
+            and_(
+                Job.status == "running",
+                Job.lease_expires_at < now,
+                Job.attempts < Job.max_attempts,
+            ),
         ),
+        ~waits_for_calibration(),
     )
 
 
@@ -211,6 +218,7 @@ def claim_next(
         .execution_options(synchronize_session=False)
     )
     with sessions() as db, db.begin():
+        say_waiting(db)
         row = db.execute(stmt).first()
         if row is None:
             return None

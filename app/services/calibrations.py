@@ -15,7 +15,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import select, update
+from sqlalchemy import and_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -74,34 +74,57 @@ def calibration_for(
     ------
     app.errors.CalibrationMissingError
         When the override is not ready, or the rig has no ready calibration
-        valid at the session's time.
+        valid at the session's time (the message names a calibration that was to
+        cover it and failed).
     """
     rig_id = session.rig_id if rig_id is None else rig_id
     if session.calibration_id is not None and rig_id == session.rig_id:
         cal = db.get(Calibration, session.calibration_id)
+        if cal is not None and cal.status == "failed":
+            raise CalibrationMissingError(
+                f"{_failed(db, cal)} It was chosen for session {session.id}: choose a ready"
+                " calibration or clear the choice, then measure the trial again."
+            )
         if cal is None or cal.status != "ready":
             raise CalibrationMissingError(
                 f"calibration {session.calibration_id} chosen for session {session.id} is not "
                 "ready; choose a ready calibration or clear the choice."
             )
         return cal
+    valid = (Calibration.rig_id == rig_id, Calibration.valid_from <= session.recorded_at)
+    newest = (Calibration.valid_from.desc(), Calibration.version.desc())
     cal = db.scalars(
-        select(Calibration)
-        .where(
-            Calibration.rig_id == rig_id,
-            Calibration.status == "ready",
-            Calibration.valid_from <= session.recorded_at,
-        )
-        .order_by(Calibration.valid_from.desc(), Calibration.version.desc())
-        .limit(1)
+        select(Calibration).where(*valid, Calibration.status == "ready").order_by(*newest).limit(1)
     ).first()
-    if cal is None:
-        raise CalibrationMissingError(
-            f"rig {rig_id} has no ready calibration valid on "
-            f"{session.recorded_at:%Y-%m-%d %H:%M} UTC; upload a calibration for this rig "
-            "first (valid from a date before the session)."
+    if cal is not None:
+        return cal
+    failed = db.scalars(
+        select(Calibration).where(*valid, Calibration.status == "failed").order_by(*newest).limit(1)
+    ).first()
+    if failed is not None:
+        # a rig's first usable calibration covers every session (_valid_from)
+        again = (
+            "upload a corrected calibration of this rig (it will cover this session)"
+            if _first(db, rig_id)
+            else "upload a corrected calibration of this rig with valid_from before"
+            f" {session.recorded_at:%Y-%m-%d %H:%M} UTC"
         )
-    return cal
+        raise CalibrationMissingError(
+            f"{_failed(db, failed)} No other calibration of rig {rig_id} is valid on"
+            f" {session.recorded_at:%Y-%m-%d %H:%M} UTC: {again}, then measure the trial again."
+        )
+    raise CalibrationMissingError(
+        f"rig {rig_id} has no ready calibration valid on "
+        f"{session.recorded_at:%Y-%m-%d %H:%M} UTC; upload a calibration for this rig "
+        "first (valid from a date before the session)."
+    )
+
+
+def _failed(db: Session, cal: Calibration) -> str:
+    """``"the calibration v2 of rig 5 (…) failed: <its job's error>"`` as a sentence."""
+    job = job_views.latest_job(db, calibration_id=cal.id)
+    why = f": {job.error.rstrip('.')}" if job is not None and job.error else ""
+    return f"The calibration v{cal.version} of rig {cal.rig_id} (id {cal.id}) failed{why}."
 
 
 def _first(db: Session, rig_id: int) -> bool:
@@ -119,24 +142,28 @@ def rig_to_check_against(
     """The rig that will measure the trials of ``session`` recorded by rig ``rig_id`` (default
     the session's rig), to check uploaded videos against it; or None.
 
-    None while the rig's only calibration is still being computed (the videos
-    are then checked against it by the analysis).
+    None while no calibration measures the session yet but one being computed may
+    (the session's chosen one, or one of the rig valid from before the session):
+    the analysis waits for it (``app.jobs.waits_for_calibration``) and the videos
+    are then checked against it by the analysis.
 
     Raises
     ------
     CalibrationMissingError
-        That rig has no usable calibration at all, not even a pending one (409).
+        No calibration of that rig can measure the session, ready or being computed (409).
     """
     try:
         cal = calibration_for(db, session, rig_id)
     except CalibrationMissingError:
-        pending = db.scalars(
-            select(Calibration.id)
-            .where(
-                Calibration.rig_id == (session.rig_id if rig_id is None else rig_id),
-                Calibration.status == "pending",
+        rig_id = session.rig_id if rig_id is None else rig_id
+        if session.calibration_id is not None and rig_id == session.rig_id:
+            covers = Calibration.id == session.calibration_id
+        else:
+            covers = and_(
+                Calibration.rig_id == rig_id, Calibration.valid_from <= session.recorded_at
             )
-            .limit(1)
+        pending = db.scalars(
+            select(Calibration.id).where(covers, Calibration.status == "pending").limit(1)
         ).first()
         if pending is None:
             raise

@@ -509,6 +509,54 @@ def test_analyze_without_calibration_fails_with_a_sentence(
 
 
 @pytest.mark.slow
+def test_an_analysis_waits_for_its_rigs_calibration_being_computed_then_uses_it(
+    app_settings, db_sessionmaker, storage, small_recording
+):
+    """Finding 2 of the failure review: a trial uploaded while the rig's only calibration is
+    computed by another worker failed for good at once. It waits, spending no attempt, and
+    is measured with that calibration once it is ready."""
+    import json
+
+    from app.job_waits import WAITING_FOR_CALIBRATION
+
+    sm = db_sessionmaker
+    with sm() as db, db.begin():
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=False)
+        cal = Calibration(
+            rig_id=db.get(Trial, trial_id).session.rig_id,
+            version=1,
+            valid_from=datetime(1970, 1, 1, tzinfo=UTC),
+            source="board_videos",
+            status="pending",
+        )
+        db.add(cal)
+        db.flush()
+        jobs.enqueue(db, "calibrate", calibration_id=cal.id)
+    calibrating = jobs.claim_next(sm, worker_name="other", lease_s=60.0, kinds=("calibrate",))
+    assert calibrating is not None
+
+    assert run_worker(app_settings, once=True) == 0  # nothing it may run yet
+    job = _job(sm, job_id)
+    assert (job.status, job.attempts, job.stage) == ("queued", 0, WAITING_FOR_CALIBRATION)
+
+    def ready(db) -> None:
+        row = db.get(Calibration, cal.id)
+        row.rig_json = json.loads(small_recording.rig_path.read_text())
+        row.quality, row.rms_px, row.status = {"rms_px": 0.1}, 0.1, "ready"
+
+    with sm() as db, db.begin():  # the other worker stores the calibration
+        jobs.complete(db, calibrating)
+        ready(db)
+    run_worker(app_settings, once=True)
+    job = _job(sm, job_id)
+    assert (job.status, job.attempts, job.error) == ("succeeded", 1, None)
+    with sm() as db:
+        result = db.get(Trial, trial_id).result
+        assert result.calibration_id == cal.id
+        assert result.document["calibration"]["version"] == 1
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("pair", ["swapped", "unrelated"])
 def test_a_pair_that_cannot_be_measured_fails_with_its_sentence_and_keeps_the_trial(
     app_settings, db_sessionmaker, storage, small_recording, simulated_session, pair
