@@ -91,6 +91,26 @@ class HiddenTrial:
 
 
 @dataclass(frozen=True)
+class UnmeasuredTrial:
+    """A visible trial of the visit without a result: its analysis ``failed`` (``why``: the
+    error the session page shows) or was still ``measuring`` when the report was made.
+    Listed, so that a signature shows every take of the visit, not only those measured."""
+
+    trial_id: int
+    task: str
+    hand: str
+    medication_state: str
+    recorded_at: datetime
+    status: str
+    why: str | None = None
+    uploaded_at: datetime | None = None
+
+    def when(self, timezone: str) -> str:
+        """The trial's own time (:func:`trial_time`), with its day."""
+        return trial_time(self.uploaded_at, self.recorded_at, timezone, with_day=True)
+
+
+@dataclass(frozen=True)
 class VisitData:
     """Everything the visit report shows.
 
@@ -118,6 +138,8 @@ class VisitData:
         copy made later says that it is not the signed record and where that is.
     hidden : tuple of HiddenTrial
         The visit's hidden trials, listed with who hid them, when and why.
+    unmeasured : tuple of UnmeasuredTrial
+        The visit's trials without a result (failed, or still being measured).
     """
 
     patient_code: str
@@ -131,6 +153,7 @@ class VisitData:
     signature: SignatureLine | None = None
     signatures_on_record: tuple[SignatureLine, ...] = ()
     hidden: tuple[HiddenTrial, ...] = ()
+    unmeasured: tuple[UnmeasuredTrial, ...] = ()
 
     def signed(self, line: SignatureLine) -> VisitData:
         """This visit as signed by ``line`` (the report's signature box filled in)."""

@@ -37,7 +37,7 @@ from app.reports.rendering import render_visit_pdf
 from app.reports.visit import SignatureLine
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.revisions import actor_label
-from app.services.visits import load_visit, visit_signatures
+from app.services.visits import load_visit, unmeasured_trials, visit_signatures
 from app.storage import Storage
 from app.timezones import local_date, to_zone
 
@@ -117,6 +117,11 @@ def visit_facts(session: RecordingSession, timezone: str) -> dict[str, Any]:
             for t in s.trials
             if t.deleted_at is not None
         },
+        # and every trial without a result: failed, or still being measured
+        "unmeasured": {
+            str(t.id): "failed" if t.status == "failed" else "measuring"
+            for t in unmeasured_trials(session, timezone)
+        },
     }
 
 
@@ -163,6 +168,33 @@ def _fact_changes(signed: dict[str, Any], now: dict[str, Any], timezone: str) ->
             if key not in measured:
                 done = "hidden" if key in hidden_now else "shown again"
                 out.append(f"trial {key} (not measured) was {done}")
+    return out + _unmeasured_changes(signed, now)
+
+
+def _unmeasured_changes(signed: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """Trials without a result added or failed since the signature (those measured since are
+    told by their revisions; those hidden, by the hidden ones)."""
+    before, after = signed.get("unmeasured"), now["unmeasured"]
+    if before is None:  # signed before the report listed them
+        return []
+    told = {
+        *signed.get("trials", {}),
+        *now["trials"],
+        *(signed.get("hidden") or {}),
+        *now["hidden"],
+    }
+    out = []
+    for key in sorted((set(before) | set(after)) - told, key=int):
+        was, is_ = before.get(key), after.get(key)
+        if was == is_ or is_ is None:
+            continue
+        if was is None:
+            words = "its measurement failed" if is_ == "failed" else "still being measured"
+            out.append(f"trial {key} was added ({words})")
+        elif is_ == "failed":
+            out.append(f"the measurement of trial {key} failed (it was being measured when signed)")
+        else:
+            out.append(f"trial {key} is being measured again (it had failed when signed)")
     return out
 
 

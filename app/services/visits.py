@@ -17,20 +17,105 @@ from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.audit import audit
-from app.models import RecordingSession, Signature, User
+from app.job_views import latest_jobs
+from app.models import RecordingSession, Signature, Trial, User
 from app.reports.pdf_cache import ReportPdfCache
 from app.reports.rendering import render_visit_html, render_visit_pdf, visit_key
-from app.reports.visit import HiddenTrial, SessionFacts, SignatureLine, VisitData
+from app.reports.visit import (
+    HiddenTrial,
+    SessionFacts,
+    SignatureLine,
+    UnmeasuredTrial,
+    VisitData,
+)
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.results import load_report_data
 from app.storage import Storage
 from app.timezones import local_date
+from core.tasks import parse_task
 from core.version import software_version
 
 
 def _clinician(db: Session, user_id: int | None) -> str | None:
     user = db.get(User, user_id) if user_id is not None else None
     return None if user is None else (user.display_name or user.email)
+
+
+def unmeasured_trials(session: RecordingSession, timezone: str) -> list[Trial]:
+    """The visible trials of ``session``'s visit without a result (failed or being
+    measured), oldest session first."""
+    return [
+        t
+        for s in visit_sessions(session, timezone)
+        for t in sorted(s.trials, key=lambda t: t.id)
+        if t.deleted_at is None and t.result is None
+    ]
+
+
+def _unmeasured(
+    db: Session, session: RecordingSession, timezone: str
+) -> tuple[UnmeasuredTrial, ...]:
+    trials = unmeasured_trials(session, timezone)
+    jobs = latest_jobs(db, trial_ids=[t.id for t in trials])
+    out = []
+    for t in trials:
+        job, failed = jobs.get(t.id), t.status == "failed"
+        out.append(
+            UnmeasuredTrial(
+                trial_id=t.id,
+                task=t.task,
+                hand=t.hand,
+                medication_state=t.session.medication_state,
+                recorded_at=t.session.recorded_at,
+                status="failed" if failed else "measuring",
+                why=job.error if failed and job is not None else None,
+                uploaded_at=t.created_at,
+            )
+        )
+    return tuple(out)
+
+
+def sign_warnings(session: RecordingSession, timezone: str) -> list[str]:
+    """What a clinician should know before signing ``session``'s visit, in words: trials
+    that failed, trials still being measured, and measured trials without their rating.
+    Signing stays possible (a failed take may never be measured; the rating is the
+    clinician's own): the signed report lists the first two and shows "–" for the last."""
+
+    def named(trials: list[Trial]) -> str:
+        return "; ".join(
+            f"#{t.id} ({parse_task(t.task).label.lower()}, {t.hand} {parse_task(t.task).limb},"
+            f" medication {t.session.medication_state})"
+            for t in trials
+        )
+
+    unmeasured = unmeasured_trials(session, timezone)
+    failed = [t for t in unmeasured if t.status == "failed"]
+    pending = [t for t in unmeasured if t.status != "failed"]
+    unrated = [t for t in visit_trials(session, timezone) if t.clinician_rating is None]
+    out = []
+    if failed:
+        out.append(
+            f"{_trials(len(failed))} failed and will be listed in the signed report as not"
+            f" measured, with why: {named(failed)}."
+        )
+    if pending:
+        out.append(
+            f"{_trials(len(pending))} {'is' if len(pending) == 1 else 'are'} still being"
+            f" measured; the signed report will list"
+            f" {'it' if len(pending) == 1 else 'them'} without a result — wait for the"
+            f" measurement, or sign now and sign again once measured: {named(pending)}."
+        )
+    if unrated:
+        out.append(
+            f"{_trials(len(unrated))} {'has' if len(unrated) == 1 else 'have'} no rating of"
+            " yours yet (the signed report shows “–” for it):"
+            f" {named(unrated)}."
+        )
+    return out
+
+
+def _trials(n: int) -> str:
+    return f"{n} trial" if n == 1 else f"{n} trials"
 
 
 def load_visit(
@@ -79,6 +164,7 @@ def load_visit(
             for t in sorted(s.trials, key=lambda t: t.id)
             if t.deleted_at is not None
         ),
+        unmeasured=_unmeasured(db, session, timezone),
     )
 
 

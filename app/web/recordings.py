@@ -161,6 +161,7 @@ def session_response(
         hidden_trials=overview.hidden,
         can_restore=user.has_scope(ADMIN_SCOPE),
         signing=signatures.visit_signing(db, session, tz),
+        sign_warnings=visits.sign_warnings(session, tz),
         calibration=overview.calibration,
         calibration_problem=overview.calibration_problem,
         hands=("left", "right"),

@@ -3,6 +3,7 @@ not the signed record (a neurologist found it byte for byte the unsigned one).""
 
 from __future__ import annotations
 
+import html as html_lib
 import re
 import shutil
 import subprocess
@@ -10,7 +11,7 @@ import subprocess
 import pytest
 from test_pages import PASSWORD, client, login, seeded  # noqa: F401 - fixtures
 
-from app.models import Trial
+from app.models import Job, Trial
 
 
 @pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils is not installed")
@@ -75,8 +76,79 @@ def test_a_wrong_signing_password_comes_back_to_the_session_page_with_the_error_
     form = re.search(r"<form [^>]*data-sign-form>.*?</form>", r.text, re.S)
     assert form, "the session page's signing form is not there"
     field = re.search(r'<input id="sign-password"[^>]*>', form.group(0)).group(0)
-    assert 'aria-describedby="sign-error"' in field and 'aria-invalid="true"' in field
+    described = re.search(r'aria-describedby="([^"]+)"', field).group(1).split()
+    assert "sign-error" in described and 'aria-invalid="true"' in field
     error = re.search(r'<p class="form-error" id="sign-error"[^>]*>([^<]+)</p>', form.group(0))
     assert error and "The password is wrong" in error.group(1)
     assert "Upload the left hand" in r.text  # the whole session page, not a stub
     assert "Visit signed" not in r.text
+
+
+def _failed_take(db, session_id: int, task: str, hand: str, status: str = "failed") -> int:
+    trial = Trial(session_id=session_id, task=task, hand=hand, status=status)
+    db.add(trial)
+    db.flush()
+    error = WHY if status == "failed" else None
+    db.add(Job(kind="analyze_trial", trial_id=trial.id, status=status, error=error))
+    return trial.id
+
+
+WHY = "no marker was seen consistently by both cameras; check that both cameras see them"
+
+
+def _pdf_text(pdf: bytes, tmp_path) -> str:
+    path = tmp_path / "signed.pdf"
+    path.write_bytes(pdf)
+    text = subprocess.run(["pdftotext", str(path), "-"], check=True, capture_output=True, text=True)
+    return " ".join(text.stdout.split())
+
+
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils is not installed")
+def test_the_sign_form_warns_and_the_signed_report_lists_failed_and_pending_trials(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+    tmp_path,
+):
+    """Session 7's failed pronation-supination trial was silently left out of the signed
+    report, and the sign form said nothing of it nor of the unrated side (item 3)."""
+    csrf = login(client)
+    left = seeded["trials"][(1, "left")]  # measured, not rated
+    with db_sessionmaker() as db, db.begin():
+        session_id = db.get(Trial, left).session_id
+        failed = _failed_take(db, session_id, "pronation_supination", "right")
+        pending = _failed_take(db, session_id, "finger_tapping", "left", "running")
+    page = client.get(f"/sessions/{session_id}").text
+    box = re.search(r"<div [^>]*data-sign-warnings>.*?</div>", page, re.S)
+    assert box, "no warning before signing"
+    text = " ".join(re.sub(r"<[^>]+>", " ", html_lib.unescape(box.group(0))).split())
+    assert (
+        f"1 trial failed and will be listed in the signed report as not measured, with why:"
+        f" #{failed} (pronation–supination, right hand, medication on)." in text
+    )
+    assert "1 trial is still being measured" in text and f"#{pending} (finger tapping" in text
+    assert "1 trial has no rating of yours yet" in text and f"#{left} (finger tapping, left" in text
+    field = re.search(r'<input id="sign-password"[^>]*>', page).group(0)
+    assert "sign-warnings" in field  # read with the password field
+
+    r = client.post(
+        f"/sessions/{session_id}/sign",
+        data={"csrf_token": csrf, "password": PASSWORD},
+        follow_redirects=False,
+    )
+    assert r.status_code == 303, r.text[:300]  # warned, not refused
+    signed = _pdf_text(client.get(f"/sessions/{session_id}/signed/1.pdf").content, tmp_path)
+    assert "Trials without a result (not reported)" in signed
+    assert f"Trial #{failed}: pronation–supination, right hand, medication on, uploaded" in signed
+    assert f"the measurement failed: {WHY}" in signed
+    assert f"Trial #{pending}: finger tapping, left hand" in signed
+    assert "still being measured when this report was made" in signed
+
+    # A take that fails after the signature is a change of what the signed report listed.
+    with db_sessionmaker() as db, db.begin():
+        late = _failed_take(db, session_id, "hand_movements", "left")
+        db.get(Trial, pending).status = "failed"
+    state = client.get(f"/sessions/{session_id}").text
+    assert 'data-signing="amendment_pending"' in state
+    assert f"trial {late} was added (its measurement failed)" in state
+    assert f"the measurement of trial {pending} failed" in state
