@@ -38,11 +38,13 @@ from sqlalchemy.orm import Session
 from app import jobs
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
 from app.services import calibrations, patients, results, revisions, trial_inputs
+from app.services.videos import container_frame_times
 from core.calibration import calibrate_stereo_from_paths
 from core.errors import BradyscopeError, InputError
 from core.markers_csv import read_markers_csv
 from core.overlay import overlay_document
 from core.pipeline import Analysis, FrameSink, analyze_recording, write_markers_csv
+from core.timing import FrameTimes, fit_to_frames, read_times_csv
 from core.video import ProxyWriter, probe_video
 
 log = logging.getLogger(__name__)
@@ -69,23 +71,44 @@ def _upload_warnings(ctx: JobContext, document: dict[str, Any]) -> dict[str, Any
     return {**document, "quality": quality}
 
 
+def _stored_frame_times(inputs: trial_inputs.TrialInputs, side: str) -> FrameTimes:
+    """When each frame of the stored ``side`` video was captured, by the analysis's rule
+    (``core.pipeline``): its timestamps file, else its container's frame times (variable
+    frame rate and lost frames), else ``i / fps``; for its decoded frame count.
+
+    Raises
+    ------
+    InputError
+        The video or its timestamps file cannot be read.
+    """
+    video = inputs.left if side == "left" else inputs.right
+    times_csv = inputs.left_times if side == "left" else inputs.right_times
+    info = probe_video(video, fps_if_none=inputs.video_fps.get(side))
+    if times_csv is None:
+        return container_frame_times(info)
+    return fit_to_frames(read_times_csv(times_csv), info.frame_count)
+
+
 class _ProxiesAlongside:
     """Browser proxies (``core.video.ProxyWriter``) of the videos that have none yet,
     written from the frames the analysis decodes (``analyze_recording(frame_sinks=...)``):
     each video is decoded once, not once more for its proxy.
 
-    ``fps`` holds each video's rate as checked at upload (by side), used for a raw
-    stream that states none. A proxy that cannot be written (its video cannot be
-    probed, the encoder fails, the disk is full) gives a warning, not a failure: the
-    measurement stands without it and the review view says so. The files are written
-    in the storage's temporary folder and published by :meth:`publish`; :meth:`discard`
-    removes them (an analysis that failed).
+    Each proxy holds its frames at the video's capture times (:func:`_stored_frame_times`,
+    kept by side in :attr:`times` for the review overlay), at its own rate: a browser's
+    WebM, whose container states 1000 fps, lost frames and irregular intervals included.
+    A proxy that cannot be written (its video cannot be probed, the encoder fails, the
+    disk is full) gives a warning, not a failure: the measurement stands without it and
+    the review view says so. The files are written in the storage's temporary folder and
+    published by :meth:`publish`; :meth:`discard` removes them (an analysis that failed).
     """
 
-    def __init__(self, ctx: JobContext, needed: dict[str, Path], fps: dict[str, float]) -> None:
+    def __init__(self, ctx: JobContext, inputs: trial_inputs.TrialInputs) -> None:
         self._ctx = ctx
         self.warnings: list[str] = []
         self._writers: dict[str, ProxyWriter] = {}
+        self.times: dict[str, FrameTimes] = {}
+        """Each stored video's frame times (by side), for those that could be read."""
         # An earlier attempt of this job, whose worker was killed, left its proxies
         # half-written: removed here (Storage.cleanup_tmp removes any other after an hour).
         prefix = f"proxy-job{ctx.job.id}-"
@@ -94,15 +117,20 @@ class _ProxiesAlongside:
             if not old.name.startswith(mine):
                 old.unlink(missing_ok=True)
         try:
-            for side, source in sorted(needed.items()):
+            for side in ("left", "right"):
                 try:
-                    info = probe_video(source, fps_if_none=fps.get(side))
+                    self.times[side] = times = _stored_frame_times(inputs, side)
+                    source = inputs.proxies_needed.get(side)
+                    if source is None:
+                        continue
+                    info = probe_video(source, fps_if_none=inputs.video_fps.get(side))
                     temp = ctx.storage.tmp_dir / f"{mine}{side}-{uuid.uuid4().hex[:8]}.mp4.part"
                     self._writers[side] = ProxyWriter(
-                        temp, info.image_size, info.fps, name=info.path.name
+                        temp, info.image_size, times.fps, name=info.path.name, times_s=times.t_s
                     )
                 except InputError as exc:
-                    self._cannot(side, exc)
+                    if side in inputs.proxies_needed:
+                        self._cannot(side, exc)
         except BaseException:
             self.discard()
             raise
@@ -183,12 +211,23 @@ def _measure(
 
 
 def _review_overlay(
-    analysis: Analysis, inputs: trial_inputs.TrialInputs, *, swap: bool
+    analysis: Analysis,
+    inputs: trial_inputs.TrialInputs,
+    *,
+    swap: bool,
+    times: dict[str, FrameTimes],
 ) -> dict[str, Any]:
-    """The review view's overlay, each rig camera's part naming the stored video it is drawn on."""
+    """The review view's overlay, each rig camera's part naming the stored video it is drawn
+    on and, as ``time_s``, when each of that video's frames is shown in its proxy (its
+    capture time from its first frame, s): the player maps its time to a frame number
+    through them, lost frames and irregular intervals included."""
     overlay = overlay_document(analysis.overlays(inputs.rig), fps=analysis.fps)
     for cam in overlay["cameras"]:
         cam["video"] = {"left": "right", "right": "left"}[cam["camera"]] if swap else cam["camera"]
+        own = times.get(cam["video"])
+        if own is not None:
+            shown = fit_to_frames(own, int(cam["frame_count"]))
+            cam["time_s"] = [round(float(t), 6) for t in shown.t_s]
     return overlay
 
 
@@ -214,7 +253,7 @@ def analyze_trial(ctx: JobContext) -> None:
             offset_frames=float(offset) if offset is not None else None,
         )
     _require_files(ctx, inputs.files, what=f"trial {inputs.trial_id}")
-    proxy_files = _ProxiesAlongside(ctx, inputs.proxies_needed, inputs.video_fps)
+    proxy_files = _ProxiesAlongside(ctx, inputs)
     written: list[str] = []
     try:
         try:
@@ -227,7 +266,7 @@ def analyze_trial(ctx: JobContext) -> None:
         if swap:
             document["cameras_swapped"] = True
         document = _upload_warnings(ctx, document)
-        overlay = _review_overlay(analysis, inputs, swap=swap)
+        overlay = _review_overlay(analysis, inputs, swap=swap, times=proxy_files.times)
         with ctx.storage.writing("results", ".csv") as (tmp_path, markers_path):
             write_markers_csv(analysis, tmp_path)
         written.append(markers_path)

@@ -79,6 +79,11 @@ CODECS = (*_CODECS, *_AV_CODECS)
 
 # A container may report a frame count that differs a little from what decodes.
 _FRAME_COUNT_SLACK = 2
+# A stated frame rate within this factor of the packets' own (1 / median interval) is the
+# stream's: a 1-ms time base makes a 60-fps stream's median interval 17 ms (58.8 fps).
+# Beyond it (FFmpeg's 1000 fps for a browser's WebM, from its 1-ms time base), the
+# packets' rate is.
+_STATED_RATE_FACTOR = 1.5
 
 
 def _fourcc_to_str(value: float) -> str:
@@ -94,7 +99,10 @@ class VideoInfo:
     ----------
     path : Path
     fps : float
-        Frames per second (Hz) from the container.
+        Frames per second (Hz) from the container; for a Matroska/WebM file
+        whose stated rate is not its packets' (a browser's WebM: FFmpeg states
+        1000 fps, its 1-ms time base), ``1 / median interval`` of the packets'
+        timestamps.
     frame_count : int
         Number of frames the container reports (a few may be missing at decode
         time in a damaged file; :func:`iter_frames` with ``strict=True`` tells).
@@ -262,12 +270,14 @@ def _count_packets(
     return counted, True, covered, hole
 
 
-def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
+def _container_facts(path: Path) -> tuple[int | None, bool, float | None, float | None]:
     """What the container says, read by PyAV without decoding.
 
     Returns the number of video frames, whether the packets carry presentation
-    timestamps, and the stated frame rate (None if none); all None/True when
-    PyAV cannot open the file (OpenCV's answer then stands).
+    timestamps, the stated frame rate (None if none), and the rate of the
+    packets' own timestamps (``1 / median interval``; None unless the packets
+    were counted and hold two timestamps or more); all None/True when PyAV
+    cannot open the file (OpenCV's answer then stands).
 
     A container that states no frame count (Matroska, WebM) has its packets
     counted. If it states a duration that its packets fall short of by more
@@ -282,11 +292,11 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
     try:
         container = av.open(str(path))
     except (av.FFmpegError, OSError, ValueError):
-        return None, True, None
+        return None, True, None, None
     try:
         fmt = container.format.name
         if not container.streams.video or fmt == "image2" or fmt.endswith("_pipe"):
-            return None, True, None  # a still image: OpenCV's answer (no frames) stands
+            return None, True, None, None  # a still image: OpenCV's answer (no frames) stands
         stream = container.streams.video[0]
         rate = stream.average_rate or stream.base_rate
         fps = float(rate) if rate else None
@@ -294,7 +304,7 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
             # A raw stream (H.264, HEVC, MJPEG, MPEG-4 elementary): the demuxer invents
             # timestamps from a default rate; they carry no information.
             count, _, _, _ = _count_packets(container, stream, fps=fps)
-            return count, False, fps
+            return count, False, fps, None
         if stream.frames:
             has_pts = False
             try:
@@ -304,7 +314,7 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
                         break
             except (av.FFmpegError, OSError):
                 pass  # damaged: decoding tells the rest
-            return int(stream.frames), has_pts, fps
+            return int(stream.frames), has_pts, fps, None
         stated_s = _stated_duration_s(container, stream)
         count, has_pts, covered_s, hole = _count_packets(container, stream, fps=fps)
         if hole is not None:
@@ -322,7 +332,8 @@ def _container_facts(path: Path) -> tuple[int | None, bool, float | None]:
             missing = round((stated_s - covered_s) * fps)
             if missing > _FRAME_COUNT_SLACK:
                 count += missing
-        return count, has_pts, fps
+        packet_fps = 1.0 / hole[2] if hole is not None and hole[2] > 0 else None
+        return count, has_pts, fps, packet_fps
     finally:
         container.close()
 
@@ -375,9 +386,17 @@ def probe_video(path: str | Path, *, fps_if_none: float | None = None) -> VideoI
         if first is None:
             raise InputError(_undecodable_message(p))
         frame, fps, frame_count, fourcc, rotation = first
-    count, has_pts, stated_fps = _container_facts(p)
+    count, has_pts, stated_fps, packet_fps = _container_facts(p)
     if count is not None and count > 0:
         frame_count = count
+    if (
+        has_pts
+        and packet_fps
+        and not (1.0 / _STATED_RATE_FACTOR < fps / packet_fps < _STATED_RATE_FACTOR)
+    ):
+        # A browser's WebM states no rate: OpenCV gives FFmpeg's guess from its 1-ms time
+        # base, 1000 fps. The packets' own rate, as their times are read (core.timing).
+        fps = packet_fps
     if not has_pts:
         # A raw stream: FFmpeg invents 25 fps unless the bitstream states a rate.
         fps = stated_fps if stated_fps is not None and stated_fps != 25 else 0.0
@@ -1127,8 +1146,12 @@ class ProxyWriter:
     """A browser-playable copy of a video written frame by frame: H.264 in MP4 with the
     index first (faststart), gray (the luma plane, what the analysis measured).
 
-    Frame ``i`` written is frame ``i`` of the proxy, at ``i / fps`` (constant frame
-    rate), so a player's frame number is the analysis's. A video wider than
+    Frame ``i`` written is frame ``i`` of the proxy, at ``times_s[i]`` when the
+    video's frame times are given (a take of variable frame rate or with lost
+    frames: the proxy lasts as long as the take and each frame is shown at its
+    time), else at ``i / fps`` (constant frame rate); frames past the end of
+    ``times_s`` follow its last at ``1 / fps``. The review view maps a player's
+    time to the analysis's frame number through the same times. A video wider than
     :data:`PROXY_MAX_WIDTH_PX` is reduced by a whole factor (pixel areas averaged,
     :func:`proxy_size`); the review view draws its overlay in the video's own pixels
     over whatever size the player shows. An odd width or height loses its last column
@@ -1145,13 +1168,29 @@ class ProxyWriter:
         file); the file is removed then.
     """
 
-    def __init__(self, target: str | Path, image_size: ImageSize, fps: float, *, name: str) -> None:
+    def __init__(
+        self,
+        target: str | Path,
+        image_size: ImageSize,
+        fps: float,
+        *,
+        name: str,
+        times_s: NDArray[np.float64] | None = None,
+    ) -> None:
         import fractions
 
         import av
 
         if not fps > 0:
             raise ValueError(f"fps must be > 0, got {fps}")
+        t = None if times_s is None else np.asarray(times_s, dtype=np.float64).reshape(-1)
+        if (
+            t is not None
+            and t.size
+            and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 1.0 / 90000))
+        ):
+            raise ValueError("times_s must be finite and increase by at least 1/90000 s")
+        self._times_s = None if t is None or not t.size else t - t[0]
         self.path = Path(target)
         self.name = name
         self.fps = float(fps)
@@ -1179,6 +1218,15 @@ class ProxyWriter:
             self._failed(exc)
         self._stream = stream
 
+    def _time_s(self, i: int) -> float:
+        """Presentation time (s) of frame ``i`` of the proxy."""
+        t = self._times_s
+        if t is None:
+            return i / self.fps
+        if i < len(t):
+            return float(t[i])
+        return float(t[-1]) + (i - len(t) + 1) / self.fps
+
     def _failed(self, exc: BaseException) -> NoReturn:
         self.abort()
         raise InputError(f"cannot write a browser copy of {self.name}: {exc}") from exc
@@ -1204,7 +1252,7 @@ class ProxyWriter:
                 dtype=np.uint8,
             )
         image = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(shown), format="gray")
-        image.pts = round(self.frames / self.fps / self._tb)
+        image.pts = round(self._time_s(self.frames) / self._tb)
         image.time_base = self._tb
         try:
             for packet in self._stream.encode(image):

@@ -56,9 +56,10 @@ class ReviewPage:
 
     ``data`` is what the player script draws (embedded in the page, so the one
     audited view covers it): the task's signal per left frame (``signal``, in
-    ``unit``), the taps or cycles (``taps``: their result.json objects, the turn
-    at ``peak_key``, the amplitude at ``amplitude_key``), pauses (naming their
-    tap or cycle by ``pause_key``) and the overlay of each video. ``videos`` are
+    ``unit``, at the frames' times ``time_s``), the taps or cycles (``taps``: their
+    result.json objects, the turn at ``peak_key``, the amplitude at
+    ``amplitude_key``), pauses (naming their tap or cycle by ``pause_key``) and the
+    overlay of each video. ``videos`` are
     the sides that have a browser proxy; ``job`` the newest analysis job (a
     re-analysis in progress or failed); ``swap_pair`` the two labels that may
     be swapped (None for a three-marker protocol).
@@ -135,11 +136,14 @@ def review_page(
     doc = served_document(result)
     read = read_result(doc)
     signal: list[float | None] = []
+    time_s: list[float] = []
     if result.markers_path and storage.exists(result.markers_path):
         table = read_markers_csv(
             storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
         )
         signal = _signal(table, read.task, trial.hand)
+        # the analysis's time of each left frame: lost frames and irregular intervals kept
+        time_s = [round(float(t), 6) for t in table.time_s]
     videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
     from core.corrections import Corrections, swappable_labels
 
@@ -151,6 +155,7 @@ def review_page(
         "current": result.id == trial.result.id,
         "fps": doc.get("fps"),
         "signal": signal,
+        "time_s": time_s,
         "unit": quantity.unit,
         "peak_key": quantity.peak_key,
         "amplitude_key": quantity.amplitude_key,

@@ -1,8 +1,10 @@
 // bradyscope review view: both videos in step with the tracked markers drawn on them, the
 // aperture curve with a cursor at the videos' time. Plain JavaScript, no library, no inline code.
 //
-// Frame numbers are each video's own (the proxies hold frame i at i / fps). The left video
-// leads; the right one is kept on the frame the time model pairs with the left frame
+// Frame numbers are each video's own. A proxy holds frame i at its capture time from the
+// video's first frame (overlay.cameras[].time_s: irregular intervals and lost frames kept;
+// i / fps in overlays without it); the signal, taps and pauses are at the analysis's times
+// of the left frames (data.time_s). The left video leads; the right one is kept on the frame the time model pairs with the left frame
 // (overlay.cameras[].left_frame). Overlay pixels are OpenCV's (centre of the top-left pixel
 // at 0, 0): a canvas pixel i spans [i, i + 1), so a point x is drawn at x + 0.5.
 "use strict";
@@ -12,7 +14,24 @@
   var DETECTION = "rgb(0,200,0)";
   var RADIUS = 6;
 
-  function frameOf(time, fps) { return Math.floor(time * fps + 0.001); }
+  // The last index i with times[i] <= t (0 before the first).
+  function indexAt(times, t) {
+    var lo = 0, hi = times.length - 1;
+    if (hi < 0 || t < times[0]) return 0;
+    while (lo < hi) {
+      var mid = (lo + hi + 1) >> 1;
+      if (times[mid] <= t) lo = mid; else hi = mid - 1;
+    }
+    return lo;
+  }
+  // The frame a player shows at its time, and the time to seek to for a frame (a quarter
+  // of a frame into it, clear of rounding on either side).
+  function frameOf(time, p) {
+    return p.times ? indexAt(p.times, time + 1e-4) : Math.floor(time * p.fps + 0.001);
+  }
+  function seekTime(frame, p) {
+    return (p.times && frame < p.times.length ? p.times[frame] : frame / p.fps) + 0.25 / p.fps;
+  }
 
   function setup(data) {
     var fps = data.fps || 100;
@@ -26,12 +45,12 @@
       if (!video || !canvas) return;
       canvas.width = cam.image_size[0];
       canvas.height = cam.image_size[1];
-      players[side] = { cam: cam, video: video, canvas: canvas, frame: -1, fps: cam.fps || fps };
+      players[side] = { cam: cam, video: video, canvas: canvas, frame: -1, fps: cam.fps || fps, times: cam.time_s || null };
     });
     // Videos without an overlay still play (e.g. older results).
     Array.prototype.forEach.call(document.querySelectorAll("video[data-video]"), function (video) {
       var side = video.getAttribute("data-video");
-      if (!players[side]) players[side] = { cam: null, video: video, canvas: null, frame: -1, fps: fps };
+      if (!players[side]) players[side] = { cam: null, video: video, canvas: null, frame: -1, fps: fps, times: null };
     });
     var leadSide = players.left && players.left.cam && players.left.cam.camera === "left" ? "left"
       : (players.right && players.right.cam && players.right.cam.camera === "left" ? "right" : "left");
@@ -43,6 +62,14 @@
     var container = document.querySelector("[data-review-player]");
     var plot = document.querySelector("canvas[data-aperture]");
     var playButton = document.querySelector('[data-action="play"]');
+    // The analysis's time of each left frame, and the left frame at an analysis time.
+    var leftTimes = data.time_s && data.time_s.length ? data.time_s : null;
+    function timeOfFrame(i) { return leftTimes && i < leftTimes.length ? leftTimes[i] : i / fps; }
+    function frameAtTime(t) {
+      if (!leftTimes) return Math.round(t * fps);
+      var i = indexAt(leftTimes, t);
+      return i + 1 < leftTimes.length && leftTimes[i + 1] - t < t - leftTimes[i] ? i + 1 : i;
+    }
 
     // For each lead frame, the follower frame the time model pairs with it.
     var pairing = null;
@@ -112,16 +139,16 @@
         if (j === null || j === undefined) {
           if (follow.canvas) follow.canvas.getContext("2d").clearRect(0, 0, follow.canvas.width, follow.canvas.height);
         } else {
-          if (follow.video.paused || Math.abs(frameOf(follow.video.currentTime, follow.fps) - j) > 1) {
-            if (lead.video.paused) follow.video.currentTime = (j + 0.25) / follow.fps;
-            else if (Math.abs(frameOf(follow.video.currentTime, follow.fps) - j) > 2) follow.video.currentTime = (j + 0.25) / follow.fps;
+          if (follow.video.paused || Math.abs(frameOf(follow.video.currentTime, follow) - j) > 1) {
+            if (lead.video.paused) follow.video.currentTime = seekTime(j, follow);
+            else if (Math.abs(frameOf(follow.video.currentTime, follow) - j) > 2) follow.video.currentTime = seekTime(j, follow);
           }
           // A follow video that was just asked to seek still shows its old frame: its
           // overlay is drawn when the seek lands ("seeked" below), not ahead of its picture.
           if (follow.video.paused && !follow.video.seeking) draw(follow, j);
         }
       }
-      var t = frame / fps;
+      var t = timeOfFrame(frame);
       if (frameOut) frameOut.textContent = String(frame);
       if (timeOut) timeOut.textContent = t.toFixed(3);
       if (container) { container.setAttribute("data-frame", String(frame)); container.setAttribute("data-time", t.toFixed(4)); }
@@ -139,22 +166,22 @@
       lead.video.pause();
       if (follow) follow.video.pause();
       pending = frame;
-      lead.video.currentTime = (frame + 0.25) / fps;
+      lead.video.currentTime = seekTime(frame, lead);
     }
 
     lead.video.addEventListener("seeked", function () {
       if (!lead.video.seeking) pending = null;  // the last seek asked for has landed
-      show(frameOf(lead.video.currentTime, fps));
+      show(frameOf(lead.video.currentTime, lead));
     });
     if (follow) follow.video.addEventListener("seeked", function () {
-      if (follow.video.paused) draw(follow, frameOf(follow.video.currentTime, follow.fps));
+      if (follow.video.paused) draw(follow, frameOf(follow.video.currentTime, follow));
     });
-    lead.video.addEventListener("loadeddata", function () { show(frameOf(lead.video.currentTime, fps)); });
+    lead.video.addEventListener("loadeddata", function () { show(frameOf(lead.video.currentTime, lead)); });
 
     function onFrame(p, isLead) {
       if (!p.video.requestVideoFrameCallback) return;
       var cb = function (now, meta) {
-        var frame = frameOf(meta.mediaTime, p.fps);
+        var frame = frameOf(meta.mediaTime, p);
         if (isLead) show(frame); else draw(p, frame);
         p.video.requestVideoFrameCallback(cb);
       };
@@ -163,7 +190,7 @@
     onFrame(lead, true);
     if (follow) onFrame(follow, false);
     lead.video.addEventListener("timeupdate", function () {
-      if (!lead.video.requestVideoFrameCallback) show(frameOf(time(), fps));
+      if (!lead.video.requestVideoFrameCallback) show(frameOf(time(), lead));
     });
 
     // The frame readout is announced while paused (stepping, jumping to a tap), not 100
@@ -184,7 +211,7 @@
         if (follow) follow.video.pause();
         playButton.textContent = "Play";
         announce(true);
-        show(frameOf(time(), fps));
+        show(frameOf(time(), lead));
       }
     }
     lead.video.addEventListener("ended", function () {
@@ -204,7 +231,7 @@
     });
     Array.prototype.forEach.call(document.querySelectorAll("[data-jump]"), function (b) {
       b.addEventListener("click", function () {
-        seekFrame(Math.round(parseFloat(b.getAttribute("data-jump")) * fps));
+        seekFrame(frameAtTime(parseFloat(b.getAttribute("data-jump"))));
         if (container) container.scrollIntoView({ block: "nearest" });
       });
     });
@@ -213,7 +240,7 @@
     // The task's cycle signal (finger tapping: the aperture), in data.unit (mm or deg).
     var ap = data.signal || [];
     var peakKey = data.peak_key || "t_max_aperture_s";
-    var duration = ap.length / fps || lead.video.duration || 1;
+    var duration = (ap.length ? timeOfFrame(ap.length - 1) + 1 / fps : 0) || lead.video.duration || 1;
     var ymax = 0;
     ap.forEach(function (v) { if (v !== null && v > ymax) ymax = v; });
     ymax = ymax * 1.1 || 1;
@@ -269,13 +296,13 @@
       var pen = false;
       ap.forEach(function (v, i) {
         if (v === null) { pen = false; return; }
-        if (pen) ctx.lineTo(X(i / fps), Y(v)); else ctx.moveTo(X(i / fps), Y(v));
+        if (pen) ctx.lineTo(X(timeOfFrame(i)), Y(v)); else ctx.moveTo(X(timeOfFrame(i)), Y(v));
         pen = true;
       });
       ctx.stroke();
       ctx.fillStyle = "rgb(31,119,180)"; ctx.font = "12px sans-serif";
       (data.taps || []).forEach(function (tp) {
-        var i = Math.round(tp[peakKey] * fps);
+        var i = frameAtTime(tp[peakKey]);
         var v = ap[i];
         if (v === null || v === undefined) return;
         ctx.beginPath(); ctx.arc(X(tp[peakKey]), Y(v), 3, 0, 2 * Math.PI); ctx.fill();
@@ -298,7 +325,7 @@
         var hit = (data.taps || []).concat(data.excluded_taps || [], data.outside_window_taps || []).filter(function (tp) {
           return t >= tp.t_start_s && t <= tp.t_end_s;
         })[0];
-        seekFrame(Math.round((hit ? hit.t_start_s : t) * fps));
+        seekFrame(frameAtTime(hit ? hit.t_start_s : t));
       });
       plot.addEventListener("keydown", function (e) {
         if (e.key === "ArrowLeft" || e.key === "ArrowRight") {
@@ -310,7 +337,7 @@
     fit();
     drawPlot(0);
     window.addEventListener("resize", function () { fit(); drawPlot(lastCursor); });
-    window.bradyscopeReview = { seekFrame: seekFrame, fps: fps };
+    window.bradyscopeReview = { seekFrame: seekFrame, fps: fps, frameAtTime: frameAtTime };
   }
 
   document.addEventListener("DOMContentLoaded", function () {

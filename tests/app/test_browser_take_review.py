@@ -1,0 +1,175 @@
+"""The review view of a browser take: proxies at the take's own frame times.
+
+Chromium's MediaRecorder writes WebM with 1-ms timestamps and no frame rate; FFmpeg,
+and so OpenCV, states 1000 fps for it. The camera's frames come at irregular
+intervals and some are lost. The review proxies were written at 1000 fps (a 2.4-s take
+lasted 0.07 s in the player, the overlay stuck on its first frames): here such a take is
+measured by the real worker, and its proxies hold every frame at the take's time, the
+overlay says those times, and the player's time-to-frame rule (``app/static/review.js``:
+the last frame whose time is at or before the player's) finds each frame of the proxy.
+"""
+
+from __future__ import annotations
+
+import fractions
+import json
+from datetime import UTC, datetime
+from pathlib import Path
+
+import av
+import cv2
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from app import jobs
+from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
+from app.services.videos import container_frame_times
+from app.worker import run_worker
+from core.camera import ImageSize
+from core.markers_csv import read_markers_csv
+from core.simulation.kinematics import TappingScenario
+from core.simulation.session import ImagingScenario
+from core.simulation.timing import CameraTiming
+from core.video import probe_video
+
+pytestmark = pytest.mark.slow
+
+FPS = 30.0  # Hz, a webcam's
+LEFT = CameraTiming(jitter_s=0.003, vfr=True, drop_after=(20, 21, 22, 50))
+RIGHT = CameraTiming(start_s=0.011, jitter_s=0.003, vfr=True, drop_after=(35,))
+
+
+def _as_chromium_writes(source: Path, target: Path) -> None:
+    """``source``'s packets in a live WebM that states 1000 fps (its 1-ms time base), as
+    Chromium's recorder leaves it to FFmpeg to guess."""
+    with av.open(str(source)) as src, av.open(str(target), "w", format="webm") as out:
+        stream = src.streams.video[0]
+        copy = out.add_stream_from_template(stream)
+        copy.time_base = fractions.Fraction(1, 1000)
+        copy.codec_context.framerate = fractions.Fraction(1000)
+        for packet in src.demux(stream):
+            if packet.size:
+                packet.stream = copy
+                out.mux(packet)
+
+
+def _packet_times_s(path: Path) -> np.ndarray:
+    """Each frame's presentation time (s) from the file's packets, from the first."""
+    with av.open(str(path)) as c:
+        stream = c.streams.video[0]
+        pts = sorted(p.pts for p in c.demux(stream) if p.size and p.pts is not None)
+        t = np.asarray(pts, dtype=np.float64) * float(stream.time_base)
+    return t - t[0]
+
+
+@pytest.fixture(scope="module")
+def browser_take(simulated_session, tmp_path_factory):
+    sim = simulated_session(
+        seed=11,
+        tapping=TappingScenario(duration_s=2.5, fps=FPS),
+        imaging=ImagingScenario(
+            image_size=ImageSize(640, 512), codec="vp8", left_timing=LEFT, right_timing=RIGHT
+        ),
+    )
+    out = tmp_path_factory.mktemp("chromium")
+    videos = {}
+    for side, path in (("left", sim.left_video), ("right", sim.right_video)):
+        videos[side] = out / f"{side}.webm"
+        _as_chromium_writes(path, videos[side])
+    return sim, videos
+
+
+def _trial(db, storage, sim, videos) -> tuple[int, int]:
+    rig, patient = Rig(name="webcams"), Patient(code="PD-WEBM")
+    db.add_all([rig, patient])
+    db.flush()
+    db.add(
+        Calibration(
+            rig_id=rig.id,
+            version=1,
+            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
+            rig_json=json.loads(sim.rig_path.read_text()),
+            rms_px=0.1,
+            source="rig_file",
+            status="ready",
+        )
+    )
+    session = RecordingSession(
+        patient_id=patient.id, rig_id=rig.id, recorded_at=datetime(2026, 2, 1, tzinfo=UTC)
+    )
+    db.add(session)
+    db.flush()
+    trial = Trial(session_id=session.id, hand="right")
+    db.add(trial)
+    db.flush()
+    for side, path in videos.items():
+        info = probe_video(path)
+        with storage.receive("videos", path.suffix) as incoming:
+            incoming.write(path.read_bytes())
+            stored = incoming.commit()
+        db.add(
+            Video(
+                trial_id=trial.id,
+                side=side,
+                path=stored.path,
+                size_bytes=stored.size_bytes,
+                sha256=stored.sha256,
+                fps=container_frame_times(info).fps,  # as the upload's check stores it
+                frame_count=info.frame_count,
+                width=info.image_size.width,
+                height=info.image_size.height,
+                codec=info.fourcc,
+            )
+        )
+    return trial.id, jobs.enqueue(db, "analyze_trial", trial_id=trial.id).id
+
+
+def test_a_browser_take_is_probed_at_its_own_rate(browser_take):
+    """OpenCV states 1000 fps for the take; probe_video gives its packets' rate."""
+    _, videos = browser_take
+    for path in videos.values():
+        cap = cv2.VideoCapture(str(path))
+        try:
+            assert cap.get(cv2.CAP_PROP_FPS) == 1000.0  # what made the defect
+        finally:
+            cap.release()
+        info = probe_video(path)
+        assert info.fps == pytest.approx(FPS, rel=0.05)  # Hz: 1-ms rounding and jitter
+        assert info.duration_s == pytest.approx(_packet_times_s(path)[-1], abs=0.2)  # s
+
+
+def test_review_proxies_and_overlay_keep_the_takes_frame_times(
+    app_settings, db_sessionmaker, storage, browser_take
+):
+    sim, videos = browser_take
+    with db_sessionmaker() as db, db.begin():
+        trial_id, job_id = _trial(db, storage, sim, videos)
+    run_worker(app_settings, once=True)
+    with db_sessionmaker() as db:
+        assert db.get(Job, job_id).status == "succeeded", db.get(Job, job_id).error
+        trial = db.get(Trial, trial_id)
+        proxies = {v.side: storage.absolute(v.proxy_path) for v in trial.videos}
+        result = db.scalars(select(Result).where(Result.trial_id == trial_id)).one()
+        overlay = json.loads(storage.absolute(result.overlay_path).read_text())
+        table = read_markers_csv(storage.absolute(result.markers_path))
+    cams = {cam["video"]: cam for cam in overlay["cameras"]}
+    for side, take in videos.items():
+        take_t = _packet_times_s(take)
+        proxy_t = _packet_times_s(proxies[side])
+        lost = np.flatnonzero(np.diff(take_t) > 1.5 / FPS)
+        assert len(lost) >= 1, side  # the take has its gaps
+        # Every frame at the take's time: the proxy lasts as long as the take.
+        assert len(proxy_t) == len(take_t), side
+        np.testing.assert_allclose(proxy_t, take_t, atol=2e-5)  # s: MP4's 1/90000 s ticks
+        own = np.asarray(cams[side]["time_s"])
+        np.testing.assert_allclose(own, take_t, atol=1e-6)  # s
+        # The player's rule: the last frame whose time is at or before its time.
+        half = 0.5 / FPS  # s
+        for k, t in enumerate(proxy_t):
+            for at in (t, t + 0.25 / FPS, t + 0.9 * np.diff(proxy_t, append=np.inf)[k]):
+                assert np.searchsorted(own, min(at, t + half) + 1e-4, side="right") - 1 == k
+    # The signal's times (the analysis's) and the left proxy's agree within half a frame.
+    left_video = cams["left"]["video"] if cams["left"]["camera"] == "left" else "right"
+    left_t = np.asarray(cams[left_video]["time_s"])
+    assert np.max(np.abs(table.time_s - left_t[: len(table.time_s)])) < 0.5 / FPS  # s
