@@ -76,7 +76,13 @@ from core.overlay import CameraOverlay, camera_overlay
 from core.progress import ProgressCallback, report
 from core.resample import uniform_trajectories
 from core.tasks import Task, parse_task
-from core.timing import FrameTimes, fit_to_frames, frame_times_from_timestamps, read_times_csv
+from core.timing import (
+    FrameTimes,
+    describe_lost_frames,
+    fit_to_frames,
+    frame_times_from_timestamps,
+    read_times_csv,
+)
 from core.tracks import INTERPOLATED, MEASURED, MISSING, FrameObservations, track_markers
 from core.triangulation import triangulate
 from core.version import software_document
@@ -440,6 +446,33 @@ def _compute_metrics(
         return None, [f"tapping metrics could not be computed: {exc}"]
 
 
+#: How core.clock's warning about many lost frames starts (it lists every frame number).
+_CLOCK_LOST_FRAMES = " frames were lost during the recording (left after frames "
+
+
+def _lost_frames_in_words(
+    warnings: list[str], sync: dict[str, Any], times: Sequence[FrameTimes]
+) -> list[str]:
+    """The time model's warnings, its warning about many lost frames saying per camera how
+    many were lost in how many gaps, the longest and where
+    (:func:`core.timing.describe_lost_frames`), not every frame number of each loss."""
+    out = []
+    for text in warnings:
+        head, sep, advice = text.partition("); ")
+        if _CLOCK_LOST_FRAMES in head and sep:
+            n = head.split(" ", 1)[0]
+            left, right = (
+                describe_lost_frames(sync.get(f"dropped_frames_{side}") or [], fps=t.fps)
+                for side, t in zip(("left", "right"), times, strict=True)
+            )
+            text = (
+                f"{n} frames were lost during the recording (left camera: {left};"
+                f" right camera: {right}); {advice}"
+            )
+        out.append(text)
+    return out
+
+
 def _few_whole_taps(metrics: dict[str, Any], task: Task) -> list[str]:
     """A warning when most taps (cycles) are not measured whole: their amplitude and speed
     are left out (filled-in frames at the widest opening or a closure), which the metrics
@@ -622,7 +655,7 @@ def analyze_recording(
         max_offset_s=max_offset_s,
         max_step_px=max_step_px,
     )
-    warnings.extend(timed.warnings)
+    warnings.extend(_lost_frames_in_words(timed.warnings, timed.sync, times))
     if timed.pairing_offset is None:
         left_px, right_px = timed.left_px, timed.right_px
         if rig.left.readout_ms > 0:

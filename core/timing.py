@@ -26,6 +26,7 @@ left one's, is :mod:`core.clock`.
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,6 +120,47 @@ def _gaps(t: FloatArray, fps: float) -> list[tuple[int, int]]:
     steps = np.diff(t) * fps
     idx = np.flatnonzero(steps >= DROP_FACTOR)
     return [(int(i), max(1, round(float(steps[i])) - 1)) for i in idx]
+
+
+def lost_frame_gaps(dropped_after: Sequence[int]) -> list[tuple[int, int]]:
+    """``(frame, frames lost after it)`` of a list with one entry per lost frame
+    (:attr:`FrameTimes.dropped_after`, ``sync.dropped_frames_*`` of result.json): a frame
+    number repeated ``n`` times is one gap of ``n`` lost frames."""
+    counts: dict[int, int] = {}
+    for i in dropped_after:
+        counts[int(i)] = counts.get(int(i), 0) + 1
+    return sorted(counts.items())
+
+
+def describe_lost_frames(
+    dropped_after: Sequence[int], *, fps: float | None = None, most_gaps: int = 3
+) -> str:
+    """The lost frames of one camera in words, for a clinician or technician.
+
+    ``dropped_after`` has one entry per lost frame (a frame number repeated for each
+    frame lost after it). Up to ``most_gaps`` gaps are each named ("3 frames lost after
+    frame 2 and 1 after frame 17"); more are summed up: how many frames in how many
+    gaps, and the longest (its length in ms when ``fps``, the camera's nominal rate,
+    is given: the time between the frames on either side of it) and where.
+    """
+    gaps = lost_frame_gaps(dropped_after)
+    if not gaps:
+        return "no frames lost"
+    total = sum(n for _, n in gaps)
+
+    def frames(n: int) -> str:
+        return f"{n} frame{'s' if n != 1 else ''}"
+
+    if len(gaps) <= most_gaps:
+        parts = [f"{frames(n) if k == 0 else n} after frame {i}" for k, (i, n) in enumerate(gaps)]
+        parts[0] = parts[0].replace(" after", " lost after", 1)
+        return parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+    at, longest = max(gaps, key=lambda g: (g[1], -g[0]))
+    span = f" ({1000.0 * (longest + 1) / fps:.0f} ms)" if fps and fps > 0 else ""
+    return (
+        f"{frames(total)} lost in {len(gaps)} gaps; the longest, {frames(longest)}{span},"
+        f" after frame {at}"
+    )
 
 
 def uniform_times(n_frames: int, fps: float) -> FrameTimes:

@@ -16,6 +16,7 @@ from app.reports.result import SyncSummary, TrialResult, read_result
 from app.reports.summary import SummaryColumn
 from core.clock import LARGE_DRIFT_PPM, LARGE_DROPS, MIN_CONFIDENCE
 from core.markers_csv import MarkerTable
+from core.timing import describe_lost_frames
 
 #: How each ``sync.time_source`` reads in the quality panel.
 TIME_SOURCES = {
@@ -237,11 +238,12 @@ def sync_rows(sync: SyncSummary, fps: float | None) -> list[QualityRow]:
         text = left if left == right else f"left: {left}; right: {right}"
         rows.append(QualityRow("Frame times from", text))
     if sync.offset_s is not None:  # results of the time model report their lost frames
-        lost = [
-            f"{name} {len(frames)}" + (f" (after frame {_frame_list(frames)})" if frames else "")
-            for name, frames in (
-                ("left", sync.dropped_frames_left),
-                ("right", sync.dropped_frames_right),
+        lost = [  # grouped by gap, a long list summed up (core.timing)
+            f"{name} {len(frames)}"
+            + (f" ({describe_lost_frames(frames, fps=rate)})" if frames else "")
+            for name, frames, rate in (
+                ("left", sync.dropped_frames_left, fps),
+                ("right", sync.dropped_frames_right, sync.fps_right or fps),
             )
         ]
         n = len(sync.dropped_frames_left) + len(sync.dropped_frames_right)
@@ -255,12 +257,6 @@ def sync_rows(sync: SyncSummary, fps: float | None) -> list[QualityRow]:
             )
         )
     return rows
-
-
-def _frame_list(frames: tuple[int, ...], most: int = 8) -> str:
-    """``150, 310, 455`` (the first ``most``, then how many more)."""
-    shown = ", ".join(str(f) for f in frames[:most])
-    return shown + (f" and {len(frames) - most} more" if len(frames) > most else "")
 
 
 def _calibration_rows(cal: CalibrationInfo | None) -> list[QualityRow]:

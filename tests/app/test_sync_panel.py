@@ -62,7 +62,10 @@ def test_free_running_sync_is_read_and_shown_line_by_line():
         "left: container timestamps; right: frame rate (frame number / fps)",
         False,
     )
-    assert rows["Lost frames found"] == ("left 0, right 3 (after frame 150, 310, 455)", False)
+    assert rows["Lost frames found"] == (
+        "left 0, right 3 (1 frame lost after frame 150, 1 after frame 310 and 1 after frame 455)",
+        False,
+    )
     assert rows["Rolling-shutter readout compensated"] == ("left 15 ms, right 12.5 ms", False)
 
 
@@ -78,8 +81,11 @@ def test_large_drift_many_lost_frames_and_a_guessed_offset_are_marked():
     rows = _rows(_data(sync))
     assert rows["Camera clock drift (right against left)"] == ("-1500 ppm", True)
     value, warn = rows["Lost frames found"]
-    assert warn and value.startswith(f"left {len(many)} (after frame 100, 110,")
-    assert value.endswith(f"and {len(many) - 8} more), right 3 (after frame 150, 310, 455)")
+    assert warn and value == (
+        f"left {len(many)} ({len(many)} frames lost in {len(many)} gaps; the longest, 1 frame"
+        " (33 ms), after frame 100), right 3 (1 frame lost after frame 150, 1 after frame 310"
+        " and 1 after frame 455)"
+    )
     assert rows["Camera synchronisation offset"][1] is True  # confidence under 0.2: a guess
     assert rows["Frame times from"] == ("timestamps file", False)
     # At the limits, nothing is marked.
@@ -88,6 +94,22 @@ def test_large_drift_many_lost_frames_and_a_guessed_offset_are_marked():
     rows = _rows(_data(sync))
     assert not rows["Camera clock drift (right against left)"][1]
     assert not rows["Lost frames found"][1]
+
+
+def test_frames_lost_in_one_gap_are_counted_once_with_their_number():
+    """One entry per lost frame: a frame number repeated is one gap of several frames (a
+    browser take listed "after frame 0, 2, 2, 2, 2, 2, 2, 2 and 70 more")."""
+    sync = {**FREE_RUNNING, "dropped_frames_left": [0, 2, 2, 2, 2, 2, 2, 2, 17]}
+    value, warn = _rows(_data(sync))["Lost frames found"]
+    assert value.startswith("left 9 (1 frame lost after frame 0, 7 after frame 2 and 1 after")
+    assert warn  # 9 + 3 lost: more than LARGE_DROPS
+    many = [0, *[2] * 7, 17, 28, 28, *[155] * 13, 157, 157]
+    sync = {**FREE_RUNNING, "dropped_frames_left": many}
+    value, _ = _rows(_data(sync))["Lost frames found"]
+    # 60 Hz: 13 lost frames are 14 intervals, 233 ms between the frames either side.
+    assert value.startswith(
+        "left 26 (26 frames lost in 6 gaps; the longest, 13 frames (233 ms), after frame 155)"
+    ), value
 
 
 def test_a_lab_rig_result_and_an_older_one_show_what_they_carry():
@@ -127,7 +149,7 @@ def test_the_report_shows_the_sync_lines_and_core_warnings():
         "+14.20 frames (+236.7 ms), estimated (confidence 0.83)",
         "+1500 ppm",
         "left: container timestamps; right: frame rate (frame number / fps)",
-        "right 3 (after frame 150, 310, 455)",
+        "right 3 (1 frame lost after frame 150, 1 after frame 310 and 1 after frame 455)",
         "left 15 ms, right 12.5 ms",
         warning,
     ):
