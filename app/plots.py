@@ -339,7 +339,8 @@ def tap_amplitude_plot(
     taps : sequence of tap (cycle) dicts with ``quantity.amplitude_key``.
     decrement_per_tap : float, optional
         Slope of the decrement line (``amplitude_decrement_per_cycle``, ``quantity.unit``
-        per tap). The line passes through the mean tap; without a slope it is fitted here.
+        per tap), through the mean measured tap. None (the metrics did not assess it): no
+        line, the legend says so; a slope is never fitted here.
     top : float, optional
         Upper end of the amplitude axis (``quantity.unit``), to draw two trials on one scale.
     quantity : CycleQuantity
@@ -369,20 +370,20 @@ def tap_amplitude_plot(
                 n[~reliable & ok], amp[~reliable & ok], width=0.7, color="#eef2f5",
                 edgecolor="#9aa5b1", lw=0.6, hatch="//", label=f"unreliable {q.cycle}",
             )  # fmt: skip
-        fit = reliable & ok if (reliable & ok).sum() >= 2 else ok
+        fit = reliable & ok if (reliable & ok).any() else ok
         slope = decrement_per_tap
-        if slope is None or not math.isfinite(slope):
-            slope = float(np.polyfit(n[fit], amp[fit], 1)[0]) if fit.sum() >= 2 else 0.0
-        intercept = float(np.mean(amp[fit]) - slope * np.mean(n[fit]))
-        ax.plot(
-            n,
-            intercept + slope * n,
-            color=COLOURS["halt"],
-            lw=1.4,
-            # over all taps; the summary beside it gives the first 10 taps'
-            label=f"decrement {slope:+.2f} {q.unit}/{q.cycle}"
-            + (f", all {amp.size} {q.cycle}s" if amp.size > 10 else ""),
-        )
+        if slope is None or not math.isfinite(slope):  # as the metrics table says
+            said = ", decrement not assessable"
+            ax.plot([], [], " ", label=said[2:])  # a legend line, nothing drawn
+        else:
+            said = f" with decrement line {slope:+.2f} {q.unit} per {q.cycle}"
+            intercept = float(np.mean(amp[fit]) - slope * np.mean(n[fit]))
+            ax.plot(
+                n, intercept + slope * n, color=COLOURS["halt"], lw=1.4,
+                # over all taps; the summary beside it gives the first 10 taps'
+                label=f"decrement {slope:+.2f} {q.unit}/{q.cycle}"
+                + (f", all {amp.size} {q.cycle}s" if amp.size > 10 else ""),
+            )  # fmt: skip
         ax.set_xlabel(f"{q.cycle} number")
         ax.set_ylabel(f"amplitude ({q.unit})")
         ax.set_ylim(0, float(np.nanmax(amp)) * HEADROOM if top is None else float(top))
@@ -391,10 +392,7 @@ def tap_amplitude_plot(
         ax.set_xticks(_ticks(n))
     return to_svg(
         fig,
-        title=(
-            f"Amplitude of {amp.size} {q.cycle}s with decrement line {slope:+.2f} {q.unit}"
-            f" per {q.cycle}"
-        ),
+        title=f"Amplitude of {amp.size} {q.cycle}s{said}",
         name="amplitude",
     )
 

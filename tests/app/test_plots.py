@@ -107,14 +107,16 @@ def test_amplitude_plot_draws_the_given_decrement(trial):
     _, result = trial
     svg = plots.tap_amplitude_plot(result["taps"], decrement_per_tap=-0.8)
     assert "decrement -0.80 mm/tap" in svg
-    # Without a slope it is fitted from the amplitudes (exactly linear here).
-    fitted = plots.tap_amplitude_plot(result["taps"])
-    assert "decrement -0.80 mm/tap" in fitted
+    # Without a slope (the metrics did not assess it) none is drawn or fitted: a result
+    # page said "decrement -0.77 mm/tap" beside a metrics table saying not assessable.
+    unassessed = plots.tap_amplitude_plot(result["taps"])
+    assert "decrement not assessable" in unassessed and "mm/tap" not in unassessed
+    assert "<title>Amplitude of" in unassessed and "decrement line" not in unassessed
     # More than 10 taps: the legend says the line is over all of them, as the summary
     # beside it gives the first 10 taps' slope (the two were read as one number).
     n = len(result["taps"])
     assert n > 10 and f"decrement -0.80 mm/tap, all {n} taps" in svg
-    ten = plots.tap_amplitude_plot(result["taps"][:10])
+    ten = plots.tap_amplitude_plot(result["taps"][:10], decrement_per_tap=-0.8)
     assert "decrement -0.80 mm/tap" in ten and "mm/tap, all" not in ten
 
 
@@ -180,9 +182,8 @@ def test_missing_and_unreliable_tap_values_do_not_break_the_plots(trial):
     taps[3]["opening_velocity_mm_s_max"] = None
     taps[4]["amplitude_mm"] = None
     taps[5]["reliable"] = False
-    svg = plots.tap_amplitude_plot(taps)
+    svg = plots.tap_amplitude_plot(taps, decrement_per_tap=-0.8)
     assert "unreliable tap" in svg
-    # The decrement is fitted on reliable, measured taps only: still the true slope.
     assert "decrement -0.80 mm/tap" in svg
     assert plots.velocity_plot(taps).startswith("<svg")
     a = _aperture(markers)
