@@ -535,3 +535,56 @@ def test_the_review_form_swaps_the_cameras_and_undoes_it(client, seeded, db_sess
         job = db.scalars(select(Job).where(Job.trial_id == t).order_by(Job.id.desc())).first()
         assert "swap_cameras" not in job.payload  # measured as uploaded
         assert job.payload["revision_request"]["change"] == {"swap_cameras": False}
+
+
+def _failed_trial(db_sessionmaker, session_of: int, error: str) -> int:
+    """A trial of the session of trial ``session_of`` whose first analysis failed."""
+    from app.models import Job
+
+    with db_sessionmaker() as db, db.begin():
+        trial = Trial(session_id=db.get(Trial, session_of).session_id, hand="left", status="failed")
+        db.add(trial)
+        db.flush()
+        db.add(Job(kind="analyze_trial", trial_id=trial.id, status="failed", error=error))
+        return trial.id
+
+
+def test_a_failed_trial_is_measured_again_from_its_page(client, seeded, db_sessionmaker):  # noqa: F811
+    """Finding 4 of the failure review: a trial whose analysis failed (cameras uploaded the
+    wrong way round) offered only "upload it again", and its review page said to wait. Its
+    page offers the review page's re-analysis form; the review page says it failed."""
+    from app.models import Job
+
+    csrf = login(client)
+    error = "the two cameras do not agree; check that the videos are not swapped."
+    t = _failed_trial(db_sessionmaker, seeded["trials"][(1, "right")], error)
+    page = client.get(f"/trials/{t}").text
+    assert "The analysis could not be completed." in page and error in page
+    form = re.search(
+        r'<form method="post" action="/trials/(\d+)/revisions">(.*?)</form>', page, re.S
+    )
+    assert form is not None and form.group(1) == str(t)
+    fields = form.group(2)
+    assert 'name="kind" value="reanalyse"' in fields and 'name="offset_frames"' in fields
+    assert "Measure them with the cameras swapped" in fields
+    assert re.search(r'<textarea id="reason-2" name="reason"[^>]* required', fields)
+    assert " checked" not in fields  # nothing measured yet: the clinician chooses the way
+
+    r = client.post(
+        f"/trials/{t}/revisions",
+        data={"csrf_token": csrf, "kind": "reanalyse", "swap_cameras": "swapped",
+              "reason": "uploaded the wrong way round"},
+        follow_redirects=False,
+    )  # fmt: skip
+    assert r.status_code == 303 and r.headers["location"].startswith("/jobs/"), r.text[:500]
+    with db_sessionmaker() as db:
+        job = db.scalars(select(Job).where(Job.trial_id == t).order_by(Job.id.desc())).first()
+        assert (job.status, job.payload["swap_cameras"]) == ("queued", True)
+        job.status, job.error = "failed", error  # as if it failed again
+        db.get(Trial, t).status = "failed"
+        db.commit()
+
+    review = client.get(f"/trials/{t}/review")
+    assert review.status_code == 409
+    assert f"The analysis of trial {t} failed: {error.rstrip('.')}" in review.text
+    assert "wait for its analysis" not in review.text and f"/trials/{t}" in review.text
