@@ -118,13 +118,12 @@ def review_page(
     NotFoundError
         No such trial or revision (audited).
     ConflictError
-        The trial has no result yet.
+        The trial has no result yet: its analysis is queued or running (wait for it), or
+        failed (the message says why, and how to measure it again).
     """
     trial = load_trial(db, actor, trial_id, "read")
     if trial.result is None:
-        raise ConflictError(
-            f"The trial {trial.id} has no result to review yet; wait for its analysis."
-        )
+        raise ConflictError(_no_result(db, trial))
     result = trial.result if revision is None else trial.revision(revision)
     if result is None:
         audit(db, actor, "read", "review", trial.id, trial.session.patient_id, "not_found")
@@ -192,6 +191,19 @@ def review_page(
     audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
     db.commit()
     return page
+
+
+def _no_result(db: Session, trial: Trial) -> str:
+    """Why a trial without a result has nothing to review, and what to do."""
+    if trial.status != "failed":
+        return f"The trial {trial.id} has no result to review yet; wait for its analysis."
+    job = job_views.latest_job(db, trial_id=trial.id)
+    why = f": {job.error.rstrip('.')}" if job is not None and job.error else ""
+    return (
+        f"The analysis of trial {trial.id} failed{why}. Nothing will come of waiting: open the"
+        f" trial's page (/trials/{trial.id}) to measure its videos again (with the cameras"
+        " swapped or a given camera offset), or upload the recording again."
+    )
 
 
 def proxy_file(
