@@ -8,7 +8,10 @@ back and commits the event alone.
 
 Audit rows hold identifiers and verbs only, never clinical values (no
 metrics, notes, ratings, names); ``app.models.AuditEvent`` has no foreign keys
-so that the trail outlives what it describes. The table is append-only: no
+so that the trail outlives what it describes. An update's event names the
+fields it changed (``details``); their previous and new values are kept beside
+it in ``field_changes`` (:mod:`app.services.changes`), which belongs to the
+patient and is erased with them, and the event seals their digest. The table is append-only: no
 code path updates or deletes its rows, and every event is numbered and sealed
 into a keyed hash chain (:mod:`app.chain`) that ``bradyscope admin
 verify-audit`` checks.
@@ -59,6 +62,7 @@ def _event(
     resource_id: Any,
     patient_id: int | None,
     outcome: str,
+    details: dict[str, Any] | None = None,
 ) -> AuditEvent:
     actor_type: str
     actor_id: str | None
@@ -81,6 +85,7 @@ def _event(
         outcome=outcome,
         ip=client_ip_var.get(),
         request_id=request_id_var.get(),
+        details=details,
     )
 
 
@@ -92,6 +97,8 @@ def audit(
     resource_id: Any = None,
     patient_id: int | None = None,
     outcome: Outcome | str = "success",
+    *,
+    details: dict[str, Any] | None = None,
 ) -> AuditEvent:
     """Add one audit event to ``db``'s current transaction (committed with the use case).
 
@@ -112,13 +119,17 @@ def audit(
         The patient whose data this is, when there is one.
     outcome : str
         ``success`` (default), ``denied``, ``not_found``, ``invalid``, ``error``.
+    details : dict, optional
+        What the event concerns beyond its columns, sealed with them: identifiers and field
+        names only (e.g. ``{"fields": [...]}`` of an update, made by
+        :mod:`app.services.changes`), never a clinical value.
 
     Returns
     -------
     AuditEvent
         The pending row.
     """
-    event = _event(actor, action, resource_type, resource_id, patient_id, outcome)
+    event = _event(actor, action, resource_type, resource_id, patient_id, outcome, details)
     return chain.append(db, event)
 
 

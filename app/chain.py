@@ -110,8 +110,12 @@ def _canonical_time(at: datetime) -> str:
 
 
 def fields_of(event: AuditEvent) -> list[Any]:
-    """The sealed fields of an event, in a fixed order (everything but ``id`` and ``hash``)."""
-    return [
+    """The sealed fields of an event, in a fixed order (everything but ``id`` and ``hash``).
+
+    ``details`` (revision 0018) comes last and only when it is set, so the seals of the
+    events made before it stay what they were.
+    """
+    fields = [
         event.seq,
         _canonical_time(event.at),
         event.actor_type,
@@ -124,11 +128,16 @@ def fields_of(event: AuditEvent) -> list[Any]:
         event.ip,
         event.request_id,
     ]
+    if event.details is not None:
+        fields.append(event.details)
+    return fields
 
 
 def seal(key: bytes, previous_hash: str, event: AuditEvent) -> str:
     """``HMAC-SHA256(key, previous_hash + canonical JSON of the event's fields)``, hex."""
-    payload = json.dumps(fields_of(event), separators=(",", ":"), ensure_ascii=False)
+    payload = json.dumps(
+        fields_of(event), separators=(",", ":"), ensure_ascii=False, sort_keys=True
+    )  # sort_keys: a JSON column may give its keys back in another order
     return hmac.new(key, f"{previous_hash}\n{payload}".encode(), hashlib.sha256).hexdigest()
 
 

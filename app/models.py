@@ -20,7 +20,8 @@ Conventions that every caller must keep
   ``sessions``), so that it is never confused with SQLAlchemy's ``Session``.
 - Soft deletion: patients and sessions have ``deleted_at``; rows are kept so
   that audit history stays meaningful. :class:`AuditEvent` has no foreign keys
-  on purpose (it outlives what it describes) and holds no clinical values.
+  on purpose (it outlives what it describes) and holds no clinical values
+  (the values an update changed are in :class:`FieldChange`, erased with the patient).
 - Every schema change goes through an Alembic migration in ``migrations/``;
   ``tests/app/test_migrations.py`` fails on any drift.
 
@@ -686,6 +687,34 @@ class AuditEvent(Base):
     """The event's number in the hash chain (``app.chain``); NULL for events older than it."""
     hash: Mapped[str | None] = mapped_column(String(64))
     """HMAC-SHA256 of the previous event's hash and this event's fields."""
+    details: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    """Sealed with the rest (``app.chain``): identifiers and field names only, e.g. an
+    update's ``{"fields": [...], "values_sha256": ...}`` (:class:`FieldChange`)."""
+
+
+class FieldChange(Base):
+    """The previous and new values of the fields one update changed, beside its audit event.
+
+    The event names the fields and seals ``values_sha256``, the SHA-256 of ``nonce`` and
+    ``changes`` (:mod:`app.services.changes`), so an altered row shows; the values are
+    the patient's data, so the row refers to the patient and is erased with them (the
+    nonce with it: the digest left in the trail then tells nothing).
+    """
+
+    __tablename__ = "field_changes"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    event_id: Mapped[int] = mapped_column(Integer, index=True)
+    """The :class:`AuditEvent`'s id; no foreign key, as nothing holds the trail's rows
+    (a TRUNCATE of it is refused by its own trigger, not by another table)."""
+    patient_id: Mapped[int] = mapped_column(ForeignKey("patients.id"), index=True)
+    changes: Mapped[dict[str, Any]] = mapped_column(JSON)
+    """``{field: [previous, new]}``, values as the API shows them."""
+    nonce: Mapped[str] = mapped_column(String(32))
+
+    event: Mapped[AuditEvent] = relationship(
+        primaryjoin="foreign(FieldChange.event_id) == AuditEvent.id"
+    )
 
 
 class AuditHead(Base):
@@ -739,6 +768,7 @@ __all__ = [
     "Base",
     "BrowserSession",
     "Calibration",
+    "FieldChange",
     "Job",
     "LoginThrottle",
     "Patient",

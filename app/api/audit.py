@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from pydantic import Field
@@ -12,7 +12,7 @@ from app.api.responses import AUTH, Limit, Offset, errors
 from app.apikeys import AUDIT_READ
 from app.auth import SessionDep, require_scope
 from app.schemas import MAX_ID, AuditEventRead, Page, UtcDateTime
-from app.services import audit_log
+from app.services import audit_log, changes
 
 router = APIRouter(prefix="/audit", tags=["audit"])
 
@@ -22,7 +22,24 @@ AuditReader = Annotated[Actor, Depends(require_scope(AUDIT_READ))]
 MAX_SEQ = 2**63 - 1  # a BigInteger
 
 
-class AuditPage(Page[AuditEventRead]):
+class AuditItem(AuditEventRead):
+    """An event of the trail, with what it concerns beyond its columns."""
+
+    details: dict[str, Any] | None = Field(
+        default=None,
+        description="Sealed with the event: an update's changed fields (fields) and the"
+        " digest of their values (values_sha256); the patients a list returned"
+        " (patient_ids). Identifiers and names only.",
+    )
+    changes: dict[str, list[Any]] | None = Field(
+        default=None,
+        description="An update's previous and new value of each changed field, as"
+        " {field: [previous, new]}: for a reader who also holds patients:read (the values"
+        " are the patient's data); null for others, and once the patient was erased.",
+    )
+
+
+class AuditPage(Page[AuditItem]):
     """A page of the trail; follow ``next`` for the following one (stable while events
     are added: it names the sequence number to continue from)."""
 
@@ -92,8 +109,13 @@ def list_audit_events(
     trail = audit_log.read_trail(
         db, actor, f, limit=limit, offset=offset, before_seq=before_seq, after_seq=after_seq
     )
+    items = [AuditItem.model_validate(e) for e in trail.items]
+    if actor.has_scope("patients:read"):
+        kept = changes.changes_of(db, [e.id for e in trail.items if e.action == "update"])
+        for item in items:
+            item.changes = kept.get(item.id)
     return AuditPage(
-        items=[AuditEventRead.model_validate(e) for e in trail.items],
+        items=items,
         total=trail.total,
         limit=limit,
         offset=offset,

@@ -187,4 +187,5 @@ def as_document(event: AuditEvent) -> dict[str, Any]:
         "ip": event.ip,
         "request_id": event.request_id,
         "hash": event.hash,
+        "details": event.details,
     }

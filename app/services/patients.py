@@ -24,6 +24,7 @@ from app.reports.result import read_result
 from app.reports.task_metrics import trend_metrics
 from app.reports.trend_cache import TrendSvgCache, cached_trend_plot
 from app.schemas import PatientCreate, PatientUpdate
+from app.services.changes import audit_update, changed_fields
 from app.services.common import (
     cancel_trial_jobs,
     load_patient,
@@ -123,7 +124,10 @@ def get_patient(db: Session, actor: Actor, patient_id: int) -> Patient:
 
 
 def update_patient(db: Session, actor: Actor, patient_id: int, data: PatientUpdate) -> Patient:
-    """Change the given fields; ``code`` cannot be cleared, other fields can (``null``)."""
+    """Change the given fields; ``code`` cannot be cleared, other fields can (``null``).
+
+    Audited as an update naming the fields changed, their values kept beside the event
+    (:mod:`app.services.changes`)."""
     patient = load_patient(db, actor, patient_id, "update")
     changes = data.model_dump(exclude_unset=True)
     if changes.get("code") is None:
@@ -132,14 +136,13 @@ def update_patient(db: Session, actor: Actor, patient_id: int, data: PatientUpda
         existing = _code_taken(db, changes["code"], exclude_id=patient.id)
         if existing is not None:
             raise _refused(db, actor, "update", patient_id, _conflict(existing))
-    for name, value in changes.items():
-        setattr(patient, name, value)
+    changed = changed_fields(patient, changes)
     try:
         db.flush()
     except IntegrityError as exc:
         error = ConflictError("Another patient took this code meanwhile; choose another.")
         raise _refused(db, actor, "update", patient_id, error) from exc
-    audit(db, actor, "update", "patient", patient.id, patient.id)
+    audit_update(db, actor, "patient", patient.id, patient.id, changed)
     db.commit()
     return patient
 

@@ -19,6 +19,7 @@ from app.errors import AppError, InvalidRequestError
 from app.models import Calibration, Job, RecordingSession, Rig, Trial, utcnow
 from app.schemas import SessionCreate, SessionUpdate
 from app.services.calibrations import calibration_for
+from app.services.changes import audit_update, changed_fields
 from app.services.common import (
     cancel_trial_jobs,
     load_patient,
@@ -105,6 +106,8 @@ def update_session(
     """Change the given fields; states cannot be cleared, notes/rating/calibration can.
 
     The PDF reports of the session's measured trials are made again by the worker.
+    Audited as an update naming the fields changed, their values kept beside the event
+    (:mod:`app.services.changes`).
     """
     row = load_session(db, actor, session_id, "update")
     changes = data.model_dump(exclude_unset=True)
@@ -113,13 +116,12 @@ def update_session(
             changes.pop(required)
     if changes.get("calibration_id") is not None:
         _check_calibration(db, changes["calibration_id"], row.rig_id)
-    for name, value in changes.items():
-        setattr(row, name, value)
-    if changes:  # the reports of the session's measured trials show it
+    changed = changed_fields(row, changes)
+    if changed:  # the reports of the session's measured trials show it
         for trial in row.trials:
             if trial.deleted_at is None and trial.result is not None:
                 jobs.enqueue_report_pdf(db, trial.id)
-    audit(db, actor, "update", "session", row.id, row.patient_id)
+    audit_update(db, actor, "session", row.id, row.patient_id, changed)
     db.commit()
     return row
 

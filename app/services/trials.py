@@ -27,6 +27,7 @@ from app.errors import ConflictError, NotFoundError, PermissionDeniedError
 from app.models import SIDES, Job, Rig, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import rig_to_check_against
+from app.services.changes import audit_update, changed_fields
 from app.services.common import (
     cancel_trial_jobs,
     load_session,
@@ -362,22 +363,23 @@ def get_trial(db: Session, actor: Actor, trial_id: int) -> dict[str, Any]:
 def rate_trial(db: Session, actor: Actor, trial_id: int, data: TrialRatingUpdate) -> Trial:
     """Set the clinician's rating (0–4) and comment of one trial; omitted fields stay.
 
-    The rating belongs to the trial's hand (and task); who rated and when are
-    recorded with it. Audited as an update of the trial. The report shows the
-    rating: a measured trial's PDF report is made again by the worker.
+    The rating belongs to the trial's hand (and task); who rated and when change only
+    with the rating itself (a comment corrected by a colleague leaves the rating theirs).
+    Audited as an update of the trial naming the fields changed, their previous and new
+    values kept (:mod:`app.services.changes`). The report shows the rating: a measured
+    trial's PDF report is made again by the worker.
     """
     trial = load_trial(db, actor, trial_id, "update")
     changes = data.model_dump(exclude_unset=True)
-    if "clinician_rating" in changes:
-        trial.clinician_rating = changes["clinician_rating"]
     if "comment" in changes:
-        trial.rating_comment = changes["comment"] or None
-    if changes:
+        changes["comment"] = changes["comment"] or None
+    changed = changed_fields(trial, changes, columns={"comment": "rating_comment"})
+    if "clinician_rating" in changed:
         trial.rated_at = utcnow()
         trial.rated_by_user_id = actor.user_id
-        if trial.result is not None:
-            jobs.enqueue_report_pdf(db, trial.id)
-    audit(db, actor, "update", "trial", trial.id, trial.session.patient_id)
+    if changed and trial.result is not None:
+        jobs.enqueue_report_pdf(db, trial.id)
+    audit_update(db, actor, "trial", trial.id, trial.session.patient_id, changed)
     db.commit()
     return trial
 

@@ -230,3 +230,61 @@ def test_a_duplicate_code_is_audited_as_denied(api: Api) -> None:
     ]
     with api.sessions() as db:
         assert db.get(Patient, other).code == "PD-8"  # the refused change changed nothing
+
+
+def test_an_update_keeps_what_changed_and_the_rater_changes_with_the_rating_only(
+    api: Api, world: dict[str, int]
+) -> None:
+    """A security review: a colleague's comment fix credited the rating they never touched
+    to them, and the trail said "update trial 3" twice: no fields, no previous values.
+    The event names the fields (no values: an auditor reads it, it outlives an erasure);
+    the previous and new values are kept beside it, sealed by the chain."""
+    from api_support import make_user
+    from fastapi.testclient import TestClient
+
+    from app.chain import verify_chain
+
+    password = "correct horse battery"
+    clients = {}
+    for email in ("one@example.org", "two@example.org"):
+        user_id = make_user(api.sessions, email, password)
+        client = TestClient(api.app)
+        r = client.post("/api/v1/auth/login", json={"email": email, "password": password})
+        client.headers["X-CSRF-Token"] = r.json()["csrf_token"]
+        clients[email] = (client, user_id)
+    one, one_id = clients["one@example.org"]
+    two, _ = clients["two@example.org"]
+    url = f"/api/v1/trials/{world['trial_id']}"
+    r = one.patch(url, json={"clinician_rating": 1, "comment": "mild, first rater"})
+    assert r.status_code == 200 and r.json()["rated_by_user_id"] == one_id
+    rated_at = r.json()["rated_at"]
+    r = two.patch(url, json={"comment": "typo fix", "clinician_rating": 1})  # same rating
+    assert r.json()["comment"] == "typo fix" and r.json()["clinician_rating"] == 1
+    assert (r.json()["rated_by_user_id"], r.json()["rated_at"]) == (one_id, rated_at)
+    r = api.client.patch(f"/api/v1/patients/{world['patient_id']}", json={"notes": "new notes"},
+                         headers=api.headers)  # fmt: skip
+    assert r.status_code == 200
+    r = api.client.patch(f"/api/v1/sessions/{world['session_id']}",
+                         json={"medication_state": "on", "notes": NOTES}, headers=api.headers)  # fmt: skip
+    assert r.status_code == 200
+
+    updates = [e for e in api.audit_events() if e.action == "update"]
+    assert [(e.resource_type, e.details["fields"]) for e in updates] == [
+        ("patient", ["notes"]),  # the world fixture's
+        ("trial", ["clinician_rating", "comment"]),
+        ("trial", ["comment"]),
+        ("patient", ["notes"]),
+        ("session", ["medication_state", "notes"]),
+    ]
+    for event in updates:  # identifiers and names only in the trail
+        assert "typo" not in str(event.details) and "first rater" not in str(event.details)
+    trail = api.client.get("/api/v1/audit?limit=100", headers=api.headers).json()["items"]
+    kept = {e["id"]: e["changes"] for e in trail if e["action"] == "update"}
+    assert [kept[e.id] for e in updates[1:]] == [
+        {"clinician_rating": [None, 1], "comment": [None, "mild, first rater"]},
+        {"comment": ["mild, first rater", "typo fix"]},
+        {"notes": [NOTES, "new notes"]},
+        {"medication_state": ["off", "on"], "notes": [None, NOTES]},
+    ]
+    with api.sessions() as db:
+        assert verify_chain(db).ok

@@ -36,6 +36,7 @@ from app.cli import main
 from app.db import get_sessionmaker
 from app.models import (
     AuditEvent,
+    FieldChange,
     Job,
     Patient,
     RecordingSession,
@@ -356,6 +357,9 @@ def _patient_with_data(api: Api, video_pair, code: str = "PD-0042") -> tuple[int
     assert r.status_code == 201, r.text
     add_result(api, r.json()["id"])
     api.client.get(f"/api/v1/trials/{r.json()['id']}/result", headers=api.headers)
+    rating = {"clinician_rating": 2, "comment": "slowing from the fifth tap"}
+    assert api.client.patch(f"/api/v1/trials/{r.json()['id']}", json=rating,
+                            headers=api.headers).status_code == 200  # fmt: skip
     with api.sessions() as db:
         paths = [p for p in db.scalars(select(Video.path))] + [
             p for p in db.scalars(select(Result.markers_path)) if p
@@ -375,12 +379,14 @@ def test_delete_keeps_files_and_erasure_removes_them(
     )
     assert all(f.is_file() for f in files)
     events_before = api.audit_events()
+    assert api.count(FieldChange) == 1
 
     assert _cli(api.settings, monkeypatch, "erase-patient", "PD-0042") == 0
     assert "erased" in capsys.readouterr().err
     assert not any(f.exists() for f in files)
     assert api.count(Trial) == api.count(Video) == api.count(Result) == api.count(Job) == 0
     assert api.count(RecordingSession) == 0
+    assert api.count(FieldChange) == 0  # an update's values are the patient's: erased too
     with api.sessions() as db:
         tombstone = db.get(Patient, patient_id)
         assert tombstone is not None and tombstone.erased_at is not None

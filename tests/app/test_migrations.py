@@ -397,3 +397,29 @@ def test_an_auditor_account_can_be_stored_and_blocks_going_back(
     with pytest.raises(sa.exc.IntegrityError):
         _execute(url, insert.format(id=3, role="auditor"))
     dispose_engines()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_audit_details_and_field_changes_come_and_go_with_the_trail_kept_append_only(
+    backend: str, tmp_path: Path, make_settings, request: pytest.FixtureRequest
+):
+    """Revision 0018 adds ``audit_events.details`` and ``field_changes``; neither way may
+    drop the triggers that keep the trail append-only (a SQLite rebuild would)."""
+    url = _head_database(backend, tmp_path, make_settings, request)
+    insert = (
+        "INSERT INTO audit_events (id, at, actor_type, action, resource_type, outcome{col})"
+        " VALUES ({id}, '2026-02-01', 'system', 'update', 'trial', 'success'{val})"
+    )
+    _execute(url, insert.format(id=1, col=", details", val=', \'{"fields": ["comment"]}\''))
+    with pytest.raises(sa.exc.DatabaseError, match="append-only"):
+        _execute(url, "UPDATE audit_events SET details = NULL")
+    command.downgrade(alembic_config(url), "0017")
+    assert "field_changes" not in _tables(url)
+    _execute(url, insert.format(id=2, col="", val=""))
+    with pytest.raises(sa.exc.DatabaseError, match="append-only"):
+        _execute(url, "DELETE FROM audit_events")
+    command.upgrade(alembic_config(url), "head")
+    assert "field_changes" in _tables(url)
+    with pytest.raises(sa.exc.DatabaseError, match="append-only"):
+        _execute(url, "UPDATE audit_events SET action = 'read'")
+    dispose_engines()
