@@ -3,6 +3,28 @@
 "use strict";
 
 (function () {
+  /**
+   * The sentence of an error answer's ``detail``: our own errors give a sentence; FastAPI's
+   * validation errors (422) a list of {loc, msg}, shown as "field: message" each. Null when
+   * there is nothing to show (the caller then says what failed with the status).
+   */
+  function errorText(detail) {
+    if (typeof detail === "string") return detail;
+    if (!Array.isArray(detail)) return null;
+    var parts = detail.map(function (item) {
+      if (typeof item === "string") return item;
+      if (!item || typeof item.msg !== "string") return null;
+      var loc = Array.isArray(item.loc) ? item.loc.filter(function (p) {
+        return ["body", "query", "path", "header", "cookie"].indexOf(p) < 0;
+      }) : [];
+      return (loc.length ? loc.join(" ") + ": " : "") + item.msg;
+    }).filter(function (text) { return text; });
+    if (!parts.length) return null;
+    var text = parts.join("; ");
+    return /[.!?]$/.test(text) ? text : text + ".";
+  }
+  window.BradyscopeApp = { errorText: errorText };
+
   function setupUpload(form) {
     var block = form.querySelector("[data-progress]");
     var bar = block ? block.querySelector("progress") : null;
@@ -41,7 +63,7 @@
           return;
         }
         if (xhr.status === 401) { window.location.assign("/login?next=" + encodeURIComponent(window.location.pathname)); return; }
-        showError(body && body.detail ? body.detail : "The upload failed (status " + xhr.status + "). Please retry.");
+        showError((body && errorText(body.detail)) || "The upload failed (status " + xhr.status + "). Please retry.");
       });
       xhr.addEventListener("error", function () { showError("The connection was lost during the upload. Please retry."); });
       xhr.addEventListener("abort", function () { showError("The upload was cancelled."); });

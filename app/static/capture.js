@@ -855,7 +855,8 @@
         self.uploaded(body);
         return;
       }
-      var detail = body && body.detail ? body.detail : "The upload failed (status " + xhr.status + ").";
+      var said = body && window.BradyscopeApp ? window.BradyscopeApp.errorText(body.detail) : null;
+      var detail = said || "The upload failed (status " + xhr.status + ").";
       failed(detail + " Nothing of this take was stored.", xhr.status >= 500 || xhr.status === 0);
     });
     var lost = function () {

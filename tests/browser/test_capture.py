@@ -510,6 +510,40 @@ def test_camera_permission_denied_says_how_to_allow_it(playwright, served, api) 
         denied.close()
 
 
+def test_an_upload_refused_with_a_list_of_errors_shows_their_text(browser, served, api) -> None:
+    """app.js on the session page's upload form: FastAPI's 422 detail is a list of
+    {loc, msg}; it is shown as text, never "[object Object]"."""
+    target = api.target(_rig_document(640, 480), "refused-list-rig")
+    p = Page(browser, served)
+    page = p.page
+    page.goto(f"{served.url}/sessions/{target.session_id}")
+    invalid = {
+        "detail": [
+            {"type": "missing", "loc": ["body", "hand"], "msg": "Field required"},
+            {
+                "type": "float_parsing",
+                "loc": ["body", "offset_frames"],
+                "msg": "Input should be a number",
+            },
+        ]
+    }
+    page.route(
+        f"**/sessions/{target.session_id}/trials", lambda r: r.fulfill(status=422, json=invalid)
+    )
+    p.expected_failures.append("status of 422")
+    form = page.locator("form[data-upload]").first
+    video = {"name": "left.webm", "mimeType": "video/webm", "buffer": b"not a video"}
+    form.locator("input[name=left_video]").set_input_files(video)
+    form.locator("input[name=right_video]").set_input_files(video | {"name": "right.webm"})
+    form.locator("button[type=submit]").click()
+    error = form.locator("[data-error]")
+    error.wait_for(state="visible")
+    text = error.inner_text()
+    assert text == "hand: Field required; offset_frames: Input should be a number.", text
+    assert not p.problems, p.problems
+    p.close()
+
+
 def test_the_same_camera_for_both_sides_is_refused(pattern_cameras, served, api) -> None:
     target = api.target(_rig_document(640, 480), "same-camera-rig")
     p = Page(pattern_cameras, served)
