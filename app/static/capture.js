@@ -68,6 +68,8 @@
     this.retakeButton = $(root, "[data-retake]");
     this.phase = "setup"; // setup, countdown, recording, finishing, uploading, done
     this.devices = [];
+    this.listed = false; // the cameras were listed at least once
+    this.noCamera = false; // the browser found no camera at all
     this.take = null;
     this.cams = {};
     var self = this;
@@ -167,9 +169,11 @@
     return navigator.mediaDevices.getUserMedia({ video: true })
       .then(function (stream) {
         stream.getTracks().forEach(function (t) { t.stop(); });
+        self.noCamera = false;
         return self.listDevices(true);
       })
       .catch(function (error) {
+        self.noCamera = error && (error.name === "NotFoundError" || error.name === "OverconstrainedError");
         self.showError(accessMessage(error), true);
         self.updateGate();
       });
@@ -200,6 +204,7 @@
     var self = this;
     return navigator.mediaDevices.enumerateDevices().then(function (all) {
       self.devices = all.filter(function (d) { return d.kind === "videoinput" && d.deviceId; });
+      self.listed = true;
       if (!self.devices.length) {
         self.showError("No camera was found. Connect the two cameras, then press “Retry camera access”.", true);
       }
@@ -519,15 +524,17 @@
     var self = this;
     var cams = SIDES.map(function (s) { return self.cams[s]; });
     var hard = [], soft = [];
+    var found = this.noCamera ? 0 : this.listed ? this.devices.length : null; // null: not listed yet
+    if (found === 0) hard.push("No camera was found; connect the two cameras.");
+    else if (found === 1) hard.push("Only one camera was found; connect the second camera (it then appears in the lists).");
     cams.forEach(function (cam) {
       if (cam.problem) hard.push(cam.problem);
-      else if (!cam.deviceId) hard.push("Choose the " + cam.side + " camera.");
+      else if (!cam.deviceId) { if (found === null || found > 1) hard.push("Choose the " + cam.side + " camera."); }
       else if (!cam.stream) hard.push("The " + cam.side + " camera is starting.");
       else if (!cam.gate) hard.push("Measuring the " + cam.side + " camera…");
       else if (cam.tooSlow) hard.push(cam.tooSlow);
       soft = soft.concat(cam.problem ? [] : cam.notes);
     });
-    var box = this.gateBox;
     var text, state;
     if (hard.length) {
       text = "Not ready: " + hard.join(" ");
@@ -547,10 +554,15 @@
         + (cams.some(function (c) { return c.slow; }) ? " (60 frames per second or more measures fast taps better.)" : "");
       state = "ready";
     }
-    if (box.textContent !== text) box.textContent = text;
+    this.showGate(text, state);
+    if (this.phase === "setup") this.startButton.disabled = hard.length > 0;
+  };
+
+  Station.prototype.showGate = function (text, state) {
+    var box = this.gateBox;
+    if (box.textContent !== text) box.textContent = text; // unchanged: not announced again
     box.className = "gate gate-" + state;
     box.setAttribute("data-gate-state", state);
-    if (this.phase === "setup") this.startButton.disabled = hard.length > 0;
   };
 
   // -- recording ------------------------------------------------------------------------

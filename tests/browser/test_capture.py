@@ -510,6 +510,38 @@ def test_camera_permission_denied_says_how_to_allow_it(playwright, served, api) 
         denied.close()
 
 
+@pytest.mark.parametrize("count", [1, 0])
+def test_one_camera_or_none_found_says_to_connect_them(playwright, served, api, count) -> None:
+    target = api.target(_rig_document(640, 480), f"{count}-camera-rig")
+    cameras = launch_chromium(
+        playwright,
+        "--use-fake-ui-for-media-stream",
+        f"--use-fake-device-for-media-stream=device-count={count},fps={FPS}",
+    )
+    try:
+        p = Page(cameras, served)
+        page = p.page
+        if count == 0:  # getUserMedia fails: the browser found no camera
+            p.expected_failures.append("Requested device not found")
+        page.goto(f"{served.url}/sessions/{target.session_id}/capture")
+        wanted = {
+            1: "Only one camera was found; connect the second camera",
+            0: "No camera was found; connect the two cameras.",
+        }[count]
+        gate = page.wait_for_function(
+            "(wanted) => { const t = document.querySelector('[data-gate]').textContent;"
+            " return t.includes(wanted) ? t : null; }",
+            arg=wanted,
+        ).json_value()
+        assert gate.startswith("Not ready: " + wanted) and "Choose the" not in gate, gate
+        assert page.get_by_role("button", name="Start recording").is_disabled()
+        assert page.locator("#camera-right option").count() == 1 + count
+        assert not p.problems, p.problems
+        p.close()
+    finally:
+        cameras.close()
+
+
 def test_an_upload_refused_with_a_list_of_errors_shows_their_text(browser, served, api) -> None:
     """app.js on the session page's upload form: FastAPI's 422 detail is a list of
     {loc, msg}; it is shown as text, never "[object Object]"."""
