@@ -159,6 +159,7 @@
     this.retakeButton.addEventListener("click", function () { self.retake(); });
     this.uploadAgainButton.addEventListener("click", function () { self.upload(); });
     md.addEventListener("devicechange", function () { self.listDevices(); });
+    document.addEventListener("visibilitychange", function () { self.pageHidden(); });
     window.setInterval(function () { self.tick(); }, GATE_PERIOD_MS);
     this.requestAccess();
   };
@@ -421,7 +422,7 @@
     cam.select.value = "";
     cam.problem = "The " + side + " camera stopped (unplugged, or taken by another program).";
     cam.state.textContent = cam.problem + " Reconnect it and choose it again.";
-    if (recording) this.abortRecording(side);
+    if (recording) this.abortRecording(cameraStopped(side));
     this.updateGate();
     this.listDevices();
   };
@@ -628,7 +629,7 @@
         take.chunks[side] = [];
         recorder.addEventListener("dataavailable", function (e) { if (e.data && e.data.size) take.chunks[side].push(e.data); });
         take.stopped.push(new Promise(function (resolve) { recorder.addEventListener("stop", resolve); }));
-        recorder.addEventListener("error", function () { self.abortRecording(side, "the " + side + " camera's recorder failed"); });
+        recorder.addEventListener("error", function () { self.abortRecording(cameraStopped(side, "the " + side + " camera's recorder failed")); });
         take.recorders[side] = recorder;
       });
     } catch (error) {
@@ -658,7 +659,8 @@
     window.clearInterval(this.timer);
   };
 
-  Station.prototype.abortRecording = function (side, why) {
+  /** The take is dropped while recording; ``message`` says why and what to do. */
+  Station.prototype.abortRecording = function (message) {
     var take = this.take;
     this.stopTimers();
     if (take) {
@@ -673,9 +675,29 @@
     this.setChoosing(true);
     this.stopButton.disabled = true;
     this.countdownBox.textContent = "";
-    this.showError(capital(why || "the " + side + " camera stopped during the recording (unplugged, or taken by another program)")
-      + ". The take was discarded and nothing was stored. Reconnect the camera, choose it again and record again.", false);
+    this.showError(message, false);
     this.updateGate();
+  };
+
+  function cameraStopped(side, why) {
+    return capital(why || "the " + side + " camera stopped during the recording (unplugged, or taken by another program)")
+      + ". The take was discarded and nothing was stored. Reconnect the camera, choose it again and record again.";
+  }
+
+  /** A hidden page (another tab or window in front, the screen locked) is slowed down by
+   * the browser: its timers and its frame log stall and the cameras lose frames. A take
+   * under way is stopped and dropped, a countdown cancelled, each with a sentence. */
+  Station.prototype.pageHidden = function () {
+    if (document.visibilityState !== "hidden") return;
+    if (this.phase === "countdown") {
+      this.stopRecording(); // nothing was recorded yet
+      this.showError("The page was hidden before the recording started, so it did not start. Keep this page"
+        + " in front (no other tab or window over it) and press “Start recording” again.", false);
+    } else if (this.phase === "recording") {
+      this.abortRecording("The page was hidden during the recording (another tab or window was brought in"
+        + " front, or the screen locked): the browser slows a hidden page down and the cameras lose frames."
+        + " The take was discarded and nothing was stored. Keep this page in front and record again.");
+    }
   };
 
   Station.prototype.stopRecording = function () {

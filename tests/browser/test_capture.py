@@ -542,6 +542,55 @@ def test_one_camera_or_none_found_says_to_connect_them(playwright, served, api, 
         cameras.close()
 
 
+def test_a_take_is_dropped_when_the_page_is_hidden(pattern_cameras, served, api) -> None:
+    """A hidden page is slowed down by the browser (its timers, the frame log) and the
+    cameras lose frames: a countdown is cancelled and a take stopped and dropped, each with
+    a sentence. Headless Chromium keeps a page visible whatever tab is in front (tried:
+    another tab brought to the front, the window minimized through CDP,
+    Page.setWebLifecycleState), so the test makes the page hidden the way the browser tells
+    it: document.visibilityState and a visibilitychange event."""
+    target = api.target(_rig_document(640, 480), "hidden-rig")
+    before = api.stored_files()
+    p = Page(pattern_cameras, served)
+    page = p.page
+    posts: list[str] = []
+    page.on("request", lambda r: posts.append(r.url) if r.method == "POST" else None)
+    p.open_capture(target)
+    p.choose("fake_device_0", "fake_device_1")
+    visibility = """(state) => {
+        Object.defineProperty(document, 'visibilityState', {value: state, configurable: true});
+        Object.defineProperty(document, 'hidden', {value: state === 'hidden', configurable: true});
+        document.dispatchEvent(new Event('visibilitychange'));
+    }"""
+    # During the countdown: the recording does not start.
+    _record(page, 10)
+    page.wait_for_function(
+        "() => /starts in/.test(document.querySelector('[data-countdown]').textContent)"
+    )
+    page.evaluate(visibility, "hidden")
+    message = p.error()
+    assert message.startswith("The page was hidden before the recording started"), message
+    page.evaluate(visibility, "visible")
+    # While recording: the take is stopped and dropped.
+    _record(page, 10)
+    _wait_recording(page)
+    page.evaluate(visibility, "hidden")
+    page.wait_for_function(
+        "() => /hidden during the recording/.test("
+        "document.querySelector('[data-capture-error]').textContent)"
+    )
+    message = p.error()
+    assert "the cameras lose frames" in message and "nothing was stored" in message, message
+    page.evaluate(visibility, "visible")
+    assert (
+        page.locator("[data-take]").is_hidden() and page.locator("[data-upload-block]").is_hidden()
+    )
+    page.wait_for_function("() => !document.querySelector('[data-start]').disabled")  # again
+    assert posts == [] and api.trials(target.session_id) == [] and api.stored_files() == before
+    p.check("capture page after a hidden page")
+    p.close()
+
+
 def test_an_upload_refused_with_a_list_of_errors_shows_their_text(browser, served, api) -> None:
     """app.js on the session page's upload form: FastAPI's 422 detail is a list of
     {loc, msg}; it is shown as text, never "[object Object]"."""
