@@ -13,6 +13,9 @@
   var ADVISED_FPS = 50; // Hz: below this the gate advises a faster camera mode
   var MAX_WHITE = 0.02; // share of white pixels above which the picture is over-exposed
   var MAX_LOST = 5; // frames lost in the last seconds before the gate objects
+  var UNSEEN_LIVE_S = 1; // s without every marker in a view before the recording's gate says so
+  var UNSEEN_TAKE_S = 1; // s, and
+  var UNSEEN_TAKE_SHARE = 0.1; // share of the take, without every marker: the quick check says so
   var MIME_TYPES = [
     "video/webm;codecs=vp9",
     "video/webm;codecs=vp8",
@@ -38,6 +41,7 @@
     this.uploadUrl = root.getAttribute("data-upload-url");
     this.csrf = root.getAttribute("data-csrf");
     this.markersExpected = Number(root.getAttribute("data-markers") || 0);
+    this.lookTurn = 0;
     this.countdownS = Number(root.getAttribute("data-countdown-s") || 3);
     this.holeS = Number(root.getAttribute("data-hole-s") || 0.5); // the server's rule (core.video)
     this.holeFrames = Number(root.getAttribute("data-hole-frames") || 10);
@@ -470,17 +474,79 @@
 
   Station.prototype.tick = function () {
     var self = this;
-    SIDES.forEach(function (side) {
+    var recording = this.phase === "recording";
+    this.lookTurn = 1 - this.lookTurn;
+    SIDES.forEach(function (side, i) {
       var cam = self.cams[side];
       if (cam.track && cam.track.readyState === "ended") { self.cameraLost(side); return; }
       if (!cam.stream || cam.problem) return;
-      if (self.phase === "recording" || self.phase === "finishing") return; // keep the CPU for the recorders
-      var seen = self.look(cam);
+      if (self.phase === "finishing") return; // the recorders are closing their files
+      // While recording, each camera's picture is looked at on every other tick (twice a
+      // second): half the work, for the recorders; its frame counters are read every tick.
+      var seen = recording && i !== self.lookTurn ? undefined : self.look(cam);
       var rate = self.measure(cam);
-      cam.gate = { seen: seen, fps: rate.fps, lost: rate.lost };
+      cam.gate = { seen: seen === undefined && cam.gate ? cam.gate.seen : seen, fps: rate.fps, lost: rate.lost };
+      if (recording && seen && self.take) {
+        self.take.seen[side].push({ t_s: (performance.now() - self.take.startedAt) / 1000, markers: seen.markers });
+      }
       self.showFacts(cam);
     });
-    if (this.phase === "setup") this.updateGate();
+    if (this.phase === "setup") {
+      this.updateGate();
+    } else if (recording) {
+      this.recordingGate();
+    }
+  };
+
+  /** What the gate says while recording: a view that has lost its markers, frames lost. */
+  Station.prototype.recordingGate = function () {
+    var self = this, take = this.take;
+    if (!take) return;
+    var nowS = (performance.now() - take.startedAt) / 1000;
+    var notes = [];
+    SIDES.forEach(function (side) {
+      var cam = self.cams[side], seen = take.seen[side];
+      if (self.markersExpected && seen.length) {
+        var gaps = C.markerGaps(seen, self.markersExpected, nowS);
+        if (gaps.current_s >= UNSEEN_LIVE_S) {
+          notes.push("the " + side + " camera has not seen " + self.markerWords(seen[seen.length - 1].markers)
+            + " for " + Math.floor(gaps.current_s) + " s");
+        }
+      }
+      if (cam.gate && cam.gate.lost !== null && cam.gate.lost > MAX_LOST) {
+        notes.push("the " + side + " camera lost " + cam.gate.lost + " frames in the last 2 s");
+      }
+    });
+    var text = notes.length
+      ? "Recording, but check: " + notes.join("; ") + "."
+      : "Recording: " + (this.markersExpected ? "both cameras see the " + this.markersExpected + " markers." : "both cameras run.");
+    this.showGate(text, notes.length ? "not-ready" : "ready");
+  };
+
+  /** "the 2 markers", or "all 3 markers" when some are seen. */
+  Station.prototype.markerWords = function (seen) {
+    var n = this.markersExpected;
+    return seen > 0 ? (n === 2 ? "both markers" : "all " + n + " markers") : "the markers";
+  };
+
+  /** The quick check's objections to the views (from the looks while recording): a camera
+   * that did not see every marker for a substantial part of the take. */
+  Station.prototype.unseenProblems = function (take, lengthS) {
+    var self = this, problems = [];
+    if (!this.markersExpected || !take.seen) return problems;
+    SIDES.forEach(function (side) {
+      var seen = take.seen[side];
+      if (!seen.length) return;
+      var gaps = C.markerGaps(seen, self.markersExpected, lengthS);
+      if (gaps.missing_s < Math.max(UNSEEN_TAKE_S, UNSEEN_TAKE_SHARE * lengthS)) return;
+      var some = seen.some(function (s) { return s.markers > 0 && s.markers < self.markersExpected; });
+      problems.push("the " + side + " camera did not see " + (some ? "every marker" : "the markers") + " for "
+        + gaps.missing_s.toFixed(1) + " s of the " + lengthS.toFixed(1) + " s"
+        + (gaps.longest ? " (the longest stretch from " + gaps.longest.start_s.toFixed(1) + " s to "
+          + gaps.longest.end_s.toFixed(1) + " s)" : "")
+        + ": keep every marker in both views, lit by the ring light");
+    });
+    return problems;
   };
 
   Station.prototype.showFacts = function (cam) {
@@ -616,7 +682,10 @@
     var self = this;
     var mime = pickMime();
     var durationS = Math.max(2, Math.min(120, Number(this.form.elements.duration_s.value) || 15));
-    var take = { id: newTakeId(), mime: mime, durationS: durationS, recorders: {}, chunks: {}, stopped: [] };
+    var take = {
+      id: newTakeId(), mime: mime, durationS: durationS, recorders: {}, chunks: {}, stopped: [],
+      seen: { left: [], right: [] }, // {t_s, markers} of each look at a view while recording
+    };
     try {
       SIDES.forEach(function (side) {
         var cam = self.cams[side];
@@ -714,7 +783,9 @@
     }
     if (this.phase !== "recording") return;
     var take = this.take;
-    take.stoppedEarly = (performance.now() - take.startedAt) / 1000 < take.durationS - 0.25;
+    var lengthS = (performance.now() - take.startedAt) / 1000;
+    take.stoppedEarly = lengthS < take.durationS - 0.25;
+    take.unseen = this.unseenProblems(take, lengthS);
     this.phase = "finishing";
     this.stopTimers();
     this.stopButton.disabled = true;
@@ -811,6 +882,7 @@
     if (facts.left && facts.right && Math.abs(facts.left.duration_s - facts.right.duration_s) > 0.5) {
       problems.push("the two recordings differ in length by " + Math.abs(facts.left.duration_s - facts.right.duration_s).toFixed(1) + " s");
     }
+    if (this.take && this.take.unseen) problems = problems.concat(this.take.unseen); // the page's own looks
     var verdict = $(this.takeBox, "[data-take-verdict]");
     verdict.textContent = (problems.length
       ? "Check the take: " + problems.join("; ") + ". Consider a retake."

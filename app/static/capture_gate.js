@@ -272,6 +272,30 @@
       + " record it again.";
   }
 
+  /**
+   * How long a camera did not see every marker, from the gate's looks while recording.
+   *
+   * samples: [{t_s, markers}] in time order (s from the start of the take); expected: the
+   * task's markers; endS: the take's length so far (s). Each look stands for the time until
+   * the next one. Returns {missing_s, longest: {start_s, end_s} or null, current_s}: the
+   * time without every marker, its longest stretch, and how long it has lasted up to
+   * ``endS`` if it still does (else 0).
+   */
+  function markerGaps(samples, expected, endS) {
+    var missing = 0, longest = null, start = null;
+    for (var i = 0; i < samples.length; i += 1) {
+      var t = samples[i].t_s, next = i + 1 < samples.length ? samples[i + 1].t_s : Math.max(t, endS);
+      if (samples[i].markers < expected) {
+        missing += next - t;
+        if (start === null) start = t;
+        if (!longest || next - start > longest.end_s - longest.start_s) longest = { start_s: start, end_s: next };
+      } else {
+        start = null;
+      }
+    }
+    return { missing_s: missing, longest: longest, current_s: start === null ? 0 : Math.max(0, endS - start) };
+  }
+
   root.BradyscopeCapture = {
     lumaOf: lumaOf,
     analyseLuma: analyseLuma,
@@ -280,6 +304,7 @@
     timesCsv: timesCsv,
     takeFacts: takeFacts,
     holeSentence: holeSentence,
+    markerGaps: markerGaps,
     median: median,
   };
 })(typeof window !== "undefined" ? window : globalThis);
