@@ -87,6 +87,11 @@ class TappingMetrics:
                     "typical_turn_s": seg.typical_turn_s,
                     "noise_mm": self.aperture.noise_mm,
                     "velocity_noise_mm_s": self.aperture.velocity_noise_mm_s,
+                    # taps estimated lost in gaps of the signal (lost frames, markers
+                    # unseen) between complete taps: Tap.cycle_number counts them
+                    "cycles_in_gaps": (
+                        self.taps[-1].cycle_number - self.taps[-1].index if self.taps else 0
+                    ),
                 },
             }
         )

@@ -133,6 +133,10 @@ class TrialResult:
     removed_cycles : int
         Complete taps (cycles) a correction left out: excluded by the clinician or
         outside the chosen window (``excluded_taps``, ``outside_window_taps``).
+    cycles_in_gaps : int
+        Taps (cycles) made but not measured whole: lost in gaps of the signal (lost
+        frames, markers unseen) between complete ones (``tapping_analysis`` or
+        ``cycle_analysis``, ``cycles_in_gaps``; 0 when the document does not say).
     """
 
     fps: float | None = None
@@ -149,6 +153,7 @@ class TrialResult:
     cycles: tuple[Mapping[str, object], ...] = ()
     side: str | None = None
     removed_cycles: int = 0
+    cycles_in_gaps: int = 0
 
     def metric(self, key: str) -> float | None:
         """The metric ``key`` as a float, None when absent or undefined."""
@@ -235,6 +240,13 @@ def _count(quality: Mapping[str, Any], *keys: str) -> int | None:
     return sum(present) if present else None
 
 
+def _gap_cycles(doc: Mapping[str, Any]) -> int:
+    """``cycles_in_gaps`` of the document's analysis part, 0 when absent or not a count."""
+    analysis = _mapping(doc.get("tapping_analysis") or doc.get("cycle_analysis"))
+    n = analysis.get("cycles_in_gaps")
+    return n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else 0
+
+
 def read_result(document: Mapping[str, Any] | None) -> TrialResult:
     """Read a ``result.json`` document (see the module docstring)."""
     doc = document or {}
@@ -266,6 +278,7 @@ def read_result(document: Mapping[str, Any] | None) -> TrialResult:
         side=_text(_mapping(_mapping(doc.get("cycle_analysis")).get("signal")).get("side")),
         removed_cycles=len(_list(doc.get("excluded_taps")))
         + len(_list(doc.get("outside_window_taps"))),
+        cycles_in_gaps=_gap_cycles(doc),
         quality=ResultQuality(
             tracked_fraction=fraction("tracked_fraction"),
             measured_fraction=fraction("measured_fraction"),

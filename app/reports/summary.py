@@ -223,6 +223,18 @@ def short_taps_note(column: SummaryColumn) -> str | None:
             f" {_plural(len(column.result.task_cycles) + removed, 'complete ' + word)} in the"
             f" recording; the item asks for {ITEM_REPETITIONS}."
         )
+    lost = column.result.cycles_in_gaps
+    if lost:
+        why = (
+            "lost frames"
+            if column.result.sync.dropped_frames_left or column.result.sync.dropped_frames_right
+            else "frames where the markers were not seen"
+        )
+        made = len(column.result.task_cycles) + lost
+        return (
+            f"About {made} {word}s were made; only {n} could be measured whole: the others"
+            f" fell in gaps of {why}. The item asks for {ITEM_REPETITIONS}."
+        )
     return (
         f"Only {_plural(n, 'complete ' + word)} in the recording; the item asks for"
         f" {ITEM_REPETITIONS}."
