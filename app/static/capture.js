@@ -16,6 +16,10 @@
   var UNSEEN_LIVE_S = 1; // s without every marker in a view before the recording's gate says so
   var UNSEEN_TAKE_S = 1; // s, and
   var UNSEEN_TAKE_SHARE = 0.1; // share of the take, without every marker: the quick check says so
+  var SWAP_FIT_PX = 2.5; // px: the views fit the rig's geometry this well ...
+  var SWAP_MISFIT_PX = 6; // px: ... and miss it by this much (and 3 times as much) the other way
+  var SWAP_LOOKS = 12; // the looks at both views the cameras' order is judged on ...
+  var SWAP_AGREE = 5; // ... of which this many, and none the other way, must say "swapped"
   var MIME_TYPES = [
     "video/webm;codecs=vp9",
     "video/webm;codecs=vp8",
@@ -41,6 +45,13 @@
     this.uploadUrl = root.getAttribute("data-upload-url");
     this.csrf = root.getAttribute("data-csrf");
     this.markersExpected = Number(root.getAttribute("data-markers") || 0);
+    try { // the rig's calibration, to tell swapped cameras ("" in calibration mode, or none yet)
+      this.geometry = JSON.parse(root.getAttribute("data-geometry") || "null");
+    } catch (e) {
+      this.geometry = null;
+    }
+    this.orderLog = []; // what each look at both views said of the cameras' order
+    this.swapped = null;
     this.lookTurn = 0;
     this.countdownS = Number(root.getAttribute("data-countdown-s") || 3);
     this.holeS = Number(root.getAttribute("data-hole-s") || 0.5); // the server's rule (core.video)
@@ -296,6 +307,8 @@
     cam.statsLog = [];
     cam.gate = null;
     cam.deviceId = "";
+    this.orderLog = []; // judged again on the new pair of cameras
+    this.swapped = null;
   };
 
   Station.prototype.open = function (side, deviceId) {
@@ -492,10 +505,33 @@
       self.showFacts(cam);
     });
     if (this.phase === "setup") {
+      this.judgeOrder();
       this.updateGate();
     } else if (recording) {
       this.recordingGate();
     }
+  };
+
+  /** One look at both views on whether the cameras are swapped: the spots fit the rig's
+   * geometry (its calibration) as chosen, exchanged, or neither clearly. Only a clear,
+   * repeated "exchanged" with never a clear "as chosen" calls them swapped. */
+  Station.prototype.judgeOrder = function () {
+    var l = this.cams.left.gate, r = this.cams.right.gate;
+    if (!this.geometry || !l || !r || !l.seen || !r.seen) return;
+    var ev = C.swapEvidence(this.geometry, l.seen.spots, r.seen.spots);
+    if (!ev) return;
+    var fits = function (a, b) { return a <= SWAP_FIT_PX && b >= Math.max(SWAP_MISFIT_PX, 3 * a); };
+    ev.says = fits(ev.swapped_px, ev.chosen_px) ? "swapped" : fits(ev.chosen_px, ev.swapped_px) ? "chosen" : "";
+    this.orderLog.push(ev);
+    if (this.orderLog.length > SWAP_LOOKS) this.orderLog.shift();
+    var swapped = this.orderLog.filter(function (e) { return e.says === "swapped"; });
+    var chosen = this.orderLog.filter(function (e) { return e.says === "chosen"; });
+    this.swapped = swapped.length >= SWAP_AGREE && !chosen.length
+      ? {
+        chosen_px: C.median(swapped.map(function (e) { return e.chosen_px; })),
+        swapped_px: C.median(swapped.map(function (e) { return e.swapped_px; })),
+      }
+      : null;
   };
 
   /** What the gate says while recording: a view that has lost its markers, frames lost. */
@@ -602,6 +638,12 @@
       else if (cam.tooSlow) hard.push(cam.tooSlow);
       soft = soft.concat(cam.problem ? [] : cam.notes);
     });
+    if (this.swapped) {
+      soft.unshift("the cameras look swapped: the markers fit the rig's calibration with the left and right"
+        + " cameras exchanged (" + this.swapped.swapped_px.toFixed(1) + " px off) and not as chosen ("
+        + this.swapped.chosen_px.toFixed(1) + " px off); choose the rig's left camera as “Left camera”"
+        + " and its right camera as “Right camera”");
+    }
     var text, state;
     if (hard.length) {
       text = "Not ready: " + hard.join(" ");

@@ -296,6 +296,110 @@
     return { missing_s: missing, longest: longest, current_s: start === null ? 0 : Math.max(0, endS - start) };
   }
 
+  // -- the rig's geometry: are the cameras swapped? ----------------------------------------
+
+  /** Undistorted normalized coordinates of pixel (x, y) (OpenCV's model: k1, k2, p1, p2, k3
+   * and the rational k4-k6, solved by fixed-point iteration as cv2.undistortPoints does). */
+  function normalize(cam, x, y) {
+    var K = cam.K, d = cam.dist;
+    var y0 = (y - K[1][2]) / K[1][1];
+    var x0 = (x - K[0][2] - K[0][1] * y0) / K[0][0];
+    var k = function (i) { return d[i] || 0; };
+    var xn = x0, yn = y0;
+    for (var it = 0; it < 20; it += 1) {
+      var r2 = xn * xn + yn * yn;
+      var icdist = (1 + ((k(7) * r2 + k(6)) * r2 + k(5)) * r2) / (1 + ((k(4) * r2 + k(1)) * r2 + k(0)) * r2);
+      var dx = 2 * k(2) * xn * yn + k(3) * (r2 + 2 * xn * xn);
+      var dy = k(2) * (r2 + 2 * yn * yn) + 2 * k(3) * xn * yn;
+      xn = (x0 - dx) * icdist; yn = (y0 - dy) * icdist;
+    }
+    return [xn, yn, 1];
+  }
+
+  function mulT(A, B) { // A B^T, 3 x 3
+    var out = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];
+    for (var i = 0; i < 3; i += 1) for (var j = 0; j < 3; j += 1) {
+      out[i][j] = A[i][0] * B[j][0] + A[i][1] * B[j][1] + A[i][2] * B[j][2];
+    }
+    return out;
+  }
+  function apply(A, v) { return [0, 1, 2].map(function (i) { return A[i][0] * v[0] + A[i][1] * v[1] + A[i][2] * v[2]; }); }
+  function applyT(A, v) { return [0, 1, 2].map(function (i) { return A[0][i] * v[0] + A[1][i] * v[1] + A[2][i] * v[2]; }); }
+  function dot(a, b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+  /** The right camera's pose relative to the left one's, the essential matrix, and the
+   * right camera's centre in the left camera's frame (mm). Null if the geometry is unusable
+   * (a distortion model other than OpenCV's 4, 5 or 8 coefficients). */
+  function stereoOf(geometry) {
+    var l = geometry && geometry.left, r = geometry && geometry.right;
+    if (!l || !r || [l, r].some(function (c) { return [4, 5, 8].indexOf(c.dist.length) < 0; })) return null;
+    var R = mulT(r.R, l.R); // R_right_from_left = R_r R_l^T
+    var Rt = apply(R, l.t);
+    var t = [r.t[0] - Rt[0], r.t[1] - Rt[1], r.t[2] - Rt[2]];
+    var tx = [[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]];
+    var E = [0, 1, 2].map(function (i) { return [0, 1, 2].map(function (j) { return tx[i][0] * R[0][j] + tx[i][1] * R[1][j] + tx[i][2] * R[2][j]; }); });
+    var c = applyT(R, t);
+    return { left: l, right: r, R: R, E: E, centre: [-c[0], -c[1], -c[2]], focal: (l.K[0][0] + r.K[0][0]) / 2 };
+  }
+
+  /** How far (px) a left and a right view of one point are from fitting the rig: the
+   * Sampson distance to the epipolar constraint, Infinity when the two rays meet behind
+   * either camera. xl, xr: normalized coordinates. */
+  function pairMisfitPx(stereo, xl, xr) {
+    var El = apply(stereo.E, xl), Er = applyT(stereo.E, xr);
+    var den = El[0] * El[0] + El[1] * El[1] + Er[0] * Er[0] + Er[1] * Er[1];
+    var sampson = den > 0 ? Math.abs(dot(xr, El)) / Math.sqrt(den) : Infinity;
+    // Closest points of the rays: left lam * xl, right centre + mu * R^T xr (left frame).
+    var b = applyT(stereo.R, xr), c = stereo.centre;
+    var aa = dot(xl, xl), ab = dot(xl, b), bb = dot(b, b), ac = dot(xl, c), bc = dot(b, c);
+    var det = ab * ab - aa * bb;
+    if (Math.abs(det) < 1e-12) return Infinity; // parallel rays: no depth
+    var lam = (ab * bc - bb * ac) / det, mu = (aa * bc - ab * ac) / det;
+    return lam > 0 && mu > 0 ? sampson * stereo.focal : Infinity;
+  }
+
+  function permutations(n) {
+    if (n <= 1) return [[0].slice(0, n)];
+    var out = [];
+    permutations(n - 1).forEach(function (p) {
+      for (var i = 0; i <= p.length; i += 1) out.push(p.slice(0, i).concat([n - 1], p.slice(i)));
+    });
+    return out;
+  }
+
+  /** The worst pair's misfit (px) under the best pairing of the left spots with the right
+   * spots, read with the rig's left camera looking at ``leftSpots``. */
+  function viewsMisfitPx(stereo, leftSpots, rightSpots) {
+    var xl = leftSpots.map(function (s) { return normalize(stereo.left, s.x, s.y); });
+    var xr = rightSpots.map(function (s) { return normalize(stereo.right, s.x, s.y); });
+    var best = Infinity;
+    permutations(xl.length).forEach(function (perm) {
+      var worst = 0;
+      for (var i = 0; i < perm.length && worst < best; i += 1) worst = Math.max(worst, pairMisfitPx(stereo, xl[i], xr[perm[i]]));
+      if (worst < best) best = worst;
+    });
+    return best;
+  }
+
+  /**
+   * The evidence of one look at both views on the cameras' order: how far (px) the spots
+   * are from fitting the rig's geometry as the cameras are chosen and with the two exchanged.
+   *
+   * geometry: {left, right} with each camera's K (3 x 3), dist, R and t (the rig's
+   * calibration, R_cam_from_world, t_cam_from_world_mm); leftSpots, rightSpots: the spots
+   * ({x, y}, full-image px) the gate found in the views chosen as left and right. Null
+   * without 1 to 3 spots in each view, as many in both.
+   */
+  function swapEvidence(geometry, leftSpots, rightSpots) {
+    var stereo = stereoOf(geometry);
+    var n = leftSpots.length;
+    if (!stereo || n < 1 || n > 3 || rightSpots.length !== n) return null;
+    return {
+      chosen_px: viewsMisfitPx(stereo, leftSpots, rightSpots),
+      swapped_px: viewsMisfitPx(stereo, rightSpots, leftSpots),
+    };
+  }
+
   root.BradyscopeCapture = {
     lumaOf: lumaOf,
     analyseLuma: analyseLuma,
@@ -304,6 +408,7 @@
     timesCsv: timesCsv,
     takeFacts: takeFacts,
     holeSentence: holeSentence,
+    swapEvidence: swapEvidence,
     markerGaps: markerGaps,
     median: median,
   };

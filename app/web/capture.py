@@ -18,11 +18,13 @@ from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse, Response
 
 from app.auth import SessionDep
-from app.errors import NotFoundError
+from app.errors import CalibrationMissingError, NotFoundError
 from app.schemas import IdPath
 from app.services import capture
+from app.services.calibrations import rig_to_check_against
 from app.services.rigs import all_rigs
 from app.web.common import PageUser, error_page, render
+from core.camera import StereoRig
 from core.errors import InputError
 from core.protocols import protocol_for
 from core.tasks import DEFAULT_TASK, Task, parse_task
@@ -58,6 +60,22 @@ def _task_choices() -> list[dict[str, object]]:
     ]
 
 
+def _geometry(rig: StereoRig | None) -> dict[str, dict[str, object]] | None:
+    """What the page needs of the rig's calibration to tell swapped cameras (docs/capture.md):
+    each camera's ``K``, ``dist``, ``R`` (``R_cam_from_world``) and ``t`` (mm)."""
+    if rig is None:
+        return None
+    return {
+        side: {
+            "K": cam.K.tolist(),
+            "dist": cam.dist.tolist(),
+            "R": cam.R_cam_from_world.tolist(),
+            "t": cam.t_cam_from_world_mm.tolist(),
+        }
+        for side, cam in (("left", rig.left), ("right", rig.right))
+    }
+
+
 def _size_text(size: tuple[int, int] | None) -> str:
     return f"{size[0]}x{size[1]}" if size is not None else ""
 
@@ -86,6 +104,10 @@ def session_capture_page(
         chosen = DEFAULT_TASK
     session = target.session
     assert session is not None
+    try:
+        checked = rig_to_check_against(db, session, target.rig.id)
+    except CalibrationMissingError:
+        checked = None
     return _allow_camera(
         render(
             request,
@@ -103,6 +125,7 @@ def session_capture_page(
             left_size=_size_text(target.left_size),
             right_size=_size_text(target.right_size),
             upload_url=f"/sessions/{session.id}/trials",
+            geometry=_geometry(checked),
             markers=MARKERS_PER_VIEW.get(chosen, 0),
             tasks=_task_choices(),
             task=chosen.value,
@@ -138,6 +161,7 @@ def rig_capture_page(request: Request, db: SessionDep, user: PageUser, rig_id: I
             left_size=_size_text(target.left_size),
             right_size=_size_text(target.right_size),
             upload_url=f"/rigs/{target.rig.id}/calibrations",
+            geometry=None,
             markers=0,
             tasks=(),
             task="",
