@@ -265,23 +265,82 @@ SESSION_LABELS = {
 
 
 PATTERN_WORDS = {
-    "code": "use letters, digits, dots, underscores and dashes only, starting with a letter or"
-    " a digit (e.g. PD-0042)",
+    "code": "must use letters, digits, dots, underscores and dashes only, starting with a"
+    " letter or a digit (e.g. PD-0042)",
 }
 """What a field's pattern allows, in words (a form showed the regular expression itself)."""
 
 
+def _bound_words(kind: str, bound: object, *, year: bool) -> str:
+    """``greater_than_equal`` 1900 → "must be 1900 or later" (a year) or "... or more"."""
+    return {
+        "greater_than_equal": f"must be {bound} or {'later' if year else 'more'}",
+        "less_than_equal": f"must be {bound} or {'earlier' if year else 'less'}",
+        "greater_than": f"must be {'after' if year else 'more than'} {bound}",
+        "less_than": f"must be {'before' if year else 'less than'} {bound}",
+    }[kind]
+
+
+#: pydantic's error types in a form's words (the field's label goes before them).
+_TYPE_WORDS = {
+    "missing": "is required",
+    "int_parsing": "must be a whole number",
+    "int_type": "must be a whole number",
+    "int_from_float": "must be a whole number",
+    "float_parsing": "must be a number",
+    "float_type": "must be a number",
+    "bool_parsing": "must be yes or no",
+    "date_parsing": "must be a date such as 2026-03-01",
+    "date_from_datetime_parsing": "must be a date such as 2026-03-01",
+    "datetime_parsing": "must be a date and time such as 2026-03-01 10:30",
+    "datetime_from_date_parsing": "must be a date and time such as 2026-03-01 10:30",
+    "datetime_type": "must be a date and time such as 2026-03-01 10:30",
+    "string_type": "must be text",
+}
+
+
+def _error_words(err: Mapping[str, Any], field: str) -> str | None:
+    """One validation error as what the value must be ("must be 1900 or later"); None when
+    pydantic's type has no words here (its own message is used, after the label)."""
+    kind, ctx = str(err.get("type", "")), err.get("ctx") or {}
+    if kind in ("greater_than_equal", "less_than_equal", "greater_than", "less_than"):
+        bound = next(iter(ctx.values()), "?")
+        return _bound_words(kind, bound, year=field.endswith("year"))
+    if kind == "string_too_short":
+        n = int(ctx.get("min_length", 1))
+        return "must not be empty" if n <= 1 else f"must have at least {n} characters"
+    if kind == "string_too_long":
+        n = int(ctx.get("max_length", 0))
+        return f"must have at most {n} character{'s' if n != 1 else ''}"
+    if kind in ("literal_error", "enum"):
+        return f"must be {str(ctx.get('expected', '')).replace(chr(39), '')}"
+    if kind == "string_pattern_mismatch":  # not a regular expression: words
+        return PATTERN_WORDS.get(field, "contains characters that are not allowed")
+    return _TYPE_WORDS.get(kind)
+
+
+def _the(label: str) -> str:
+    """ "Birth year" → "The birth year"; an acronym keeps its capitals ("The DBS state")."""
+    if label[:2].isupper():
+        return f"The {label}"
+    return f"The {label[:1].lower()}{label[1:]}"
+
+
 def validation_message(exc: ValidationError, labels: Mapping[str, str] | None = None) -> str:
-    """The first problems of a form as one sentence, each named by the form's own label."""
-    parts = []
+    """The first problems of a form in words, each named by the form's own label: "The birth
+    year must be 1900 or later." (not pydantic's "Input should be greater than or equal to
+    1900"). Every page form's validation errors come through here."""
+    sentences = []
     for err in exc.errors()[:3]:
         field = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
         name = (labels or {}).get(field) or field.replace("_", " ").capitalize()
-        message = str(err.get("msg", "invalid")).removeprefix("Value error, ")
-        if err.get("type") == "string_pattern_mismatch":  # not a regular expression: words
-            message = PATTERN_WORDS.get(field, "contains characters that are not allowed")
-        parts.append(f"{name}: {message}" if name else message)
-    return "Please correct the form — " + "; ".join(parts) + "."
+        words = _error_words(err, field)
+        if words is not None:
+            sentences.append(f"{_the(name)} {words}." if name else f"The value {words}.")
+            continue
+        message = str(err.get("msg", "invalid")).removeprefix("Value error, ").rstrip(".")
+        sentences.append(f"{name}: {message}." if name else f"{message}.")
+    return " ".join(sentences)
 
 
 async def _record_csrf_refusal(request: Request, actor: Actor) -> None:

@@ -224,6 +224,14 @@ def test_patient_list_search_and_create(client, seeded, db_sessionmaker):
     # Duplicate code: a clear message, status 409, nothing created.
     r = client.post("/patients", data={"code": "PD-0100", "csrf_token": token})
     assert r.status_code == 409 and "exists already" in r.text
+    # A value out of range is said in words, named by the form's label, not pydantic's
+    # "Input should be greater than or equal to 1900"; the same for every page form.
+    for year, words in (("1850", "1900 or later"), ("2150", "2100 or earlier")):
+        r = client.post("/patients", data={"code": "PD-7", "birth_year": year, "csrf_token": token})
+        assert r.status_code == 422 and f"The birth year must be {words}." in r.text, year
+        assert "Input should" not in r.text and "greater than or equal" not in r.text
+    r = client.post("/patients", data={"code": "-x", "csrf_token": token})
+    assert r.status_code == 422 and "The patient code must use letters, digits" in r.text
     # Without the CSRF token nothing is created.
     r = client.post("/patients", data={"code": "PD-0101"})
     assert r.status_code == 403
@@ -999,5 +1007,5 @@ def test_a_patient_code_refused_says_what_is_allowed_in_words(client, seeded):
     token = login(client)
     r = client.post("/patients", data={"code": "Jan Novák", "csrf_token": token})
     assert r.status_code == 422
-    assert "Patient code: use letters, digits, dots, underscores and dashes only" in r.text
+    assert "The patient code must use letters, digits, dots, underscores and dashes only" in r.text
     assert "pattern" not in r.text.split("<main", 1)[1].split("</main>")[0].replace('pattern="', "")

@@ -152,3 +152,27 @@ def test_the_sign_form_warns_and_the_signed_report_lists_failed_and_pending_tria
     assert 'data-signing="amendment_pending"' in state
     assert f"trial {late} was added (its measurement failed)" in state
     assert f"the measurement of trial {pending} failed" in state
+
+
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils is not installed")
+def test_the_summary_footnote_says_how_bands_are_read_without_a_developer_path(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+    tmp_path,
+):
+    """ "(docs/metrics.md)" was printed to clinicians on the result page and the signed PDF."""
+    login(client)
+    trial_id = seeded["trials"][(1, "right")]
+    with db_sessionmaker() as db:
+        session_id = db.get(Trial, trial_id).session_id
+    words = (
+        "Bands are the MDS-UPDRS wording the counts fall into — interruptions from the"
+        " hesitations and halts counted, decrement from the tap after which the amplitude"
+        " starts to fall — shown as evidence beside your own rating"
+    )
+    page = client.get(f"/trials/{trial_id}").text
+    note = re.search(r'<p class="summary-note">(.*?)</p>', page, re.S).group(1)
+    assert words in " ".join(html_lib.unescape(note).split()) and "docs/" not in note
+    pdf = _pdf_text(client.get(f"/sessions/{session_id}/visit-report.pdf").content, tmp_path)
+    assert words in pdf and "docs/" not in pdf
