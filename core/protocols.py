@@ -95,11 +95,15 @@ class MarkerProtocol:
         The marker labels of ``markers.csv``, in this order.
     rule : str
         The labelling rule in one sentence (docs/protocols.md).
+    markers_in_words : str
+        The markers as a clinician or technician names them in a message ("check that
+        both cameras see the thumb and index markers").
     """
 
     task: Task
     labels: tuple[str, ...]
     rule: str
+    markers_in_words: str
 
 
 PROTOCOLS: dict[Task, MarkerProtocol] = {
@@ -107,18 +111,21 @@ PROTOCOLS: dict[Task, MarkerProtocol] = {
         Task.FINGER_TAPPING,
         ("thumb", "index"),
         "the index is the fastest moving marker; the thumb the moving one that comes closest to it",
+        "the thumb and index markers",
     ),
     Task.HAND_MOVEMENTS: MarkerProtocol(
         Task.HAND_MOVEMENTS,
         ("finger", "wrist"),
         "the finger is the fastest marker; the wrist the moving marker 40-250 mm from it"
         " seen with it most often",
+        "the finger and wrist markers",
     ),
     Task.PRONATION_SUPINATION: MarkerProtocol(
         Task.PRONATION_SUPINATION,
         ("radial", "ulnar", "distal"),
         "the three markers that keep the cluster's three distances (within 6 mm, SD under 2 mm),"
         " named by those distances",
+        "the three markers of the cluster on the back of the hand",
     ),
     Task.TOE_TAPPING: MarkerProtocol(
         Task.TOE_TAPPING,
@@ -126,6 +133,7 @@ PROTOCOLS: dict[Task, MarkerProtocol] = {
         "the toe is the fastest marker; the heel the one 100-320 mm from it at the steadiest"
         " distance; the shin the nearest other marker 60-400 mm from the heel among those seen"
         " with it at least half as often as the most seen",
+        "the toe, heel and shin markers",
     ),
     Task.LEG_AGILITY: MarkerProtocol(
         Task.LEG_AGILITY,
@@ -133,6 +141,7 @@ PROTOCOLS: dict[Task, MarkerProtocol] = {
         "the three moving markers that form two segments of steady length (SD under 8 mm):"
         " thigh-knee 100-350 mm and knee-ankle 250-550 mm, the thigh marker the slowest of"
         " the three",
+        "the thigh, knee and ankle markers",
     ),
 }
 
