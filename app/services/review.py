@@ -13,7 +13,7 @@ from this page are :mod:`app.services.revisions`.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -75,6 +75,8 @@ class ReviewPage:
     not_carried: tuple[str, ...] = ()
     """The corrections in force before this re-analysis, in words (1-based taps)."""
     swap_pair: tuple[str, str] | None = ("thumb", "index")
+    missing_videos: dict[str, str | None] = field(default_factory=dict)
+    """The sides without a browser proxy, each with why (:func:`unavailable_videos`)."""
 
 
 def _signal(table: MarkerTable, task: str, side: str) -> list[float | None]:
@@ -106,6 +108,43 @@ def describe_corrections(corrections: Corrections, task: str = "finger_tapping")
         a, b = swappable_labels(task) or ("the two", "")
         words.append(f"{a} and {b} labels swapped")
     return tuple(words)
+
+
+PROXY_WARNING = "the {side} video cannot be shown in the review view"
+"""How an analysis's warning begins when it could not make a video's browser proxy
+(``app.handlers``: an encoder error, a full disk); the rest of the warning says why."""
+
+
+def unavailable_videos(trial: Trial, shown: tuple[str, ...]) -> dict[str, str | None]:
+    """Why each of the trial's videos not in ``shown`` has no browser proxy (by side), as
+    a clause ("its browser copy could not be written (…)").
+
+    The newest analysis that tried to make it and warned says why (its warning, as
+    stored in ``quality.warnings``); a proxy recorded but gone from the data directory
+    says so; None when nothing says why (a trial measured before the review view
+    existed). A re-analysis makes the missing proxies again
+    (``app.services.trial_inputs``: ``proxies_needed``).
+    """
+    missing: dict[str, str | None] = {}
+    for video in sorted(trial.videos, key=lambda v: v.side):
+        if video.side in shown:
+            continue
+        if video.proxy_path:
+            missing[video.side] = "its browser copy is missing from the data directory"
+            continue
+        start = PROXY_WARNING.format(side=video.side)
+        warned = (
+            str(w)
+            for r in reversed(trial.results)
+            for w in ((r.document or {}).get("quality") or {}).get("warnings") or ()
+            if str(w).startswith(start)
+        )
+        reason = next(warned, None)
+        if reason is not None:
+            detail = reason[len(start) :].lstrip(": ").rstrip(".")
+            reason = f"its browser copy could not be written ({detail})"
+        missing[video.side] = reason
+    return missing
 
 
 def review_page(
@@ -144,6 +183,7 @@ def review_page(
         # the analysis's time of each left frame: lost frames and irregular intervals kept
         time_s = [round(float(t), 6) for t in table.time_s]
     videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
+    missing = unavailable_videos(trial, videos)
     from core.corrections import Corrections, swappable_labels
 
     corrections = Corrections.from_dict(doc.get("corrections"))
@@ -183,6 +223,7 @@ def review_page(
         videos=videos,
         corrections=corrections,
         job=job_views.latest_job(db, trial_id=trial.id),
+        missing_videos=missing,
         not_carried=describe_corrections(
             Corrections.from_dict(doc.get("corrections_not_carried")), read.task
         ),

@@ -588,3 +588,54 @@ def test_a_failed_trial_is_measured_again_from_its_page(client, seeded, db_sessi
     assert review.status_code == 409
     assert f"The analysis of trial {t} failed: {error.rstrip('.')}" in review.text
     assert "wait for its analysis" not in review.text and f"/trials/{t}" in review.text
+
+
+def test_a_review_says_which_camera_s_video_is_unavailable_and_why(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+    storage,
+):
+    """Finding 9 of the failure review: the disk filled while the right video's browser copy
+    was written; the review showed the left player alone, saying nothing."""
+    login(client)
+    t = seeded["trials"][(1, "right")]
+    why = "cannot write a browser copy of 3f2a.mp4: No space left on device"
+    with db_sessionmaker() as db, db.begin():
+        for side in ("left", "right"):
+            stored = storage.write_bytes("videos", ".mp4", b"original " + side.encode()).path
+            proxy = (
+                storage.write_bytes("proxies", ".mp4", b"proxy").path if side == "left" else None
+            )
+            db.add(
+                Video(trial_id=t, side=side, path=stored, proxy_path=proxy,
+                      size_bytes=10, sha256=side[0] * 64, fps=60.0, frame_count=600,
+                      width=640, height=512)
+            )  # fmt: skip
+        result = db.get(Trial, t).result
+        quality = dict(result.document.get("quality") or {})
+        quality["warnings"] = [f"the right video cannot be shown in the review view: {why}"]
+        result.document = {**result.document, "quality": quality}
+    page = client.get(f"/trials/{t}/review").text
+    assert 'data-video="left"' in page and 'data-video="right"' not in page
+    notice = re.search(
+        r'<p class="notice" role="status" data-missing-video="right">(.*?)</p>', page
+    )
+    assert notice is not None and 'data-missing-video="left"' not in page
+    said = notice.group(1).replace("&#39;", "'")
+    assert said.startswith(
+        f"The right camera's video cannot be shown: its browser copy could not be written ({why})."
+    )
+    assert "“Measure again” below makes it again" in said
+
+    with db_sessionmaker() as db, db.begin():  # the left proxy lost from the data directory
+        left = db.scalars(select(Video).where(Video.trial_id == t, Video.side == "left")).one()
+        storage.delete(left.proxy_path)
+    page = client.get(f"/trials/{t}/review").text
+    assert 'data-video="left"' not in page
+    assert re.search(
+        r'data-missing-video="left">The left camera.{1,6}s video cannot be shown: its browser copy'
+        r" is missing from the data directory\.",
+        page,
+    )
+    assert "measured before the review view existed" not in page

@@ -444,6 +444,32 @@ def test_a_proxy_that_cannot_be_written_leaves_the_measurement_and_a_warning(
     assert storage.absolute(proxies["left"]).stat().st_size > 0
     assert list(storage.tmp_dir.iterdir()) == []
 
+    # space is back: a re-analysis (what the review page offers) makes the missing proxy
+    from app.actors import ROLE_SCOPES, Actor
+    from app.models import User
+    from app.schemas import RevisionCreate
+    from app.services import revisions
+
+    monkeypatch.undo()
+    with sm() as db, db.begin():
+        user = User(email="dr.proxy@example.org", password_hash="x", display_name="Dr Proxy")
+        db.add(user)
+        db.flush()
+        actor = Actor(
+            type="user", id=user.id, name=user.email, scopes=ROLE_SCOPES["clinician"],
+            role="clinician",
+        )  # fmt: skip
+    offset = float(doc["sync"]["offset_frames"])
+    with sm() as db:
+        ask = RevisionCreate(reason="the right video could not be shown", offset_frames=offset)
+        again = revisions.create_revision(db, actor, trial_id, ask, storage)
+    run_worker(app_settings, once=True)
+    assert _job(sm, again.job_id).status == "succeeded"
+    with sm() as db:
+        remade = {v.side: v.proxy_path for v in db.get(Trial, trial_id).videos}
+    assert remade["left"] == proxies["left"] and remade["right"] is not None
+    assert storage.absolute(remade["right"]).stat().st_size > 0
+
 
 @pytest.mark.slow
 def test_a_proxy_that_cannot_be_stored_fails_the_attempt_and_leaves_no_file(
