@@ -76,7 +76,7 @@ def _side_cell(visible: list[Trial], hidden: list[Trial]) -> SideCell:
     pending = [t for t in visible if t.result is None and t.status in ("queued", "running")]
     failed = [t for t in visible if t.result is None and t.status == "failed"]
     again = [t for t in measured if t.status in ("queued", "running")]
-    counts = (
+    counts: tuple[tuple[int, str], ...] = (
         (len(failed), "failed {}"),
         (len(pending), "{} being measured"),
         (len(again), "{} being measured again"),
