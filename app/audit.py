@@ -19,6 +19,7 @@ verify-audit`` checks.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -27,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from app import chain
 from app.actors import Actor
-from app.models import ACTOR_ANONYMOUS, AuditEvent, utcnow
+from app.models import ACTOR_ANONYMOUS, AuditEvent, AuditEventPatient, utcnow
 
 # Set per request by ``app.main.SecurityHeadersMiddleware``.
 request_id_var: ContextVar[str | None] = ContextVar("request_id", default=None)
@@ -131,6 +132,19 @@ def audit(
     """
     event = _event(actor, action, resource_type, resource_id, patient_id, outcome, details)
     return chain.append(db, event)
+
+
+def audit_listed(
+    db: Session, actor: AnyActor, resource_type: str, patient_ids: Iterable[int]
+) -> AuditEvent:
+    """Audit a list that returned the data of the patients ``patient_ids`` (e.g. the patient
+    list): one ``list`` event whose ``details`` name them (sealed), and a row per patient
+    in ``audit_event_patients``, where the trail's patient filter finds it. One event and
+    a few bytes per patient, not an event (and a link of the chain) per patient."""
+    ids = sorted(set(patient_ids))
+    event = audit(db, actor, "list", resource_type, details={"patient_ids": ids})
+    db.add_all([AuditEventPatient(event=event, patient_id=i) for i in ids])
+    return event
 
 
 def audit_failure(

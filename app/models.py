@@ -717,6 +717,21 @@ class FieldChange(Base):
     )
 
 
+class AuditEventPatient(Base):
+    """A patient whose data one event returned beyond its own ``patient_id`` (a list of
+    patients): the index the trail's patient filter looks into. The event's ``details``
+    hold the same ids, sealed; no foreign keys (the trail outlives what it describes)."""
+
+    __tablename__ = "audit_event_patients"
+
+    event_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    patient_id: Mapped[int] = mapped_column(Integer, primary_key=True, index=True)
+
+    event: Mapped[AuditEvent] = relationship(
+        primaryjoin="foreign(AuditEventPatient.event_id) == AuditEvent.id"
+    )
+
+
 class AuditHead(Base):
     """The newest number and hash of the audit chain: one row, updated with every event."""
 
@@ -764,6 +779,7 @@ __all__ = [
     "TRIAL_STATUSES",
     "ApiClient",
     "AuditEvent",
+    "AuditEventPatient",
     "AuditHead",
     "Base",
     "BrowserSession",

@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 
 from app.audit import AnyActor, audit
 from app.errors import InvalidRequestError
-from app.models import ACTOR_TYPES, AuditEvent
+from app.models import ACTOR_TYPES, AuditEvent, AuditEventPatient
 from app.services.common import paginate
 
 _ACTOR_RE = re.compile(r"^(user|api_client|system|anonymous)(?::(.{1,64}))?$")
@@ -76,8 +76,11 @@ def make_filter(
 
 def _query(f: AuditFilter) -> Select[Any]:
     query = select(AuditEvent)
-    if f.patient_id is not None:
-        query = query.where(AuditEvent.patient_id == f.patient_id)
+    if f.patient_id is not None:  # its own events, and the lists that returned it
+        listed = select(AuditEventPatient.event_id).where(
+            AuditEventPatient.patient_id == f.patient_id
+        )
+        query = query.where(or_(AuditEvent.patient_id == f.patient_id, AuditEvent.id.in_(listed)))
     if f.actor_type is not None:
         query = query.where(AuditEvent.actor_type == f.actor_type)
     if f.actor_id is not None:

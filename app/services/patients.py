@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app import job_views
 from app.actors import Actor
-from app.audit import audit, audit_failure
+from app.audit import audit, audit_failure, audit_listed
 from app.errors import ConflictError, NotFoundError
 from app.models import Job, Patient, RecordingSession, Trial, utcnow
 from app.reports.result import read_result
@@ -109,9 +109,12 @@ def search_patients(
 def list_patients(
     db: Session, actor: Actor, *, q: str | None, limit: int, offset: int
 ) -> tuple[list[Patient], int]:
-    """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total."""
+    """Patients whose code contains ``q`` (case-insensitive), ordered by code; and the total.
+
+    Audited as one ``list`` naming every patient returned (:func:`app.audit.audit_listed`):
+    each one's trail shows the listing."""
     items, total = search_patients(db, q=q, limit=limit, offset=offset)
-    audit(db, actor, "list", "patient")
+    audit_listed(db, actor, "patient", [p.id for p in items])
     db.commit()
     return items, int(total)
 
@@ -193,7 +196,7 @@ def patient_list(db: Session, actor: Actor, *, q: str, limit: int, offset: int) 
         for patient_id, last, count in rows:
             last_seen[patient_id] = last
             counts[patient_id] = count
-    audit(db, actor, "list", "patient")
+    audit_listed(db, actor, "patient", ids)
     db.commit()
     return PatientList(patients, total, last_seen, counts)
 

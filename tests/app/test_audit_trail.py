@@ -42,6 +42,7 @@ from app.models import (
     RecordingSession,
     Result,
     Trial,
+    User,
     Video,
     utcnow,
 )
@@ -221,6 +222,42 @@ def test_the_audit_api_needs_its_scope_and_filters(api: Api) -> None:
     reads = [e for e in api.audit_events() if e.resource_type == "audit"]
     assert reads and reads[0].patient_id == p1 and reads[0].actor_type == "api_client"
     assert p2
+
+
+def test_a_list_of_patients_shows_in_each_patients_trail(api: Api) -> None:
+    """A security review: GET /patients?limit=200 returned every patient's code, birth
+    year, sex and notes, recorded as one "list patient" naming nobody, so no patient's
+    trail showed it. The one event names the patients returned; the filter finds it."""
+    make_user(api.sessions, "doc@example.org", PASSWORD)
+    ids = [
+        api.client.post("/api/v1/patients", json={"code": f"PD-{i}"}, headers=api.headers).json()[
+            "id"
+        ]
+        for i in range(3)
+    ]
+    doc = TestClient(api.app)
+    _login(doc, "doc@example.org")
+    with api.sessions() as db:
+        doc_id = db.scalar(select(User.id).where(User.email == "doc@example.org"))
+    assert doc.get("/api/v1/patients?limit=200").status_code == 200
+    assert doc.get("/api/v1/patients?q=PD-2").status_code == 200
+    assert doc.get("/patients").status_code == 200  # the page, as the API
+    listed = [e for e in api.audit_events() if e.action == "list"]
+    assert [e.details for e in listed] == [
+        {"patient_ids": ids},
+        {"patient_ids": [ids[2]]},
+        {"patient_ids": ids},
+    ]
+    for pid, expected in ((ids[0], 2), (ids[2], 3)):
+        r = api.client.get(
+            f"/api/v1/audit?patient_id={pid}&actor=user:{doc_id}", headers=api.headers
+        )
+        assert r.json()["total"] == expected, pid
+        assert {e["action"] for e in r.json()["items"]} == {"list"}
+    r = api.client.get(f"/api/v1/audit?patient_id={ids[0]}", headers=api.headers)
+    assert [e["action"] for e in r.json()["items"]][-1] == "create"  # its own events too
+    with api.sessions() as db:
+        assert verify_chain(db).ok
 
 
 def test_the_admin_page_shows_the_trail_to_admins_only(api: Api) -> None:
