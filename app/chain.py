@@ -115,7 +115,7 @@ def fields_of(event: AuditEvent) -> list[Any]:
     ``details`` (revision 0018) comes last and only when it is set, so the seals of the
     events made before it stay what they were.
     """
-    fields = [
+    fields: list[Any] = [
         event.seq,
         _canonical_time(event.at),
         event.actor_type,
