@@ -402,6 +402,10 @@ def probe_video(path: str | Path, *, fps_if_none: float | None = None) -> VideoI
         fps = stated_fps if stated_fps is not None and stated_fps != 25 else 0.0
     if not (fps > 0 and np.isfinite(fps)) and fps_if_none is not None and fps_if_none > 0:
         fps = float(fps_if_none)
+    if not (fps > 0 and np.isfinite(fps)) or frame_count <= 0:
+        image = _image_message(p)  # an image decodes as one frame: no rate, no frame count
+        if image is not None:
+            raise InputError(image)
     if not (fps > 0 and np.isfinite(fps)):
         raise InputError(
             f"{p.name} has neither frame timestamps nor a frame rate; give its capture times in"
@@ -479,7 +483,43 @@ def _codec_name(path: Path) -> str | None:
         return None
 
 
+_IMAGE_SIGNATURES = (
+    (0, b"\x89PNG\r\n\x1a\n", "PNG"),
+    (0, b"\xff\xd8\xff", "JPEG"),
+    (0, b"GIF87a", "GIF"),
+    (0, b"GIF89a", "GIF"),
+    (8, b"WEBP", "WebP"),
+    (0, b"II*\x00", "TIFF"),
+    (0, b"MM\x00*", "TIFF"),
+    (0, b"BM", "BMP"),
+    (8, b"heic", "HEIC"),
+    (8, b"heix", "HEIC"),
+    (8, b"mif1", "HEIF"),
+    (8, b"avif", "AVIF"),
+)
+"""Where an image file's magic bytes sit, what they are and the format they name."""
+
+
+def _image_message(path: Path) -> str | None:
+    """The sentence for a still image given as a video (told by its first bytes), or None."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    for at, magic, kind in _IMAGE_SIGNATURES:
+        if head[at : at + len(magic)] == magic:
+            return (
+                f"{path.name} is a {kind} image, not a video (renamed or exported as a"
+                " picture); give the recorded video file of the camera."
+            )
+    return None
+
+
 def _undecodable_message(path: Path) -> str:
+    image = _image_message(path)
+    if image is not None:
+        return image
     codec = _codec_name(path)
     if codec is None:
         return f"no frame of {path.name} could be decoded; the file is corrupt or not a video."

@@ -77,7 +77,7 @@ def test_trial_upload_stores_videos_and_queues_one_job(api: Api, video_pair) -> 
     ("case", "status", "words"),
     [
         ("empty", 415, "empty"),
-        ("png_renamed", 415, "video"),
+        ("png_renamed", 415, "left.mp4 is a PNG image, not a video"),
         ("text_renamed", 415, "video"),
         ("truncated", 415, "left video"),
         ("truncated_mkv", 415, "incomplete"),

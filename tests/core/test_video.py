@@ -123,13 +123,16 @@ def test_probe_errors(tmp_path, content, match):
         probe_video(path)
 
 
-def test_png_named_mp4_is_rejected(tmp_path):
+@pytest.mark.parametrize(("ext", "kind"), [(".png", "PNG"), (".jpg", "JPEG"), (".bmp", "BMP")])
+def test_an_image_named_mp4_is_told_to_be_an_image(tmp_path, ext, kind):
+    """A photo renamed .mp4 was "reports no frames; the file is corrupt or still being
+    written": it is said to be an image, by its first bytes."""
     import cv2
 
     path = tmp_path / "photo.mp4"
-    _, buf = cv2.imencode(".png", _frames(1)[0])
+    _, buf = cv2.imencode(ext, _frames(1)[0])
     path.write_bytes(buf.tobytes())
-    with pytest.raises(InputError, match=r"photo\.mp4"):
+    with pytest.raises(InputError, match=rf"^photo\.mp4 is a {kind} image, not a video"):
         probe_video(path)
 
 
