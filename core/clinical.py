@@ -145,7 +145,7 @@ def decrement_band(last_steady: int | None, reliable_repetitions: int, word: str
         return Band(
             "decrement",
             None,
-            f"not assessable: {n} measured repetition(s), at least "
+            f"not assessable: {n} measured {word}{'' if n == 1 else 's'}, at least "
             f"{DECREMENT_MIN_REPETITIONS} are needed",
         )
     if last_steady is None:

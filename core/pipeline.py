@@ -74,6 +74,7 @@ from core.merged import measure_merged
 from core.metrics import TappingMetrics, compute_metrics
 from core.overlay import CameraOverlay, camera_overlay
 from core.progress import ProgressCallback, report
+from core.protocols import protocol_for
 from core.resample import uniform_trajectories
 from core.tasks import Task, parse_task
 from core.timing import (
@@ -715,7 +716,8 @@ def analyze_recording(
     if not np.any(tracks.status == MEASURED):
         raise DetectionError(
             "no marker was seen consistently by both cameras; check that both cameras see the"
-            " thumb and index markers and that the rig file belongs to these cameras."
+            f" {protocol_for(task).markers_in_words} and that the rig file belongs to these"
+            " cameras."
         )
     measured_any = tracks.status == MEASURED
     lost = np.all(tracks.status == MISSING, axis=0)
@@ -729,7 +731,7 @@ def analyze_recording(
         raise DetectionError(
             f"the {names} marker{'s were' if np.count_nonzero(lost) > 1 else ' was'} not found;"
             f" {task.label.lower()} needs the markers {', '.join(tracks.marker_names)} in view of"
-            " both cameras (docs/protocols.md)."
+            " both cameras."
         )
 
     report(progress, "metrics", 0, 1)

@@ -400,7 +400,7 @@
       ? "Choose the cameras first."
       : lockable
         ? "Locks the exposure the cameras use now; set the light first."
-        : "This browser cannot lock these cameras' exposure; set a short, fixed exposure in the camera's own settings (docs/capture.md).";
+        : "This browser cannot lock these cameras' exposure; set a short, fixed exposure in the camera's own settings (about 4 ms or less, so the fingertips do not blur; set the light first).";
   };
 
   Station.prototype.lockExposure = function (lock) {

@@ -90,7 +90,8 @@ def test_decrement_band_needs_five_measured_taps():
     assert decrement_band(None, 5).level == 0
     band = decrement_band(None, 4)
     assert band.level is None and band.name == "not assessable"
-    assert "4 measured" in band.wording
+    assert band.wording == "not assessable: 4 measured taps, at least 5 are needed"
+    assert decrement_band(None, 1, "cycle").wording.startswith("not assessable: 1 measured cycle,")
 
 
 def test_decrement_band_counts_from_one():
