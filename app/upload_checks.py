@@ -7,7 +7,10 @@ The second step of an upload (:mod:`app.uploads` receives the files first):
   its first and last frames), never by its name or declared content type;
 - :func:`validate_times` reads a timestamps file (``frame,time_s``) against
   its video's decoded frames;
-- :func:`validate_rig_file` parses a rig file with ``core.camera.rig_from_dict``.
+- :func:`validate_rig_file` parses a rig file with ``core.camera.rig_from_dict``;
+- :data:`SAME_FILE_MESSAGE` refuses one recording given as both cameras' (the
+  upload compares the received files' SHA-256; ``bradyscope analyze`` uses
+  :func:`same_file`).
 
 Each refusal is an :class:`app.uploads.InvalidUpload` (422) or
 :class:`app.uploads.UnsupportedUpload` (415) with a sentence for the person
@@ -16,6 +19,7 @@ who uploaded the file.
 
 from __future__ import annotations
 
+import filecmp
 import json
 from pathlib import Path
 
@@ -159,6 +163,24 @@ def validate_stereo_pair(
         return list(check_stereo_videos(left, right, rig=rig))
     except BradyscopeError as exc:
         raise InvalidUpload(_sentence(exc)) from exc
+
+
+SAME_FILE_MESSAGE = (
+    "The left and right videos are the same file; choose the recording of each camera."
+)
+"""Said when one recording is given as both cameras' (an upload, ``bradyscope analyze``)."""
+
+
+def same_file(left: Path, right: Path) -> bool:
+    """Whether two paths hold one file, or two copies of it (the same bytes)."""
+    try:
+        if left.samefile(right):
+            return True
+        if left.stat().st_size != right.stat().st_size:
+            return False
+        return filecmp.cmp(left, right, shallow=False)
+    except OSError:  # a missing file is said by whoever opens it
+        return False
 
 
 def validate_rig_file(path: Path) -> StereoRig:

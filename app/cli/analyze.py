@@ -85,10 +85,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from app.cli.progress import progress_bar
+    from app.upload_checks import SAME_FILE_MESSAGE, same_file
     from core.camera import read_rig
     from core.errors import InputError
     from core.pipeline import analyze_recording, write_analysis
 
+    if same_file(args.left, args.right):  # as the server refuses it: at once
+        raise InputError(SAME_FILE_MESSAGE)
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s >= 0):
         raise InputError("--max-gap-s must be zero or positive.")
     if args.offset_frames is not None and not math.isfinite(args.offset_frames):

@@ -22,7 +22,12 @@ from sqlalchemy.orm import Session
 
 from app.models import Video
 from app.storage import Storage
-from app.upload_checks import validate_stereo_pair, validate_times, validate_video
+from app.upload_checks import (
+    SAME_FILE_MESSAGE,
+    validate_stereo_pair,
+    validate_times,
+    validate_video,
+)
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import StereoRig
 from core.timing import FrameTimes
@@ -171,9 +176,7 @@ def check_video_pair(upload: ParsedUpload, *, rig: StereoRig | None = None) -> V
     left_file = upload.require_file("left_video")
     right_file = upload.require_file("right_video")
     if left_file.incoming.sha256 == right_file.incoming.sha256:
-        raise InvalidUpload(
-            "The left and right videos are the same file; choose the recording of each camera."
-        )
+        raise InvalidUpload(SAME_FILE_MESSAGE)
     pair = (_checked(upload, "left"), _checked(upload, "right"))
     warnings = validate_stereo_pair(pair[0].info, pair[1].info, rig=rig)
     return VideoPair(pair[0], pair[1], warnings)

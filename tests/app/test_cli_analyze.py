@@ -216,3 +216,31 @@ def test_numbers_out_of_range_are_one_sentence_and_a_long_gap_is_filled(
     assert _analyze(session, out, "--max-gap-s", "0.5") == 0, capsys.readouterr().err
     doc = json.loads((out / "result.json").read_text(encoding="utf-8"))
     assert doc["metrics"]["frequency_hz"] > 0
+
+
+@pytest.mark.parametrize("how", ["same path", "a copy"])
+def test_one_video_for_both_cameras_is_refused_at_once_as_the_server_does(
+    session: SimulatedSession,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    how: str,
+) -> None:
+    """The same file for --left and --right ran the whole analysis before a vague sync
+    error; the server refuses it at upload. Refused before anything is decoded."""
+    import shutil
+
+    import core.pipeline
+    from app.upload_checks import SAME_FILE_MESSAGE
+
+    def measured(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the pair was measured")
+
+    monkeypatch.setattr(core.pipeline, "analyze_recording", measured)
+    right = session.left_video
+    if how == "a copy":
+        right = tmp_path / "copy.mkv"
+        shutil.copyfile(session.left_video, right)
+    assert _analyze(session, tmp_path / "out", right=right) == 2
+    assert _one_sentence(capsys) == f"bradyscope analyze: {SAME_FILE_MESSAGE}"
+    assert not (tmp_path / "out").exists()
