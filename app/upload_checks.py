@@ -8,6 +8,8 @@ The second step of an upload (:mod:`app.uploads` receives the files first):
 - :func:`validate_times` reads a timestamps file (``frame,time_s``) against
   its video's decoded frames;
 - :func:`validate_rig_file` parses a rig file with ``core.camera.rig_from_dict``;
+- :func:`sent_before` warns of an earlier trial of the session that holds the
+  same two videos, as the same cameras or the other way round;
 - :data:`SAME_FILE_MESSAGE` refuses one recording given as both cameras' (the
   upload compares the received files' SHA-256; ``bradyscope analyze`` uses
   :func:`same_file`).
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import filecmp
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
 from app.uploads import InvalidUpload, UnsupportedUpload
@@ -169,6 +172,36 @@ SAME_FILE_MESSAGE = (
     "The left and right videos are the same file; choose the recording of each camera."
 )
 """Said when one recording is given as both cameras' (an upload, ``bradyscope analyze``)."""
+
+
+def sent_before(
+    earlier: Iterable[tuple[int, str, str]], *, left_sha256: str, right_sha256: str
+) -> list[str]:
+    """Warnings for a trial upload whose two videos an earlier trial of the session holds.
+
+    ``earlier``: ``(trial_id, side, sha256)`` of the session's videos (those with either
+    digest are enough). The same two videos as the same cameras were most likely sent
+    twice (a retry after a lost answer); the other way round, they were sent again to be
+    measured swapped, which "Measure again" does without a second trial.
+    """
+    held: dict[int, dict[str, str]] = {}
+    for trial_id, side, sha256 in earlier:
+        held.setdefault(trial_id, {})[side] = sha256
+    warnings = []
+    for t in sorted(held):
+        sides = held[t]
+        if sides == {"left": left_sha256, "right": right_sha256}:
+            warnings.append(
+                f"trial {t} of this session holds the same two videos: if they were sent"
+                " twice, hide one of the two trials."
+            )
+        elif sides == {"left": right_sha256, "right": left_sha256}:
+            warnings.append(
+                f"trial {t} of this session holds these two videos with the cameras the other"
+                f" way round: to measure them swapped, “Measure again” on trial {t} does it"
+                " without a second trial; if that is why they were sent, hide one of the two."
+            )
+    return warnings
 
 
 def same_file(left: Path, right: Path) -> bool:

@@ -502,3 +502,25 @@ def test_the_openapi_document_says_uploads_take_no_other_field(api: Api) -> None
     for path in ("/api/v1/sessions/{session_id}/trials", "/api/v1/rigs/{rig_id}/calibrations"):
         body = doc["paths"][path]["post"]["requestBody"]["content"]["multipart/form-data"]
         assert body["schema"]["additionalProperties"] is False
+
+
+def test_an_earlier_trial_of_the_same_two_videos_is_named_as_sent_twice_or_swapped() -> None:
+    """Finding 12 of the failure review: the same two videos uploaded with the cameras the
+    other way round were warned of as "the same two videos" sent twice."""
+    from app.upload_checks import sent_before
+
+    left, right, other = "a" * 64, "b" * 64, "c" * 64
+    earlier = [
+        (3, "left", left), (3, "right", right),  # the same, as the same cameras
+        (5, "left", right), (5, "right", left),  # the same, the other way round
+        (7, "left", left), (7, "right", other),  # one video in common: nothing to say
+    ]  # fmt: skip
+    said = sent_before(earlier, left_sha256=left, right_sha256=right)
+    assert said == [
+        "trial 3 of this session holds the same two videos: if they were sent twice, hide one"
+        " of the two trials.",
+        "trial 5 of this session holds these two videos with the cameras the other way round:"
+        " to measure them swapped, “Measure again” on trial 5 does it without a second trial;"
+        " if that is why they were sent, hide one of the two.",
+    ]
+    assert sent_before(earlier[4:], left_sha256=left, right_sha256=right) == []
