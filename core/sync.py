@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from core.camera import StereoRig
+from core.geometry_kernels import _geometry
 
 FloatArray = NDArray[np.float64]
 
@@ -105,13 +106,30 @@ def _flatten(
 
     With ``limit``, only the first ``limit`` points of each frame are kept.
     """
-    arrays = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points]
-    counts = np.array([a.shape[0] for a in arrays], dtype=np.intp)
-    flat = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+    flat = _concatenated(points)
+    if flat is not None:
+        counts = np.fromiter((np.shape(p)[0] for p in points), dtype=np.intp, count=len(points))
+    else:
+        arrays = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points]
+        counts = np.array([a.shape[0] for a in arrays], dtype=np.intp)
+        flat = np.concatenate(arrays) if arrays else np.zeros((0, 2))
     if limit is not None and counts.size and int(counts.max()) > limit:
         keep = _ranks(counts) < limit
         flat, counts = flat[keep], np.minimum(counts, limit)
     return flat, counts
+
+
+def _concatenated(points: Sequence[ArrayLike]) -> FloatArray | None:
+    """The points of all frames as one ``(N, 2)`` float64 array when every frame is a ``(Ni, 2)``
+    array (numbers that convert to float64 as ``np.asarray`` does), else None: the common
+    case without a conversion per frame."""
+    try:
+        flat = np.concatenate(points) if len(points) else None
+    except (ValueError, TypeError):
+        return None
+    if flat is None or flat.dtype != np.float64 or flat.ndim != 2 or flat.shape[1] != 2:
+        return None
+    return flat
 
 
 def _ranks(counts: NDArray[np.intp]) -> NDArray[np.intp]:
@@ -189,51 +207,35 @@ def _epipolar_costs(
     """
     r_pts, r_counts = right
     n_rows = len(r_counts)
-    q = max(int(r_counts.max()) if n_rows else 0, 1)
-    # Right x, y and epipolar-line norm padded to (Q, R + 1), NaN where missing;
-    # column R is the all-NaN partner of detections without a partner frame.
-    rows = np.repeat(np.arange(n_rows), r_counts)
-    cols = _ranks(r_counts)
     lines_l = _homogeneous(r_pts) @ E  # (N, 3) epipolar lines in the left image
-    table = np.full((3, q, n_rows + 1), np.nan)
-    table[0, cols, rows] = r_pts[:, 0]
-    table[1, cols, rows] = r_pts[:, 1]
-    table[2, cols, rows] = np.linalg.norm(lines_l[:, :2], axis=1)
+    norm_l = np.linalg.norm(lines_l[:, :2], axis=1)
     valid = right_row >= 0
-    idx = np.where(valid, right_row, n_rows)
     lines_r = _homogeneous(left_pts) @ E.T  # (L, 3) epipolar lines in the right image
     la, lb, lc = lines_r.T.copy()
     norm_r = np.linalg.norm(lines_r[:, :2], axis=1)
-    # s = d_l**2 + d_r**2 of every left detection and candidate, least over the
-    # right detections of the paired frame; sqrt(0.5 * s) is non-decreasing in
-    # s, so the nearest right detection is the one of least s (NaN, from
-    # missing ones, counts as infinitely far). Chunks of candidates keep the
-    # temporaries in cache.
-    s_min = np.full(idx.shape, np.nan)
-    chunk = max(1, 32768 // max(idx.shape[1], 1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for c0 in range(0, idx.shape[0], chunk):
-            rows_c = idx[c0 : c0 + chunk]
-            s_c = s_min[c0 : c0 + chunk]
-            for k in range(q):
-                x, y, norm_l = table[0, k][rows_c], table[1, k][rows_c], table[2, k][rows_c]
-                # The algebraic error line . (x, y, 1), summed in the order numpy's
-                # einsum sums a 3-term dot product; its sign does not matter.
-                alg = la * x
-                alg += lc
-                y *= lb
-                alg += y
-                d_r = alg / norm_r
-                d_r *= f_right
-                d_l = np.divide(alg, norm_l, out=norm_l)
-                d_l *= f_left
-                np.square(d_r, out=d_r)
-                np.square(d_l, out=d_l)
-                d_l += d_r
-                np.fmin(s_c, d_l, out=s_c)
-    d_min = np.sqrt(0.5 * s_min)
-    d_min = np.where(np.isfinite(d_min), d_min, np.inf)
-    cost = np.minimum(d_min, gate_px) ** 2 / gate_px**2  # (C, L)
+    # d: sqrt(0.5 * s), s = d_l**2 + d_r**2 least over the right detections of the paired
+    # frame (sqrt is non-decreasing, so that is the nearest one; NaN points count as
+    # infinitely far), inf without any; the cost min(d, gate)**2 / gate**2. One compiled
+    # loop over candidates and left detections, which measures only the right detections
+    # that may lie within the gate (numpy's arithmetic in numpy's order: the former
+    # formulation's bits, tests/core/test_sync.py compares).
+    counts = np.append(r_counts, 0).astype(np.intp)  # row R: no partner frame
+    starts = (np.cumsum(counts) - counts).astype(np.intp)
+    cost = _geometry.truncated_epipolar_costs(
+        la,
+        lb,
+        lc,
+        norm_r,
+        np.ascontiguousarray(r_pts, dtype=np.float64).reshape(-1, 2),
+        norm_l,
+        starts,
+        counts,
+        np.ascontiguousarray(np.where(valid, right_row, n_rows), dtype=np.intp).ravel(),
+        float(f_right),
+        float(f_left),
+        float(gate_px),
+        float(gate_px**2),
+    ).reshape(np.shape(right_row))  # (C, L)
     n_points = valid.sum(axis=1)
     costs = np.full(len(right_row), np.nan)
     for c in np.flatnonzero(n_points):
@@ -337,99 +339,15 @@ def link_points(points_px: Sequence[ArrayLike], *, max_step_px: float) -> list[N
     if n == 0:
         return []
     starts = np.cumsum(counts) - counts
-    frame_of = np.repeat(np.arange(n), counts)
     nxt = np.full(n_pts, -1, dtype=np.intp)
     if n > 1:
-        _link_flat(pts, counts, starts, frame_of, nxt, float(max_step_px))
+        # Frame pair by frame pair (each pair's prediction needs the links before it), one
+        # compiled loop that calls the Hungarian method where detections compete.
+        _geometry.link_frames(
+            np.ascontiguousarray(pts), counts.astype(np.intp), nxt, float(max_step_px)
+        )
     local = np.where(nxt >= 0, nxt - np.repeat(np.r_[starts[1:], 0], counts), -1)
     return list(np.split(local.astype(np.intp), np.cumsum(counts)[:-1]))
-
-
-def _link_flat(
-    pts: FloatArray,
-    counts: NDArray[np.intp],
-    starts: NDArray[np.intp],
-    frame_of: NDArray[np.intp],
-    nxt: NDArray[np.intp],
-    max_step_px: float,
-) -> None:
-    """:func:`link_points` on flat detections; fills ``nxt`` (flat successor index or -1).
-
-    The assignment of frame pair ``j`` depends on the links of pair ``j - 1``
-    (through the constant-velocity prediction), so the frame pairs are solved
-    all at once, repeatedly: each round re-solves the pairs whose predecessor
-    links changed in the previous round. The first round is exact for pair 0
-    (frame 0 has no predecessors) and round ``r`` is exact for pair ``r``, so
-    the rounds end, at the latest after ``T`` of them, with the frame-by-frame
-    result; in practice after a few. A frame pair whose gated candidates
-    form a one-to-one matching takes exactly those (every optimal assignment
-    uses all of them); the others are solved by the Hungarian method on the
-    same cost matrix as frame by frame.
-    """
-    from scipy.optimize import linear_sum_assignment
-
-    n = len(counts)
-    # Every (detection of j, detection of j + 1) pair, frame pair by frame pair.
-    n_pairs = counts[:-1] * counts[1:]
-    pair_start = np.cumsum(n_pairs) - n_pairs
-    fp = np.repeat(np.arange(n - 1), n_pairs)
-    r = _ranks(n_pairs)
-    width = counts[1:][fp]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ia = starts[fp] + r // np.maximum(width, 1)
-        ib = starts[fp + 1] + r % np.maximum(width, 1)
-    prv = np.full(len(pts), -1, dtype=np.intp)
-    fast_ok = max_step_px < 1e6  # gated costs far below the 1e9 of excluded pairs
-    todo = np.flatnonzero(n_pairs)
-    first = True
-    while todo.size:
-        sel, sel_fp = _segment_indices(pair_start[todo], n_pairs[todo])
-        a, b = ia[sel], ib[sel]
-        pred = pts[a].copy()
-        pa = prv[a]
-        has = pa >= 0
-        pred[has] = 2 * pts[a[has]] - pts[pa[has]]
-        d = np.linalg.norm(pred - pts[b], axis=1)
-        valid = d <= max_step_px
-        # Frame pairs where a detection has more than one gated candidate.
-        many = (np.bincount(a[valid], minlength=len(pts)) > 1) | (
-            np.bincount(b[valid], minlength=len(pts)) > 1
-        )
-        clash = np.zeros(len(todo), dtype=bool)
-        clash[sel_fp[many[a] | many[b]]] = True
-        if not fast_ok:
-            clash[:] = True
-        # In the first round the predecessors are not known yet: a clashing
-        # pair whose first frame may have predecessors only gets a guess
-        # (mutual nearest candidates) and is solved in the next round.
-        guess = clash & first & (todo > 0) & (counts[np.maximum(todo - 1, 0)] > 0)
-        nxt[np.flatnonzero(np.isin(frame_of, todo))] = -1
-        simple = ~clash[sel_fp] & valid
-        nxt[a[simple]] = b[simple]
-        if np.any(guess):
-            cand = np.flatnonzero(guess[sel_fp] & valid)
-            by_a = cand[np.lexsort((d[cand], a[cand]))]
-            by_b = cand[np.lexsort((d[cand], b[cand]))]
-            best_a = by_a[np.r_[True, a[by_a][1:] != a[by_a][:-1]]]
-            best_b = by_b[np.r_[True, b[by_b][1:] != b[by_b][:-1]]]
-            mutual = np.intersect1d(best_a, best_b)
-            nxt[a[mutual]] = b[mutual]
-        seg_start = np.cumsum(n_pairs[todo]) - n_pairs[todo]
-        for k in np.flatnonzero(clash & ~guess):
-            j = todo[k]
-            s0 = seg_start[k]
-            dj = d[s0 : s0 + n_pairs[j]].reshape(counts[j], counts[j + 1])
-            cost = np.where(dj <= max_step_px, dj, 1e9)
-            rows, cols = linear_sum_assignment(cost)
-            ok = cost[rows, cols] < 1e9
-            nxt[starts[j] + rows[ok]] = starts[j + 1] + cols[ok]
-        new_prv = np.full(len(pts), -1, dtype=np.intp)
-        linked = nxt >= 0
-        new_prv[nxt[linked]] = np.flatnonzero(linked)
-        changed = np.union1d(frame_of[new_prv != prv], todo[guess])
-        prv = new_prv
-        first = False
-        todo = changed[(changed < n - 1) & (n_pairs[np.minimum(changed, n - 2)] > 0)]
 
 
 def points_at(

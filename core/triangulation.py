@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from core.camera import Camera, StereoRig
+from core.geometry_kernels import _geometry
 
 FloatArray = NDArray[np.float64]
 
@@ -226,6 +227,64 @@ def triangulate(
 
 
 def _refine(
+    project: tuple[_Projector, _Projector],
+    x: FloatArray,
+    left: FloatArray,
+    right: FloatArray,
+    max_iter: int,
+    tol_mm: float,
+) -> FloatArray:
+    """Gauss–Newton with Levenberg damping on the distorted reprojection error, per point.
+
+    :func:`_refine_numpy`'s iterations with the projections, the Jacobian, the normal
+    equations and the step's acceptance compiled (:func:`core._geometry.refine_system`,
+    :func:`core._geometry.refine_accept`: ``_Projector``'s arithmetic in its order), and
+    the pose products and the 3x3 solves still numpy's (BLAS and LAPACK, whose bits a
+    loop of our own need not match): the points are bit for bit those of
+    :func:`_refine_numpy` (a test compares), which remains for the lens models
+    ``_Projector`` hands to ``Camera.project`` and, from the start, when a point goes far
+    off axis.
+    """
+    if any(p.general for p in project):
+        return _refine_numpy(project, x, left, right, max_iter, tol_mm)
+    n = len(x)
+    start, x = x, np.array(x, dtype=np.float64)
+    lens_l, lens_r = ((p.k1, p.k2, p.p1, p.p2, p.k3, p.fx, p.fy, p.cx, p.cy) for p in project)
+    obs = np.ascontiguousarray(np.column_stack([left, right]))
+    lam = np.full(n, 1e-6)
+    step_mm = 1e-4 * np.maximum(1.0, np.linalg.norm(x, axis=1))  # relative difference step
+    offsets = step_mm[:, None] * np.eye(3)[:, None, :]  # (3, n, 3): step along each axis
+    stacked = np.empty((4, n, 3))
+    damped = np.empty((n, 3, 3))
+    Jtr = np.empty((n, 3))
+    cost = np.empty(n)
+
+    def camera_frame(points: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Camera-frame coordinates ``(3, N)`` of ``points`` in each camera (``_to_camera``)."""
+        left_cam, right_cam = (np.stack(p._to_camera(points)) for p in project)
+        return left_cam, right_cam
+
+    for _ in range(max_iter):
+        stacked[0] = x
+        np.add(x, offsets, out=stacked[1:])
+        cams = camera_frame(stacked.reshape(4 * n, 3))
+        if not _geometry.refine_system(*cams, lens_l, lens_r, obs, step_mm, lam, damped, Jtr, cost):
+            return _refine_numpy(project, start, left, right, max_iter, tol_mm)
+        delta: FloatArray = np.negative(np.linalg.solve(damped, Jtr[:, :, None])[:, :, 0])
+        if not np.all(np.isfinite(delta)):
+            delta = np.where(np.isfinite(delta), delta, 0.0)
+        x_new: FloatArray = np.add(x, delta)
+        done = _geometry.refine_accept(
+            *camera_frame(x_new), lens_l, lens_r, obs, cost, x_new, delta, x, lam, tol_mm
+        )
+        if done is None:
+            return _refine_numpy(project, start, left, right, max_iter, tol_mm)
+        if done:
+            break
+    return x
+
+
+def _refine_numpy(
     project: tuple[_Projector, _Projector],
     x: FloatArray,
     left: FloatArray,

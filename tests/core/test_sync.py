@@ -4,11 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 from rigs import verging_rig
 
 from core.camera import StereoRig
 from core.simulation.kinematics import TappingScenario, simulate_tapping
-from core.sync import estimate_offset, given_offset
+from core.sync import (
+    MAX_POINTS_PER_FRAME,
+    _epipolar_costs,
+    _flatten,
+    _homogeneous,
+    _ranks,
+    _segment_indices,
+    _select_frames,
+    estimate_offset,
+    given_offset,
+)
 
 
 def make_rig() -> StereoRig:
@@ -225,3 +236,239 @@ def test_link_points_matches_frame_by_frame_assignment(max_step_px: float) -> No
     assert sum(int((w >= 0).sum()) for w in want) > 200  # most detections are linked
     assert link_points([], max_step_px=5.0) == []
     assert link_points([np.ones((2, 2))], max_step_px=5.0)[0].tolist() == [-1, -1]
+
+
+# -- the numpy formulations the compiled loops replaced, kept to compare with ----------
+
+FloatArray = NDArray[np.float64]
+
+
+def _epipolar_costs_reference(
+    E: FloatArray,
+    left_pts: FloatArray,
+    right: tuple[FloatArray, NDArray[np.intp]],
+    right_row: NDArray[np.intp],
+    f_left: float,
+    f_right: float,
+    gate_px: float,
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """The cost of estimate_offset as numpy passes over padded tables (before 2026-11-28)."""
+    r_pts, r_counts = right
+    n_rows = len(r_counts)
+    q = max(int(r_counts.max()) if n_rows else 0, 1)
+    # Right x, y and epipolar-line norm padded to (Q, R + 1), NaN where missing;
+    # column R is the all-NaN partner of detections without a partner frame.
+    rows = np.repeat(np.arange(n_rows), r_counts)
+    cols = _ranks(r_counts)
+    lines_l = _homogeneous(r_pts) @ E  # (N, 3) epipolar lines in the left image
+    table = np.full((3, q, n_rows + 1), np.nan)
+    table[0, cols, rows] = r_pts[:, 0]
+    table[1, cols, rows] = r_pts[:, 1]
+    table[2, cols, rows] = np.linalg.norm(lines_l[:, :2], axis=1)
+    valid = right_row >= 0
+    idx = np.where(valid, right_row, n_rows)
+    lines_r = _homogeneous(left_pts) @ E.T  # (L, 3) epipolar lines in the right image
+    la, lb, lc = lines_r.T.copy()
+    norm_r = np.linalg.norm(lines_r[:, :2], axis=1)
+    # s = d_l**2 + d_r**2 of every left detection and candidate, least over the
+    # right detections of the paired frame; sqrt(0.5 * s) is non-decreasing in
+    # s, so the nearest right detection is the one of least s (NaN, from
+    # missing ones, counts as infinitely far). Chunks of candidates keep the
+    # temporaries in cache.
+    s_min = np.full(idx.shape, np.nan)
+    chunk = max(1, 32768 // max(idx.shape[1], 1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for c0 in range(0, idx.shape[0], chunk):
+            rows_c = idx[c0 : c0 + chunk]
+            s_c = s_min[c0 : c0 + chunk]
+            for k in range(q):
+                x, y, norm_l = table[0, k][rows_c], table[1, k][rows_c], table[2, k][rows_c]
+                # The algebraic error line . (x, y, 1), summed in the order numpy's
+                # einsum sums a 3-term dot product; its sign does not matter.
+                alg = la * x
+                alg += lc
+                y *= lb
+                alg += y
+                d_r = alg / norm_r
+                d_r *= f_right
+                d_l = np.divide(alg, norm_l, out=norm_l)
+                d_l *= f_left
+                np.square(d_r, out=d_r)
+                np.square(d_l, out=d_l)
+                d_l += d_r
+                np.fmin(s_c, d_l, out=s_c)
+    d_min = np.sqrt(0.5 * s_min)
+    d_min = np.where(np.isfinite(d_min), d_min, np.inf)
+    cost = np.minimum(d_min, gate_px) ** 2 / gate_px**2  # (C, L)
+    n_points = valid.sum(axis=1)
+    costs = np.full(len(right_row), np.nan)
+    for c in np.flatnonzero(n_points):
+        costs[c] = cost[c][valid[c]].mean()
+    return costs, n_points
+
+
+def _link_flat_reference(
+    pts: FloatArray,
+    counts: NDArray[np.intp],
+    starts: NDArray[np.intp],
+    frame_of: NDArray[np.intp],
+    nxt: NDArray[np.intp],
+    max_step_px: float,
+) -> None:
+    """link_points as rounds over all frame pairs at once (before 2026-11-28)."""
+    from scipy.optimize import linear_sum_assignment
+
+    n = len(counts)
+    # Every (detection of j, detection of j + 1) pair, frame pair by frame pair.
+    n_pairs = counts[:-1] * counts[1:]
+    pair_start = np.cumsum(n_pairs) - n_pairs
+    fp = np.repeat(np.arange(n - 1), n_pairs)
+    r = _ranks(n_pairs)
+    width = counts[1:][fp]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ia = starts[fp] + r // np.maximum(width, 1)
+        ib = starts[fp + 1] + r % np.maximum(width, 1)
+    prv = np.full(len(pts), -1, dtype=np.intp)
+    fast_ok = max_step_px < 1e6  # gated costs far below the 1e9 of excluded pairs
+    todo = np.flatnonzero(n_pairs)
+    first = True
+    while todo.size:
+        sel, sel_fp = _segment_indices(pair_start[todo], n_pairs[todo])
+        a, b = ia[sel], ib[sel]
+        pred = pts[a].copy()
+        pa = prv[a]
+        has = pa >= 0
+        pred[has] = 2 * pts[a[has]] - pts[pa[has]]
+        d = np.linalg.norm(pred - pts[b], axis=1)
+        valid = d <= max_step_px
+        # Frame pairs where a detection has more than one gated candidate.
+        many = (np.bincount(a[valid], minlength=len(pts)) > 1) | (
+            np.bincount(b[valid], minlength=len(pts)) > 1
+        )
+        clash = np.zeros(len(todo), dtype=bool)
+        clash[sel_fp[many[a] | many[b]]] = True
+        if not fast_ok:
+            clash[:] = True
+        # In the first round the predecessors are not known yet: a clashing
+        # pair whose first frame may have predecessors only gets a guess
+        # (mutual nearest candidates) and is solved in the next round.
+        guess = clash & first & (todo > 0) & (counts[np.maximum(todo - 1, 0)] > 0)
+        nxt[np.flatnonzero(np.isin(frame_of, todo))] = -1
+        simple = ~clash[sel_fp] & valid
+        nxt[a[simple]] = b[simple]
+        if np.any(guess):
+            cand = np.flatnonzero(guess[sel_fp] & valid)
+            by_a = cand[np.lexsort((d[cand], a[cand]))]
+            by_b = cand[np.lexsort((d[cand], b[cand]))]
+            best_a = by_a[np.r_[True, a[by_a][1:] != a[by_a][:-1]]]
+            best_b = by_b[np.r_[True, b[by_b][1:] != b[by_b][:-1]]]
+            mutual = np.intersect1d(best_a, best_b)
+            nxt[a[mutual]] = b[mutual]
+        seg_start = np.cumsum(n_pairs[todo]) - n_pairs[todo]
+        for k in np.flatnonzero(clash & ~guess):
+            j = todo[k]
+            s0 = seg_start[k]
+            dj = d[s0 : s0 + n_pairs[j]].reshape(counts[j], counts[j + 1])
+            cost = np.where(dj <= max_step_px, dj, 1e9)
+            rows, cols = linear_sum_assignment(cost)
+            ok = cost[rows, cols] < 1e9
+            nxt[starts[j] + rows[ok]] = starts[j + 1] + cols[ok]
+        new_prv = np.full(len(pts), -1, dtype=np.intp)
+        linked = nxt >= 0
+        new_prv[nxt[linked]] = np.flatnonzero(linked)
+        changed = np.union1d(frame_of[new_prv != prv], todo[guess])
+        prv = new_prv
+        first = False
+        todo = changed[(changed < n - 1) & (n_pairs[np.minimum(changed, n - 2)] > 0)]
+
+
+def _views_with_gaps(seed: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Undistorted normalized views of 60 frames (right j shows left j + 1) with NaN
+    detections, empty frames and crowded ones."""
+    ln, rn = views(1, seed=seed)
+    ln = [p.copy() for p in ln[:60]]
+    rn = [p.copy() for p in rn[:60]]
+    ln[3] = np.zeros((0, 2))
+    rn[5] = np.zeros((0, 2))
+    ln[7][0] = np.nan
+    rn[9][1] = np.nan
+    rn[11] = np.vstack([rn[11]] * 3)  # more than MAX_POINTS_PER_FRAME: cut by _flatten
+    return ln, rn
+
+
+@pytest.mark.parametrize("gate_px", [0.4, 3.0, 1e6])
+def test_epipolar_costs_equal_the_numpy_formulation_bit_for_bit(gate_px: float) -> None:
+    """The compiled cost (which skips right points beyond the gate) gives the former bits."""
+    ln, rn = _views_with_gaps(seed=4)
+    left = _flatten(ln, MAX_POINTS_PER_FRAME)
+    right = _flatten(rn, MAX_POINTS_PER_FRAME)
+    frames = np.arange(0, 60, 2)
+    l_pts, l_frame = _select_frames(left, frames)
+    offsets = np.arange(-4, 5)
+    r_row = l_frame[None, :] - offsets[:, None]
+    r_row[(r_row < 0) | (r_row >= 60)] = -1
+    r_row[2, ::5] = -1  # detections without a partner frame
+    f_l = 0.5 * (RIG.left.K[0, 0] + RIG.left.K[1, 1])
+    f_r = 0.5 * (RIG.right.K[0, 0] + RIG.right.K[1, 1])
+    E = RIG.essential_matrix
+    with np.errstate(invalid="ignore"):
+        got = _epipolar_costs(E, l_pts, right, r_row, f_l, f_r, gate_px)
+        want = _epipolar_costs_reference(E, l_pts, right, r_row, f_l, f_r, gate_px)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert np.all(np.isfinite(want[0]))
+    # The case compares both cut-offs: costs at the gate and below it.
+    assert 0.0 < float(np.mean(want[0])) < 1.0 or gate_px == 1e6
+
+
+@pytest.mark.parametrize("max_step_px", [8.0, 25.0, 1e7])
+def test_link_points_equals_the_rounds_formulation(max_step_px: float) -> None:
+    """Frame pair by frame pair (compiled) gives the links of the former rounds, NaN
+    detections and a gate too wide for the shortcut included."""
+    from core.sync import _ranks, link_points
+
+    rng = np.random.default_rng(12)
+    base = rng.uniform(0, 120, (7, 2))
+    vel = rng.normal(0, 5, (7, 2))
+    frames = []
+    for j in range(60):
+        alive = rng.random(7) > 0.25
+        pts = base[alive] + j * vel[alive] + rng.normal(0, 2, (int(alive.sum()), 2))
+        frames.append(pts[rng.permutation(len(pts))])
+    frames[4] = np.zeros((0, 2))
+    frames[9][0] = np.nan
+    pts, counts = _flatten(frames)
+    starts = np.cumsum(counts) - counts
+    frame_of = np.repeat(np.arange(len(counts)), counts)
+    nxt = np.full(len(pts), -1, dtype=np.intp)
+    _link_flat_reference(pts, counts, starts, frame_of, nxt, max_step_px)
+    want = np.where(nxt >= 0, nxt - np.repeat(np.r_[starts[1:], 0], counts), -1)
+    got = np.concatenate(link_points(frames, max_step_px=max_step_px))
+    np.testing.assert_array_equal(got, want)
+    assert np.count_nonzero(want >= 0) > 150
+    assert _ranks(counts).shape == (len(pts),)
+
+
+def test_flatten_takes_every_kind_of_frame() -> None:
+    """Frames as float64 arrays (no copy per frame), and as anything np.asarray reads."""
+    rng = np.random.default_rng(2)
+    f64 = [rng.normal(size=(k, 2)) for k in (3, 0, 2)]
+    kinds = {
+        "float64": f64,
+        "int": [np.array([[1, 2], [3, 4]]), np.zeros((0, 2), dtype=int)],
+        "mixed": [f64[0], np.array([[1, 2]])],
+        "float32": [a.astype(np.float32) for a in f64],
+        "lists": [a.tolist() for a in f64],
+        "flat empty": [np.zeros(0), f64[0]],
+        "opencv (N, 1, 2)": [a[:, None, :] for a in f64],
+        "one frame": [f64[0]],
+        "none": [],
+    }
+    for name, frames in kinds.items():
+        flat, counts = _flatten(frames)
+        arrays = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in frames]
+        want = np.concatenate(arrays) if arrays else np.zeros((0, 2))
+        assert flat.dtype == np.float64 and flat.shape == want.shape, name
+        np.testing.assert_array_equal(flat, want, err_msg=name)
+        assert counts.tolist() == [len(a) for a in arrays], name
+        assert counts.dtype == np.intp, name
