@@ -87,6 +87,20 @@ def _signal(table: MarkerTable, task: str, side: str) -> list[float | None]:
     return [round(float(v), 2) if np.isfinite(v) else None for v in series[1]]
 
 
+def _signal_and_times(
+    result: Result, doc: dict[str, Any], task: str, side: str, storage: Storage
+) -> tuple[list[float | None], list[float]]:
+    """The task's signal per left frame (:func:`_signal`) and each left frame's time (s),
+    from the revision's trajectories; both empty when it has none."""
+    if not result.markers_path or not storage.exists(result.markers_path):
+        return [], []
+    table = read_markers_csv(
+        storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
+    )
+    # the analysis's time of each left frame: lost frames and irregular intervals kept
+    return _signal(table, task, side), [round(float(t), 6) for t in table.time_s]
+
+
 def describe_corrections(corrections: Corrections, task: str = "finger_tapping") -> tuple[str, ...]:
     """Each correction in words, as a clinician reads it (taps or cycles numbered from 1)."""
     from core.corrections import swappable_labels
@@ -173,17 +187,8 @@ def review_page(
         )
     doc = served_document(result)
     read = read_result(doc)
-    signal: list[float | None] = []
-    time_s: list[float] = []
-    if result.markers_path and storage.exists(result.markers_path):
-        table = read_markers_csv(
-            storage.absolute(result.markers_path), fps=float(doc.get("fps") or 0) or None
-        )
-        signal = _signal(table, read.task, trial.hand)
-        # the analysis's time of each left frame: lost frames and irregular intervals kept
-        time_s = [round(float(t), 6) for t in table.time_s]
+    signal, time_s = _signal_and_times(result, doc, read.task, trial.hand, storage)
     videos = tuple(v.side for v in trial.videos if v.proxy_path and storage.exists(v.proxy_path))
-    missing = unavailable_videos(trial, videos)
     from core.corrections import Corrections, swappable_labels
 
     corrections = Corrections.from_dict(doc.get("corrections"))
@@ -223,7 +228,7 @@ def review_page(
         videos=videos,
         corrections=corrections,
         job=job_views.latest_job(db, trial_id=trial.id),
-        missing_videos=missing,
+        missing_videos=unavailable_videos(trial, videos),
         not_carried=describe_corrections(
             Corrections.from_dict(doc.get("corrections_not_carried")), read.task
         ),
