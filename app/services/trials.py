@@ -38,6 +38,7 @@ from app.services.common import (
 )
 from app.services.videos import CheckedVideo, add_videos, check_video_pair
 from app.storage import Storage
+from app.upload_checks import sent_before
 from app.uploads import InvalidUpload, ParsedUpload
 from core.camera import ImageSize
 from core.errors import InputError
@@ -296,22 +297,20 @@ def create_trial(db: Session, actor: Actor, session_id: int, upload: ParsedUploa
 
 def _sent_before(db: Session, session_id: int, upload: ParsedUpload) -> list[str]:
     """A warning when the session already holds a trial of the same two videos: sent twice
-    (a retry after a lost answer, a form posted twice) without a ``take_id``."""
-    digests = {upload.require_file(f"{side}_video").incoming.sha256 for side in SIDES}
+    (a retry after a lost answer, a form posted twice) without a ``take_id``, or sent again
+    with the cameras the other way round (:func:`app.upload_checks.sent_before`)."""
+    digests = {side: upload.require_file(f"{side}_video").incoming.sha256 for side in SIDES}
     rows = db.execute(
-        select(Video.trial_id, Video.sha256)
+        select(Video.trial_id, Video.side, Video.sha256)
         .join(Trial, Trial.id == Video.trial_id)
         .where(Trial.session_id == session_id, Trial.deleted_at.is_(None),
-               Video.sha256.in_(digests))
+               Video.sha256.in_(set(digests.values())))
     ).all()  # fmt: skip
-    both = sorted(
-        {t for t, _ in rows if t is not None and {d for u, d in rows if u == t} == digests}
+    return sent_before(
+        ((t, side, d) for t, side, d in rows if t is not None),
+        left_sha256=digests["left"],
+        right_sha256=digests["right"],
     )
-    return [
-        f"trial {t} of this session holds the same two videos: if they were sent twice, hide"
-        " one of the two trials."
-        for t in both
-    ]
 
 
 def audit_rejected_upload(db: Session, actor: Actor, session_id: int) -> None:

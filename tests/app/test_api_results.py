@@ -238,6 +238,15 @@ def test_a_take_sent_again_through_the_api_is_stored_once(api: Api, tmp_path) ->
     assert plain.status_code == 201 and plain.json()["id"] != first.json()["id"]
     assert any(f"trial {first.json()['id']} of this session holds the same two videos" in w
                for w in plain.json()["warnings"])  # fmt: skip
+    # the same two videos with the cameras the other way round: said so (finding 12)
+    swapped = api.client.post(url, data={"hand": "left"}, files=trial_files(right, left),
+                              headers=api.headers)  # fmt: skip
+    assert swapped.status_code == 201, swapped.text
+    said = [w for w in swapped.json()["warnings"] if "this session holds" in w]
+    t = first.json()["id"]
+    assert f"trial {t} of this session holds these two videos with the cameras the other way" \
+        " round" in said[0] and len(said) == 2  # fmt: skip
+    assert not any("holds the same two videos" in w for w in said)
 
 
 def test_job_status_follows_the_rights_of_the_trials_results(api: Api, video_pair) -> None:
