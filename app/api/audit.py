@@ -12,7 +12,7 @@ from app.api.responses import AUTH, Limit, Offset, errors
 from app.apikeys import AUDIT_READ
 from app.auth import SessionDep, require_scope
 from app.schemas import MAX_ID, AuditEventRead, Page, UtcDateTime
-from app.services import audit_log, changes
+from app.services import audit_log
 
 router = APIRouter(prefix="/audit", tags=["audit"])
 
@@ -110,10 +110,9 @@ def list_audit_events(
         db, actor, f, limit=limit, offset=offset, before_seq=before_seq, after_seq=after_seq
     )
     items = [AuditItem.model_validate(e) for e in trail.items]
-    if actor.has_scope("patients:read"):
-        kept = changes.changes_of(db, [e.id for e in trail.items if e.action == "update"])
-        for item in items:
-            item.changes = kept.get(item.id)
+    kept = audit_log.changes_for(db, actor, trail.items)
+    for item in items:
+        item.changes = kept.get(item.id)
     return AuditPage(
         items=items,
         total=trail.total,

@@ -7,7 +7,7 @@ filter as its patient), so that who looked at whose history is on record too.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
@@ -15,9 +15,11 @@ from typing import Any
 from sqlalchemy import Select, func, or_, select
 from sqlalchemy.orm import Session
 
+from app.actors import Actor
 from app.audit import AnyActor, audit
 from app.errors import InvalidRequestError
 from app.models import ACTOR_TYPES, AuditEvent, AuditEventPatient
+from app.services import changes
 from app.services.common import paginate
 
 _ACTOR_RE = re.compile(r"^(user|api_client|system|anonymous)(?::(.{1,64}))?$")
@@ -166,6 +168,22 @@ def _next_cursor(
     # Among the unnumbered events, which no new event joins: an offset is stable there.
     numbered = select(func.count()).select_from(query.where(AuditEvent.seq.is_not(None)).subquery())
     return {"before_seq": 1, "offset": read - int(db.scalar(numbered) or 0)}
+
+
+VALUES_SCOPE = "patients:read"
+"""Who also reads the previous and new values of an update: they are the patient's data."""
+
+
+def changes_for(
+    db: Session, reader: Actor, events: Iterable[AuditEvent]
+) -> dict[int, changes.Changed]:
+    """The previous and new values of the updates among ``events``, by event id, for a
+    reader who holds ``patients:read``; none for any other reader (an auditor), and none
+    for an erased patient's update (:func:`app.services.changes.changes_of`). The API
+    (``GET /audit``'s ``changes``) and the page ``/admin/audit`` both ask here."""
+    if not reader.has_scope(VALUES_SCOPE):
+        return {}
+    return changes.changes_of(db, [e.id for e in events if e.action == "update"])
 
 
 def iter_events(db: Session, f: AuditFilter) -> Iterator[AuditEvent]:

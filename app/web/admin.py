@@ -1,7 +1,10 @@
 """The administrator's page of the audit trail (``/admin/audit``), with filters and pages.
 
 Only users holding ``audit:read`` (admins, auditors) see it; anyone else gets 403, and
-the refusal is audited like an API refusal. Reading the page is audited too.
+the refusal is audited like an API refusal. Reading the page is audited too. Each event
+shows what ``GET /api/v1/audit`` tells of it: an update's changed fields, with their
+previous and new values for a reader who also holds ``patients:read``
+(:func:`app.services.audit_log.changes_for`), and the patients a list returned.
 """
 
 from __future__ import annotations
@@ -96,6 +99,8 @@ def audit_page(
         db, user, f, limit=PAGE_SIZE, offset=(page - 1) * PAGE_SIZE
     )
     pages = max(1, -(-total // PAGE_SIZE))
+    # An update's values go to those the API shows them to (patients:read), decided there.
+    values = audit_log.changes_for(db, user, events)
     return render(
         request,
         "audit.html",
@@ -103,6 +108,7 @@ def audit_page(
         active="audit",
         title="Audit trail",
         events=events,
+        values=values,
         total=total,
         page=page,
         pages=pages,

@@ -308,6 +308,41 @@ def test_an_auditor_cannot_test_whether_a_patient_code_exists(api: Api) -> None:
     assert by_id.status_code == 200 and ">patient 1<" in by_id.text
 
 
+def test_the_admin_page_shows_what_changed_and_whom_a_list_returned(api: Api) -> None:
+    """The page said "update patient 1" and "list patient" where the API told the fields
+    changed, their values (to readers of patients' data) and the patients a list returned.
+    Each reader now sees on the page what the API shows them: the values to an admin,
+    the field names only to an auditor, and every reader the patients of a list."""
+    make_user(api.sessions, "it@example.org", PASSWORD, role="admin")
+    make_user(api.sessions, "dpo@example.org", PASSWORD, role="auditor")
+    h = api.headers
+    ids = [api.client.post("/api/v1/patients", json={"code": f"PD-{i}"}, headers=h).json()["id"]
+           for i in range(3)]  # fmt: skip
+    r = api.client.patch(f"/api/v1/patients/{ids[1]}", json={"notes": "tremor worse at night"},
+                         headers=h)  # fmt: skip
+    assert r.status_code == 200, r.text
+    assert api.client.get("/api/v1/patients?limit=200", headers=h).status_code == 200
+    readers = {}
+    for email in ("it@example.org", "dpo@example.org"):
+        client = TestClient(api.app)
+        _login(client, email)
+        trail = client.get("/api/v1/audit?limit=100").json()["items"]
+        shown = [e["changes"] for e in trail if e["action"] == "update"]
+        page = client.get(f"/admin/audit?patient_id={ids[1]}")
+        assert page.status_code == 200, page.text
+        readers[email] = (shown, page.text, client)
+    (api_admin, admin, admin_client), (api_auditor, auditor, _) = readers.values()
+    assert api_admin == [{"notes": [None, "tremor worse at night"]}] and api_auditor == [None]
+    # the values where the API gives them, and nowhere else
+    assert 'notes: <span class="hint">(empty)</span> → “tremor worse at night”' in admin
+    assert "tremor worse at night" not in auditor and "changed notes" in auditor
+    listed = f"patients {', '.join(map(str, ids))}</span>"
+    for html in (admin, auditor):  # the list found by its patient's filter, and whom it named
+        assert "3 patients returned</summary>" in html and listed in html
+    other = admin_client.get(f"/admin/audit?patient_id={ids[0]}").text
+    assert "tremor" not in other and "3 patients returned" in other  # another patient's trail
+
+
 def test_export_audit_writes_json_lines(api: Api, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     api.client.post("/api/v1/patients", json={"code": "PD-8"}, headers=api.headers)
     assert _cli(api.settings, monkeypatch, "export-audit") == 0
