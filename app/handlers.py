@@ -37,7 +37,7 @@ from sqlalchemy.orm import Session
 
 from app import jobs
 from app.job_context import Handler, JobContext, RetryableJobError, default_worker_name
-from app.services import calibrations, patients, results, revisions, trial_inputs
+from app.services import calibrations, patients, results, review, revisions, trial_inputs
 from app.services.videos import container_frame_times
 from core.calibration import calibrate_stereo_from_paths
 from core.errors import BradyscopeError, InputError
@@ -137,7 +137,7 @@ class _ProxiesAlongside:
 
     def _cannot(self, side: str, exc: InputError) -> None:
         log.warning("job %d: no proxy of the %s video: %s", self._ctx.job.id, side, exc)
-        self.warnings.append(f"the {side} video cannot be shown in the review view: {exc}")
+        self.warnings.append(f"{review.PROXY_WARNING.format(side=side)}: {exc}")
 
     def sink(self, side: str) -> FrameSink | None:
         """What the analysis calls with each frame of the stored ``side`` video."""
