@@ -7,7 +7,10 @@ ways of saying so and turns them into the service's errors:
 - disk full (``ENOSPC``, ``EDQUOT``, SQLite ``SQLITE_FULL``, PostgreSQL
   ``53100 disk_full``) -> :class:`InsufficientStorageError` (507);
 - read-only (``EROFS``, SQLite ``SQLITE_READONLY``, PostgreSQL ``25006``),
-  a storage I/O error, or an unreachable database -> 503.
+  a storage I/O error, or an unreachable database -> 503. Unreachable: a
+  connection refused or cut, a database not accepting connections (psycopg's
+  errors without a SQLSTATE, ``08xxx``, ``57P0x``), a SQLite file that cannot be
+  opened (missing, or on a read-only disk where its ``-wal`` cannot be made).
 
 Nothing is half-written when they happen: an upload's files are removed
 (``app.uploads.run_upload``) and the request's transaction is rolled back, so
@@ -36,7 +39,7 @@ from typing import Any
 
 from sqlalchemy import text
 from sqlalchemy.engine import Engine
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import DBAPIError, OperationalError
 
 from app.errors import (
     AppError,
@@ -61,6 +64,10 @@ DATABASE_DOWN = (
     "The database cannot be reached right now, so nothing was done; retry in a moment or ask"
     " the administrator."
 )
+DATABASE_FILE_UNOPENED = (
+    "The database file cannot be opened (it is missing, or its disk refuses writes), so"
+    " nothing was saved; ask the administrator to check it, then retry."
+)
 
 _FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 _READ_ONLY_ERRNOS = frozenset({errno.EROFS})
@@ -74,13 +81,17 @@ def _sqlite_fault(orig: Any) -> AppError | None:
         return InsufficientStorageError(FULL)
     if name.startswith("SQLITE_READONLY") or "readonly database" in message:
         return StorageReadOnlyError(READ_ONLY)
-    if name.startswith(("SQLITE_IOERR", "SQLITE_CANTOPEN")) or "disk i/o error" in message:
+    if name.startswith("SQLITE_CANTOPEN") or "unable to open database file" in message:
+        return ServiceUnavailableError(DATABASE_FILE_UNOPENED)  # gone, or no -wal/-shm made
+    if name.startswith("SQLITE_IOERR") or "disk i/o error" in message:
         return StorageReadOnlyError(IO_ERROR)
     return None
 
 
-def _postgres_fault(orig: Any) -> AppError | None:
-    sqlstate = str(getattr(orig, "sqlstate", "") or "")
+def _postgres_fault(orig: Any, *, operational: bool) -> AppError | None:
+    if not hasattr(orig, "sqlstate"):  # not psycopg's
+        return None
+    sqlstate = str(orig.sqlstate or "")
     if sqlstate == "53100":  # disk_full
         return InsufficientStorageError(FULL)
     if (
@@ -89,6 +100,13 @@ def _postgres_fault(orig: Any) -> AppError | None:
         return StorageReadOnlyError(READ_ONLY)
     if sqlstate.startswith("08") or sqlstate in ("57P01", "57P02", "57P03"):
         return ServiceUnavailableError(DATABASE_DOWN)
+    if sqlstate == "55000" and "accepting connections" in str(orig):  # ALLOW_CONNECTIONS false
+        return ServiceUnavailableError(DATABASE_DOWN)
+    if operational and not sqlstate:
+        # The server said nothing: psycopg could not connect (refused, timed out, the
+        # database not accepting connections) or the connection broke. Errors of SQL
+        # itself always carry a SQLSTATE.
+        return ServiceUnavailableError(DATABASE_DOWN)
     return None
 
 
@@ -96,7 +114,8 @@ def storage_fault(exc: BaseException) -> AppError | None:
     """The service error for a storage or database fault, or None if ``exc`` is something else."""
     if isinstance(exc, DBAPIError):
         orig = exc.orig
-        fault = _sqlite_fault(orig) or _postgres_fault(orig)
+        operational = isinstance(exc, OperationalError)
+        fault = _sqlite_fault(orig) or _postgres_fault(orig, operational=operational)
         if fault is None and exc.connection_invalidated:
             fault = ServiceUnavailableError(DATABASE_DOWN)
         return fault

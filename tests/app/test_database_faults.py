@@ -1,0 +1,181 @@
+"""The database gone or read-only is said as such (review of failures, 2026-11-28).
+
+- 1: a database that cannot be reached (refused, not accepting connections, its
+  connections terminated; a SQLite file that cannot be opened) answers 503 with the
+  documented sentence, not 500;
+- 5: a read-only database is named as the database, and ``/health`` fails while the
+  database cannot be written;
+- 10: a page's server error is an HTML page with the request id and a way back.
+
+The PostgreSQL tests put a TCP proxy (tests/app/tcp_proxy.py) between the application
+and the server, and stop it: what a network outage or a database server that went
+down does to the application.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import sqlalchemy as sa
+from api_support import make_api_key, make_user
+from conftest import make_test_settings
+from fastapi.testclient import TestClient
+from sqlalchemy.exc import DBAPIError
+from tcp_proxy import TcpProxy
+
+from app.apikeys import generate_api_key
+from app.db import dispose_engines, get_sessionmaker
+from app.errors import ServiceUnavailableError
+from app.faults import DATABASE_DOWN, DATABASE_FILE_UNOPENED, storage_fault
+from app.main import create_app
+from app.settings import Settings
+
+EMAIL, PASSWORD = "clinician@example.org", "a long enough password 1"
+
+
+def _closed_port() -> int:
+    """A local TCP port nobody listens on (just released by this process)."""
+    with socket.create_server(("127.0.0.1", 0)) as sock:
+        return int(sock.getsockname()[1])
+
+
+def _connect_error(url: str) -> DBAPIError:
+    engine = sa.create_engine(url)
+    try:
+        with pytest.raises(DBAPIError) as caught:
+            engine.connect()
+    finally:
+        engine.dispose()
+    return caught.value
+
+
+# --------------------------------------------------------------------------- finding 1
+
+
+def test_a_refused_postgresql_connection_is_the_database_unreachable() -> None:
+    exc = _connect_error(f"postgresql+psycopg://postgres@127.0.0.1:{_closed_port()}/none")
+    assert "refused" in str(exc.orig).lower()  # psycopg's own error, no SQLSTATE
+    fault = storage_fault(exc)
+    # before: None, so a 500 "Internal error"
+    assert isinstance(fault, ServiceUnavailableError) and str(fault) == DATABASE_DOWN
+
+
+def test_a_sqlite_file_that_cannot_be_opened_is_the_database_unreachable(tmp_path: Path) -> None:
+    exc = _connect_error(f"sqlite:///{tmp_path / 'no-such-directory' / 'db.sqlite3'}")
+    fault = storage_fault(exc)
+    # before: "the server's storage reported an input/output error"
+    assert isinstance(fault, ServiceUnavailableError) and str(fault) == DATABASE_FILE_UNOPENED
+
+
+def test_an_error_in_sql_stays_an_internal_error(app_settings: Settings) -> None:
+    engine = sa.create_engine(f"sqlite:///{app_settings.data_dir / 'bradyscope.sqlite3'}")
+    try:
+        with pytest.raises(DBAPIError) as caught, engine.connect() as conn:
+            conn.execute(sa.text("SELECT * FROM no_such_table"))
+    finally:
+        engine.dispose()
+    assert storage_fault(caught.value) is None  # a bug, not the service being down
+
+
+def _login_form(client: TestClient, password: str) -> dict[str, str]:
+    """The login form's fields, with the CSRF token of the login page (no database read)."""
+    page = client.get("/login")
+    token = re.search(r'name="csrf_token" value="([^"]+)"', page.text)
+    assert token is not None, page.text
+    return {"email": EMAIL, "password": password, "csrf_token": token.group(1)}
+
+
+def _login(client: TestClient) -> None:
+    r = client.post("/login", data=_login_form(client, PASSWORD), follow_redirects=False)
+    assert r.status_code == 303, r.text
+
+
+HTML = {"Accept": "text/html,application/xhtml+xml,*/*;q=0.8"}
+
+
+def _assert_unreachable_answers(
+    client: TestClient, anonymous: TestClient, key: str, form: dict[str, str]
+) -> None:
+    """The API, a page (``client`` is logged in) and the login form (``form``, of
+    ``anonymous``), while the database cannot be reached."""
+    r = client.get("/api/v1/patients", headers={"Authorization": f"Bearer {key}"})
+    assert r.status_code == 503, r.text  # before: 500 "Internal error"
+    assert r.json()["detail"] == DATABASE_DOWN
+    for r in (
+        client.get("/patients", headers=HTML),
+        anonymous.post("/login", headers=HTML, data=form),
+    ):
+        url = r.request.url.path
+        assert r.status_code == 503, (url, r.text)
+        assert r.headers["content-type"].startswith("text/html"), (url, r.text)
+        assert "cannot be reached" in r.text, r.text
+
+
+@pytest.fixture
+def proxied(pg_settings: Settings) -> Iterator[tuple[Settings, TcpProxy]]:
+    """``pg_settings`` reaching the server through a proxy (started)."""
+    proxy = TcpProxy(("127.0.0.1", 5432))
+    proxy.start()
+    url = sa.make_url(pg_settings.database_url).set(host="127.0.0.1", port=proxy.port)
+    settings = pg_settings.model_copy(
+        update={"database_url": url.render_as_string(hide_password=False)}
+    )
+    try:
+        yield settings, proxy
+    finally:
+        proxy.stop()
+        dispose_engines()
+
+
+@pytest.mark.postgres
+def test_an_unreachable_postgresql_answers_503_and_a_page(proxied, pg_admin_url: str) -> None:
+    settings, proxy = proxied
+    sessions = get_sessionmaker(settings)
+    key = make_api_key(sessions)
+    make_user(sessions, EMAIL, PASSWORD)
+    app = create_app(settings)
+    with (
+        TestClient(app, raise_server_exceptions=False) as client,
+        TestClient(app, raise_server_exceptions=False) as anonymous,
+    ):
+        _login(client)
+        assert client.get("/patients", headers=HTML).status_code == 200
+        form = _login_form(anonymous, "a wrong password")
+        proxy.stop()  # the server gone: open connections cut, new ones refused
+        _assert_unreachable_answers(client, anonymous, key, form)
+        proxy.start()
+        assert client.get("/patients", headers=HTML).status_code == 200
+        name = sa.make_url(settings.database_url).database
+        admin = sa.create_engine(pg_admin_url, isolation_level="AUTOCOMMIT")
+        try:
+            with admin.connect() as conn:  # "not currently accepting connections" (55000)
+                conn.execute(sa.text(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS false'))
+                conn.execute(
+                    sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity"
+                            " WHERE datname = :name AND pid <> pg_backend_pid()"),
+                    {"name": name},
+                )  # fmt: skip
+            _assert_unreachable_answers(client, anonymous, key, form)
+        finally:
+            with admin.connect() as conn:
+                conn.execute(sa.text(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS true'))
+            admin.dispose()
+        assert client.get("/api/v1/patients", headers={"Authorization": f"Bearer {key}"}).is_success
+
+
+def test_a_missing_sqlite_database_answers_503_and_a_page(tmp_path: Path) -> None:
+    settings = make_test_settings(tmp_path / "data")
+    settings.data_dir.mkdir()
+    gone = settings.model_copy(
+        update={"database_url": f"sqlite:///{tmp_path / 'gone' / 'bradyscope.sqlite3'}"}
+    )
+    with TestClient(create_app(gone), raise_server_exceptions=False) as client:
+        key, _ = generate_api_key()  # well formed: looked up in the database
+        r = client.get("/api/v1/patients", headers={"Authorization": f"Bearer {key}"})
+        assert r.status_code == 503 and r.json()["detail"] == DATABASE_FILE_UNOPENED, r.text
+        r = client.post("/login", headers=HTML, data=_login_form(client, "a wrong password"))
+        assert r.status_code == 503 and r.headers["content-type"].startswith("text/html")
