@@ -58,6 +58,8 @@ def report_context(data: ReportData) -> dict[str, Any]:
     return {
         **summary_context(data),
         "data": data,
+        # the trial's own time (its upload), as the visit report names its trials
+        "when": trial_time(data.uploaded_at, data.recorded_at, data.timezone, with_day=True),
         "metric_rows": metric_rows(data.analysis),
         "more_metric_rows": metric_rows(data.analysis, primary=False),
         "quality_rows": quality_rows(data),

@@ -334,3 +334,28 @@ def test_stored_plots_round_trip_and_other_plotting_code_is_drawn_again(data):
     assert read_plots_document(json.dumps({**doc, "format": "other/1"})) is None
     assert read_plots_document(json.dumps({**doc, "plots": {"aperture": "<svg/>"}})) is None
     assert read_plots_document("not json") is None
+
+
+@needs_poppler
+def test_the_trial_report_names_the_trial_by_its_own_time_not_the_sessions(data, tmp_path):
+    """The visit report named each trial by its upload ("uploaded 21:48 UTC"), while the
+    report of the same trial said the session's start as "Recorded" on its header and on
+    every page's running head: two takes of a visit read alike. Both now say the trial's
+    own time, as the visit report does; the session's time stays, named as such."""
+    take = dataclasses.replace(data, uploaded_at=data.recorded_at + timedelta(minutes=18))
+    pdf = tmp_path / "trial.pdf"
+    pdf.write_bytes(render_report_pdf(take))
+    raw = subprocess.run(
+        ["pdftotext", str(pdf), "-"], check=True, capture_output=True, text=True
+    ).stdout
+    text = " ".join(raw.split())
+    assert "#7, uploaded 2025-03-14 09:48 UTC" in text  # the header's Trial
+    assert "2025-03-14 09:30 UTC" in text and "SESSION" in text  # the session's, named so
+    assert "RECORDED" not in text  # the header's keys are upper case (CSS)
+    pages = raw.count("\f")
+    head = "· medication off · uploaded 2025-03-14 09:48 UTC · trial #7"
+    assert pages > 1 and text.count(head) == pages  # every page's running head
+    assert "09:30 UTC · trial #7" not in text
+    # a trial whose upload time is not known keeps the session's time, with no "uploaded"
+    unknown = render_report_html(dataclasses.replace(data, uploaded_at=None))
+    assert "#7, 2025-03-14 09:30 UTC" in unknown and "uploaded" not in unknown
