@@ -6,6 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import HTMLResponse
+from pydantic import Field
 
 from app.api.responses import AUTH, IdPath, Limit, Offset, attachment, errors, json_errors, page
 from app.auth import CurrentActor, ResultReader, SessionDep
@@ -25,6 +26,25 @@ from app.services import sessions as service
 from app.services import signatures, visits
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
+
+_WARNINGS = (
+    "What the clinician should know before signing, in words, as the session page's sign"
+    " form says it: trials that failed (the signed report lists them as not measured),"
+    " trials still being measured, measured trials without the clinician's rating. Signing"
+    " is not refused for them."
+)
+
+
+class SignedRead(SignatureRead):
+    """The signature just made, and what the clinician was told before it."""
+
+    warnings: list[str] = Field(description=_WARNINGS + " As they stood when signing.")
+
+
+class VisitSigningRead(VisitSignaturesRead):
+    """The visit's signatures, whether an amendment is pending, and what to show first."""
+
+    warnings: list[str] = Field(description=_WARNINGS + " Empty when there is none.")
 
 
 @router.post(
@@ -155,14 +175,14 @@ def get_visit_report_pdf(
 @router.post(
     "/{session_id}/sign",
     status_code=status.HTTP_201_CREATED,
-    response_model=SignatureRead,
+    response_model=SignedRead,
     responses=errors(*AUTH, 404, 409, 429),
     summary="Sign the visit report (a clinician, with the password again); kept unchanged",
 )
 def sign_visit(
     session_id: IdPath, data: SignRequest, actor: CurrentActor, db: SessionDep, request: Request
-) -> SignatureRead:
-    row = signatures.sign_visit(
+) -> SignedRead:
+    signed = signatures.sign_visit(
         db,
         actor,
         session_id,
@@ -171,23 +191,25 @@ def sign_visit(
         settings=request.app.state.settings,
         ip=request.client.host[:45] if request.client else None,
     )
-    return SignatureRead.model_validate(row)
+    row = SignatureRead.model_validate(signed.signature)
+    return SignedRead(**row.model_dump(), warnings=list(signed.warnings))
 
 
 @router.get(
     "/{session_id}/signatures",
-    response_model=VisitSignaturesRead,
+    response_model=VisitSigningRead,
     responses=errors(*AUTH, 404),
-    summary="The visit's signatures and whether an amendment is pending",
+    summary="The visit's signatures, whether an amendment is pending, what to know before signing",
 )
 def list_signatures(
     session_id: IdPath, actor: ResultReader, db: SessionDep, request: Request
-) -> VisitSignaturesRead:
+) -> VisitSigningRead:
     state = signatures.signing_state(
         db, actor, session_id, timezone=request.app.state.settings.timezone
     )
-    return VisitSignaturesRead(
+    return VisitSigningRead(
         status=state.status,
         changes=state.changes,
         signatures=[SignatureRead.model_validate(s) for s in state.signatures],
+        warnings=list(state.warnings),
     )

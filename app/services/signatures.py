@@ -17,12 +17,17 @@ hidden or shown again: ``Signature.signed_facts``) makes an **amendment pending
 signature**: the signed report stays retrievable, and signing again stores a
 second signed report that says which one it amends. Every signature and every
 download of a signed report is one audit event.
+
+Signing is never refused for a trial that failed, is still being measured or is not
+rated; the clinician is told of them first (:func:`app.services.visits.sign_warnings`:
+the session page's sign form, ``warnings`` of the API's signing state and of its answer
+to signing), and the signed report lists them.
 """
 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import date, datetime
 from typing import Any, Literal
 
@@ -37,7 +42,7 @@ from app.reports.rendering import render_visit_pdf
 from app.reports.visit import SignatureLine
 from app.services.common import load_session, visit_sessions, visit_trials
 from app.services.revisions import actor_label
-from app.services.visits import load_visit, unmeasured_trials, visit_signatures
+from app.services.visits import load_visit, sign_warnings, unmeasured_trials, visit_signatures
 from app.storage import Storage
 from app.timezones import local_date, to_zone
 
@@ -49,7 +54,10 @@ class VisitSigning:
     """Where a visit stands: its signatures (oldest first) and what changed since the newest.
 
     ``changes`` lists, in words, each difference between the visit now and the
-    newest signature (a trial's newer revision, a trial added or hidden).
+    newest signature (a trial's newer revision, a trial added or hidden). ``warnings``
+    says what the clinician should know before signing (:func:`sign_warnings`: failed,
+    pending and unrated trials); :func:`signing_state` fills it, :func:`visit_signing`
+    leaves it empty (the session page asks :func:`sign_warnings` itself).
     """
 
     session: RecordingSession
@@ -57,6 +65,7 @@ class VisitSigning:
     signatures: list[Signature]
     current: dict[str, int]
     changes: list[str]
+    warnings: tuple[str, ...] = ()
 
     @property
     def status(self) -> VisitStatus:
@@ -226,6 +235,15 @@ def visit_signing(db: Session, session: RecordingSession, timezone: str) -> Visi
     return VisitSigning(session, day, signatures, current, changes)
 
 
+@dataclass(frozen=True)
+class SignedVisit:
+    """A signature just made, and what the clinician was told to know before it
+    (:func:`sign_warnings`, as it stood when signing; signing was not refused for it)."""
+
+    signature: Signature
+    warnings: tuple[str, ...]
+
+
 def sign_visit(
     db: Session,
     actor: Actor,
@@ -235,7 +253,7 @@ def sign_visit(
     *,
     settings: Any,
     ip: str | None = None,
-) -> Signature:
+) -> SignedVisit:
     """Sign the visit of ``session_id``: re-authenticate, render, store the PDF, record.
 
     Raises
@@ -266,31 +284,43 @@ def sign_visit(
             f"This visit was signed (signature {newest.number}) and nothing changed since;"
             " the signed report stays as it is."
         )
-    number = (state.newest.number if state.newest else 0) + 1
-    signed_at = utcnow()
-    by = actor_label(db, actor)
-    visit = load_visit(db, session, storage, timezone=timezone)
+    warnings = tuple(sign_warnings(session, timezone))
     line = SignatureLine(
-        signed_by=by,
-        signed_at=signed_at,
-        number=number,
+        signed_by=actor_label(db, actor),
+        signed_at=utcnow(),
+        number=(state.newest.number if state.newest else 0) + 1,
         amends=state.newest.number if state.newest else None,
         revisions=tuple(sorted((int(k), v) for k, v in state.current.items())),
     )
-    pdf = render_visit_pdf(visit.signed(line))
-    digest = hashlib.sha256(pdf).hexdigest()
+    pdf = render_visit_pdf(load_visit(db, session, storage, timezone=timezone).signed(line))
+    row = _store_signature(db, actor, state, line, pdf, storage, timezone)
+    return SignedVisit(row, warnings)
+
+
+def _store_signature(
+    db: Session,
+    actor: Actor,
+    state: VisitSigning,
+    line: SignatureLine,
+    pdf: bytes,
+    storage: Storage,
+    timezone: str,
+) -> Signature:
+    """Store the signed PDF as it is and record its row and audit event, committed (the
+    file is removed again when the row cannot be committed)."""
+    session = state.session
     stored = storage.write_bytes("signed", ".pdf", pdf)
     try:
         row = Signature(
             patient_id=session.patient_id,
             session_id=session.id,
             visit_date=state.visit_date.isoformat(),
-            number=number,
+            number=line.number,
             amends_number=line.amends,
-            signed_by=by,
+            signed_by=line.signed_by,
             signed_by_user_id=actor.id,
-            signed_at=signed_at,
-            sha256=digest,
+            signed_at=line.signed_at,
+            sha256=hashlib.sha256(pdf).hexdigest(),
             size_bytes=len(pdf),
             pdf_path=stored.path,
             trial_revisions=dict(state.current),
@@ -307,9 +337,11 @@ def sign_visit(
 
 
 def signing_state(db: Session, actor: Actor, session_id: int, *, timezone: str) -> VisitSigning:
-    """The signatures of a visit and whether an amendment is pending (audited ``read``)."""
+    """The signatures of a visit, whether an amendment is pending, and what to know before
+    signing it (``warnings``, as the session page's sign form says them); audited ``read``."""
     session = load_session(db, actor, session_id, "read")
     state = visit_signing(db, session, timezone)
+    state = replace(state, warnings=tuple(sign_warnings(session, timezone)))
     audit(db, actor, "read", "signature", session.id, session.patient_id)
     db.commit()
     return state
@@ -362,6 +394,7 @@ def signed_report(
 
 
 __all__ = [
+    "SignedVisit",
     "VisitSigning",
     "sign_visit",
     "signed_report",

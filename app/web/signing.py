@@ -45,7 +45,7 @@ def sign_visit(
             request.app.state.storage,
             settings=request.app.state.settings,
             ip=request.client.host[:45] if request.client else None,
-        )
+        ).signature
     except (NotFoundError, AuthenticationError) as exc:  # no session to go back to; logged out
         db.rollback()
         return error_page(request, user, status_code=status_of(exc), message=str(exc))

@@ -176,3 +176,47 @@ def test_the_summary_footnote_says_how_bands_are_read_without_a_developer_path(
     assert words in " ".join(html_lib.unescape(note).split()) and "docs/" not in note
     pdf = _pdf_text(client.get(f"/sessions/{session_id}/visit-report.pdf").content, tmp_path)
     assert words in pdf and "docs/" not in pdf
+
+
+def _page_warnings(page: str) -> list[str]:
+    box = re.search(r"<div [^>]*data-sign-warnings>.*?</div>", page, re.S)
+    items = re.findall(r"<li>(.*?)</li>", box.group(0), re.S) if box else []
+    return [" ".join(html_lib.unescape(re.sub(r"<[^>]+>", " ", i)).split()) for i in items]
+
+
+def test_the_api_tells_an_integrator_what_the_sign_form_warns_of(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+):
+    """The page's sign form names failed, pending and unrated trials before signing; the
+    API's signing state and its answer to signing said none of it, so a hospital system
+    asking for the password showed nothing. Both now carry the form's very sentences."""
+    csrf = login(client)
+    headers = {"X-CSRF-Token": csrf}
+    left = seeded["trials"][(1, "left")]  # measured, not rated
+    with db_sessionmaker() as db, db.begin():
+        session_id = db.get(Trial, left).session_id
+        failed = _failed_take(db, session_id, "pronation_supination", "right")
+        pending = _failed_take(db, session_id, "finger_tapping", "left", "running")
+        other_visit = db.get(Trial, seeded["trials"][(0, "right")]).session_id  # rated
+    state = client.get(f"/api/v1/sessions/{session_id}/signatures", headers=headers)
+    assert state.status_code == 200, state.text
+    warnings = state.json()["warnings"]
+    assert warnings == _page_warnings(client.get(f"/sessions/{session_id}").text)
+    assert len(warnings) == 3 and all(f"#{t} (" in " ".join(warnings)
+                                      for t in (failed, pending, left))  # fmt: skip
+    assert warnings[0].startswith("1 trial failed and will be listed in the signed report")
+    quiet = client.get(f"/api/v1/sessions/{other_visit}/signatures", headers=headers).json()
+    assert quiet["warnings"] == [] and quiet["status"] == "unsigned"
+
+    signed = client.post(f"/api/v1/sessions/{session_id}/sign", json={"password": PASSWORD},
+                         headers=headers)  # fmt: skip
+    assert signed.status_code == 201, signed.text  # warned, not refused
+    assert signed.json()["warnings"] == warnings and signed.json()["number"] == 1
+    # rated since: the state says what is left
+    r = client.patch(f"/api/v1/trials/{left}", json={"clinician_rating": 1}, headers=headers)
+    assert r.status_code == 200, r.text
+    after = client.get(f"/api/v1/sessions/{session_id}/signatures", headers=headers).json()
+    assert after["status"] == "amendment_pending"
+    assert after["warnings"] == warnings[:2] and "no rating" not in " ".join(after["warnings"])
