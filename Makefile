@@ -9,7 +9,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 # Debian/Ubuntu packages, installed when missing (as root, or through sudo):
 # - to build .venv (deps-build): the venv module, Python's headers and a C compiler
-#   (core/_blobs.pyx and core/_geometry.pyx are compiled with Cython), each only if $(PYTHON) lacks it;
+#   (core/_blobs.pyx, core/_geometry.pyx and core/_tracks.pyx are compiled with Cython), each only if $(PYTHON) lacks it;
 # - to serve (deps-run): Pango, HarfBuzz, fontconfig and a font for the PDF reports (WeasyPrint);
 # - to test (deps-test): Chromium (browser tests), poppler-utils (reading the PDF reports),
 #   postgresql-client (pg_dump/pg_restore for the PostgreSQL backup round trip).
@@ -27,7 +27,7 @@ APT_INSTALL = if [ -n "$$need" ]; then \
 
 .PHONY: run test lint deps-build deps-run deps-test system-deps bench clean
 
-$(STAMP): pyproject.toml setup.py core/_blobs.pyx core/_geometry.pyx | deps-build
+$(STAMP): pyproject.toml setup.py core/_blobs.pyx core/_geometry.pyx core/_tracks.pyx | deps-build
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'

@@ -13,6 +13,11 @@ setup(
                 ["core/_geometry.pyx"],
                 extra_compile_args=["-O3", "-ffp-contract=off"],
             ),
+            Extension(
+                "core._tracks",
+                ["core/_tracks.pyx"],
+                extra_compile_args=["-O3", "-ffp-contract=off"],
+            ),
         ],
         compiler_directives={"language_level": "3"},
     )

@@ -38,16 +38,24 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from math import nan, sqrt
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 from scipy.optimize import linear_sum_assignment
 
-from core.camera import Camera, StereoRig
+from core.camera import StereoRig
 from core.protocols import label_chains, protocol_for
 from core.tasks import Task
+
+try:
+    from core import _tracks
+except ImportError as exc:  # pragma: no cover - a source tree that was never installed
+    raise ImportError(
+        "core._tracks (the tracker's compiled loop, core/_tracks.pyx) is not built: install the"
+        " project with `pip install -e .` (needs a C compiler), or run"
+        " `python setup.py build_ext --inplace`"
+    ) from exc
 
 FloatArray = NDArray[np.float64]
 
@@ -148,160 +156,6 @@ class Tracklet:
         return float(np.sqrt(np.sum(np.var(pts, axis=0))))
 
 
-class _Track:
-    """A track being built, in plain Python floats (a frame has only a few tracks).
-
-    The last position and the constant-velocity state are kept per coordinate;
-    the arithmetic is that of the element-wise float64 formulation, value for
-    value. Positions are kept flat (x, y, z, x, ...); single-view pixels only
-    for the frames that have one.
-    """
-
-    __slots__ = (
-        "frames",
-        "kind",
-        "last_frame",
-        "last_stereo",
-        "pos",
-        "reproj",
-        "sv_px",
-        "vx",
-        "vy",
-        "vz",
-        "x",
-        "y",
-        "z",
-    )
-
-    def __init__(self, frame: int, xyz: list[float], reproj: float) -> None:
-        # Tracks start on a stereo candidate, at rest.
-        self.frames = [frame]
-        self.kind = [STEREO]
-        self.pos = list(xyz)
-        self.reproj = [reproj]
-        self.sv_px: list[tuple[int, float, float]] = []  # (row, u, v)
-        self.x, self.y, self.z = xyz
-        self.vx = self.vy = self.vz = 0.0
-        self.last_frame = frame
-        self.last_stereo = frame
-
-    def add_stereo(self, frame: int, xyz: list[float], reproj: float) -> None:
-        x, y, z = xyz
-        dt = frame - self.last_frame
-        # w * new_v + (1 - w) * v with w = 1 (1.0 * a == a exactly).
-        self.vx = (x - self.x) / dt + 0.0 * self.vx
-        self.vy = (y - self.y) / dt + 0.0 * self.vy
-        self.vz = (z - self.z) / dt + 0.0 * self.vz
-        self.x, self.y, self.z = x, y, z
-        self.last_frame = self.last_stereo = frame
-        self.frames.append(frame)
-        self.kind.append(STEREO)
-        self.pos += xyz
-        self.reproj.append(reproj)
-
-    def add_single_view(
-        self, frame: int, kind: int, xyz: list[float], px: tuple[float, float]
-    ) -> None:
-        x, y, z = xyz
-        dt = frame - self.last_frame
-        # Single-view depth is provisional: let it steer the velocity only gently.
-        self.vx = 0.5 * ((x - self.x) / dt) + 0.5 * self.vx
-        self.vy = 0.5 * ((y - self.y) / dt) + 0.5 * self.vy
-        self.vz = 0.5 * ((z - self.z) / dt) + 0.5 * self.vz
-        self.x, self.y, self.z = x, y, z
-        self.last_frame = frame
-        self.sv_px.append((len(self.frames), px[0], px[1]))
-        self.frames.append(frame)
-        self.kind.append(kind)
-        self.pos += xyz
-        self.reproj.append(np.nan)
-
-    def freeze(self) -> Tracklet:
-        pixels = np.full((len(self.frames), 2), np.nan)
-        if self.sv_px:
-            rows, u, v = zip(*self.sv_px, strict=True)
-            pixels[list(rows)] = np.column_stack([u, v])
-        return Tracklet(
-            frames=np.array(self.frames, dtype=int),
-            kind=np.array(self.kind, dtype=int),
-            positions_mm=np.array(self.pos, dtype=np.float64).reshape(-1, 3),
-            reprojection_px=np.array(self.reproj, dtype=np.float64),
-            pixels_px=pixels,
-        )
-
-
-_BIG_COST = 1e6  # gated-out pairs in the assignment
-
-
-def _closest_on_ray(origin: FloatArray, direction: FloatArray, point: FloatArray) -> FloatArray:
-    s = max(float(np.dot(point - origin, direction)), 1e-6)
-    return origin + s * direction
-
-
-def _distance(p: tuple[float, float, float], q: list[float]) -> float:
-    # The float64 operations of np.linalg.norm(p - q) over the last axis, in its order.
-    dx, dy, dz = p[0] - q[0], p[1] - q[1], p[2] - q[2]
-    return sqrt(dx * dx + dy * dy + dz * dz)
-
-
-def _assign(
-    preds: list[tuple[float, float, float]],
-    gates: list[float],
-    cands: list[list[float]],
-) -> list[tuple[int, int]]:
-    """Gated global assignment of tracks to stereo candidates, closest pairs first.
-
-    The same pairs, in the same order, as the Hungarian method on the gated 3D
-    distances (``dist`` where ``dist <= gate``, else a prohibitive cost), with
-    the gated-out pairs dropped and the rest sorted by distance. When every
-    track has at most one candidate within its gate and every candidate lies
-    within at most one gate, the optimum is exactly those pairs (any
-    assignment leaving one out costs a whole prohibitive cost more), so the
-    Hungarian method is only run when gates overlap, or when two pairs are
-    equally close (so that their order is decided as before).
-    """
-    pairs: list[tuple[float, int, int]] = []
-    for r, (px, py, pz) in enumerate(preds):
-        g = gates[r]
-        for c, (cx, cy, cz) in enumerate(cands):
-            # |dx| > g implies dist > g (sqrt(fl(dx * dx)) == |dx|, sums only grow).
-            dx = px - cx
-            if dx > g or -dx > g:
-                continue
-            dy = py - cy
-            if dy > g or -dy > g:
-                continue
-            dz = pz - cz
-            d = sqrt(dx * dx + dy * dy + dz * dz)  # as _distance, inline
-            if d <= g:
-                pairs.append((d, r, c))
-    n = len(pairs)
-    if n == 0:
-        return []
-    dists, rs, cs = zip(*pairs, strict=True)
-    if (
-        len(set(rs)) == n
-        and len(set(cs)) == n
-        and len(set(dists)) == n  # no ties: the order is unambiguous
-        # The argument needs the prohibitive cost to outweigh all gated distances together.
-        and sum(dists) < 0.5 * _BIG_COST
-    ):
-        pairs.sort()
-        return [(r, c) for _, r, c in pairs]
-    rows = [
-        [d if (d := _distance(p, q)) <= gates[r] else _BIG_COST for q in cands]
-        for r, p in enumerate(preds)
-    ]
-    cost = np.array(rows)
-    r_idx, c_idx = linear_sum_assignment(cost)
-    order = np.argsort(cost[r_idx, c_idx])
-    return [
-        (r, c)
-        for r, c in zip(r_idx[order].tolist(), c_idx[order].tolist(), strict=True)
-        if rows[r][c] < _BIG_COST
-    ]
-
-
 def build_tracklets(
     rig: StereoRig,
     observations: Sequence[FrameObservations],
@@ -313,6 +167,9 @@ def build_tracklets(
     overlap_frames: list[int] | None = None,
 ) -> list[Tracklet]:
     """Link stereo candidates (and single-view detections) frame to frame.
+
+    The loop over frames is compiled (``core/_tracks.pyx``, see ``docs/performance.md``,
+    "The tracker compiled"): a frame meets only a few tracks and candidates.
 
     Parameters
     ----------
@@ -344,203 +201,68 @@ def build_tracklets(
     """
     if gate_mm <= 0:
         raise ValueError(f"gate_mm must be positive, got {gate_mm}")
-    cams = rig.cameras
-    f_px = [0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]
-    projections = [_Projection(c) for c in cams]
-    active: list[_Track] = []
-    done: list[_Track] = []
-    # Per frame only a handful of tracks and candidates meet: plain Python
-    # floats and lists cost less here than numpy calls on tiny arrays.
-    for frame, obs in enumerate(observations):
-        n_c = obs.candidates_mm.shape[0]
-        used = ([False] * obs.left_px.shape[0], [False] * obs.right_px.shape[0])
-        used_l, used_r = used
-        cands: list[list[float]] = obs.candidates_mm.tolist()
-        reproj: list[float] = obs.reprojection_px.tolist()
-        left_index: list[int] = obs.left_index.tolist()
-        right_index: list[int] = obs.right_index.tolist()
-        if active:
-            preds: list[tuple[float, float, float]] = []
-            gates: list[float] = []
-            for tr in active:
-                gap = frame - tr.last_frame
-                preds.append((tr.x + tr.vx * gap, tr.y + tr.vy * gap, tr.z + tr.vz * gap))
-                gates.append(gate_mm * (1.0 + 0.5 * (gap - 1)))
-            if merge_px is not None and len(active) > 1:
-                if _block_merged_images(active, preds, frame, obs, projections, merge_px, used):
-                    if overlap_frames is not None:
-                        overlap_frames.append(frame)
-            assigned = [False] * len(active)
-            if n_c:
-                for r, c in _assign(preds, gates, cands):
-                    li, ri = left_index[c], right_index[c]
-                    if used_l[li] or used_r[ri]:
-                        continue  # a detection already explains a closer track
-                    used_l[li] = used_r[ri] = True
-                    assigned[r] = True
-                    active[r].add_stereo(frame, cands[c], reproj[c])
-            # Single-view continuation for tracks without a stereo candidate; end
-            # tracks that lost their markers (an assigned track has just been seen).
-            still: list[_Track] = []
-            for r, tr in enumerate(active):
-                if not assigned[r]:
-                    _continue_single_view(tr, frame, obs, cams, f_px, preds[r], gates[r], used)
-                    if (
-                        frame - tr.last_frame > max_coast_frames
-                        or frame - tr.last_stereo > max_single_view_frames
-                    ):
-                        done.append(tr)
-                        continue
-                still.append(tr)
-            active = still
-        # New tracks from unused stereo candidates (lowest reprojection error first).
-        free = [c for c in range(n_c) if not (used_l[left_index[c]] or used_r[right_index[c]])]
-        if len(free) > 1:
-            if any(reproj[c] != reproj[c] for c in free):  # NaN: numpy's order puts it last
-                keep = set(free)
-                order = np.argsort(obs.reprojection_px, kind="stable").tolist()
-                free = [c for c in order if c in keep]
-            else:
-                free.sort(key=reproj.__getitem__)  # stable, as numpy's stable argsort
-        for c in free:
-            li, ri = left_index[c], right_index[c]
-            if used_l[li] or used_r[ri]:
-                continue
-            used_l[li] = used_r[ri] = True
-            active.append(_Track(frame, cands[c], reproj[c]))
-    done.extend(active)
-    tracklets = [tr.freeze() for tr in done]
-    tracklets.sort(key=lambda t: int(t.frames[0]))
-    return tracklets
+    if not observations:
+        return []
+    frames, kind, pos, reproj, pixels, offsets, order = _tracks.link(
+        rig.cameras,
+        gate_mm,
+        max_coast_frames,
+        max_single_view_frames,
+        merge_px,
+        *_concatenated(observations),
+        overlap_frames=overlap_frames,
+    )
+    # Tracks in the order they ended, then (stably) by their first frame.
+    order.sort(key=lambda k: int(frames[offsets[k]]))
+    bounds = offsets.tolist()
+    return [
+        Tracklet(
+            frames=frames[a:b],
+            kind=kind[a:b],
+            positions_mm=pos[a:b],
+            reprojection_px=reproj[a:b],
+            pixels_px=pixels[a:b],
+        )
+        for a, b in ((bounds[k], bounds[k + 1]) for k in order)
+    ]
 
 
-class _Projection:
-    """:meth:`Camera.project` of one point in plain Python floats (the tracker asks for a
-    few points per frame, where numpy's per-call cost is most of the time); the same
-    formula, term for term. A camera with a tilted sensor goes through ``Camera.project``."""
+def _concatenated(observations: Sequence[FrameObservations]) -> tuple[NDArray[np.generic], ...]:
+    """The observations of all frames one after the other, with each frame's offsets
+    (``_tracks.link``'s arguments): candidates, their reprojection errors and
+    detection indices, candidate offsets; left detections, fitted flags, offsets;
+    the same for the right."""
 
-    __slots__ = ("cam", "dist", "k", "r", "t", "tilted")
+    def offsets(arrays: Sequence[NDArray[np.generic]]) -> NDArray[np.intp]:
+        out = np.zeros(len(arrays) + 1, dtype=np.intp)
+        np.cumsum(np.fromiter(map(len, arrays), np.intp, len(arrays)), out=out[1:])
+        return out
 
-    def __init__(self, cam: Camera) -> None:
-        self.cam = cam
-        self.r = cam.R_cam_from_world.tolist()
-        self.t = cam.t_cam_from_world_mm.tolist()
-        self.k = (cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2])
-        d = np.zeros(14)
-        d[: cam.dist.shape[0]] = cam.dist
-        self.dist = d.tolist()
-        self.tilted = d[12] != 0.0 or d[13] != 0.0
+    def fitted(
+        starts: NDArray[np.intp], flags: list[NDArray[np.bool_] | None]
+    ) -> NDArray[np.uint8]:
+        out = np.zeros(starts[-1], dtype=np.uint8)
+        for k in [k for k, f in enumerate(flags) if f is not None]:
+            out[starts[k] : starts[k + 1]] = flags[k]
+        return out
 
-    def __call__(self, p: tuple[float, float, float]) -> tuple[float, float]:
-        """Distorted pixel ``(u, v)`` of world point ``p`` (mm); NaN behind the camera."""
-        if self.tilted:
-            u, v = self.cam.project(np.array([p]))[0].tolist()
-            return u, v
-        (r0, r1, r2), t = self.r, self.t
-        z = p[0] * r2[0] + p[1] * r2[1] + p[2] * r2[2] + t[2]
-        if not z > 0:
-            return nan, nan
-        x = (p[0] * r0[0] + p[1] * r0[1] + p[2] * r0[2] + t[0]) / z
-        y = (p[0] * r1[0] + p[1] * r1[1] + p[2] * r1[2] + t[1]) / z
-        k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = self.dist[:12]
-        rr2 = x * x + y * y
-        rr4 = rr2 * rr2
-        rr6 = rr4 * rr2
-        radial = (1 + k1 * rr2 + k2 * rr4 + k3 * rr6) / (1 + k4 * rr2 + k5 * rr4 + k6 * rr6)
-        a1 = 2 * x * y
-        xd = x * radial + p1 * a1 + p2 * (rr2 + 2 * x * x) + s1 * rr2 + s2 * rr4
-        yd = y * radial + p1 * (rr2 + 2 * y * y) + p2 * a1 + s3 * rr2 + s4 * rr4
-        fx, fy, cx, cy = self.k
-        return xd * fx + cx, yd * fy + cy
-
-
-def _block_merged_images(
-    active: Sequence[_Track],
-    preds: Sequence[tuple[float, float, float]],
-    frame: int,
-    obs: FrameObservations,
-    projections: Sequence[_Projection],
-    merge_px: tuple[float, float],
-    used: tuple[list[bool], list[bool]],
-) -> bool:
-    """Mark used (unavailable) the detections of a camera in which two established
-    tracks' predictions project closer than ``merge_px`` (their images touch);
-    whether any was."""
-    recent = [r for r, tr in enumerate(active) if frame - tr.last_stereo <= 3]
-    blocked = False
-    if len(recent) < 2:
-        return blocked
-    for ci, (dets, fitted) in enumerate(
-        ((obs.left_px, obs.left_fitted), (obs.right_px, obs.right_fitted))
-    ):
-        limit = float(merge_px[ci])
-        if dets.shape[0] == 0 or not limit > 0:
-            continue
-        proj = [projections[ci](preds[r]) for r in recent]
-        # each pair once; |du| >= limit implies a distance >= limit (sqrt of a sum of squares)
-        close = [False] * len(proj)
-        for a, (ua, va) in enumerate(proj):
-            for b in range(a + 1, len(proj)):
-                du, dv = ua - proj[b][0], va - proj[b][1]
-                if du < limit and -du < limit and sqrt(du * du + dv * dv) < limit:
-                    close[a] = close[b] = True
-        centres = [uv for uv, c in zip(proj, close, strict=True) if c]
-        if not centres:
-            continue
-        for j, (x, y) in enumerate(dets.tolist()):
-            if fitted is not None and fitted[j]:
-                continue  # measured in the merged image (core.merged): not pulled by the other
-            for u, v in centres:
-                if sqrt((x - u) * (x - u) + (y - v) * (y - v)) < limit:
-                    used[ci][j] = True
-                    blocked = True
-                    break
-    return blocked
-
-
-def _continue_single_view(
-    tr: _Track,
-    frame: int,
-    obs: FrameObservations,
-    cams: Sequence[Camera],
-    f_px: Sequence[float],
-    pred_xyz: tuple[float, float, float],
-    gate_mm: float,
-    used: tuple[list[bool], list[bool]],
-) -> None:
-    """Continue a track on the detection nearest to its projected prediction in one camera.
-
-    Marks the detection used when the track takes it.
-    """
-    pred = np.array(pred_xyz)
-    best: tuple[float, int, int] | None = None
-    for ci, (cam, dets) in enumerate(zip(cams, (obs.left_px, obs.right_px), strict=True)):
-        if dets.shape[0] == 0:
-            continue
-        proj = cam.project(pred[None])[0]
-        if not np.all(np.isfinite(proj)):
-            continue
-        depth = cam.to_camera(pred[None])[0, 2]
-        gate_px = gate_mm * f_px[ci] / max(depth, 1e-6)
-        d = np.linalg.norm(dets - proj, axis=1)
-        d[np.array(used[ci], dtype=bool)] = np.inf
-        j = int(np.argmin(d))
-        if d[j] <= gate_px and (best is None or d[j] / gate_px < best[0]):
-            best = (float(d[j] / gate_px), ci, j)
-    if best is None:
-        return
-    _, ci, j = best
-    dets = obs.left_px if ci == 0 else obs.right_px
-    origin, direction = cams[ci].backproject(dets[j][None])
-    if np.all(np.isfinite(direction)):
-        # The depth along the ray is unobserved: keep the last one (the point nearest the
-        # last position), not the constant-velocity prediction's, which overshoots the
-        # turning point of a closure by centimetres within ten frames.
-        last = np.array([tr.x, tr.y, tr.z])
-        xyz = _closest_on_ray(origin[0], direction[0], last).tolist()
-        used[ci][j] = True
-        u, v = dets[j].tolist()
-        tr.add_single_view(frame, LEFT_ONLY if ci == 0 else RIGHT_ONLY, xyz, (u, v))
+    cand = [o.candidates_mm for o in observations]
+    left = [o.left_px for o in observations]
+    right = [o.right_px for o in observations]
+    left_starts, right_starts = offsets(left), offsets(right)
+    return (
+        np.concatenate(cand, dtype=np.float64).reshape(-1, 3),
+        np.concatenate([o.reprojection_px for o in observations], dtype=np.float64),
+        np.concatenate([o.left_index for o in observations], dtype=np.intp),
+        np.concatenate([o.right_index for o in observations], dtype=np.intp),
+        offsets(cand),
+        np.concatenate(left, dtype=np.float64).reshape(-1, 2),
+        fitted(left_starts, [o.left_fitted for o in observations]),
+        left_starts,
+        np.concatenate(right, dtype=np.float64).reshape(-1, 2),
+        fitted(right_starts, [o.right_fitted for o in observations]),
+        right_starts,
+    )
 
 
 def _stereo_ends(t: Tracklet) -> tuple[int, int, FloatArray, FloatArray]:
