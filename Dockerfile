@@ -3,7 +3,8 @@
 FROM python:3.11-slim-bookworm
 
 # Pango and a font for WeasyPrint's PDF reports; a C compiler for the compiled
-# marker search and the serial part's loops (core/_blobs.pyx, core/_geometry.pyx),
+# marker search and the serial part's loops (core/_blobs.pyx, core/_geometry.pyx,
+# core/_tracks.pyx),
 # removed again after the install below.
 RUN apt-get update \
  && apt-get install -y --no-install-recommends libpango-1.0-0 libpangoft2-1.0-0 libharfbuzz0b \
