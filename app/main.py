@@ -39,6 +39,7 @@ from app.settings import Settings, get_settings
 from app.storage import Storage
 from app.web import router as web_router
 from app.web.common import LoginRequired, PageForbidden, error_page, login_redirect
+from app.web.error_pages import UNEXPECTED, prefers_html, request_id_of, server_error_page
 from core.errors import BradyscopeError
 
 log = logging.getLogger(__name__)
@@ -196,15 +197,14 @@ def _wants_html_page(request: Request) -> bool:
 
 def _from_a_browser_page(request: Request) -> bool:
     """A browser's request of a page or a page's form (not the API, not a script's call)."""
-    return not request.url.path.startswith(API_PREFIX) and "text/html" in request.headers.get(
-        "accept", ""
-    )
+    return prefers_html(request, api_prefix=API_PREFIX)
 
 
 def _html_error(request: Request, status: int, message: str) -> Response:
-    """The error page (the site's layout, no navigation) for a browser asking for a page."""
-    from app.web.common import error_page  # the web layer loads after the app is made
-
+    """The error page (the site's layout, no navigation) for a browser asking for a page;
+    a server's fault's with the request id and the way back."""
+    if status >= 500:
+        return server_error_page(request, status, message)
     return error_page(request, None, status_code=status, message=message)
 
 
@@ -398,11 +398,22 @@ def _install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(DBAPIError, storage_or_unexpected)
 
     @app.exception_handler(Exception)
-    async def unexpected(request: Request, exc: Exception) -> JSONResponse:
-        # Runs in Starlette's outermost middleware, after ours: read the id from the scope.
-        request_id = request.scope.get("state", {}).get("request_id") or request_id_var.get()
+    async def unexpected(request: Request, exc: Exception) -> Response:
+        # Runs in Starlette's outermost middleware, after ours: read the id from the scope,
+        # and add the headers our middleware adds to every other answer.
+        request_id = request_id_of(request)
         log.exception("unhandled error in request %s", request_id)
-        return _error(500, f"Internal error; quote request id {request_id} to the administrator.")
+        response = (
+            server_error_page(request, 500, UNEXPECTED)
+            if _from_a_browser_page(request)
+            else _error(500, f"Internal error; quote request id {request_id} to the administrator.")
+        )
+        response.headers.update(
+            {"x-request-id": request_id, "content-security-policy": CONTENT_SECURITY_POLICY,
+             "x-content-type-options": "nosniff", "x-frame-options": "DENY",
+             "referrer-policy": "no-referrer", "cache-control": "no-store"}
+        )  # fmt: skip
+        return response
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -113,6 +113,10 @@ def _assert_unreachable_answers(
         assert r.status_code == 503, (url, r.text)
         assert r.headers["content-type"].startswith("text/html"), (url, r.text)
         assert "cannot be reached" in r.text, r.text
+        # before: no request id on the page, no way back but the (unreachable) patient list
+        assert f"request id <code>{r.headers['x-request-id']}</code>" in r.text
+        retry = 'href="/patients">Try this page again' in r.text
+        assert retry == (r.request.method == "GET") and 'href="/patients"' in r.text
 
 
 @pytest.fixture
@@ -179,3 +183,53 @@ def test_a_missing_sqlite_database_answers_503_and_a_page(tmp_path: Path) -> Non
         assert r.status_code == 503 and r.json()["detail"] == DATABASE_FILE_UNOPENED, r.text
         r = client.post("/login", headers=HTML, data=_login_form(client, "a wrong password"))
         assert r.status_code == 503 and r.headers["content-type"].startswith("text/html")
+
+
+# --------------------------------------------------------------------------- finding 10
+
+
+def test_an_unexpected_error_on_a_page_is_an_html_page_with_the_request_id(
+    app_settings: Settings,
+) -> None:
+    app = create_app(app_settings)
+
+    def broken() -> None:
+        raise RuntimeError("a bug")
+
+    app.add_api_route("/broken", broken, methods=["GET", "POST"])
+    with TestClient(app, raise_server_exceptions=False) as client:
+        r = client.get("/broken?x=1", headers=HTML)
+        assert r.status_code == 500
+        # before: {"detail": "Internal error; quote request id ..."} shown raw
+        assert r.headers["content-type"].startswith("text/html"), r.text
+        request_id = r.headers["x-request-id"]
+        assert f"request id <code>{request_id}</code>" in r.text
+        assert 'href="/broken?x=1">Try this page again' in r.text and 'href="/patients"' in r.text
+        assert "a bug" not in r.text and "Traceback" not in r.text
+        assert "default-src 'self'" in r.headers["content-security-policy"]
+        assert r.headers["cache-control"] == "no-store"
+        r = client.post("/broken", headers=HTML, data={"a": "b"})  # a form: no retry link
+        assert r.status_code == 500 and "Try this page again" not in r.text
+        assert r.headers["x-request-id"] in r.text
+        for accept in ("application/json", "*/*", "application/json, text/html;q=0.5"):
+            r = client.get("/broken", headers={"Accept": accept})
+            assert r.status_code == 500 and r.headers["x-request-id"] in r.json()["detail"]
+        r = client.get("/api/v1/nothing-here-either", headers=HTML)
+        assert r.headers["content-type"].startswith("application/json")  # the API keeps JSON
+
+
+def test_the_error_page_links_back_on_this_site_only(app_settings: Settings) -> None:
+    app = create_app(app_settings)
+
+    def broken() -> None:
+        raise RuntimeError("a bug")
+
+    app.add_api_route("/{rest:path}", broken)
+    with TestClient(app, raise_server_exceptions=False) as client:
+        for path, back in (
+            ("http://testserver//evil.example/x", "/evil.example/x"),  # not "//evil.example"
+            ("/%5Cevil.example/x", "/%5Cevil.example/x"),  # stays encoded: a path here
+        ):
+            r = client.get(path, headers=HTML)
+            assert r.status_code == 500
+            assert f'href="{back}">Try this page again' in r.text, r.text
