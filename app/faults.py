@@ -6,8 +6,9 @@ ways of saying so and turns them into the service's errors:
 
 - disk full (``ENOSPC``, ``EDQUOT``, SQLite ``SQLITE_FULL``, PostgreSQL
   ``53100 disk_full``) -> :class:`InsufficientStorageError` (507);
-- read-only (``EROFS``, SQLite ``SQLITE_READONLY``, PostgreSQL ``25006``),
-  a storage I/O error, or an unreachable database -> 503. Unreachable: a
+- read-only (``EROFS``; the database: SQLite ``SQLITE_READONLY``, PostgreSQL
+  ``25006``, each named as such), a storage I/O error, or an unreachable
+  database -> 503. Unreachable: a
   connection refused or cut, a database not accepting connections (psycopg's
   errors without a SQLSTATE, ``08xxx``, ``57P0x``), a SQLite file that cannot be
   opened (missing, or on a read-only disk where its ``-wal`` cannot be made).
@@ -19,8 +20,9 @@ written, because every read writes its audit event: failing closed is right,
 and the answer says why.
 
 :func:`check_health` is what ``GET /health`` answers: the database answers a
-query, and a file can be written, fsynced and removed in the data directory (at
-most every :data:`WRITE_CHECK_INTERVAL_S` seconds; the verdict is kept in between).
+query and takes a write (rolled back), and a file can be written, fsynced and
+removed in the data directory (both writes at most every
+:data:`WRITE_CHECK_INTERVAL_S` seconds; their verdicts are kept in between).
 The answer names no path, and tells the data directory's free space only to an
 authenticated caller.
 """
@@ -32,6 +34,7 @@ import errno
 import os
 import threading
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from time import monotonic
@@ -55,6 +58,11 @@ FULL = (
 READ_ONLY = (
     "The server's storage refuses writes (read-only), so nothing was saved; ask the"
     " administrator to check the data directory's disk, then retry."
+)
+READ_ONLY_DATABASE = (
+    "The database refuses writes (read-only), so nothing was saved; ask the administrator to"
+    " check the database (a standby server, default_transaction_read_only, or the database"
+    " file's permissions), then retry."
 )
 IO_ERROR = (
     "The server's storage reported an input/output error, so nothing was saved; ask the"
@@ -80,7 +88,7 @@ def _sqlite_fault(orig: Any) -> AppError | None:
     if name == "SQLITE_FULL" or "database or disk is full" in message:
         return InsufficientStorageError(FULL)
     if name.startswith("SQLITE_READONLY") or "readonly database" in message:
-        return StorageReadOnlyError(READ_ONLY)
+        return StorageReadOnlyError(READ_ONLY_DATABASE)
     if name.startswith("SQLITE_CANTOPEN") or "unable to open database file" in message:
         return ServiceUnavailableError(DATABASE_FILE_UNOPENED)  # gone, or no -wal/-shm made
     if name.startswith("SQLITE_IOERR") or "disk i/o error" in message:
@@ -97,7 +105,7 @@ def _postgres_fault(orig: Any, *, operational: bool) -> AppError | None:
     if (
         sqlstate == "25006"
     ):  # read_only_sql_transaction (a standby, or default_transaction_read_only)
-        return StorageReadOnlyError(READ_ONLY)
+        return StorageReadOnlyError(READ_ONLY_DATABASE)
     if sqlstate.startswith("08") or sqlstate in ("57P01", "57P02", "57P03"):
         return ServiceUnavailableError(DATABASE_DOWN)
     if sqlstate == "55000" and "accepting connections" in str(orig):  # ALLOW_CONNECTIONS false
@@ -159,6 +167,7 @@ class Health:
 
 
 def _check_database(engine: Engine) -> str | None:
+    """The database answers a query (each call), and takes a write (every few seconds)."""
     try:
         with engine.connect() as conn:
             conn.execute(text("SELECT 1")).scalar_one()
@@ -166,16 +175,56 @@ def _check_database(engine: Engine) -> str | None:
         fault = storage_fault(exc)
         reason = str(fault) if fault is not None else DATABASE_DOWN
         return f"Database: {reason}"
+    key = ("database", engine.url.render_as_string(hide_password=True))
+    return _cached(key, lambda: _probe_database_write(engine))
+
+
+def _probe_database_write(engine: Engine) -> str | None:
+    """Write to the database and roll back: None, or why it cannot be written.
+
+    Every request writes (its audit event): a database that answers queries but refuses
+    writes (a standby, ``default_transaction_read_only``, a read-only SQLite file) fails
+    them all. The write changes nothing (alembic's one row set to itself) and is rolled
+    back; another writer holding SQLite's lock shows that it can be written.
+    """
+    try:
+        with engine.connect() as conn:
+            transaction = conn.begin()
+            try:
+                conn.execute(text("UPDATE alembic_version SET version_num = version_num"))
+            finally:
+                transaction.rollback()
+    except Exception as exc:
+        if "database is locked" in str(exc):  # SQLite: another writer, so it takes writes
+            return None
+        fault = storage_fault(exc)
+        reason = (
+            str(fault) if fault is not None else f"it cannot be written ({type(exc).__name__})."
+        )
+        return f"Database: {reason}"
     return None
 
 
 WRITE_CHECK_INTERVAL_S = 5.0
-"""The data directory's write check runs at most this often; calls in between answer its
-last verdict, so unauthenticated callers of ``/health`` cannot make the server write and
-fsync files in a loop."""
+"""The write checks (data directory, database) run at most this often; calls in between
+answer their last verdict, so unauthenticated callers of ``/health`` cannot make the server
+write (and fsync) in a loop."""
 
-_write_checks: dict[Path, tuple[float, str | None]] = {}
+_write_checks: dict[object, tuple[float, str | None]] = {}
 _write_checks_lock = threading.Lock()
+
+
+def _cached(key: object, probe: Callable[[], str | None]) -> str | None:
+    """``probe()``'s verdict, made at most every :data:`WRITE_CHECK_INTERVAL_S` seconds per
+    ``key`` (concurrent callers wait for one probe)."""
+    with _write_checks_lock:
+        now = monotonic()
+        last = _write_checks.get(key)
+        if last is not None and now - last[0] < WRITE_CHECK_INTERVAL_S:
+            return last[1]
+        problem = probe()
+        _write_checks[key] = (monotonic(), problem)
+        return problem
 
 
 def _probe_write(data_dir: Path) -> str | None:
@@ -209,18 +258,11 @@ def _probe_write(data_dir: Path) -> str | None:
 def _check_writable(data_dir: Path) -> str | None:
     """:func:`_probe_write`'s verdict, made at most every :data:`WRITE_CHECK_INTERVAL_S`
     seconds per data directory (concurrent callers wait for one probe)."""
-    with _write_checks_lock:
-        now = monotonic()
-        last = _write_checks.get(data_dir)
-        if last is not None and now - last[0] < WRITE_CHECK_INTERVAL_S:
-            return last[1]
-        problem = _probe_write(data_dir)
-        _write_checks[data_dir] = (monotonic(), problem)
-        return problem
+    return _cached(("storage", data_dir), lambda: _probe_write(data_dir))
 
 
 def check_health(engine: Engine, data_dir: Path) -> Health:
-    """Whether the database answers and the data directory takes a file."""
+    """Whether the database answers and takes a write, and the data directory a file."""
     health = Health()
     for name, problem in (
         ("database", _check_database(engine)),

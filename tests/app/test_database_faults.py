@@ -27,6 +27,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy.exc import DBAPIError
 from tcp_proxy import TcpProxy
 
+from app import faults
 from app.apikeys import generate_api_key
 from app.db import dispose_engines, get_sessionmaker
 from app.errors import ServiceUnavailableError
@@ -233,3 +234,92 @@ def test_the_error_page_links_back_on_this_site_only(app_settings: Settings) -> 
             r = client.get(path, headers=HTML)
             assert r.status_code == 500
             assert f'href="{back}">Try this page again' in r.text, r.text
+
+
+# --------------------------------------------------------------------------- finding 5
+
+
+def _read_only_sqlite(settings: Settings) -> Settings:
+    """``settings``' SQLite database opened read-only (what SQLite does with a file, or a
+    ``-wal``, it may not write)."""
+    path = settings.data_dir / "bradyscope.sqlite3"
+    return settings.model_copy(update={"database_url": f"sqlite:///file:{path}?mode=ro&uri=true"})
+
+
+def test_a_read_only_sqlite_database_is_named_and_fails_health(
+    app_settings: Settings, db_sessionmaker, monkeypatch
+) -> None:
+    monkeypatch.setattr(faults, "WRITE_CHECK_INTERVAL_S", 0.0)
+    key = make_api_key(db_sessionmaker)
+    with TestClient(create_app(_read_only_sqlite(app_settings))) as client:
+        r = client.get("/api/v1/patients", headers={"Authorization": f"Bearer {key}"})
+        # before: "... check the data directory's disk"
+        assert r.status_code == 503 and r.json()["detail"] == faults.READ_ONLY_DATABASE, r.text
+        health = client.get("/health")
+        # before: 200 {"status": "ok", "database": "ok", ...}
+        assert health.status_code == 503, health.text
+        assert health.json()["database"] == "failed" and health.json()["storage"] == "ok"
+        assert faults.READ_ONLY_DATABASE in health.json()["detail"]
+    with TestClient(create_app(app_settings)) as client:
+        assert client.get("/health").status_code == 200
+
+
+@pytest.mark.postgres
+def test_a_read_only_postgresql_is_named_and_fails_health(
+    pg_settings: Settings, pg_admin_url: str, monkeypatch
+) -> None:
+    monkeypatch.setattr(faults, "WRITE_CHECK_INTERVAL_S", 0.0)
+    key = make_api_key(get_sessionmaker(pg_settings))
+    name = sa.make_url(pg_settings.database_url).database
+    admin = sa.create_engine(pg_admin_url, isolation_level="AUTOCOMMIT")
+    app = create_app(pg_settings)
+    try:
+        with TestClient(app) as client:
+            assert client.get("/health").status_code == 200
+            with admin.connect() as conn:
+                conn.execute(
+                    sa.text(f'ALTER DATABASE "{name}" SET default_transaction_read_only = on')
+                )
+            app.state.engine.dispose()  # new sessions take the database's new default
+            r = client.get("/api/v1/patients", headers={"Authorization": f"Bearer {key}"})
+            assert r.status_code == 503, r.text
+            assert (
+                r.json()["detail"] == faults.READ_ONLY_DATABASE
+            )  # before: "the data directory's disk"
+            health = client.get("/health")
+            assert health.status_code == 503, health.text  # before: 200, "database": "ok"
+            assert faults.READ_ONLY_DATABASE in health.json()["detail"]
+            with admin.connect() as conn:
+                conn.execute(
+                    sa.text(f'ALTER DATABASE "{name}" RESET default_transaction_read_only')
+                )
+            app.state.engine.dispose()
+            assert client.get("/health").status_code == 200
+    finally:
+        admin.dispose()
+
+
+def test_health_writes_to_the_database_at_most_every_few_seconds_and_keeps_nothing(
+    app_settings: Settings, db_sessionmaker, monkeypatch
+) -> None:
+    clock = [1000.0]
+    monkeypatch.setattr(faults, "monotonic", lambda: clock[0])
+    app = create_app(app_settings)
+    writes: list[str] = []
+
+    @sa.event.listens_for(app.state.engine, "before_cursor_execute")
+    def count(conn, cursor, statement, parameters, context, executemany) -> None:
+        if statement.lstrip().upper().startswith("UPDATE"):
+            writes.append(statement)
+
+    with db_sessionmaker() as db:
+        version = db.scalar(sa.text("SELECT version_num FROM alembic_version"))
+    with TestClient(app) as client:
+        for _ in range(10):
+            assert client.get("/health").status_code == 200
+        assert len(writes) == 1  # before: 0 (SELECT 1 only)
+        clock[0] += faults.WRITE_CHECK_INTERVAL_S
+        assert client.get("/health").status_code == 200
+        assert len(writes) == 2
+    with db_sessionmaker() as db:
+        assert db.scalar(sa.text("SELECT version_num FROM alembic_version")) == version
