@@ -5,7 +5,9 @@ A full disk or a read-only data directory used to surface as a bare 500.
 ways of saying so and turns them into the service's errors:
 
 - disk full (``ENOSPC``, ``EDQUOT``, SQLite ``SQLITE_FULL``, PostgreSQL
-  ``53100 disk_full``) -> :class:`InsufficientStorageError` (507);
+  ``53100 disk_full``) -> :class:`InsufficientStorageError` (507); a file larger
+  than the file system (FAT, exFAT) or the process's limit (``RLIMIT_FSIZE``)
+  allows (``EFBIG``) too, with its own sentence;
 - read-only (``EROFS``; the database: SQLite ``SQLITE_READONLY``, PostgreSQL
   ``25006``, each named as such), a storage I/O error, or an unreachable
   database -> 503. Unreachable: a
@@ -63,6 +65,11 @@ READ_ONLY_DATABASE = (
     "The database refuses writes (read-only), so nothing was saved; ask the administrator to"
     " check the database (a standby server, default_transaction_read_only, or the database"
     " file's permissions), then retry."
+)
+FILE_TOO_LARGE = (
+    "The file is larger than the data directory's file system or limits allow, so nothing was"
+    " saved; ask the administrator to check the disk's format (FAT and exFAT take files"
+    " under 4 GB) or the service's file size limit (LimitFSIZE, ulimit -f), then retry."
 )
 IO_ERROR = (
     "The server's storage reported an input/output error, so nothing was saved; ask the"
@@ -130,6 +137,8 @@ def storage_fault(exc: BaseException) -> AppError | None:
     if isinstance(exc, OSError):
         if exc.errno in _FULL_ERRNOS:
             return InsufficientStorageError(FULL)
+        if exc.errno == errno.EFBIG:
+            return InsufficientStorageError(FILE_TOO_LARGE)
         if exc.errno in _READ_ONLY_ERRNOS:
             return StorageReadOnlyError(READ_ONLY)
         if exc.errno in _IO_ERRNOS:

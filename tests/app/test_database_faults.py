@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixtures imported from api_support are parameters here)
 """The database gone or read-only is said as such (review of failures, 2026-11-28).
 
 - 1: a database that cannot be reached (refused, not accepting connections, its
@@ -5,6 +6,8 @@
   documented sentence, not 500;
 - 5: a read-only database is named as the database, and ``/health`` fails while the
   database cannot be written;
+- 7: a file larger than the file system or the process's limits allow (EFBIG) is a
+  507 with its own sentence;
 - 10: a page's server error is an HTML page with the request id and a way back.
 
 The PostgreSQL tests put a TCP proxy (tests/app/tcp_proxy.py) between the application
@@ -14,14 +17,23 @@ down does to the application.
 
 from __future__ import annotations
 
+import json
 import re
 import socket
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
-from api_support import make_api_key, make_user
+from api_support import (
+    api,  # noqa: F401
+    make_api_key,
+    make_user,
+    seed_recording_target,
+    video_pair,  # noqa: F401
+)
 from conftest import make_test_settings
 from fastapi.testclient import TestClient
 from sqlalchemy.exc import DBAPIError
@@ -323,3 +335,51 @@ def test_health_writes_to_the_database_at_most_every_few_seconds_and_keeps_nothi
         assert len(writes) == 2
     with db_sessionmaker() as db:
         assert db.scalar(sa.text("SELECT version_num FROM alembic_version")) == version
+
+
+# --------------------------------------------------------------------------- finding 7
+
+_UPLOAD_UNDER_A_FILE_SIZE_LIMIT = r"""
+import json, resource, sys
+from pathlib import Path
+from fastapi.testclient import TestClient
+from app.main import create_app
+from app.settings import Settings
+
+data_dir, key, session_id, left, right, limit = sys.argv[1:7]
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(limit), int(limit)))  # as `ulimit -f`, LimitFSIZE
+settings = Settings(data_dir=data_dir, max_upload_bytes=64 * 1024 * 1024)
+with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+    files = {
+        "left_video": ("left.mp4", Path(left).read_bytes(), "video/mp4"),
+        "right_video": ("right.mp4", Path(right).read_bytes(), "video/mp4"),
+    }
+    r = client.post(f"/api/v1/sessions/{session_id}/trials", data={"hand": "left"},
+                    files=files, headers={"Authorization": f"Bearer {key}"})
+    print(json.dumps({"status": r.status_code, "body": r.text}))
+"""
+
+
+def test_a_file_larger_than_the_file_system_allows_answers_507(api, video_pair, tmp_path) -> None:
+    """EFBIG (a FAT/exFAT disk, systemd's LimitFSIZE, ``ulimit -f``) is a 507 with its
+    sentence, not a 500 with a traceback; nothing is kept."""
+    seeded = seed_recording_target(api)
+    before, files_before = api.recording_rows(), api.stored_files()
+    dispose_engines()
+    database = api.settings.data_dir / "bradyscope.sqlite3"
+    limit = database.stat().st_size + 4 * 1024 * 1024  # bytes: the database may still grow
+    big_left = tmp_path / "left.mp4"  # a video followed by more bytes than the limit allows
+    big_left.write_bytes(video_pair[0].read_bytes() + b"\0" * (limit + 1024 * 1024))
+    script = tmp_path / "upload.py"
+    script.write_text(_UPLOAD_UNDER_A_FILE_SIZE_LIMIT)
+    args = [str(api.settings.data_dir), api.key, str(seeded.session_id), str(big_left)]
+    proc = subprocess.run(
+        [sys.executable, str(script), *args, str(video_pair[1]), str(limit)],
+        capture_output=True, text=True, check=False, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    answer = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert answer["status"] == 507, answer  # before: 500 "Internal error"
+    assert json.loads(answer["body"])["detail"] == faults.FILE_TOO_LARGE
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert api.recording_rows() == before and api.stored_files() == files_before
