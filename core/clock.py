@@ -62,7 +62,7 @@ from core.sync import (
     given_offset,
     link_points,
 )
-from core.timing import FrameTimes, uniform_times
+from core.timing import FrameTimes, lost_after, uniform_times
 
 FloatArray = NDArray[np.float64]
 
@@ -208,15 +208,12 @@ def _tracks(
     return _Tracks(pts, counts, starts, nxt, prv, frame_of, row_delay_s(camera, pts))
 
 
-def _table_at(tracks: _Tracks, frame_t: FloatArray, interval_s: float) -> TrackTable:
-    """The :class:`TrackTable` of ``tracks`` at frame times ``frame_t``: tracks cut at gaps."""
-    n = len(tracks.counts)
+def _table_at(tracks: _Tracks, frame_t: FloatArray, gap: NDArray[np.bool_]) -> TrackTable:
+    """The :class:`TrackTable` of ``tracks`` at frame times ``frame_t``: tracks cut after
+    the frames where ``gap`` ``(T,)`` says frames were lost."""
     nxt, prv = tracks.nxt.copy(), tracks.prv.copy()
     has = nxt >= 0
     frame_t = np.asarray(frame_t, dtype=np.float64)
-    gap = np.zeros(n, dtype=bool)
-    if n > 1:
-        gap[:-1] = np.diff(frame_t) >= 1.5 * interval_s
     # No track crosses a gap of lost frames.
     cross = has & gap[tracks.frame]
     prv[nxt[cross]] = -1
@@ -234,8 +231,10 @@ def track_table(
     interval_s: float,
 ) -> TrackTable:
     """One camera's detections with their 2D tracks (``links``, :func:`core.sync.link_points`)
-    and their instants; tracks are cut at gaps of lost frames."""
-    return _table_at(_tracks(points_px, camera=camera, links=links), frame_t, interval_s)
+    and their instants; tracks are cut at gaps of lost frames (the grid of
+    :func:`core.timing.lost_after`: a late frame followed by an early one is no gap)."""
+    gap = lost_after(frame_t, 1.0 / interval_s) > 0
+    return _table_at(_tracks(points_px, camera=camera, links=links), frame_t, gap)
 
 
 def points_at_times(
@@ -622,7 +621,10 @@ class _Estimator:
     def scene(self, dropped_left: Sequence[int], dropped_right: Sequence[int]) -> _Scene:
         left_t = corrected_times(self.left_times, dropped_left)
         right_t = corrected_times(self.right_times, dropped_right)
-        table = _table_at(self.right_tracks, right_t, self.right_times.interval_s)
+        # Tracks are cut where the timestamps (their grid) or the model lost frames.
+        gap = self.right_times.gap_after.copy()
+        gap[np.asarray(dropped_right, dtype=np.intp)] = True
+        table = _table_at(self.right_tracks, right_t, gap)
         return _Scene(
             self.rig, self.left_flat, left_t, table, _focal(self.rig.left), _focal(self.rig.right)
         )

@@ -14,10 +14,13 @@ which gray frames from PyAV's decoder reproduce to the bit, agrees with the
 container's own timestamps read by PyAV to the time base's resolution, which
 ``tests/core/test_timing.py`` checks), so timestamps cost nothing extra.
 
-Lost frames show in timestamps that carry information as intervals of about
-two or more nominal intervals (:attr:`FrameTimes.dropped_after`). With
-constant timestamps they are invisible here; :mod:`core.clock` finds them
-where the offset between the cameras steps by whole frames.
+Lost frames show in timestamps that carry information as room in the time line
+(:attr:`FrameTimes.dropped_after`): each frame is put in a slot of a regular grid
+fitted to the times, and a frame is lost where the grid has a slot that no frame
+takes. A late frame followed by an early one (53 ms then 14 ms at 33.7 ms) sits in
+two consecutive slots, so jitter is not taken for lost frames. With constant
+timestamps they are invisible here; :mod:`core.clock` finds them where the offset
+between the cameras steps by whole frames.
 
 The other half of the time model, how the right camera's clock maps to the
 left one's, is :mod:`core.clock`.
@@ -32,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import isotonic_regression
 
 from core.errors import InputError
 
@@ -40,8 +44,11 @@ FloatArray = NDArray[np.float64]
 #: Timestamps that deviate from a constant rate by more than this share of a
 #: frame interval carry per-frame information (variable frame rate).
 VFR_TOLERANCE = 0.05
-#: An interval this many nominal intervals long (or longer) means lost frames.
+#: Only times with an interval this many nominal intervals long (or longer) can hold
+#: lost frames; where they do is said by the grid (:func:`_gaps`).
 DROP_FACTOR = 1.5
+#: The grid's period is searched within this share of the median interval.
+GRID_SEARCH = 0.1
 
 FROM_FILE = "file"
 FROM_CONTAINER = "container"
@@ -114,12 +121,105 @@ class FrameTimes:
 
 
 def _gaps(t: FloatArray, fps: float) -> list[tuple[int, int]]:
-    """``(frame, frames lost after it)`` for intervals of at least ``DROP_FACTOR`` nominal ones."""
-    if len(t) < 2:
-        return []
-    steps = np.diff(t) * fps
-    idx = np.flatnonzero(steps >= DROP_FACTOR)
-    return [(int(i), max(1, round(float(steps[i])) - 1)) for i in idx]
+    """``(frame, frames lost after it)`` by :func:`lost_after`."""
+    lost = lost_after(t, fps)
+    return [(int(i), int(lost[i])) for i in np.flatnonzero(lost)]
+
+
+def lost_after(t_s: ArrayLike, fps: float) -> NDArray[np.int64]:
+    """How many frames were lost after each frame: the slots of the grid fitted to the
+    times (:func:`grid_slots`) that no frame takes before the next frame's.
+
+    Times without an interval of ``DROP_FACTOR`` nominal intervals (``1 / fps``) have
+    no room for a lost frame: none is looked for.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (T,)
+        Capture times (s), strictly increasing.
+    fps : float
+        Nominal frame rate (Hz).
+
+    Returns
+    -------
+    ndarray of int64, shape (T,)
+        Frames lost between each frame and the next (0 for the last).
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    out = np.zeros(len(t), dtype=np.int64)
+    if len(t) < 2 or float(np.max(np.diff(t))) * fps < DROP_FACTOR:
+        return out
+    out[:-1] = np.diff(grid_slots(t, fps)) - 1
+    return out
+
+
+def grid_slots(t_s: ArrayLike, fps: float) -> NDArray[np.int64]:
+    """The slot of each frame in the regular grid that fits its capture times best.
+
+    The grid ``a + k · period`` is fitted to the times, not to their intervals: its
+    period is where the frames' phases agree best (the peak of
+    ``|Σ exp(2πi t / period)|`` within ``GRID_SEARCH`` of ``1 / fps``, which neither
+    lost frames nor jitter displace), then each frame's count of earlier lost frames
+    ``c_i = k_i − i`` is the non-decreasing whole-number sequence nearest (least squares)
+    to ``(t_i − a) / period − i`` (isotonic regression, rounded), and the grid is refitted
+    to the slots by least squares (a clock running a little fast or slow), until the slots
+    stay. A late frame and an early one after it pool to consecutive slots; a lost frame
+    moves every later frame a period on, which the jitter of single frames does not.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (T,)
+        Capture times (s), strictly increasing.
+    fps : float
+        Nominal frame rate (Hz), e.g. ``1 / median interval``.
+
+    Returns
+    -------
+    ndarray of int64, shape (T,)
+        Strictly increasing slots, the first 0.
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    if not (fps > 0 and np.isfinite(fps)):
+        raise ValueError(f"fps must be positive, got {fps}")
+    n = len(t)
+    if n < 2:
+        return np.zeros(n, dtype=np.int64)
+    t = t - t[0]
+    freq, offset = _grid_by_phase(t, float(fps))
+    index = np.arange(n)
+    slots = index.astype(np.int64)
+    for _ in range(5):
+        ahead = isotonic_regression((t - offset) * freq - index).x
+        lost = np.rint(ahead).astype(np.int64)
+        new = index + lost - lost[0]
+        if np.array_equal(new, slots):
+            break
+        slots = new
+        period, offset = np.polyfit(slots, t, 1)
+        freq = 1.0 / float(period)
+    return slots
+
+
+def _grid_by_phase(t: FloatArray, fps: float) -> tuple[float, float]:
+    """The grid's frequency (Hz) and its time at slot 0 (s, within half a period of the
+    first frame): the frequency within ``GRID_SEARCH`` of ``fps`` at which the frames'
+    phases agree best, searched on the first frames' span first and narrowed on longer
+    spans (the peak narrows as ``1 / span``)."""
+    lo, hi = fps * (1 - GRID_SEARCH), fps * (1 + GRID_SEARCH)
+    span = min(float(t[-1]), 1000.0 / fps)  # s: the first ~1000 frames' span first
+    while True:
+        part = t[t <= span]
+        step = 0.25 / max(span, 1.0 / fps)  # Hz: a quarter of the peak's width
+        freqs = np.arange(lo, hi + step, step)
+        power = np.abs(np.exp(2j * np.pi * np.outer(freqs, part)).sum(axis=1))
+        best = int(np.argmax(power))
+        freq = float(freqs[best])
+        if span >= t[-1]:
+            break
+        lo, hi = freq - 2 * step, freq + 2 * step
+        span = min(float(t[-1]), 8 * span)
+    phase = float(np.angle(np.exp(2j * np.pi * freq * t).sum()))
+    return freq, phase / (2 * np.pi * freq)
 
 
 def lost_frame_gaps(dropped_after: Sequence[int]) -> list[tuple[int, int]]:

@@ -15,7 +15,7 @@ from __future__ import annotations
 from importlib import metadata
 
 #: Bump when the numbers of ``result.json`` would change for the same recording.
-ALGORITHM_VERSION = "2026.3"
+ALGORITHM_VERSION = "2026.4"
 
 PACKAGE_NAME = "bradyscope"
 

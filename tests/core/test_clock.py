@@ -152,6 +152,23 @@ def test_variable_frame_rate_timestamps_with_jitter_and_gaps():
     assert np.sqrt(np.mean(err**2)) < 0.1  # px
 
 
+def test_jittered_timestamps_lose_no_frames_to_jitter():
+    """Capture jitter of 15 % of a period (2.5 ms at 60 fps) makes late-then-early pairs
+    whose first interval is 1.5 periods: taken for lost frames (5 left, 3 right), the
+    right tracks were cut there and 1.4 % of the left frames had no right points."""
+    left = CameraTiming(jitter_s=0.0025, vfr=True)
+    right = CameraTiming(start_s=0.05, drift_ppm=-200, jitter_s=0.0025, vfr=True, drop_after=(90,))
+    truth, rig, clocks, det, norm, times = _setup(left=left, right=right)
+    assert np.sum(np.diff(times["left"].t_s) * 60 >= 1.5) >= 3  # the jitter's long intervals
+    res = _run(rig, det, norm, times)
+    assert res.sync["dropped_frames_left"] == []
+    assert res.sync["dropped_frames_right"] == [90]
+    # The right camera starts 3 frames late and loses one: no right points there only.
+    assert np.mean([len(p) > 0 for p in res.right_px]) >= 0.985
+    err = _right_at_left_error_px(truth, rig, clocks, res)
+    assert np.sqrt(np.mean(err**2)) < 0.1  # px
+
+
 def test_different_frame_rates_are_measured_at_the_left_instants():
     truth, rig, clocks, det, norm, times = _setup(
         right=CameraTiming(fps=60.0, start_s=0.04), fps=120.0

@@ -16,6 +16,9 @@ from core.timing import (
     FrameTimes,
     fit_to_frames,
     frame_times_from_timestamps,
+    grid_slots,
+    lost_after,
+    lost_frame_gaps,
     read_times_csv,
 )
 from core.video import VideoWriter, iter_frames, probe_video
@@ -55,6 +58,98 @@ def test_variable_timestamps_are_kept_and_show_lost_frames():
     assert ft.dropped_after == [30, 80, 80]
     assert abs(ft.fps - 60.0) < 0.5  # Hz: the median interval, not the container average
     assert ft.gap_after[30] and ft.gap_after[80] and not ft.gap_after[31]
+
+
+PERIOD_S = 0.0337  # s: a browser take's nominal interval (29.7 Hz)
+
+
+def _take(
+    n: int, lost: tuple[int, ...], jitter: float, kind: str, *, seed: int, ppm: float = 300.0
+) -> np.ndarray:
+    """Capture times (s) of ``n`` frames on a grid of ``PERIOD_S`` (its clock ``ppm`` off),
+    a frame lost after each frame in ``lost`` (repeated: several), each frame moved by
+    ``jitter`` periods: the standard deviation (``"gauss"``) or the half-width
+    (``"uniform"``)."""
+    rng = np.random.default_rng(seed)
+    slots = np.arange(n) + np.searchsorted(np.sort(lost), np.arange(n), side="left")
+    e = rng.normal(0, jitter, n) if kind == "gauss" else rng.uniform(-jitter, jitter, n)
+    return (slots + e) * PERIOD_S * (1 + ppm * 1e-6)
+
+
+def _lost_truth(n: int, seed: int) -> tuple[int, ...]:
+    """Six single lost frames and a gap of three, at seeded places."""
+    at = np.random.default_rng(1000 + seed).choice(np.arange(5, n - 5), size=7, replace=False)
+    return tuple(sorted([*at.tolist(), int(at[0]), int(at[0])]))
+
+
+def test_a_late_frame_then_an_early_one_is_not_a_lost_frame():
+    # A trial's intervals: 53 ms then 14 ms at 33.7 ms; a gap of two periods is one lost.
+    steps = [33.7] * 20 + [53.0, 14.4] + [33.7] * 20 + [67.4] + [33.7] * 20  # ms
+    t = np.concatenate([[0.0], np.cumsum(steps)]) / 1000
+    times = FrameTimes(t, 1 / PERIOD_S, FROM_FILE)
+    assert times.dropped_after == [42]
+    assert np.flatnonzero(times.gap_after).tolist() == [42]
+    np.testing.assert_array_equal(lost_after(t, 1 / PERIOD_S), times.gap_after.astype(int))
+    # Three in a row late by 0.6, 0.6 and 0.55 periods, then back on time: none lost.
+    late = np.arange(40.0)
+    late[10:13] += [0.6, 0.6, 0.55]
+    assert FrameTimes(late * PERIOD_S, 1 / PERIOD_S, FROM_FILE).dropped_after == []
+
+
+@pytest.mark.parametrize(
+    ("kind", "jitter", "heavy"),
+    [
+        ("uniform", 0.10, False),
+        ("uniform", 0.25, False),
+        ("uniform", 0.40, True),
+        ("gauss", 0.10, False),
+        ("gauss", 0.15, True),
+    ],
+)
+def test_lost_frames_in_jitter_are_the_true_ones(kind: str, jitter: float, heavy: bool):
+    """Ground truth: 300 frames, six single lost frames and a gap of three, every frame
+    moved by jitter (uniform up to ±40 % of a period, Gaussian up to σ = 15 %) and a
+    clock 300 ppm slow; the fps given is the median interval's, as read from a file.
+    Beyond (σ = 20 %: a frame next to a gap moved by over half a period is nearer the
+    other slot) the count holds in most takes and a gap may be placed a frame off."""
+    false_candidates = 0
+    for seed in range(20):
+        truth = _lost_truth(300, seed)
+        t = _take(300, truth, jitter, kind, seed=seed)
+        assert np.all(np.diff(t) > 0)
+        times = FrameTimes(t, 1 / float(np.median(np.diff(t))), FROM_FILE)
+        assert times.dropped_after == list(truth), seed
+        # intervals of 1.5 periods or more that hold no lost frame: late-then-early pairs
+        gaps = {i for i, _ in lost_frame_gaps(truth)}
+        long = np.flatnonzero(np.diff(t) * times.fps >= 1.5)
+        false_candidates += len(set(long.tolist()) - gaps)
+    if heavy:  # intervals of 1.5 periods held no lost frame (353 and 47 over the 20 takes)
+        assert false_candidates > 20
+
+
+@pytest.mark.parametrize(("kind", "jitter"), [("uniform", 0.25), ("gauss", 0.15)])
+def test_one_lost_frame_in_heavy_jitter_is_found(kind: str, jitter: float):
+    for seed in range(20):
+        at = 40 + 7 * seed
+        t = _take(250, (at,), jitter, kind, seed=seed, ppm=-2000.0)
+        times = FrameTimes(t, 1 / float(np.median(np.diff(t))), FROM_FILE)
+        assert times.dropped_after == [at], seed
+
+
+def test_grid_slots_checks_shapes_and_scale():
+    assert grid_slots(np.array([]), 30.0).shape == (0,)
+    assert grid_slots(np.array([5.0]), 30.0).tolist() == [0]
+    with pytest.raises(ValueError, match="fps"):
+        grid_slots(np.arange(5) / 30, 0.0)
+    t = _take(120, (30, 80, 80), 0.2, "uniform", seed=3)
+    slots = grid_slots(t, 1 / PERIOD_S)
+    assert slots[0] == 0 and slots[-1] == 122 and np.all(np.diff(slots) >= 1)
+    # Convention: the same take in ms at a rate in kHz, or starting at 100 s, has the same slots.
+    np.testing.assert_array_equal(grid_slots(t * 1000, 1 / (PERIOD_S * 1000)), slots)
+    np.testing.assert_array_equal(grid_slots(t + 100.0, 1 / PERIOD_S), slots)
+    # A nominal rate 8 % off (a median interval of jittered times) finds the same grid.
+    np.testing.assert_array_equal(grid_slots(t, 1.08 / PERIOD_S), slots)
+    np.testing.assert_array_equal(grid_slots(t, 0.92 / PERIOD_S), slots)
 
 
 def test_no_timestamps_and_no_frame_rate_is_one_sentence():
