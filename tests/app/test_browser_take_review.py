@@ -11,73 +11,28 @@ the last frame whose time is at or before the player's) finds each frame of the 
 
 from __future__ import annotations
 
-import fractions
 import json
 from datetime import UTC, datetime
-from pathlib import Path
 
-import av
 import cv2
 import numpy as np
 import pytest
+from browser_takes import FPS, chromium_take, packet_times_s
 from sqlalchemy import select
 
 from app import jobs
 from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
 from app.services.videos import container_frame_times
 from app.worker import run_worker
-from core.camera import ImageSize
 from core.markers_csv import read_markers_csv
-from core.simulation.kinematics import TappingScenario
-from core.simulation.session import ImagingScenario
-from core.simulation.timing import CameraTiming
 from core.video import probe_video
 
 pytestmark = pytest.mark.slow
 
-FPS = 30.0  # Hz, a webcam's
-LEFT = CameraTiming(jitter_s=0.003, vfr=True, drop_after=(20, 21, 22, 50))
-RIGHT = CameraTiming(start_s=0.011, jitter_s=0.003, vfr=True, drop_after=(35,))
-
-
-def _as_chromium_writes(source: Path, target: Path) -> None:
-    """``source``'s packets in a live WebM that states 1000 fps (its 1-ms time base), as
-    Chromium's recorder leaves it to FFmpeg to guess."""
-    with av.open(str(source)) as src, av.open(str(target), "w", format="webm") as out:
-        stream = src.streams.video[0]
-        copy = out.add_stream_from_template(stream)
-        copy.time_base = fractions.Fraction(1, 1000)
-        copy.codec_context.framerate = fractions.Fraction(1000)
-        for packet in src.demux(stream):
-            if packet.size:
-                packet.stream = copy
-                out.mux(packet)
-
-
-def _packet_times_s(path: Path) -> np.ndarray:
-    """Each frame's presentation time (s) from the file's packets, from the first."""
-    with av.open(str(path)) as c:
-        stream = c.streams.video[0]
-        pts = sorted(p.pts for p in c.demux(stream) if p.size and p.pts is not None)
-        t = np.asarray(pts, dtype=np.float64) * float(stream.time_base)
-    return t - t[0]
-
 
 @pytest.fixture(scope="module")
 def browser_take(simulated_session, tmp_path_factory):
-    sim = simulated_session(
-        seed=11,
-        tapping=TappingScenario(duration_s=2.5, fps=FPS),
-        imaging=ImagingScenario(
-            image_size=ImageSize(640, 512), codec="vp8", left_timing=LEFT, right_timing=RIGHT
-        ),
-    )
-    out = tmp_path_factory.mktemp("chromium")
-    videos = {}
-    for side, path in (("left", sim.left_video), ("right", sim.right_video)):
-        videos[side] = out / f"{side}.webm"
-        _as_chromium_writes(path, videos[side])
-    return sim, videos
+    return chromium_take(simulated_session, tmp_path_factory.mktemp("chromium"))
 
 
 def _trial(db, storage, sim, videos) -> tuple[int, int]:
@@ -136,7 +91,7 @@ def test_a_browser_take_is_probed_at_its_own_rate(browser_take):
             cap.release()
         info = probe_video(path)
         assert info.fps == pytest.approx(FPS, rel=0.05)  # Hz: 1-ms rounding and jitter
-        assert info.duration_s == pytest.approx(_packet_times_s(path)[-1], abs=0.2)  # s
+        assert info.duration_s == pytest.approx(packet_times_s(path)[-1], abs=0.2)  # s
 
 
 def test_review_proxies_and_overlay_keep_the_takes_frame_times(
@@ -155,8 +110,8 @@ def test_review_proxies_and_overlay_keep_the_takes_frame_times(
         table = read_markers_csv(storage.absolute(result.markers_path))
     cams = {cam["video"]: cam for cam in overlay["cameras"]}
     for side, take in videos.items():
-        take_t = _packet_times_s(take)
-        proxy_t = _packet_times_s(proxies[side])
+        take_t = packet_times_s(take)
+        proxy_t = packet_times_s(proxies[side])
         lost = np.flatnonzero(np.diff(take_t) > 1.5 / FPS)
         assert len(lost) >= 1, side  # the take has its gaps
         # Every frame at the take's time: the proxy lasts as long as the take.
