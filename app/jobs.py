@@ -19,7 +19,9 @@ Life cycle of a :class:`app.models.Job` row::
   stays queued behind that ``calibrate`` job, spending nothing, and runs once
   the calibration is ready (or failed: then the analysis says so).
 - **heartbeat** (:func:`heartbeat`) extends the lease and stores progress; it
-  raises :class:`LeaseLostError` when the lease now belongs to someone else.
+  raises :class:`LeaseLostError` when the lease now belongs to someone else. One
+  the database cannot take (unreachable for a moment) is skipped, not raised: the
+  job's work goes on and spends no attempt.
 - **complete** (:func:`complete`) marks success *inside the transaction that
   stores the job's effect* (e.g. the Result row), guarded by the lease owner:
   a stale worker whose job was re-claimed gets :class:`LeaseLostError` and its
@@ -53,8 +55,10 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy import and_, case, exists, or_, select, update
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.faults import storage_fault
 from app.job_waits import say_waiting, waits_for_calibration
 from app.models import Calibration, Job, Result, Trial, utcnow
 
@@ -279,8 +283,11 @@ def heartbeat(
     lease_s: float,
     progress: float | None = None,
     stage: str | None = None,
-) -> None:
-    """Extend the lease of ``job`` (and store progress); commits.
+) -> bool:
+    """Extend the lease of ``job`` (and store progress); commits. False when the database
+    could not take it (unreachable, read-only, full): the service's fault, so the work goes
+    on and the next heartbeat tries again (if none gets through before the lease runs out,
+    another worker may take the job over; this one then finds it lost and stores nothing).
 
     Raises
     ------
@@ -296,8 +303,17 @@ def heartbeat(
         values["progress"] = min(max(float(progress), 0.0), 1.0)
     if stage is not None:
         values["stage"] = stage[:64]
-    with sessions() as db, db.begin():
-        _update_held(db, job, values)
+    try:
+        with sessions() as db, db.begin():
+            _update_held(db, job, values)
+    except DBAPIError as exc:
+        if storage_fault(exc) is None:
+            raise
+        log.warning(
+            "job %d: heartbeat not recorded (%s); the work goes on", job.id, type(exc).__name__
+        )
+        return False
+    return True
 
 
 def complete(db: Session, job: ClaimedJob) -> None:

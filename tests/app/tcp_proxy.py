@@ -25,6 +25,9 @@ class TcpProxy:
         self._lock = threading.Lock()
 
     def start(self) -> None:
+        """Listen (again); nothing when already listening."""
+        if self._listener is not None:
+            return
         listener = socket.create_server(("127.0.0.1", self.port), reuse_port=False)
         self._listener = listener
         threading.Thread(target=self._accept, args=(listener,), daemon=True).start()

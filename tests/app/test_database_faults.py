@@ -8,6 +8,7 @@
   database cannot be written;
 - 7: a file larger than the file system or the process's limits allow (EFBIG) is a
   507 with its own sentence;
+- 6: a database unreachable for a moment while a job runs spends none of its attempts;
 - 10: a page's server error is an HTML page with the request id and a way back.
 
 The PostgreSQL tests put a TCP proxy (tests/app/tcp_proxy.py) between the application
@@ -18,10 +19,12 @@ down does to the application.
 from __future__ import annotations
 
 import json
+import logging
 import re
 import socket
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -39,13 +42,16 @@ from fastapi.testclient import TestClient
 from sqlalchemy.exc import DBAPIError
 from tcp_proxy import TcpProxy
 
-from app import faults
+from app import faults, jobs
 from app.apikeys import generate_api_key
 from app.db import dispose_engines, get_sessionmaker
 from app.errors import ServiceUnavailableError
 from app.faults import DATABASE_DOWN, DATABASE_FILE_UNOPENED, storage_fault
+from app.job_context import JobContext
 from app.main import create_app
+from app.models import Job
 from app.settings import Settings
+from app.worker import run_worker
 
 EMAIL, PASSWORD = "clinician@example.org", "a long enough password 1"
 
@@ -343,8 +349,11 @@ _UPLOAD_UNDER_A_FILE_SIZE_LIMIT = r"""
 import json, resource, sys
 from pathlib import Path
 from fastapi.testclient import TestClient
+from app.job_context import JobContext
 from app.main import create_app
+from app.models import Job
 from app.settings import Settings
+from app.worker import run_worker
 
 data_dir, key, session_id, left, right, limit = sys.argv[1:7]
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(limit), int(limit)))  # as `ulimit -f`, LimitFSIZE
@@ -383,3 +392,72 @@ def test_a_file_larger_than_the_file_system_allows_answers_507(api, video_pair, 
     assert json.loads(answer["body"])["detail"] == faults.FILE_TOO_LARGE
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert api.recording_rows() == before and api.stored_files() == files_before
+
+
+# --------------------------------------------------------------------------- finding 6
+
+
+class _Records(logging.Handler):
+    """Sets ``seen`` at the first warning (or worse) of the job queue or the worker."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.seen = threading.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.name in ("app.jobs", "app.worker"):
+            self.seen.set()
+
+
+@pytest.mark.postgres
+def test_a_short_database_outage_during_a_job_spends_no_attempt(proxied, wait_for) -> None:
+    """The database goes away for a moment while a job reports its progress: the job
+    keeps its work and finishes on its first attempt (before: "unexpected error", then
+    "ended without its outcome recorded", and a second attempt)."""
+    settings, proxy = proxied
+    settings = settings.model_copy(update={"job_lease_s": 30.0, "job_heartbeat_s": 0.2})
+    sessions = get_sessionmaker(settings)
+    with sessions() as db, db.begin():
+        job_id = jobs.enqueue(db, "outage_probe", max_attempts=3).id
+    started, resume, runs = threading.Event(), threading.Event(), []
+
+    def handler(ctx: JobContext) -> None:
+        runs.append(ctx.job.attempts)
+        started.set()
+        while not resume.is_set():
+            ctx.progress("measuring", len(runs), 2)  # writes every 0.5 s
+            resume.wait(0.05)
+        ctx.finish()
+
+    records = _Records()
+    logging.getLogger("app").addHandler(records)
+    stop = threading.Event()
+    worker = threading.Thread(
+        target=run_worker,
+        args=(settings,),
+        kwargs={"stop_event": stop, "handlers": {"outage_probe": handler}},
+    )
+    worker.start()
+    try:
+        assert started.wait(30), "the worker did not start the job"
+        proxy.stop()
+        assert records.seen.wait(30), "no heartbeat met the outage"
+        proxy.start()
+        resume.set()
+        wait_for(lambda: _job(sessions, job_id).status in ("succeeded", "failed"), timeout_s=60,
+                 what="the job's end")  # fmt: skip
+    finally:
+        resume.set()
+        stop.set()
+        proxy.start()
+        worker.join(60)
+        logging.getLogger("app").removeHandler(records)
+    job = _job(sessions, job_id)
+    assert (job.status, job.attempts, runs) == ("succeeded", 1, [1]), (job.status, job.error)
+
+
+def _job(sessions, job_id: int) -> Job:
+    with sessions() as db:
+        job = db.get(Job, job_id)
+        assert job is not None
+        return job
