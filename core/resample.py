@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 
-from core.timing import DROP_FACTOR
+from core.timing import lost_after
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -117,7 +117,7 @@ def uniform_trajectories(
     out = np.full((k, pos.shape[1], 3), np.nan)
     # The frame at or before each instant, and whether a frame was lost after it.
     left = np.clip(np.searchsorted(rel, grid, side="right") - 1, 0, n - 2)
-    lost = np.diff(rel) * fps >= DROP_FACTOR
+    lost = lost_after(t, fps)[:-1] > 0  # room in the time line, not a long interval
     on_frame = np.abs(rel[left] - grid) * fps <= EVEN_TOLERANCE
     out_meas = np.zeros((k, pos.shape[1]), dtype=bool)
     for m in range(pos.shape[1]):

@@ -103,6 +103,18 @@ def test_lost_frames_are_filled_in_and_long_gaps_left_empty():
     assert not even.measured[~known].any()
 
 
+def test_a_late_frame_followed_by_an_early_one_is_not_a_gap():
+    """Jitter: frame 3 delivered 0.6 of a period late, frame 4 on time (intervals of 1.6
+    and 0.4 periods). No frame was lost, so the instants between them stay measured; a
+    frame really lost (after frame 7 here) is not."""
+    t = np.array([0, 1, 2, 3.6, 4, 5, 6, 7, 9, 10, 11]) / FPS
+    positions = np.repeat(t[:, None, None] * 100.0, 2, axis=1).repeat(3, axis=2)
+    even = uniform_trajectories(positions, np.ones((len(t), 2), bool), t, FPS)
+    assert even.resampled and even.positions_mm.shape == (12, 2, 3)
+    assert even.measured[:8].all() and even.measured[9:].all()
+    assert not even.measured[8].any()  # the lost frame's instant: filled in
+
+
 def test_wrong_shapes_and_times_are_refused():
     positions, measured = np.zeros((3, 2, 3)), np.ones((3, 2), bool)
     with pytest.raises(ValueError, match="one time per frame"):
