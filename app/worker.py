@@ -7,7 +7,9 @@ heartbeat thread keeping the lease alive, then store the outcome:
 - the handler's effect and "succeeded" in one transaction guarded by the lease
   (:meth:`JobContext.finish`), so a job is done exactly once in effect;
 - a :class:`core.errors.BradyscopeError` or :class:`app.errors.AppError`
-  becomes the job's user-facing error, without retry (bad input stays bad);
+  becomes the job's user-facing error, without retry (bad input stays bad); the
+  log names the error's class and the job's trial, never its sentence (which
+  names the uploaded files, :func:`_kind`);
 - a :class:`RetryableJobError` (e.g. video files missing on this worker) is
   retried until ``max_attempts`` and keeps its sentence;
 - any other exception is logged with its traceback and retried until
@@ -105,18 +107,18 @@ def run_job(
         log.warning("job %d: abandoned; another worker holds it now", job.id)
         return "lost"
     except (InsufficientStorageError, ServiceUnavailableError) as exc:
-        log.error("job %d (%s): %s; postponed %.0f s", job.id, job.kind, exc, STORAGE_FAULT_DELAY_S)
+        log.error("%s: %s; postponed %.0f s", _named(job), _kind(exc), STORAGE_FAULT_DELAY_S)
         return _postpone(sessions, job, f"{exc} The job waits and retries by itself.")
     except (BradyscopeError, AppError) as exc:
-        log.info("job %d (%s) failed: %s", job.id, job.kind, exc)
+        log.info("%s failed: %s (its sentence is in the job)", _named(job), _kind(exc))
         return _fail(sessions, job, str(exc), retryable=False, settings=settings)
     except RetryableJobError as exc:
-        log.warning("job %d (%s), attempt %d: %s", job.id, job.kind, job.attempts, exc)
+        log.warning("%s, attempt %d: %s", _named(job), job.attempts, _kind(exc))
         return _fail(sessions, job, str(exc), retryable=True, settings=settings)
     except Exception as exc:
         fault = storage_fault(exc)
         if fault is not None:  # the service's fault, not the job's: wait, keep the attempt
-            log.error("job %d (%s): %s; postponed %.0f s", job.id, job.kind, fault,
+            log.error("%s: %s (%s); postponed %.0f s", _named(job), _kind(fault), _kind(exc),
                       STORAGE_FAULT_DELAY_S)  # fmt: skip
             return _postpone(sessions, job, f"{fault} The job waits and retries by itself.")
         log.exception("job %d (%s), attempt %d: unexpected error", job.id, job.kind, job.attempts)
@@ -130,6 +132,21 @@ def run_job(
     finally:
         beat.done.set()
         beat.join()
+
+
+def _named(job: ClaimedJob) -> str:
+    """The job as the log names it: its id, kind, trial or calibration."""
+    target = f", trial {job.trial_id}" if job.trial_id is not None else ""
+    if job.calibration_id is not None:
+        target += f", calibration {job.calibration_id}"
+    return f"job {job.id} ({job.kind}{target})"
+
+
+def _kind(exc: BaseException) -> str:
+    """An error as the log names it: its class, never its sentence. The sentences name the
+    uploaded files as the clinic named them, often after the patient; the job keeps them
+    for the pages (``Job.error``), the log does not."""
+    return type(exc).__name__
 
 
 STORAGE_FAULT_DELAY_S = 60.0

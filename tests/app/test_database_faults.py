@@ -6,10 +6,11 @@
   documented sentence, not 500;
 - 5: a read-only database is named as the database, and ``/health`` fails while the
   database cannot be written;
+- 6: a database unreachable for a moment while a job runs spends none of its attempts;
 - 7: a file larger than the file system or the process's limits allow (EFBIG) is a
   507 with its own sentence;
-- 6: a database unreachable for a moment while a job runs spends none of its attempts;
-- 10: a page's server error is an HTML page with the request id and a way back.
+- 10: a page's server error is an HTML page with the request id and a way back;
+- 11: the worker's log names no uploaded file (clinics name them after patients).
 
 The PostgreSQL tests put a TCP proxy (tests/app/tcp_proxy.py) between the application
 and the server, and stop it: what a network outage or a database server that went
@@ -45,13 +46,14 @@ from tcp_proxy import TcpProxy
 from app import faults, jobs
 from app.apikeys import generate_api_key
 from app.db import dispose_engines, get_sessionmaker
-from app.errors import ServiceUnavailableError
+from app.errors import InsufficientStorageError, ServiceUnavailableError
 from app.faults import DATABASE_DOWN, DATABASE_FILE_UNOPENED, storage_fault
-from app.job_context import JobContext
+from app.job_context import JobContext, RetryableJobError
 from app.main import create_app
 from app.models import Job
 from app.settings import Settings
 from app.worker import run_worker
+from core.errors import InputError
 
 EMAIL, PASSWORD = "clinician@example.org", "a long enough password 1"
 
@@ -349,11 +351,12 @@ _UPLOAD_UNDER_A_FILE_SIZE_LIMIT = r"""
 import json, resource, sys
 from pathlib import Path
 from fastapi.testclient import TestClient
-from app.job_context import JobContext
+from app.job_context import JobContext, RetryableJobError
 from app.main import create_app
 from app.models import Job
 from app.settings import Settings
 from app.worker import run_worker
+from core.errors import InputError
 
 data_dir, key, session_id, left, right, limit = sys.argv[1:7]
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(limit), int(limit)))  # as `ulimit -f`, LimitFSIZE
@@ -461,3 +464,36 @@ def _job(sessions, job_id: int) -> Job:
         job = db.get(Job, job_id)
         assert job is not None
         return job
+
+
+# --------------------------------------------------------------------------- finding 11
+
+PATIENT_FILE = "pacient_Novak_Jan_left.mp4"
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        InputError(f"the left video ({PATIENT_FILE}) ends after 199 of 600 frames"),
+        RetryableJobError(f"the left video ({PATIENT_FILE}) is missing on this worker"),
+        InsufficientStorageError(f"the left video ({PATIENT_FILE}) could not be written"),
+    ],
+    ids=["input", "retryable", "storage"],
+)
+def test_the_worker_log_names_no_uploaded_file(
+    app_settings: Settings, db_sessionmaker, caplog, error: Exception
+) -> None:
+    """Clinics name files after patients: the worker's log says the error's kind and the
+    job's trial, the job keeps the sentence (before: the sentence, file name and all)."""
+    with db_sessionmaker() as db, db.begin():
+        job_id = jobs.enqueue(db, "name_probe", max_attempts=3).id
+
+    def handler(ctx: JobContext) -> None:
+        raise error
+
+    with caplog.at_level(logging.DEBUG):
+        run_worker(app_settings, once=True, max_jobs=1, handlers={"name_probe": handler})
+    assert PATIENT_FILE in (_job(db_sessionmaker, job_id).error or "")
+    assert f"job {job_id} (name_probe)" in caplog.text
+    assert type(error).__name__ in caplog.text
+    assert "Novak" not in caplog.text, caplog.text
