@@ -929,7 +929,8 @@ def iter_frames(
         Frames decoded ahead by the background thread (bounded memory).
     expected_count : int, optional
         If given, raise :class:`InputError` when the video ends more than two
-        frames before ``min(stop, expected_count)``: it is truncated.
+        frames before ``min(stop, expected_count)``: it is truncated (the file ends
+        before that frame's bytes) or damaged there (its bytes go on but do not decode).
     times_out : list, optional
         Receives the presentation timestamp (s) of every yielded frame, in
         order (appended by the decoding thread before the frame is handed out).
@@ -967,10 +968,33 @@ def iter_frames(
     if expected_count is not None:
         wanted = (expected_count if stop is None else min(stop, expected_count)) - start
         if n < wanted - _FRAME_COUNT_SLACK:
+            if _bytes_go_on(p, start + n):
+                raise InputError(
+                    f"{p.name} could not be decoded after frame {start + n} of {start + wanted}:"
+                    " the file is damaged there; copy or export the recording again."
+                )
             raise InputError(
                 f"{p.name} ends after {start + n} of {start + wanted} frames: the file is truncated;"
                 " upload or copy the complete recording."
             )
+
+
+def _bytes_go_on(path: Path, index: int) -> bool:
+    """True if the file holds the bytes of frame ``index``'s packet (the first frame that
+    did not decode), so that decoding stopped at damage in the middle of the file; False
+    when the file ends before them (truncated), or when PyAV cannot tell."""
+    import av
+
+    try:
+        size = path.stat().st_size
+        with av.open(str(path)) as container:
+            packets = (p for p in container.demux(container.streams.video[0]) if p.size)
+            for n, packet in enumerate(packets):
+                if n == index:
+                    return packet.pos is not None and 0 <= packet.pos <= size - packet.size
+    except (av.FFmpegError, OSError, ValueError, IndexError):
+        pass  # the demuxer stopped there too: the file ends
+    return False
 
 
 def _realtime_threads() -> set[int]:
