@@ -28,8 +28,10 @@ import logging
 import os
 import sys
 import threading
+import time
 from collections.abc import Mapping
 
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app import jobs
@@ -108,7 +110,8 @@ def run_job(
         return "lost"
     except (InsufficientStorageError, ServiceUnavailableError) as exc:
         log.error("%s: %s; postponed %.0f s", _named(job), _kind(exc), STORAGE_FAULT_DELAY_S)
-        return _postpone(sessions, job, f"{exc} The job waits and retries by itself.")
+        message = f"{exc} The job waits and retries by itself."
+        return _postpone(sessions, job, message, settings=settings)
     except (BradyscopeError, AppError) as exc:
         log.info("%s failed: %s (its sentence is in the job)", _named(job), _kind(exc))
         return _fail(sessions, job, str(exc), retryable=False, settings=settings)
@@ -120,7 +123,8 @@ def run_job(
         if fault is not None:  # the service's fault, not the job's: wait, keep the attempt
             log.error("%s: %s (%s); postponed %.0f s", _named(job), _kind(fault), _kind(exc),
                       STORAGE_FAULT_DELAY_S)  # fmt: skip
-            return _postpone(sessions, job, f"{fault} The job waits and retries by itself.")
+            message = f"{fault} The job waits and retries by itself."
+            return _postpone(sessions, job, message, settings=settings)
         log.exception("job %d (%s), attempt %d: unexpected error", job.id, job.kind, job.attempts)
         if job.attempts < job.max_attempts:
             message = UNEXPECTED_RETRY_MESSAGE.format(
@@ -153,12 +157,24 @@ STORAGE_FAULT_DELAY_S = 60.0
 """A job stopped by a full disk or an unreachable database waits this long (s) to retry."""
 
 
-def _postpone(sessions: sessionmaker[Session], job: ClaimedJob, message: str) -> str:
-    try:
-        return jobs.postpone(sessions, job, message, STORAGE_FAULT_DELAY_S)
-    except LeaseLostError:
-        log.warning("job %d: not postponed; another worker holds it now", job.id)
-        return "lost"
+def _postpone(
+    sessions: sessionmaker[Session], job: ClaimedJob, message: str, *, settings: Settings
+) -> str:
+    """Give the job back without spending its attempt. While the database cannot take
+    that, retry (the heartbeat keeps the lease meanwhile) until the lease would run out:
+    a job whose lease runs out is taken again, and that claim counts an attempt."""
+    deadline = time.monotonic() + settings.job_lease_s - settings.heartbeat_s
+    while True:
+        try:
+            return jobs.postpone(sessions, job, message, STORAGE_FAULT_DELAY_S)
+        except LeaseLostError:
+            log.warning("job %d: not postponed; another worker holds it now", job.id)
+            return "lost"
+        except DBAPIError as exc:
+            if storage_fault(exc) is None or time.monotonic() >= deadline:
+                raise
+            log.warning("%s: not given back yet (%s); retrying", _named(job), _kind(exc))
+            time.sleep(settings.heartbeat_s)
 
 
 def _fail(

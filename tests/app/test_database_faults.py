@@ -497,3 +497,38 @@ def test_the_worker_log_names_no_uploaded_file(
     assert f"job {job_id} (name_probe)" in caplog.text
     assert type(error).__name__ in caplog.text
     assert "Novak" not in caplog.text, caplog.text
+
+
+@pytest.mark.postgres
+def test_a_job_stopped_by_the_database_going_away_is_given_back_without_an_attempt(
+    proxied,
+) -> None:
+    """The database goes away just as a job stores its result: the worker gives the job
+    back (postponed, its attempt not spent) once the database returns, within the lease
+    (before: "ended without its outcome recorded"; its lease ran out and the next claim
+    spent an attempt)."""
+    settings, proxy = proxied
+    settings = settings.model_copy(update={"job_lease_s": 30.0, "job_heartbeat_s": 0.2})
+    sessions = get_sessionmaker(settings)
+    with sessions() as db, db.begin():
+        job_id = jobs.enqueue(db, "outage_probe", max_attempts=3).id
+
+    class _Retrying(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if "not given back yet" in record.getMessage():
+                proxy.start()  # the database returns once the worker has met its absence
+
+    def handler(ctx: JobContext) -> None:
+        proxy.stop()
+        ctx.finish()
+
+    retrying = _Retrying(logging.WARNING)
+    logging.getLogger("app.worker").addHandler(retrying)
+    try:
+        run_worker(settings, once=True, max_jobs=1, handlers={"outage_probe": handler})
+    finally:
+        logging.getLogger("app.worker").removeHandler(retrying)
+        proxy.start()
+    job = _job(sessions, job_id)
+    assert (job.status, job.attempts) == ("queued", 0), (job.status, job.attempts, job.error)
+    assert "The job waits and retries by itself." in (job.error or "")
