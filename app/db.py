@@ -63,9 +63,12 @@ def make_engine(settings: Settings, **kwargs: Any) -> Engine:
     default transaction handling (BEGIN just before the first write), so a
     read-then-write unit of work waits on ``busy_timeout`` instead of failing.
     The audit chain's key file (``settings.audit_key_path``) is registered for
-    the engine (read or created at the first audit event).
+    the engine (read or created at the first audit event). The statements' values
+    are left out of SQLAlchemy's error texts (``hide_parameters``): they hold
+    patient codes, notes and file names, and a failed write's error is logged.
     """
     url = settings.effective_database_url
+    kwargs.setdefault("hide_parameters", True)
     if url.startswith("sqlite"):
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         connect_args = {

@@ -46,6 +46,20 @@ def test_foreign_keys_are_enforced(db_session):
         db_session.flush()
 
 
+def test_a_failed_statement_does_not_carry_its_values(db_session):
+    """The error of a failed write is logged (app.main): it must not hold the patient
+    code, notes or file names the statement carried."""
+    db_session.add(Patient(code="PD-SECRET-7", notes="lives at 4 Example Street"))
+    db_session.flush()
+    db_session.add(Patient(code="PD-SECRET-7", notes="lives at 4 Example Street"))
+    with pytest.raises(IntegrityError) as caught:
+        db_session.flush()
+    text = str(caught.value)
+    assert "INSERT INTO patients" in text and "hidden due to hide_parameters" in text
+    assert "PD-SECRET-7" not in text and "Example Street" not in text
+    db_session.rollback()
+
+
 def test_timestamps_round_trip_as_aware_utc(db_session):
     cest = timezone(timedelta(hours=2))
     db_session.add(Patient(code="PD-1", created_at=datetime(2026, 6, 1, 14, 30, tzinfo=cest)))
