@@ -332,7 +332,7 @@ def test_trial_page_quality_panel_shows_the_camera_timing(client, seeded, db_ses
         "Frame times from",
         "left: container timestamps; right: frame rate (frame number / fps)",
         "Lost frames found",
-        "right 3 (after frame 150, 310, 455)",
+        "right 3 (1 frame lost after frame 150, 1 after frame 310 and 1 after frame 455)",
         "Rolling-shutter readout compensated",
         warning,
     ):

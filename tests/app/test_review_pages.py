@@ -226,7 +226,7 @@ def test_the_session_edit_form_names_its_fields_by_their_labels(client, seeded, 
         data={"csrf_token": csrf, "time_since_levodopa_min": "99999"},
     )
     assert too_long.status_code == 422
-    assert "Time since the last levodopa dose" in too_long.text
+    assert "the time since the last levodopa dose must be 10080 or less" in too_long.text.lower()
     assert "Time since levodopa min" not in too_long.text  # not the field's internal name
     not_a_number = client.post(
         f"/sessions/{session_id}/edit",
