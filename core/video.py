@@ -498,6 +498,9 @@ _IMAGE_SIGNATURES = (
     (8, b"avif", "AVIF"),
 )
 """Where an image file's magic bytes sit, what they are and the format they name."""
+#: How far into a file that begins as a JPEG the second picture of an MJPEG stream is
+#: looked for (bytes; a 4K JPEG frame is a few MB at most).
+_MJPEG_LOOK = 16 << 20
 
 
 def _image_message(path: Path) -> str | None:
@@ -505,7 +508,14 @@ def _image_message(path: Path) -> str | None:
     try:
         with path.open("rb") as f:
             head = f.read(16)
+            # a raw MJPEG stream begins as a JPEG does: its next picture follows the first's
+            # end (an EXIF thumbnail's end is followed by the image's next segment instead)
+            mjpeg = head.startswith(b"\xff\xd8") and b"\xff\xd9\xff\xd8" in head + f.read(
+                _MJPEG_LOOK
+            )
     except OSError:
+        return None
+    if mjpeg:
         return None
     for at, magic, kind in _IMAGE_SIGNATURES:
         if head[at : at + len(magic)] == magic:
