@@ -177,7 +177,7 @@ def test_the_session_page_shows_every_task_by_side_and_offers_the_task(
     ):
         assert title in page
     assert '<select id="task-left" name="task">' in page
-    assert f'href="/trials/{right_id}">succeeded</a>' in page
+    assert f'href="/trials/{right_id}" class="status status-succeeded">measured</a>' in page
     # one side per task: no right–left comparison is offered
     assert "data-compare-hands" not in page
     trial_page = client.get(f"/trials/{right_id}").text
