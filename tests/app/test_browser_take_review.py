@@ -12,17 +12,16 @@ the last frame whose time is at or before the player's) finds each frame of the 
 from __future__ import annotations
 
 import json
-from datetime import UTC, datetime
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 from browser_takes import FPS, chromium_take, packet_times_s
 from sqlalchemy import select
+from test_worker import _trial_with_videos
 
-from app import jobs
-from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
-from app.services.videos import container_frame_times
+from app.models import Job, Result, Trial
 from app.worker import run_worker
 from core.markers_csv import read_markers_csv
 from core.video import probe_video
@@ -36,48 +35,10 @@ def browser_take(simulated_session, tmp_path_factory):
 
 
 def _trial(db, storage, sim, videos) -> tuple[int, int]:
-    rig, patient = Rig(name="webcams"), Patient(code="PD-WEBM")
-    db.add_all([rig, patient])
-    db.flush()
-    db.add(
-        Calibration(
-            rig_id=rig.id,
-            version=1,
-            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
-            rig_json=json.loads(sim.rig_path.read_text()),
-            rms_px=0.1,
-            source="rig_file",
-            status="ready",
-        )
+    recording = SimpleNamespace(
+        left_video=videos["left"], right_video=videos["right"], rig_path=sim.rig_path
     )
-    session = RecordingSession(
-        patient_id=patient.id, rig_id=rig.id, recorded_at=datetime(2026, 2, 1, tzinfo=UTC)
-    )
-    db.add(session)
-    db.flush()
-    trial = Trial(session_id=session.id, hand="right")
-    db.add(trial)
-    db.flush()
-    for side, path in videos.items():
-        info = probe_video(path)
-        with storage.receive("videos", path.suffix) as incoming:
-            incoming.write(path.read_bytes())
-            stored = incoming.commit()
-        db.add(
-            Video(
-                trial_id=trial.id,
-                side=side,
-                path=stored.path,
-                size_bytes=stored.size_bytes,
-                sha256=stored.sha256,
-                fps=container_frame_times(info).fps,  # as the upload's check stores it
-                frame_count=info.frame_count,
-                width=info.image_size.width,
-                height=info.image_size.height,
-                codec=info.fourcc,
-            )
-        )
-    return trial.id, jobs.enqueue(db, "analyze_trial", trial_id=trial.id).id
+    return _trial_with_videos(db, storage, recording, calibrated=True)
 
 
 def test_a_browser_take_is_probed_at_its_own_rate(browser_take):

@@ -238,6 +238,7 @@ def test_kill9_of_a_worker_mid_job_sqlite(app_settings, worker_script, kill9_sce
 
 
 def _store_video(storage, db, path, *, side, trial_id=None, calibration_id=None) -> Video:
+    from app.services.videos import container_frame_times
     from core.video import probe_video
 
     info = probe_video(path)
@@ -251,7 +252,7 @@ def _store_video(storage, db, path, *, side, trial_id=None, calibration_id=None)
         path=stored.path,
         size_bytes=stored.size_bytes,
         sha256=stored.sha256,
-        fps=info.fps,
+        fps=container_frame_times(info).fps,  # as the upload's check stores it
         frame_count=info.frame_count,
         width=info.image_size.width,
         height=info.image_size.height,
