@@ -17,7 +17,9 @@ the chain alone cannot see; record the head that ``verify-audit`` prints
 elsewhere now and then to catch that too.
 
 Events written before the chain existed (revision 0010) have no number and
-are reported as not chained.
+are reported as not chained. The rows kept beside the trail (an update's values,
+the patients a list returned) are checked against the ``details`` their events
+seal by :mod:`app.audit_check`, which ``verify-audit`` runs after this.
 """
 
 from __future__ import annotations

@@ -6,7 +6,8 @@ with :func:`register`:
 - ``migrate``; ``check-migrations``: exit 2 if ``app/models.py`` and
   ``migrations/`` disagree (``alembic check`` against the migrated database).
 - ``export-audit [--since ISO]``: the audit trail as JSON lines on stdout;
-  ``verify-audit``: recompute its hash chain (exit 2 when it was tampered with).
+  ``verify-audit``: recompute its hash chain and check the rows kept beside it
+  (``app.audit_check``; exit 2 when any was tampered with).
 - ``erase-patient CODE``, ``apply-retention [--dry-run]``: erase a patient's
   data (``app.services.erasure``).
 - ``backup DIR``, ``restore DIR [--force]``: ``app.backup``. ``restore`` does not
@@ -58,7 +59,10 @@ def register(asub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     ea.set_defaults(admin_func=export_audit)
 
-    va = asub.add_parser("verify-audit", help="check the audit trail's hash chain")
+    va = asub.add_parser(
+        "verify-audit",
+        help="check the audit trail's hash chain, its kept values and listed patients",
+    )
     va.set_defaults(admin_func=verify_audit)
 
     ep = asub.add_parser(
@@ -137,12 +141,12 @@ def export_audit(settings: Settings, args: argparse.Namespace) -> int:
 
 
 def verify_audit(settings: Settings, args: argparse.Namespace) -> int:
-    from app.chain import verify_chain
+    from app.audit_check import verify_trail
     from app.db import session_scope
     from app.errors import AppError
 
     with session_scope(settings) as db:
-        report = verify_chain(db)
+        report = verify_trail(db)
     if report.unchained_before:
         print(
             f"{report.unchained_before} events from before the chain began are not sealed.",
@@ -156,7 +160,8 @@ def verify_audit(settings: Settings, args: argparse.Namespace) -> int:
             " restore the database from a backup and investigate."
         )
     print(
-        f"audit trail intact: {report.chained} chained events; head {report.head_seq}"
+        f"audit trail intact: {report.chained} chained events, their kept values and listed"
+        f" patients match; head {report.head_seq}"
         f" {report.head_hash} (note it elsewhere to detect a truncation later)"
     )
     return 0
