@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -77,6 +78,10 @@ class ReviewPage:
     swap_pair: tuple[str, str] | None = ("thumb", "index")
     missing_videos: dict[str, str | None] = field(default_factory=dict)
     """The sides without a browser proxy, each with why (:func:`unavailable_videos`)."""
+    uploaded_at: datetime | None = None
+    """When the trial's recordings were uploaded (its ``created_at``): the page heads the
+    trial with it, as the reports name their trials (``app.reports.visit.trial_time``);
+    None: not known (the session's time is shown)."""
 
 
 def _signal(table: MarkerTable, task: str, side: str) -> list[float | None]:
@@ -233,6 +238,7 @@ def review_page(
             Corrections.from_dict(doc.get("corrections_not_carried")), read.task
         ),
         swap_pair=swappable_labels(read.task),
+        uploaded_at=trial.created_at,
     )
     audit(db, actor, "read", "review", trial.id, trial.session.patient_id)
     db.commit()

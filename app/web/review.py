@@ -18,6 +18,7 @@ from pydantic import ValidationError
 
 from app.auth import SessionDep
 from app.errors import AppError
+from app.reports.visit import trial_time
 from app.schemas import IdPath, RevisionCreate
 from app.services import review, revisions
 from app.web.common import (
@@ -26,6 +27,7 @@ from app.web.common import (
     csrf_refused,
     error_page,
     render,
+    settings_of,
     status_of,
     validation_message,
 )
@@ -63,6 +65,14 @@ def review_page(
         result=page.result,
         data=page.data,
         corrections=page.corrections,
+        # the heading names the trial by its own time, as the reports do (the crumbs: the
+        # session's time)
+        when=trial_time(
+            page.uploaded_at,
+            trial.session.recorded_at,
+            settings_of(request).timezone,
+            with_day=True,
+        ),
     )
 
 

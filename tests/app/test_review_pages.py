@@ -498,11 +498,74 @@ def test_the_review_heading_names_the_medication_state_dbs_and_time(
         crumbs = re.sub(r"<[^>]+>", "", re.search(r'<nav class="crumbs".*?</nav>', page).group(0))
         assert f"right hand, medication {med}" in h1, h1
         assert f"right hand, medication {med}" in crumbs, crumbs
-        assert "09:00 UTC" in h1 and f"(trial #{t})" in h1
+        with db_sessionmaker() as db:  # the trial's own time (its upload), as the reports
+            uploaded = db.get(Trial, t).created_at
+        assert f"uploaded {uploaded:%Y-%m-%d %H:%M} UTC (trial #{t})" in h1, h1
         assert f"medication {med}" in re.search(r"<title>(.*?)</title>", page).group(1)
         headings[med] = h1
     assert "DBS on" in headings["on"] and "DBS" not in headings["off"]  # "none": not said
     assert headings["off"] != headings["on"]
+
+
+def _text(html: str) -> str:
+    return " ".join(re.sub(r"<[^>]+>", " ", html).split())
+
+
+def test_two_trials_of_a_session_are_headed_by_their_own_time_on_their_pages(
+    client,  # noqa: F811
+    seeded,  # noqa: F811
+    db_sessionmaker,
+    monkeypatch,
+):
+    """The trial page said the session's start as "Recorded" and the review page headed
+    the trial with it, while the reports name each trial by its upload: two takes of a
+    visit read alike. Both pages now say the trial's own time (the reports' trial_time);
+    the session's time stays, named as the session's."""
+    import dataclasses
+    from datetime import UTC, datetime
+
+    from app.services import results as results_service
+    from app.services import review as review_service
+
+    login(client)
+    left, right = seeded["trials"][(1, "left")], seeded["trials"][(1, "right")]
+    session_at = datetime(2025, 3, 1, 9, tzinfo=UTC)  # the seeded session of both
+    with db_sessionmaker() as db:
+        db.get(Trial, left).created_at = datetime(2025, 3, 1, 9, 2, tzinfo=UTC)
+        db.get(Trial, right).created_at = datetime(2025, 3, 1, 9, 7, tzinfo=UTC)
+        db.commit()
+        assert db.get(Trial, left).session_id == db.get(Trial, right).session_id
+
+    def h1(page: str) -> str:
+        return _text(re.search(r"<h1>(.*?)</h1>", page, re.S).group(1))
+
+    for t, minute in ((left, 2), (right, 7)):
+        own = f"uploaded 2025-03-01 09:{minute:02d} UTC"
+        trial_page = _text(client.get(f"/trials/{t}").text)
+        assert f"Trial #{t}, {own} Session {session_at:%Y-%m-%d %H:%M} UTC" in trial_page
+        assert "Recorded" not in trial_page
+        review = client.get(f"/trials/{t}/review").text
+        assert f", {own} (trial #{t})" in h1(review), h1(review)
+        crumbs = _text(re.search(r'<nav class="crumbs".*?</nav>', review).group(0))
+        assert "Session 2025-03-01 09:00 UTC" in crumbs  # the session's time, as such
+
+    # No stored trial lacks its upload time (trials.created_at is NOT NULL); a page given
+    # none says the session's time, as the reports do, with no "uploaded".
+    load, reviewed = results_service.load_report_data, review_service.review_page
+    monkeypatch.setattr(
+        results_service,
+        "load_report_data",
+        lambda *a, **k: dataclasses.replace(load(*a, **k), uploaded_at=None),
+    )
+    monkeypatch.setattr(
+        review_service,
+        "review_page",
+        lambda *a, **k: dataclasses.replace(reviewed(*a, **k), uploaded_at=None),
+    )
+    trial_page = _text(client.get(f"/trials/{left}").text)
+    assert f"Trial #{left}, 2025-03-01 09:00 UTC Session 2025-03-01 09:00 UTC" in trial_page
+    review = h1(client.get(f"/trials/{left}/review").text)
+    assert f", 2025-03-01 09:00 UTC (trial #{left})" in review and "uploaded" not in review
 
 
 def test_the_review_form_swaps_the_cameras_and_undoes_it(client, seeded, db_sessionmaker):  # noqa: F811
