@@ -7,6 +7,7 @@ and the commands run on it.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import socket
 import struct
@@ -15,6 +16,7 @@ import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -44,6 +46,15 @@ class Recording:
     right: Path
     rig: Path
     truth: dict
+
+
+def log_in(page: Any, served: Served) -> str:
+    """Log ``page`` in as the served demo clinician; the CSRF token of the patient list."""
+    page.fill("#email", served.email)
+    page.fill("#password", served.password)
+    page.keyboard.press("Enter")
+    page.wait_for_url(re.compile(r"/patients$"))
+    return str(page.locator("input[name=csrf_token]").first.get_attribute("value"))
 
 
 def free_port() -> int:

@@ -32,7 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from browser_support import AnswerCuttingProxy, Served, create_api_key, launch_chromium
+from browser_support import AnswerCuttingProxy, Served, create_api_key, launch_chromium, log_in
 
 from core.video import HOLE_FRAMES, HOLE_S
 
@@ -254,10 +254,7 @@ class Page:
         self.served = served
         page = self.page
         page.goto(f"{served.url}/login")
-        page.fill("#email", served.email)
-        page.fill("#password", served.password)
-        page.keyboard.press("Enter")
-        page.wait_for_url(re.compile(r"/patients$"))
+        log_in(page, served)
 
     def _console(self, message) -> None:
         if message.type != "error":

@@ -14,11 +14,10 @@ and playing must run to the take's end.
 from __future__ import annotations
 
 import json
-import re
 
 import numpy as np
 import pytest
-from browser_support import Recording
+from browser_support import Recording, log_in
 from browser_takes import chromium_take, packet_times_s
 from test_browser_flow import VIEWPORTS
 from test_review_view import THUMB_DISC_JS, _measured_trial
@@ -75,11 +74,7 @@ def test_review_of_a_browser_take_follows_its_frame_times(
     page = context.new_page()
     page.set_default_timeout(30_000)
     page.goto(f"{served.url}/login")
-    page.fill("#email", served.email)
-    page.fill("#password", served.password)
-    page.keyboard.press("Enter")
-    page.wait_for_url(re.compile(r"/patients$"))
-    csrf = page.locator("input[name=csrf_token]").first.get_attribute("value")
+    csrf = log_in(page, served)
     take = Recording(videos["left"], videos["right"], sim.rig_path, sim.truth)
     trial_id = _measured_trial(page, served, take, csrf, tag="webm")
 

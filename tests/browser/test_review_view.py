@@ -16,7 +16,7 @@ import re
 import time
 
 import pytest
-from browser_support import Recording
+from browser_support import Recording, log_in
 from test_browser_flow import VIEWPORTS, PageChecker
 
 from core.cycles import common_metrics
@@ -125,11 +125,7 @@ def test_review_view(browser, served, recording, screenshot_dir):
     page.set_default_timeout(30_000)
     pages = PageChecker(page)
     pages.goto(f"{served.url}/login", "login")
-    page.fill("#email", served.email)
-    page.fill("#password", served.password)
-    page.keyboard.press("Enter")
-    page.wait_for_url(re.compile(r"/patients$"))
-    csrf = page.locator("input[name=csrf_token]").first.get_attribute("value")
+    csrf = log_in(page, served)
     trial_id = _measured_trial(page, served, recording, csrf)
     original = page.request.get(f"{served.url}/api/v1/trials/{trial_id}/result").json()
 
@@ -275,11 +271,7 @@ def test_review_view_draws_on_a_reduced_proxy(browser, served, wide_recording):
     page = context.new_page()
     page.set_default_timeout(30_000)
     page.goto(f"{served.url}/login")
-    page.fill("#email", served.email)
-    page.fill("#password", served.password)
-    page.keyboard.press("Enter")
-    page.wait_for_url(re.compile(r"/patients$"))
-    csrf = page.locator("input[name=csrf_token]").first.get_attribute("value")
+    csrf = log_in(page, served)
     trial_id = _measured_trial(page, served, wide_recording, csrf, tag="wide")
     page.goto(f"{served.url}/trials/{trial_id}/review")
     data = json.loads(page.locator("#review-data").text_content())
