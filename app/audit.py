@@ -19,7 +19,7 @@ verify-audit`` checks.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Container, Iterable
 from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -135,15 +135,46 @@ def audit(
 
 
 def audit_listed(
-    db: Session, actor: AnyActor, resource_type: str, patient_ids: Iterable[int]
+    db: Session,
+    actor: AnyActor,
+    resource_type: str,
+    patient_ids: Iterable[int],
+    *,
+    action: Action | str = "list",
 ) -> AuditEvent:
     """Audit a list that returned the data of the patients ``patient_ids`` (e.g. the patient
-    list): one ``list`` event whose ``details`` name them (sealed), and a row per patient
-    in ``audit_event_patients``, where the trail's patient filter finds it. One event and
-    a few bytes per patient, not an event (and a link of the chain) per patient."""
+    list): one ``list`` event (or ``action``) whose ``details`` name them (sealed), and a
+    row per patient in ``audit_event_patients``, where the trail's patient filter finds
+    it. One event and a few bytes per patient, not an event (and a link of the chain) per
+    patient."""
     ids = sorted(set(patient_ids))
-    event = audit(db, actor, "list", resource_type, details={"patient_ids": ids})
+    event = audit(db, actor, action, resource_type, details={"patient_ids": ids})
     db.add_all([AuditEventPatient(event=event, patient_id=i) for i in ids])
+    return event
+
+
+VALUES_SHOWN = "field_changes"
+"""The resource type of :func:`audit_values_shown`'s event: the values kept beside the trail."""
+
+
+def audit_values_shown(
+    db: Session, actor: AnyActor, events: Iterable[AuditEvent], shown: Container[int]
+) -> AuditEvent | None:
+    """Record that a read of the trail showed the previous and new values of the updates
+    among ``events`` whose ids are in ``shown``, and commit it; nothing when none was shown.
+
+    The read's own event (``list`` ``audit``) names at most the patient it was filtered
+    by, while the values it shows belong to each update's patient: one ``read``
+    ``field_changes`` event names those patients as a list does (:func:`audit_listed`),
+    so each one's trail tells who saw their values. Committed before the values are
+    answered (the read's event is committed already, by the read): values leave only on
+    record. The API (``GET /audit``) and the page ``/admin/audit`` both call it.
+    """
+    ids = {e.patient_id for e in events if e.id in shown and e.patient_id is not None}
+    if not ids:
+        return None
+    event = audit_listed(db, actor, VALUES_SHOWN, ids, action="read")
+    db.commit()
     return event
 
 

@@ -9,10 +9,11 @@ summary of them in its ``details``, which :mod:`app.chain` checks with the rest:
   unless its patient was erased (the erasure removes the row by design, and the digest
   left in the trail then names nothing). A row belongs to its event's patient, or an
   erasure of that patient would miss it.
-- ``audit_event_patients``: the patients a list returned, the index the trail's patient
-  filter reads (:func:`app.audit.audit_listed`). The event seals the same ids as
-  ``patient_ids``: a row deleted hides the listing from that patient's trail, a row
-  added shows a listing that did not happen.
+- ``audit_event_patients``: the patients a list returned, or whose kept values a read of
+  the trail showed, the index the trail's patient filter reads
+  (:func:`app.audit.audit_listed`, :func:`app.audit.audit_values_shown`). The event seals
+  the same ids as ``patient_ids``: a row deleted hides the listing from that patient's
+  trail, a row added shows a listing that did not happen.
 
 The tables are read in windows of event ids, so memory stays bounded by a window
 whatever the trail's length.

@@ -10,6 +10,7 @@ from pydantic import Field
 from app.actors import Actor
 from app.api.responses import AUTH, Limit, Offset, errors
 from app.apikeys import AUDIT_READ
+from app.audit import audit_values_shown
 from app.auth import SessionDep, require_scope
 from app.schemas import MAX_ID, AuditEventRead, Page, UtcDateTime
 from app.services import audit_log
@@ -28,14 +29,17 @@ class AuditItem(AuditEventRead):
     details: dict[str, Any] | None = Field(
         default=None,
         description="Sealed with the event: an update's changed fields (fields) and the"
-        " digest of their values (values_sha256); the patients a list returned"
-        " (patient_ids). Identifiers and names only.",
+        " digest of their values (values_sha256); the patients a list returned, or"
+        " whose kept values a read of the trail showed (patient_ids, on a read of"
+        " field_changes). Identifiers and names only.",
     )
     changes: dict[str, list[Any]] | None = Field(
         default=None,
         description="An update's previous and new value of each changed field, as"
         " {field: [previous, new]}: for a reader who also holds patients:read (the values"
-        " are the patient's data); null for others, and once the patient was erased.",
+        " are the patient's data; the read is then recorded as a read of field_changes"
+        " naming each patient whose values it shows); null for others, and once the"
+        " patient was erased.",
     )
 
 
@@ -111,6 +115,7 @@ def list_audit_events(
     )
     items = [AuditItem.model_validate(e) for e in trail.items]
     kept = audit_log.changes_for(db, actor, trail.items)
+    audit_values_shown(db, actor, trail.items, kept)  # whose values these are, on record
     for item in items:
         item.changes = kept.get(item.id)
     return AuditPage(

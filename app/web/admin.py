@@ -4,7 +4,9 @@ Only users holding ``audit:read`` (admins, auditors) see it; anyone else gets 40
 the refusal is audited like an API refusal. Reading the page is audited too. Each event
 shows what ``GET /api/v1/audit`` tells of it: an update's changed fields, with their
 previous and new values for a reader who also holds ``patients:read``
-(:func:`app.services.audit_log.changes_for`), and the patients a list returned.
+(:func:`app.services.audit_log.changes_for`), and the patients a list returned. A page
+that shows values is recorded, as the API's answer is, with the patients whose values
+they are (:func:`app.audit.audit_values_shown`).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from app.actors import Actor
 from app.apikeys import AUDIT_READ
-from app.audit import audit_failure
+from app.audit import audit_failure, audit_values_shown
 from app.auth import SessionDep
 from app.errors import AppError, InvalidRequestError
 from app.models import Patient
@@ -101,6 +103,7 @@ def audit_page(
     pages = max(1, -(-total // PAGE_SIZE))
     # An update's values go to those the API shows them to (patients:read), decided there.
     values = audit_log.changes_for(db, user, events)
+    audit_values_shown(db, user, events, values)  # whose values these are, on record
     return render(
         request,
         "audit.html",
