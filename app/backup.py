@@ -13,14 +13,21 @@
       audit.key             the audit chain's secret key (keep the backup as safe as
                             the data directory itself)
 
-The database is copied first, then the files: stored files are only ever added
+A backup is made only of an audit trail that verifies whole
+(:func:`app.audit_check.verify_trail`: the hash chain, an update's kept values
+in ``field_changes`` and the patients in ``audit_event_patients`` against what
+their events sealed): a backup is a restore point, and one holding a tampered
+trail would pass the tampering on as the record. The database is copied first,
+then the files: stored files are only ever added
 (or removed by an erasure), so the copy holds every file the database copy
 refers to, at worst a few more. ``restore DIR`` checks every checksum before
 it changes anything, refuses to overwrite a database or data directory that
 holds data (unless ``force``), puts the database and the files back, empties
 the PDF report cache (``<data dir>/cache/reports``: derived from the database,
-never backed up; reports of another database must not be served), and brings
-the database to the newest migration.
+never backed up; reports of another database must not be served), brings
+the database to the newest migration, and verifies the restored audit trail
+whole: a restored trail that does not verify (a backup made by an older
+version, or altered since) fails the restore, after the fact, with what to do.
 """
 
 from __future__ import annotations
@@ -40,8 +47,9 @@ from sqlalchemy import create_engine, inspect, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.pool import NullPool
 
+from app.audit_check import verify_trail
 from app.chain import forget_key
-from app.db import current_revision, dispose_engines, get_engine, migrate
+from app.db import current_revision, dispose_engines, get_engine, get_sessionmaker, migrate
 from app.errors import AppError, ConflictError, InvalidRequestError, ServiceUnavailableError
 from app.models import Base, utcnow
 from app.reports.pdf_cache import ReportPdfCache
@@ -57,6 +65,8 @@ SQLITE_FILE = "database.sqlite3"
 PG_FILE = "database.pgdump"
 AUDIT_KEY_FILE = "audit.key"
 _CHUNK = 1024 * 1024
+_TRAIL_PROBLEMS = 20
+"""The problems of the audit trail counted before a backup or a restore says it fails."""
 
 
 class BackupError(AppError):
@@ -90,6 +100,21 @@ def _copy(src: Path, dst: Path) -> tuple[int, str]:
         os.fsync(fout.fileno())
     shutil.copystat(src, dst)
     return size, sha.hexdigest()
+
+
+def trail_problems(settings: Settings) -> str | None:
+    """How many problems the configured database's audit trail has, as words ("3 problems",
+    "at least 20 problems"); None when it verifies whole (:func:`verify_trail`).
+
+    Only the count leaves here: the problems name events and patients' ids, and
+    ``bradyscope admin verify-audit`` lists them to whoever investigates.
+    """
+    with get_sessionmaker(settings)() as db:
+        report = verify_trail(db, max_problems=_TRAIL_PROBLEMS)
+    n = len(report.problems)
+    if not n:
+        return None
+    return f"{'at least ' if n >= _TRAIL_PROBLEMS else ''}{n} problem{'' if n == 1 else 's'}"
 
 
 def _sqlite_path(settings: Settings) -> Path:
@@ -181,11 +206,20 @@ def backup(settings: Settings, target: Path) -> BackupSummary:
     ConflictError
         ``target`` holds something already.
     BackupError
-        The database could not be copied (``pg_dump`` missing or too old...).
+        The audit trail does not verify (nothing is written then), or the database could
+        not be copied (``pg_dump`` missing or too old...).
     """
     target = target.expanduser().resolve()
     if target.is_relative_to(settings.data_dir):
         raise InvalidRequestError("put the backup outside the data directory it backs up.")
+    problems = trail_problems(settings)
+    if problems is not None:
+        raise BackupError(
+            f"no backup was made: the audit trail does not verify ({problems}), and a backup"
+            " would keep the tampering as a restore point. Run 'bradyscope admin"
+            " verify-audit' to see which events, investigate, and keep the last backup made"
+            f" before them; nothing was written to {target}."
+        )
     _empty_target(target)
     try:
         return _write_backup(settings, target)
@@ -404,6 +438,9 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
         The backup is incomplete, damaged, or of another database kind.
     ConflictError
         The target holds data and ``force`` is not given.
+    BackupError
+        The restored audit trail does not verify: the backup is in place, and the
+        sentence says so and what to do.
     """
     source = source.expanduser().resolve()
     manifest = read_manifest(source)
@@ -437,6 +474,14 @@ def restore(settings: Settings, source: Path, *, force: bool = False) -> BackupS
         revision = current_revision(settings)
     except Exception as exc:  # pragma: no cover - the migration just succeeded
         raise ServiceUnavailableError(f"the restored database cannot be read ({exc}).") from exc
+    problems = trail_problems(settings)
+    if problems is not None:
+        raise BackupError(
+            f"the backup was restored, but its audit trail does not verify ({problems}):"
+            " it was tampered with before the backup was made, or the backup was altered"
+            " since. Do not start bradyscope on it: run 'bradyscope admin verify-audit' to see"
+            " which events, then restore an earlier backup with --force, or investigate."
+        )
     return BackupSummary(
         directory=source, database=kind, revision=revision, files=count, size_bytes=total
     )
