@@ -117,7 +117,7 @@ def get_report_html(
     )
 
 
-@router.head("/report.pdf", include_in_schema=False)
+@router.head("/report.pdf", include_in_schema=False)  # the GET's headers (docs/api.md)
 @router.get(
     "/report.pdf",
     response_class=Response,
@@ -137,10 +137,19 @@ def get_report_pdf(
     request: Request,
     revision: RevisionQuery = None,
 ) -> Response:
-    pdf = service.report_pdf(
-        db, actor, trial_id, request.app.state.storage, revision, timezone=_tz(request)
-    )
-    return attachment(pdf, "application/pdf", f"trial-{trial_id}-report.pdf")
+    storage, name = request.app.state.storage, f"trial-{trial_id}-report.pdf"
+    if request.method == "HEAD":
+        # A report not made yet is not made for a HEAD (a second or more of CPU): its type
+        # and name, without a Content-Length, which only making it could tell (RFC 9110
+        # 9.3.2 lets a HEAD leave out what only generating the content determines).
+        kept = service.kept_report_pdf(db, actor, trial_id, storage, revision, _tz(request))
+        if kept is None:
+            response = attachment(b"", "application/pdf", name)
+            del response.headers["content-length"]
+            return response
+        return attachment(kept, "application/pdf", name)
+    pdf = service.report_pdf(db, actor, trial_id, storage, revision, timezone=_tz(request))
+    return attachment(pdf, "application/pdf", name)
 
 
 @router.get(

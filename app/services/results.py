@@ -87,10 +87,8 @@ def exported(db: Session, actor: Actor, trial: Trial, resource_type: str, value:
 
 
 def _markers(result: Result, storage: Storage) -> MarkerTable | None:
-    if not result.markers_path:
-        return None
-    path = storage.absolute(result.markers_path)
-    if not path.is_file():
+    path = storage.absolute(result.markers_path) if result.markers_path else None
+    if path is None or not path.is_file():
         return None
     fps = float(result.document.get("fps") or 0) or None
     return read_markers_csv(path, fps=fps)
@@ -334,12 +332,7 @@ def markers_csv_path(
 
 
 def _report_data(
-    db: Session,
-    actor: Actor,
-    trial_id: int,
-    storage: Storage,
-    revision: int | None,
-    timezone: str,
+    db: Session, actor: Actor, trial_id: int, storage: Storage, revision: int | None, timezone: str
 ) -> tuple[Trial, ReportData]:
     trial, result = result_of(db, actor, trial_id, "export", revision)
     return trial, load_report_data(db, trial, storage, result, timezone=timezone)
@@ -376,6 +369,16 @@ def report_pdf(
     if made:
         _forget_if_erased(db, cache, data)
     return pdf
+
+
+def kept_report_pdf(
+    db: Session, actor: Actor, trial_id: int, storage: Storage, revision: int | None, timezone: str
+) -> bytes | None:
+    """As :func:`report_pdf` (statuses, audit event), but only from the report cache: None
+    when it does not hold it, never made here (a ``HEAD`` must not cost a second of CPU)."""
+    trial, data = _report_data(db, actor, trial_id, storage, revision, timezone)
+    kept = ReportPdfCache.of(storage).get(trial.session.patient_id, trial.id, report_key(data))
+    return exported(db, actor, trial, "report_pdf", kept)
 
 
 def fhir_bundle(
@@ -426,12 +429,9 @@ class Comparison:
 
 @dataclass(frozen=True)
 class TrialPage:
-    """What the trial page shows.
-
-    ``data`` is None while the trial has no result (then ``job`` tells its
-    progress); ``comparison`` is the trial asked for with ``?compare=``, or
-    ``compare_error`` says why it cannot be shown.
-    """
+    """What the trial page shows: ``data`` is None while the trial has no result (then
+    ``job`` tells its progress); ``comparison`` is the trial asked for with ``?compare=``,
+    or ``compare_error`` says why it cannot be shown."""
 
     trial: Trial
     patient: Patient
