@@ -44,7 +44,12 @@ class SignedRead(SignatureRead):
 class VisitSigningRead(VisitSignaturesRead):
     """The visit's signatures, whether an amendment is pending, and what to show first."""
 
-    warnings: list[str] = Field(description=_WARNINGS + " Empty when there is none.")
+    warnings: list[str] = Field(
+        description=_WARNINGS
+        + " Empty when there is none, and when there is nothing to sign: the visit is signed"
+        " and nothing changed since, or no trial of it has a result yet (signing is refused"
+        " then, 409)."
+    )
 
 
 @router.post(
@@ -207,9 +212,12 @@ def list_signatures(
     state = signatures.signing_state(
         db, actor, session_id, timezone=request.app.state.settings.timezone
     )
+    # What to know *before signing*: only while there is something to sign, as the session
+    # page shows them only above its sign form (a signed visit's failed take is no warning).
+    can_sign = state.status != "signed" and bool(state.current)
     return VisitSigningRead(
         status=state.status,
         changes=state.changes,
         signatures=[SignatureRead.model_validate(s) for s in state.signatures],
-        warnings=list(state.warnings),
+        warnings=list(state.warnings) if can_sign else [],
     )
