@@ -169,7 +169,9 @@ def trial_page(
         "trial.html",
         user,
         active="patients",
-        title=f"{patient.code}: {trial_label(trial, tz)}",
+        # as the heading and the review page's title: two takes of a task read apart
+        title=f"{patient.code}: trial {trial.id}, {parse_task(trial.task).label.lower()},"
+        f" {trial_label(trial, tz)}",
         trial=trial,
         patient=patient,
         label=trial_label(trial, tz),
