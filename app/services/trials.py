@@ -24,7 +24,7 @@ from app import job_views, jobs
 from app.actors import ADMIN_SCOPE, Actor
 from app.audit import audit, audit_failure
 from app.errors import ConflictError, NotFoundError, PermissionDeniedError
-from app.models import SIDES, Job, Rig, Trial, Video, utcnow
+from app.models import SIDES, ApiClient, Job, Rig, Trial, Video, utcnow
 from app.schemas import TrialRatingUpdate
 from app.services.calibrations import rig_to_check_against
 from app.services.changes import audit_update, changed_fields
@@ -375,7 +375,9 @@ def rate_trial(db: Session, actor: Actor, trial_id: int, data: TrialRatingUpdate
     changed = changed_fields(trial, changes, columns={"comment": "rating_comment"})
     if "clinician_rating" in changed:
         trial.rated_at = utcnow()
-        trial.rated_by_user_id = actor.user_id
+        # who answers for it: the user, or the API key's owner (none for a key without one)
+        client = db.get(ApiClient, actor.id) if actor.type == "api_client" else None
+        trial.rated_by_user_id = client.owner_user_id if client else actor.user_id
     if changed and trial.result is not None:
         jobs.enqueue_report_pdf(db, trial.id)
     audit_update(db, actor, "trial", trial.id, trial.session.patient_id, changed)
