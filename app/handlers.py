@@ -236,7 +236,8 @@ def analyze_trial(ctx: JobContext) -> None:
 
     The markers CSV, the review overlay and the plots are written under ``files/`` before
     the transaction, and the browser proxies of videos that have none; if the
-    transaction is rejected (lease lost) those files are removed again. A
+    transaction is rejected (lease lost, or the database still unreachable after
+    :meth:`JobContext.finish`'s tries) those files are removed again. A
     re-analysis (the job's ``offset_frames`` or ``swap_cameras``, asked for
     through :mod:`app.services.revisions`) adds a revision; none is replaced.
     With ``swap_cameras`` the video stored as right is measured as the rig's

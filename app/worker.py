@@ -5,7 +5,9 @@
 heartbeat thread keeping the lease alive, then store the outcome:
 
 - the handler's effect and "succeeded" in one transaction guarded by the lease
-  (:meth:`JobContext.finish`), so a job is done exactly once in effect;
+  (:meth:`JobContext.finish`), so a job is done exactly once in effect; a database
+  unreachable for a moment then is waited for, the computed effect kept, while
+  the lease holds;
 - a :class:`core.errors.BradyscopeError` or :class:`app.errors.AppError`
   becomes the job's user-facing error, without retry (bad input stays bad); the
   log names the error's class and the job's trial, never its sentence (which
