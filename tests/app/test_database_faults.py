@@ -508,7 +508,7 @@ def test_a_job_stopped_by_the_database_going_away_is_given_back_without_an_attem
     (before: "ended without its outcome recorded"; its lease ran out and the next claim
     spent an attempt)."""
     settings, proxy = proxied
-    settings = settings.model_copy(update={"job_lease_s": 30.0, "job_heartbeat_s": 0.2})
+    settings = settings.model_copy(update={"job_lease_s": 3.0, "job_heartbeat_s": 0.2})
     sessions = get_sessionmaker(settings)
     with sessions() as db, db.begin():
         job_id = jobs.enqueue(db, "outage_probe", max_attempts=3).id
