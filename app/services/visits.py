@@ -231,8 +231,7 @@ def visit_report_pdf(
     if pdf is None:
         pdf = render_visit_pdf(visit)
         cache.put_visit(session.patient_id, session.id, key, pdf)
-    audit(db, actor, "export", "visit_report_pdf", session.id, session.patient_id)
-    db.commit()
+    _exported(db, actor, session)
     # a patient erased while the PDF was made: its erasure may have missed the new file
     # (as app.services.results._forget_if_erased, in a transaction begun after the put)
     if (
@@ -241,6 +240,22 @@ def visit_report_pdf(
     ):
         cache.forget_patient(session.patient_id)
     return pdf
+
+
+def kept_visit_report_pdf(
+    db: Session, actor: Actor, session_id: int, storage: Storage, *, timezone: str = "UTC"
+) -> bytes | None:
+    """As :func:`visit_report_pdf` (statuses, audit event), but only from the report cache:
+    None when it does not hold it, never made here (a ``HEAD`` must not cost 2-3 s of CPU)."""
+    session, visit = _visit(db, actor, session_id, storage, timezone)
+    kept = ReportPdfCache.of(storage).get_visit(session.patient_id, session.id, visit_key(visit))
+    _exported(db, actor, session)
+    return kept
+
+
+def _exported(db: Session, actor: Actor, session: RecordingSession) -> None:
+    audit(db, actor, "export", "visit_report_pdf", session.id, session.patient_id)
+    db.commit()
 
 
 def visit_file_name(db: Session, session_id: int, timezone: str, suffix: str = "report") -> str:
