@@ -47,6 +47,7 @@ def measure_regions(
     min_roundness: float,
     max_hidden: float,
 ) -> tuple[NDArray[np.float64], float, float]: ...
+def any_touching(xy: NDArray[np.float64], diam: NDArray[np.float64], gap: float) -> bool: ...
 def select(
     rows: NDArray[np.float64],
     pts: NDArray[np.float64],

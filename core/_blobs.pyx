@@ -19,6 +19,29 @@ from libc.string cimport memcpy, memset
 
 import numpy as np
 
+# Pixel loops in plain C with restrict pointers: a uint8 or float pointer may alias
+# any other (and a module-level float), so that the compiler would not vectorise
+# these loops written in Cython. The same operations in the same order.
+cdef extern from *:
+    """
+    static void bl_colsum3(const unsigned char *__restrict a, const unsigned char *__restrict b,
+                           const unsigned char *__restrict c, int *__restrict out, int n) {
+        for (int i = 0; i < n; i++) out[i] = a[i] + b[i] + c[i];
+    }
+    static int bl_mean3(const int *__restrict cs, float *__restrict o, int n, float ninth,
+                        int smax) {
+        for (int i = 0; i < n; i++) {
+            int s = cs[i] + cs[i + 1] + cs[i + 2];
+            smax = s > smax ? s : smax;
+            o[i] = (float)s * ninth;
+        }
+        return smax;
+    }
+    """
+    void bl_colsum3(const unsigned char* a, const unsigned char* b, const unsigned char* c,
+                    int* out, int n) noexcept nogil
+    int bl_mean3(const int* cs, float* o, int n, float ninth, int smax) noexcept nogil
+
 # one output row per blob (float64); the Python side reads these columns
 DEF NCOL = 21
 COLUMNS = (
@@ -123,30 +146,24 @@ cdef inline int clampi(int v, int lo, int hi) noexcept nogil:
 cdef int smooth(const Frame* f, int x0, int y0, int x1, int y1, float* out, int* colsum) noexcept nogil:
     """3x3 mean of the image over [x0, x1) x [y0, y1), replicated at the image border.
 
-    ``colsum`` holds ``x1 - x0 + 2`` ints.  Simple loops, which the compiler
-    vectorises.  Returns the largest 3x3 sum (the largest mean is that times
+    ``colsum`` holds ``x1 - x0 + 2`` ints.  Its rows are ``bl_colsum3`` and
+    ``bl_mean3``, which the compiler vectorises.  Returns the largest 3x3 sum (the largest mean is that times
     ``NINTH`` in float32, since the rounding is monotonic).
     """
-    cdef int W = f.W, H = f.H, x, y, w = x1 - x0, s, smax = 0
+    cdef int W = f.W, H = f.H, y, w = x1 - x0, smax = 0
     cdef int left = x0 - 1 if x0 > 0 else 0
     cdef int right = x1 if x1 < W else W - 1
     cdef const unsigned char* ra
     cdef const unsigned char* rb
     cdef const unsigned char* rc
-    cdef float* o
     for y in range(y0, y1):
         ra = f.img + <size_t>(y - 1 if y > 0 else 0) * W
         rb = f.img + <size_t>y * W
         rc = f.img + <size_t>(y + 1 if y < H - 1 else H - 1) * W
         colsum[0] = ra[left] + rb[left] + rc[left]
         colsum[w + 1] = ra[right] + rb[right] + rc[right]
-        for x in range(w):
-            colsum[x + 1] = ra[x0 + x] + rb[x0 + x] + rc[x0 + x]
-        o = out + (y - y0) * w
-        for x in range(w):
-            s = colsum[x] + colsum[x + 1] + colsum[x + 2]
-            smax = s if s > smax else smax
-            o[x] = <float>s * NINTH
+        bl_colsum3(ra + x0, rb + x0, rc + x0, colsum + 1, w)
+        smax = bl_mean3(colsum, out + (y - y0) * w, w, NINTH, smax)
     return smax
 
 
@@ -700,6 +717,7 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
     cdef Seed* seeds = NULL
     cdef unsigned char* taken = NULL
     cdef float v, vmax = -1.0, fthr = <float>thr
+    cdef const float* nb
     cdef float fmin8 = <float>(0.8 * f.prm.min_contrast)
     cdef int ismax
     cdef unsigned char ring[8]
@@ -718,6 +736,16 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
             for x in range(rw):
                 v = sm[y * rw + x]
                 if not v > fthr:
+                    continue
+                if 0 < y < rh - 1 and 0 < x < rw - 1:  # inside: the 8 neighbours, no bounds
+                    nb = sm + (y - 1) * rw + x - 1  # the neighbour above left
+                    if (nb[0] > v or nb[1] > v or nb[2] > v or nb[rw] > v or nb[rw + 2] > v
+                            or nb[2 * rw] > v or nb[2 * rw + 1] > v or nb[2 * rw + 2] > v):
+                        continue
+                    seeds[n_seeds].v = v
+                    seeds[n_seeds].y = y + y0
+                    seeds[n_seeds].x = x + x0
+                    n_seeds += 1
                     continue
                 ismax = 1
                 for dy in range(-1, 2):
@@ -963,14 +991,25 @@ cdef void bg_noise_c(const unsigned char* img, int H, int W, int step, double* b
                      double* sigma) noexcept nogil:
     """:func:`background_and_noise` on a C-contiguous image, ``step >= 1``."""
     cdef int hist[256]
-    cdef int x, y, n, q25, q50
+    cdef int parts[4][256]  # four counts, so that equal neighbours do not wait on each other
+    cdef int x, y, n, q25, q50, v
     cdef int ny = (H + step - 1) // step, nx = (W + step - 1) // step
     cdef const unsigned char* row
-    memset(hist, 0, sizeof(hist))
+    memset(parts, 0, sizeof(parts))
     for y in range(ny):
         row = img + <size_t>(y * step) * W
-        for x in range(nx):
-            hist[row[x * step]] += 1
+        x = 0
+        while x + 3 < nx:
+            parts[0][row[x * step]] += 1
+            parts[1][row[(x + 1) * step]] += 1
+            parts[2][row[(x + 2) * step]] += 1
+            parts[3][row[(x + 3) * step]] += 1
+            x += 4
+        while x < nx:
+            parts[0][row[x * step]] += 1
+            x += 1
+    for v in range(256):
+        hist[v] = parts[0][v] + parts[1][v] + parts[2][v] + parts[3][v]
     n = ny * nx
     q25 = kth(hist, (n + 3) // 4 - 1)
     q50 = kth(hist, (n + 1) // 2 - 1)
@@ -995,17 +1034,25 @@ def background_and_noise(const unsigned char[:, ::1] image, int step):
 
 def pool_mask(const unsigned char[:, ::1] image, int t, int pool):
     """``(ceil(H / pool), ceil(W / pool))`` uint8: 1 where a pixel of the cell is > t."""
-    cdef int H = image.shape[0], W = image.shape[1], x, y, cx, cy, y0, y1, x1
+    cdef int H = image.shape[0], W = image.shape[1], x, y, cx, cy, y0, y1, x1, whole
     if pool < 1:
         raise ValueError(f"pool must be >= 1, got {pool}")
     cdef int hp = (H + pool - 1) // pool, wp = (W + pool - 1) // pool
-    cdef unsigned char m
+    cdef unsigned char m, tc = <unsigned char>max(0, min(t, 255))
+    cdef unsigned int word
     cdef const unsigned char* row
     out = np.zeros((hp, wp), dtype=np.uint8)
     cdef unsigned char[:, ::1] o = out
-    cdef unsigned char* colmax = <unsigned char*>malloc(W)
+    if t >= 255:  # no pixel is above
+        return out
+    if t < 0:
+        out[:] = 1
+        return out
+    cdef unsigned char* colmax = <unsigned char*>malloc(W + 4)
     if colmax == NULL:
         raise MemoryError()
+    # whole 4-px cells read as one 32-bit word each (pool 4, the detector's)
+    whole = W // 4 if pool == 4 else 0
     with nogil:
         for cy in range(hp):
             # the column maxima of the cell row, then their maximum: loops the
@@ -1020,12 +1067,17 @@ def pool_mask(const unsigned char[:, ::1] image, int t, int pool):
             m = 0
             for x in range(W):
                 m = colmax[x] if colmax[x] > m else m
-            if m <= t:
+            if m <= tc:
                 continue
-            for cx in range(wp):
+            for x in range(W):  # 1 above the threshold, 0 not (vectorised)
+                colmax[x] = 1 if colmax[x] > tc else 0
+            for cx in range(whole):
+                memcpy(&word, colmax + 4 * cx, 4)
+                o[cy, cx] = 1 if word != 0 else 0
+            for cx in range(whole, wp):
                 x1 = min(W, cx * pool + pool)
                 for x in range(cx * pool, x1):
-                    if colmax[x] > t:
+                    if colmax[x]:
                         o[cy, cx] = 1
                         break
     free(colmax)
@@ -1075,9 +1127,11 @@ def merged_windows(const double[:, ::1] pts, double reach, int H, int W):
                 break
     regions = np.empty((n, 4), dtype=np.int32)
     cdef int[:, ::1] r = regions
-    renumber = np.full(max(n, 1), -1, dtype=np.int32)
+    renumber = np.empty(max(n, 1), dtype=np.int32)
     cdef int[::1] ren = renumber
     cdef int x0, y0, x1, y1, m = 0
+    for i in range(n):
+        ren[i] = -1
     for i in range(n):
         x0 = max(0, <int>floor(b[i, 0]))
         x1 = min(W, <int>ceil(b[i, 2]) + 1)
@@ -1121,6 +1175,24 @@ cdef int select_c(const double* rows, int N, const double* pts, int K,
             keep[n_kept] = i
             n_kept += 1
     return n_kept
+
+
+def any_touching(const double[:, ::1] xy, const double[::1] diam, double gap):
+    """True if two of the blobs (centres ``xy`` (N, 2), diameters ``diam``) are closer
+    than their mean diameter + ``gap``: ``core.markers._CameraDetections._keep_patches``'
+    test, with its operations in its order."""
+    cdef Py_ssize_t n = xy.shape[0], i, j
+    cdef double xi, yi, dx, dy, lim
+    if diam.shape[0] != n:
+        raise ValueError(f"diam has {diam.shape[0]} entries for {n} points")
+    for i in range(n):
+        xi, yi = xy[i, 0], xy[i, 1]
+        for j in range(i + 1, n):
+            dx, dy = xy[j, 0] - xi, xy[j, 1] - yi
+            lim = 0.5 * (diam[i] + diam[j]) + gap
+            if dx < lim and -dx < lim and dx * dx + dy * dy < lim * lim:
+                return True
+    return False
 
 
 def select(const double[:, ::1] rows, const double[:, ::1] pts, const int[::1] point_region,

@@ -349,7 +349,10 @@ def _detected_rows(
         pts = np.asarray(search_xy_px, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise ValueError(f"search_xy_px must have shape (K, 2), got {pts.shape}")
-        pts = np.ascontiguousarray(pts[np.all(np.isfinite(pts), axis=1)])
+        finite = np.isfinite(pts)
+        if not finite.all():
+            pts = pts[finite.all(axis=1)]
+        pts = np.ascontiguousarray(pts)
         # seeds are blob maxima: within the radius plus a streak's half length
         reach = radius_px + 0.5 * params.diameter_px_max
         regions, point_region = _blobs.merged_windows(pts, reach, image.shape[0], image.shape[1])
@@ -914,6 +917,12 @@ class _CameraDetections:
         than their mean diameter + ``TOUCHING_GAP_PX``): groups of them, each with a margin
         of a diameter + ``PATCH_MARGIN_PX``. A blob's diameter is the width of its
         half-maximum region, a marker's also where two merged along one direction."""
+        if not len(aside) and not _blobs.any_touching(
+            np.ascontiguousarray(xy, dtype=np.float64),
+            np.ascontiguousarray(diam, dtype=np.float64),
+            TOUCHING_GAP_PX,
+        ):
+            return  # the common case, checked without the interpreter's loop
         pts = xy.tolist()
         d = diam.tolist()
         n = len(pts)
