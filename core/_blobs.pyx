@@ -667,6 +667,13 @@ cdef int measure(Frame* f, int sx, int sy, int* has_core) except -1 nogil:
 
 # ------------------------------------------------------------------ one region
 
+cdef inline bint near_hit(const int* hits, int py0, int py1, int y, int d) noexcept nogil:
+    """Whether a row of [y - d, y + d] (within the pre-scan's [py0, py1)) has a hit;
+    ``hits`` as in :func:`search_region`."""
+    cdef int a = max(py0, y - d), b = min(py1, y + d + 1)
+    return b > a and hits[b - py0] > hits[a - py0]
+
+
 cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) except -1 nogil:
     """Seeds (local maxima above ``thr``) of one region, each blob measured once.
 
@@ -685,11 +692,19 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
     cdef int sx0 = max(0, x0 - 1), sx1 = min(W, x1 + 1)
     cdef int ilower = <int>floor(lower) if lower >= -1.0 else -1  # uint8 > lower
     cdef unsigned char m
-    for y in range(max(0, y0 - 1), min(f.H, y1 + 1)):
+    # hits[k]: the rows of the pre-scan [py0, py0 + k) with a pixel above lower
+    cdef int py0 = max(0, y0 - 1), py1 = min(f.H, y1 + 1), smax = 0
+    cdef int* hits = <int*>malloc((py1 - py0 + 1) * sizeof(int))
+    if hits == NULL:
+        with gil:
+            raise MemoryError()
+    hits[0] = 0
+    for y in range(py0, py1):
         row = f.img + <size_t>y * W
         m = 0
         for x in range(sx0, sx1):
             m = row[x] if row[x] > m else m
+        hits[y - py0 + 1] = hits[y - py0] + (m > ilower)
         if m <= ilower:
             continue
         cy0 = min(cy0, y)
@@ -703,6 +718,7 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
                 cx1 = max(cx1, x)
                 break
     if cy1 < 0:
+        free(hits)
         return 0
     # the smoothed part of the region: [x0, x1) x [y0, y1) from here on
     x0, y0 = max(x0, cx0 - 2), max(y0, cy0 - 2)
@@ -711,6 +727,7 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
     cdef size_t npx = <size_t>rw * rh
     cdef float* sm = <float*>malloc(npx * sizeof(float) + <size_t>(rw + 2) * sizeof(int))
     if sm == NULL:
+        free(hits)
         with gil:
             raise MemoryError()
     cdef int* colsum = <int*>(sm + npx)
@@ -724,7 +741,13 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
     cdef unsigned char t
     cdef const Core* cores
     try:
-        vmax = <float>smooth(f, x0, y0, x1, y1, sm, colsum) * NINTH
+        # Only rows with a hit within 2 rows are smoothed: a mean above thr needs a hit
+        # within 1 row, and the local-maximum test reads the rows beside it. The others
+        # are never read (no mean above thr either, so vmax is the same).
+        for y in range(rh):
+            if near_hit(hits, py0, py1, y + y0, 2):
+                smax = max(smax, smooth(f, x0, y + y0, x1, y + y0 + 1, sm + y * rw, colsum))
+        vmax = <float>smax * NINTH
         if <double>vmax <= thr:  # no seed (most full-frame regions: a noise pixel above thr)
             return 0
         seeds = <Seed*>malloc(npx * sizeof(Seed))
@@ -733,6 +756,8 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
                 raise MemoryError()
         # local maxima above thr (compared with their 8 neighbours inside the region)
         for y in range(rh):
+            if not near_hit(hits, py0, py1, y + y0, 1):
+                continue  # no mean above thr in this row
             for x in range(rw):
                 v = sm[y * rw + x]
                 if not v > fthr:
@@ -803,6 +828,7 @@ cdef int search_region(Frame* f, int x0, int y0, int x1, int y1, double thr) exc
                 if n_found >= f.prm.max_seeds:
                     break
     finally:
+        free(hits)
         free(sm)
         free(seeds)
         free(taken)
