@@ -224,12 +224,9 @@ def list_signatures(
     state = signatures.signing_state(
         db, actor, session_id, timezone=request.app.state.settings.timezone
     )
-    # What to know *before signing*: only while there is something to sign, as the session
-    # page shows them only above its sign form (a signed visit's failed take is no warning).
-    can_sign = state.status != "signed" and bool(state.current)
     return VisitSigningRead(
         status=state.status,
         changes=state.changes,
         signatures=[SignatureRead.model_validate(s) for s in state.signatures],
-        warnings=list(state.warnings) if can_sign else [],
+        warnings=list(state.warnings),  # only while there is something to sign (the page's)
     )

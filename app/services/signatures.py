@@ -21,7 +21,9 @@ download of a signed report is one audit event.
 Signing is never refused for a trial that failed, is still being measured or is not
 rated; the clinician is told of them first (:func:`app.services.visits.sign_warnings`:
 the session page's sign form, ``warnings`` of the API's signing state and of its answer
-to signing), and the signed report lists them.
+to signing), and the signed report lists them. They are told only while there is
+something to sign (:attr:`VisitSigning.something_to_sign`, the one place that decides it
+for the page, the API and :func:`sign_visit`).
 """
 
 from __future__ import annotations
@@ -56,8 +58,9 @@ class VisitSigning:
     ``changes`` lists, in words, each difference between the visit now and the
     newest signature (a trial's newer revision, a trial added or hidden). ``warnings``
     says what the clinician should know before signing (:func:`sign_warnings`: failed,
-    pending and unrated trials); :func:`signing_state` fills it, :func:`visit_signing`
-    leaves it empty (the session page asks :func:`sign_warnings` itself).
+    pending and unrated trials), filled (by :func:`visit_signing` with ``warnings=True``,
+    as :func:`signing_state` and the session page ask) only while
+    :attr:`something_to_sign` holds: a signed visit's failed take is no warning.
     """
 
     session: RecordingSession
@@ -72,6 +75,13 @@ class VisitSigning:
         if not self.signatures:
             return "unsigned"
         return "amendment_pending" if self.changes else "signed"
+
+    @property
+    def something_to_sign(self) -> bool:
+        """Whether signing would sign something: a trial of the visit has a result, and the
+        visit is not signed or changed since its newest signature (else signing is refused,
+        409, and the page shows no sign form)."""
+        return self.status != "signed" and bool(self.current)
 
     @property
     def newest(self) -> Signature | None:
@@ -220,8 +230,11 @@ def _changes(signed: dict[str, int], now: dict[str, int]) -> list[str]:
     return out
 
 
-def visit_signing(db: Session, session: RecordingSession, timezone: str) -> VisitSigning:
-    """The signing state of ``session``'s visit (no audit: the caller's use case audits)."""
+def visit_signing(
+    db: Session, session: RecordingSession, timezone: str, *, warnings: bool = False
+) -> VisitSigning:
+    """The signing state of ``session``'s visit (no audit: the caller's use case audits);
+    with ``warnings``, what to know before signing while there is something to sign."""
     patient_id, day = _visit_key(session, timezone)
     signatures = visit_signatures(db, patient_id, day)
     current = {str(t.id): t.result.revision for t in visit_trials(session, timezone) if t.result}
@@ -232,7 +245,10 @@ def visit_signing(db: Session, session: RecordingSession, timezone: str) -> Visi
         if newest.signed_facts is not None:  # None: signed before migration 0017
             now = visit_facts(session, timezone)
             changes += _fact_changes(dict(newest.signed_facts), now, timezone)
-    return VisitSigning(session, day, signatures, current, changes)
+    state = VisitSigning(session, day, signatures, current, changes)
+    if warnings and state.something_to_sign:
+        return replace(state, warnings=tuple(sign_warnings(session, timezone)))
+    return state
 
 
 @dataclass(frozen=True)
@@ -274,17 +290,15 @@ def sign_visit(
     reauthenticate(db, settings, actor, password, ip=ip)  # audited and committed there
     timezone = str(settings.timezone)
     session = load_session(db, actor, session_id, "sign")
-    state = visit_signing(db, session, timezone)
-    if not state.current:
-        raise ConflictError("No trial of this visit has a result yet; there is nothing to sign.")
-    if state.status == "signed":
+    state = visit_signing(db, session, timezone, warnings=True)
+    if not state.something_to_sign:
         newest = state.newest
-        assert newest is not None
         raise ConflictError(
-            f"This visit was signed (signature {newest.number}) and nothing changed since;"
-            " the signed report stays as it is."
+            "No trial of this visit has a result yet; there is nothing to sign."
+            if not state.current or newest is None
+            else f"This visit was signed (signature {newest.number}) and nothing changed"
+            " since; the signed report stays as it is."
         )
-    warnings = tuple(sign_warnings(session, timezone))
     line = SignatureLine(
         signed_by=actor_label(db, actor),
         signed_at=utcnow(),
@@ -294,7 +308,7 @@ def sign_visit(
     )
     pdf = render_visit_pdf(load_visit(db, session, storage, timezone=timezone).signed(line))
     row = _store_signature(db, actor, state, line, pdf, storage, timezone)
-    return SignedVisit(row, warnings)
+    return SignedVisit(row, state.warnings)
 
 
 def _store_signature(
@@ -338,10 +352,10 @@ def _store_signature(
 
 def signing_state(db: Session, actor: Actor, session_id: int, *, timezone: str) -> VisitSigning:
     """The signatures of a visit, whether an amendment is pending, and what to know before
-    signing it (``warnings``, as the session page's sign form says them); audited ``read``."""
+    signing it (``warnings``, as the session page's sign form says them: only while there is
+    something to sign); audited ``read``."""
     session = load_session(db, actor, session_id, "read")
-    state = visit_signing(db, session, timezone)
-    state = replace(state, warnings=tuple(sign_warnings(session, timezone)))
+    state = visit_signing(db, session, timezone, warnings=True)
     audit(db, actor, "read", "signature", session.id, session.patient_id)
     db.commit()
     return state
