@@ -11,7 +11,10 @@ with :func:`register`:
 - ``erase-patient CODE``, ``apply-retention [--dry-run]``: erase a patient's
   data (``app.services.erasure``).
 - ``backup DIR``, ``restore DIR [--force]``: ``app.backup``. ``restore`` does not
-  migrate first (the backup brings its own schema); it migrates afterwards.
+  migrate first (the backup brings its own schema); it migrates afterwards. Each is
+  audited (``backup`` / ``restore`` of ``database``), and so is a backup refused, or a
+  restore failed, because the audit trail does not verify (outcome ``error``;
+  :func:`_record_trail_failure`).
 
 :func:`cli_actor` is who acts on the command line in the audit trail.
 """
@@ -210,10 +213,15 @@ def apply_retention(settings: Settings, args: argparse.Namespace) -> int:
 
 def backup(settings: Settings, args: argparse.Namespace) -> int:
     from app.audit import audit
+    from app.backup import BackupError
     from app.backup import backup as make_backup
     from app.db import session_scope
 
-    summary = make_backup(settings, args.directory)
+    try:
+        summary = make_backup(settings, args.directory)
+    except BackupError:
+        _record_trail_failure(settings, "backup")
+        raise
     with session_scope(settings) as db:
         audit(db, cli_actor(), "backup", "database")
     print(
@@ -226,10 +234,15 @@ def backup(settings: Settings, args: argparse.Namespace) -> int:
 
 def restore(settings: Settings, args: argparse.Namespace) -> int:
     from app.audit import audit
+    from app.backup import BackupError
     from app.backup import restore as put_back
     from app.db import session_scope
 
-    summary = put_back(settings, args.directory, force=args.force)
+    try:
+        summary = put_back(settings, args.directory, force=args.force)
+    except BackupError:
+        _record_trail_failure(settings, "restore")
+        raise
     with session_scope(settings) as db:
         audit(db, cli_actor(), "restore", "database")
     print(
@@ -238,3 +251,32 @@ def restore(settings: Settings, args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
+
+
+def _record_trail_failure(settings: Settings, action: str) -> None:
+    """Audit a ``backup`` refused, or a ``restore`` failed, because the audit trail of the
+    configured database does not verify: ``action`` of ``database``, outcome ``error``, by
+    :func:`cli_actor`; no patient, no details (the count of problems is in the message).
+
+    ``app.backup`` raises the same ``BackupError`` when a copy cannot be written, so the
+    trail is checked again here, on this failure path only. A failed restore's event is
+    written into the restored database, the one whose trail failed: it is the only trail
+    there is now, the one ``verify-audit`` and any investigation read, and its chain still
+    takes a sealed event, after the problems it neither hides nor adds to (docs/operations.md,
+    "Backups"). When it cannot be written, a note says so and the failure stands as raised.
+    """
+    from app.audit import audit_failure
+    from app.backup import trail_problems
+    from app.db import get_sessionmaker
+
+    try:
+        if trail_problems(settings) is None:
+            return  # it failed for another reason (the target filled up...): not this event
+        with get_sessionmaker(settings)() as db:
+            audit_failure(db, cli_actor(), action, "database", outcome="error")
+    except Exception as exc:  # the failure's own message must still be said, not this one
+        print(
+            f"the failed {action} could not be recorded in the audit trail"
+            f" ({type(exc).__name__}); note it with the incident.",
+            file=sys.stderr,
+        )
