@@ -718,9 +718,13 @@ class FieldChange(Base):
 
 
 class AuditEventPatient(Base):
-    """A patient whose data one event returned beyond its own ``patient_id`` (a list of
-    patients): the index the trail's patient filter looks into. The event's ``details``
-    hold the same ids, sealed; no foreign keys (the trail outlives what it describes)."""
+    """A patient whose data one event returned beyond its own ``patient_id``: a patient a
+    list returned (``list``, e.g. the patient list), or one whose previous and new values
+    a read of the audit trail showed (``read`` ``field_changes``,
+    :func:`app.audit.audit_values_shown`). The index the trail's patient filter looks
+    into; the event's ``details`` hold the same ids (``patient_ids``), sealed, and
+    ``verify-audit`` checks the two agree. No foreign keys (the trail outlives what it
+    describes)."""
 
     __tablename__ = "audit_event_patients"
 
