@@ -78,6 +78,16 @@ def attachment(body: bytes, media_type: str, filename: str, **headers: str) -> R
     return Response(body, media_type=media_type, headers={**disposition, **headers})
 
 
+def head_attachment(kept: bytes | None, media_type: str, filename: str) -> Response:
+    """A HEAD's answer for a file that is made on demand: the kept file's headers, or, when it
+    is not made yet, its type and name without the Content-Length that only making it could
+    tell (RFC 9110 9.3.2 lets a HEAD leave out what only generating the content determines)."""
+    response = attachment(b"" if kept is None else kept, media_type, filename)
+    if kept is None:
+        del response.headers["content-length"]
+    return response
+
+
 def file_responses(media_type: str, description: str) -> dict[int | str, dict[str, Any]]:
     """``responses=`` of a route answering a file of ``media_type``, with its errors."""
     return {

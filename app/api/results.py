@@ -14,6 +14,7 @@ from app.api.responses import (
     attachment,
     errors,
     file_responses,
+    head_attachment,
     json_errors,
     not_modified,
 )
@@ -138,16 +139,9 @@ def get_report_pdf(
     revision: RevisionQuery = None,
 ) -> Response:
     storage, name = request.app.state.storage, f"trial-{trial_id}-report.pdf"
-    if request.method == "HEAD":
-        # A report not made yet is not made for a HEAD (a second or more of CPU): its type
-        # and name, without a Content-Length, which only making it could tell (RFC 9110
-        # 9.3.2 lets a HEAD leave out what only generating the content determines).
+    if request.method == "HEAD":  # a report not made yet is not made for a HEAD (seconds of CPU)
         kept = service.kept_report_pdf(db, actor, trial_id, storage, revision, _tz(request))
-        if kept is None:
-            response = attachment(b"", "application/pdf", name)
-            del response.headers["content-length"]
-            return response
-        return attachment(kept, "application/pdf", name)
+        return head_attachment(kept, "application/pdf", name)
     pdf = service.report_pdf(db, actor, trial_id, storage, revision, timezone=_tz(request))
     return attachment(pdf, "application/pdf", name)
 

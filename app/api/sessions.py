@@ -8,7 +8,17 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import HTMLResponse
 from pydantic import Field
 
-from app.api.responses import AUTH, IdPath, Limit, Offset, attachment, errors, json_errors, page
+from app.api.responses import (
+    AUTH,
+    IdPath,
+    Limit,
+    Offset,
+    attachment,
+    errors,
+    head_attachment,
+    json_errors,
+    page,
+)
 from app.auth import CurrentActor, ResultReader, SessionDep
 from app.auth import PatientReader as Reader
 from app.auth import PatientWriter as Writer
@@ -171,18 +181,12 @@ def get_visit_report_pdf(
         )
         name = visits.visit_file_name(db, session_id, settings.timezone, f"signed-{row.number}")
         return attachment(pdf, "application/pdf", name, **{"X-Content-SHA256": row.sha256})
-    if request.method == "HEAD":
-        # As a trial's report.pdf: a report not in the cache is not made for a HEAD (2-3 s of
-        # CPU); its type and name, without the Content-Length only making it could tell
-        # (RFC 9110 9.3.2 lets a HEAD leave out what only generating the content determines).
+    if request.method == "HEAD":  # a report not made yet is not made for a HEAD (seconds of CPU)
         kept = visits.kept_visit_report_pdf(
             db, actor, session_id, storage, timezone=settings.timezone
         )
         name = visits.visit_file_name(db, session_id, settings.timezone)
-        response = attachment(b"" if kept is None else kept, "application/pdf", name)
-        if kept is None:
-            del response.headers["content-length"]
-        return response
+        return head_attachment(kept, "application/pdf", name)
     pdf = visits.visit_report_pdf(db, actor, session_id, storage, timezone=settings.timezone)
     return attachment(
         pdf, "application/pdf", visits.visit_file_name(db, session_id, settings.timezone)
