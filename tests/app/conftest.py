@@ -45,7 +45,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import sqlalchemy as sa
 from sqlalchemy.orm import Session, sessionmaker
+from tcp_proxy import TcpProxy
 
 from app.db import dispose_engines, get_sessionmaker, migrate
 from app.settings import Settings
@@ -169,6 +171,23 @@ def pg_settings(tmp_path: Path, pg_empty_url: str) -> Settings:
     settings = make_test_settings(data_dir, database_url=pg_empty_url)
     migrate(settings)
     return settings
+
+
+@pytest.fixture
+def proxied(pg_settings: Settings) -> Iterator[tuple[Settings, TcpProxy]]:
+    """``pg_settings`` reaching the server through a proxy (started), which a test stops
+    and starts to take the database away and give it back."""
+    proxy = TcpProxy(("127.0.0.1", 5432))
+    proxy.start()
+    url = sa.make_url(pg_settings.database_url).set(host="127.0.0.1", port=proxy.port)
+    settings = pg_settings.model_copy(
+        update={"database_url": url.render_as_string(hide_password=False)}
+    )
+    try:
+        yield settings, proxy
+    finally:
+        proxy.stop()
+        dispose_engines()
 
 
 # --------------------------------------------------------------------------- worker processes

@@ -26,7 +26,6 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -41,7 +40,6 @@ from api_support import (
 from conftest import make_test_settings
 from fastapi.testclient import TestClient
 from sqlalchemy.exc import DBAPIError
-from tcp_proxy import TcpProxy
 
 from app import faults, jobs
 from app.apikeys import generate_api_key
@@ -138,22 +136,6 @@ def _assert_unreachable_answers(
         assert f"request id <code>{r.headers['x-request-id']}</code>" in r.text
         retry = 'href="/patients">Try this page again' in r.text
         assert retry == (r.request.method == "GET") and 'href="/patients"' in r.text
-
-
-@pytest.fixture
-def proxied(pg_settings: Settings) -> Iterator[tuple[Settings, TcpProxy]]:
-    """``pg_settings`` reaching the server through a proxy (started)."""
-    proxy = TcpProxy(("127.0.0.1", 5432))
-    proxy.start()
-    url = sa.make_url(pg_settings.database_url).set(host="127.0.0.1", port=proxy.port)
-    settings = pg_settings.model_copy(
-        update={"database_url": url.render_as_string(hide_password=False)}
-    )
-    try:
-        yield settings, proxy
-    finally:
-        proxy.stop()
-        dispose_engines()
 
 
 @pytest.mark.postgres

@@ -19,14 +19,12 @@ from datetime import UTC, datetime
 
 import psycopg
 import pytest
-import sqlalchemy as sa
 from sqlalchemy import event, select, update
 from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
-from tcp_proxy import TcpProxy
 
 from app import handlers, jobs
-from app.db import dispose_engines, get_sessionmaker
+from app.db import get_sessionmaker
 from app.job_context import JobContext, store_retry_waits
 from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
 from app.settings import Settings
@@ -432,22 +430,6 @@ def test_an_analysis_stored_through_an_outage_is_measured_once_and_keeps_its_fil
 
 
 # --------------------------------------------------------------------------- PostgreSQL
-
-
-@pytest.fixture
-def proxied(pg_settings: Settings) -> Iterator[tuple[Settings, TcpProxy]]:
-    """``pg_settings`` reaching the server through a proxy (started)."""
-    proxy = TcpProxy(("127.0.0.1", 5432))
-    proxy.start()
-    url = sa.make_url(pg_settings.database_url).set(host="127.0.0.1", port=proxy.port)
-    settings = pg_settings.model_copy(
-        update={"database_url": url.render_as_string(hide_password=False)}
-    )
-    try:
-        yield settings, proxy
-    finally:
-        proxy.stop()
-        dispose_engines()
 
 
 @pytest.mark.postgres
