@@ -135,13 +135,54 @@ def draw_spheres(
     """
     if canvas.ndim != 2 or canvas.dtype != np.float32:
         raise ValueError(f"canvas must be float32 (H, W), got {canvas.dtype} {canvas.shape}")
-    size = ImageSize.of_image(canvas)
+    patches = sphere_patches(
+        ImageSize.of_image(canvas),
+        camera,
+        layer,
+        limb_darkening=limb_darkening,
+        psf_sigma_px=psf_sigma_px,
+        shot_noise=shot_noise,
+    )
+    add_patches(canvas, patches)
+
+
+@dataclass(frozen=True)
+class Patch:
+    """What one object adds to a frame: float32 gray levels over rows ``y0:y1``, columns
+    ``x0:x1``."""
+
+    y0: int
+    y1: int
+    x0: int
+    x1: int
+    values: NDArray[np.float32]
+
+
+def add_patches(canvas: NDArray[np.float32], patches: list[Patch]) -> None:
+    """Add ``patches`` to ``canvas`` in place, in their order."""
+    for p in patches:
+        canvas[p.y0 : p.y1, p.x0 : p.x1] += p.values
+
+
+def sphere_patches(
+    size: ImageSize,
+    camera: Camera,
+    layer: SphereLayer,
+    *,
+    limb_darkening: float = 0.25,
+    psf_sigma_px: float = 0.5,
+    shot_noise: tuple[np.random.Generator, float] | None = None,
+) -> list[Patch]:
+    """What :func:`draw_spheres` adds to a frame of ``size``, one patch per drawn object in
+    drawing order; without shot noise, the same patches every time (a static scene's can
+    be kept and added again to each frame)."""
     S, N, _ = layer.centres_mm.shape
     cam_pts = camera.to_camera(layer.centres_mm.reshape(-1, 3)).reshape(S, N, 3)
     in_front = np.all(cam_pts[..., 2] > 3 * layer.radius_mm[None, :], axis=0)
     todo = np.flatnonzero((layer.peak > 0) & in_front)
+    patches: list[Patch] = []
     if len(todo) == 0:
-        return
+        return patches
     sub = layer.centres_mm[:, todo].reshape(-1, 3)
     centre_px, J, dist = _jacobians(camera, sub)
     n = len(todo)
@@ -183,7 +224,8 @@ def draw_spheres(
         if shot_noise is not None:
             rng, gain = shot_noise
             patch += np.sqrt(gain * patch) * rng.standard_normal(patch.shape)
-        canvas[y0:y1, x0:x1] += patch.astype(np.float32)
+        patches.append(Patch(y0, y1, x0, x1, patch.astype(np.float32)))
+    return patches
 
 
 def make_background(
@@ -228,23 +270,53 @@ class SensorNoise:
         self._buffer = (
             (rng.standard_normal(2 * self._n) * sigma).astype(np.float32) if sigma > 0 else None
         )
+        self._work: NDArray[np.float32] | None = None  # frame_u8's canvas, made on first use
 
     def noisy(self, background: NDArray[np.float32]) -> NDArray[np.float32]:
         """A new frame: ``background`` (float32, (H, W)) plus one frame of noise."""
-        if self._buffer is None:
+        noise = self._next_noise()
+        if noise is None:
             return background.copy()
+        return np.asarray(cv2.add(background, noise), dtype=np.float32)
+
+    def frame_u8(self, background: NDArray[np.float32], patches: list[Patch]) -> NDArray[np.uint8]:
+        """``to_uint8`` of a new frame (``background`` plus one frame of noise, as
+        :meth:`noisy` gives it) with ``patches`` added in their order: the same bytes,
+        but the full frame goes through one pass and only the patches' boxes through the
+        floating-point canvas."""
+        noise = self._next_noise()
+        if noise is None:
+            out = to_uint8(background)
+        else:
+            out = np.asarray(cv2.add(background, noise, dtype=cv2.CV_8U), dtype=np.uint8)
+        if not patches:
+            return out
+        if self._work is None:
+            self._work = np.empty(self._shape, dtype=np.float32)
+        work = self._work
+        boxes = [(slice(p.y0, p.y1), slice(p.x0, p.x1)) for p in patches]
+        for box in boxes:  # the noisy background where an object lands (boxes may overlap)
+            if noise is None:
+                work[box] = background[box]
+            else:
+                np.add(background[box], noise[box], out=work[box])
+        add_patches(work, patches)
+        for box in boxes:
+            out[box] = to_uint8(work[box])
+        return out
+
+    def _next_noise(self) -> NDArray[np.float32] | None:
+        """One frame of noise (a view of the buffer), or None without noise."""
+        if self._buffer is None:
+            return None
         off = int(self._rng.integers(0, self._n))
-        return np.asarray(
-            cv2.add(background, self._buffer[off : off + self._n].reshape(self._shape)),
-            dtype=np.float32,
-        )
+        return self._buffer[off : off + self._n].reshape(self._shape)
 
     def add_to(self, frame: NDArray[np.float32]) -> None:
         """Add one frame of noise to ``frame`` (float32, (H, W)) in place."""
-        if self._buffer is None:
-            return
-        off = int(self._rng.integers(0, self._n))
-        frame += self._buffer[off : off + self._n].reshape(self._shape)
+        noise = self._next_noise()
+        if noise is not None:
+            frame += noise
 
 
 def to_uint8(frame: NDArray[np.float32]) -> NDArray[np.uint8]:

@@ -41,10 +41,13 @@ from core.simulation.kinematics import (
 from core.simulation.render import (
     DISC,
     GLINT,
+    Patch,
     SensorNoise,
     SphereLayer,
+    add_patches,
     draw_spheres,
     make_background,
+    sphere_patches,
     to_uint8,
 )
 from core.simulation.rig import default_rig
@@ -493,6 +496,7 @@ class StereoRenderer:
             if any(d.profile == profile for d in self.statics)
         ]
         self._next = {c: 0 for c in CAMERA_NAMES}
+        self._statics_drawn: dict[str, list[Patch]] = {}
 
     def render(self, j: int) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
         """The left and right frames ``j``, uint8 ``(H, W)`` each."""
@@ -519,21 +523,34 @@ class StereoRenderer:
         t_mid = self.times[c][j]
         sub = imaging.exposure_s * ((np.arange(S) + 0.5) / S - 0.5)
         sub_t = t_mid + sub
-        frame = self._noises[c].noisy(self._backgrounds[c])
-        for layer in self._static_layers:
-            draw_spheres(frame, cam, layer, psf_sigma_px=imaging.psf_sigma_px)
+        size = imaging.camera_size(c)
+        patches = list(self._static_patches(c))
         if self.movings:
-            self._draw_moving(frame, cam, sub_t, t_mid)
+            patches += self._moving_patches(size, cam, sub_t, t_mid)
         peaks = np.where(self.occluded[c][j], 0.0, self._marker_peaks)
-        draw_spheres(
-            frame,
+        patches += sphere_patches(
+            size,
             cam,
             SphereLayer(self._marker_centres(c, t_mid, sub), self._radius_mm, peaks, DISC),
             psf_sigma_px=imaging.psf_sigma_px,
             shot_noise=(self._shot_rngs[c], _SHOT_NOISE_GAIN) if imaging.noise_sigma > 0 else None,
         )
         self.visibility[c][j] = np.where(self.occluded[c][j], 0.0, 1.0)
-        return to_uint8(frame)
+        return self._noises[c].frame_u8(self._backgrounds[c], patches)
+
+    def _static_patches(self, c: str) -> list[Patch]:
+        """The static distractors as camera ``c`` sees them: the same in every frame, so
+        drawn once (no shot noise on them)."""
+        if c not in self._statics_drawn:
+            size = self.imaging.camera_size(c)
+            self._statics_drawn[c] = [
+                patch
+                for layer in self._static_layers
+                for patch in sphere_patches(
+                    size, self._cameras[c], layer, psf_sigma_px=self.imaging.psf_sigma_px
+                )
+            ]
+        return self._statics_drawn[c]
 
     def _timing(self, c: str) -> CameraTiming:
         return self.imaging.left_timing if c == "left" else self.imaging.right_timing
@@ -567,10 +584,9 @@ class StereoRenderer:
         radius = imaging.marker_diameter_mm / 2.0
         capsules = tapping_hand(self.model, t_mid, marker_radius_mm=radius)
         skin = draw_skin(frame, cam, capsules, self._skin_look)
-        for layer in self._static_layers:
-            draw_spheres(frame, cam, layer, psf_sigma_px=imaging.psf_sigma_px)
+        add_patches(frame, self._static_patches(c))
         if self.movings:
-            self._draw_moving(frame, cam, sub_t, t_mid)
+            add_patches(frame, self._moving_patches(imaging.camera_size(c), cam, sub_t, t_mid))
         if imaging.nail_glint_peak > 0:
             glints = nail_glints(
                 self.model, cam, t_mid, marker_radius_mm=radius, peak=imaging.nail_glint_peak
@@ -589,14 +605,14 @@ class StereoRenderer:
         self._noises[c].add_to(frame)
         return to_uint8(frame)
 
-    def _draw_moving(
-        self, frame: NDArray[np.float32], cam: Camera, sub_t: FloatArray, t_mid: float
-    ) -> None:
+    def _moving_patches(
+        self, size: ImageSize, cam: Camera, sub_t: FloatArray, t_mid: float
+    ) -> list[Patch]:
         centres = np.stack([d.positions_mm(self.model, sub_t) for d in self.movings], axis=1)
         peaks = np.array([d.brightness(np.array([t_mid]))[0] for d in self.movings])
         radii = np.array([d.radius_mm for d in self.movings])
-        draw_spheres(
-            frame,
+        return sphere_patches(
+            size,
             cam,
             SphereLayer(centres, radii, peaks, GLINT),
             psf_sigma_px=self.imaging.psf_sigma_px,

@@ -10,9 +10,11 @@ from core.simulation.render import (
     GLINT,
     SensorNoise,
     SphereLayer,
+    add_patches,
     draw_spheres,
     intensity_centroid,
     make_background,
+    sphere_patches,
     to_uint8,
 )
 from core.simulation.rig import default_rig
@@ -182,3 +184,31 @@ def test_default_scenario_is_in_view_of_both_cameras(hand):
         # The index marker is above the thumb marker in the image (y is down).
         px = cam.project(truth.positions_mm[:, :2].reshape(-1, 3)).reshape(-1, 2, 2)
         assert np.all(px[:, 1, 1] < px[:, 0, 1])
+
+
+@pytest.mark.parametrize("sigma", [3.0, 0.0])
+def test_a_frame_made_in_one_pass_is_the_float_canvas_s_bytes(sigma):
+    """``SensorNoise.frame_u8`` (the whole frame converted in one pass, only the objects'
+    boxes through the float canvas) gives exactly the bytes of the float path: noisy
+    background, patches added in order, then ``to_uint8``. The objects overlap one another
+    and the image border, sit on the background's extremes (clipped at 0 and 255) and on
+    exact halves."""
+    size = ImageSize(320, 256)
+    bg = make_background(size, rng=np.random.default_rng(1))
+    bg[:40, :40] = -30.0  # below black
+    bg[-40:, -40:] = 300.0  # above white
+    bg[100:110, 100:200] = np.float32(37.5)  # a half: rounds to even
+    cam = default_rig(image_size=size).left
+    centres = [[0.0, 0.0, 500.0], [2.0, 1.0, 500.0], [-60.0, -50.0, 480.0], [70.0, 55.0, 520.0]]
+    rng = np.random.default_rng(7)
+    layer = SphereLayer(np.array(centres)[None], 5.0, np.array([230.0, 180.0, 90.0, 250.0]))
+    patches = sphere_patches(size, cam, layer, shot_noise=(rng, 0.025))
+    patches += sphere_patches(size, cam, SphereLayer(np.array(centres[:2])[None], 3.0, 60.0, GLINT))
+    assert len(patches) == 6
+    old = SensorNoise(size, sigma=sigma, rng=np.random.default_rng(3))
+    new = SensorNoise(size, sigma=sigma, rng=np.random.default_rng(3))
+    for _ in range(3):  # consecutive frames take the same noise windows
+        canvas = old.noisy(bg)
+        add_patches(canvas, patches)
+        assert np.array_equal(new.frame_u8(bg, patches), to_uint8(canvas))
+    assert np.array_equal(new.frame_u8(bg, []), to_uint8(old.noisy(bg)))
