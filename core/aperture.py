@@ -26,8 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import CubicSpline
-from scipy.signal import butter, sosfiltfilt
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -134,6 +132,9 @@ def lowpass_zero_phase(
         The filtered signal. Runs shorter than 4 samples are returned unchanged
         (too short to filter, and too short to hold a tap).
     """
+    # Imported here: scipy.signal costs ~0.6 s, which the web app's and CLI's start-up do not need.
+    from scipy.signal import butter, sosfiltfilt
+
     x = np.asarray(signal, dtype=np.float64)
     if x.size < 4:
         return x.copy()
@@ -155,6 +156,8 @@ def smooth_derivative(signal: FloatArray, fps: float) -> FloatArray:
         return np.zeros_like(x)
     if x.size < 4:
         return np.gradient(x) * fps
+    from scipy.interpolate import CubicSpline  # here, like scipy.signal above: start-up cost
+
     t = np.arange(x.size) / fps
     return np.asarray(CubicSpline(t, x).derivative()(t), dtype=np.float64)
 

@@ -51,7 +51,6 @@ from itertools import pairwise
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import find_peaks
 
 from core.aperture import Aperture, true_runs
 
@@ -301,6 +300,8 @@ def segment_recording(
     speed = np.abs(v)
     fps = aperture.fps
     runs = [(a, b) for a, b in aperture.runs() if b - a >= 3]
+    # Imported here: scipy.signal costs ~0.6 s, which the web app's start-up does not need.
+    from scipy.signal import find_peaks
 
     # 1. Maximal apertures, with a threshold relative to the whole recording.
     candidates = []

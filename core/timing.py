@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import isotonic_regression
 
 from core.errors import InputError
 
@@ -178,6 +177,9 @@ def grid_slots(t_s: ArrayLike, fps: float) -> NDArray[np.int64]:
     ndarray of int64, shape (T,)
         Strictly increasing slots, the first 0.
     """
+    # Imported here: scipy.optimize costs ~0.4 s, which the web app's start-up does not need.
+    from scipy.optimize import isotonic_regression
+
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be positive, got {fps}")

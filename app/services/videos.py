@@ -16,7 +16,6 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
-import av
 import numpy as np
 from sqlalchemy.orm import Session
 
@@ -96,6 +95,8 @@ def _packet_times_s(path: Path) -> list[float]:
     its packets in display order: demuxed, not decoded (0.1-0.2 s for a 990-MB MP4 of
     900 frames, 0.15 s for 36 000 frames: 10 min at 60 fps). Empty when the packets carry
     no timestamps or the file cannot be read."""
+    import av  # here, as in core.video: PyAV is not needed to start the web app
+
     try:
         with av.open(str(path)) as container:
             if container.format.flags & _AVFMT_NOTIMESTAMPS or not container.streams.video:
