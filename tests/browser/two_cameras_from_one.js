@@ -32,17 +32,33 @@
     const track = source.getVideoTracks()[0];
     const processor = new MediaStreamTrackProcessor({ track });
     const generator = new MediaStreamTrackGenerator({ kind: "video" });
-    const crop = new TransformStream({
-      transform(frame, controller) {
+    // A read-crop-write loop rather than pipeThrough: a stream's queue drops the frames it
+    // holds when the track stops, and a VideoFrame dropped without close() makes Chromium
+    // warn ("garbage collected without being closed"). Here every frame is closed by
+    // whoever holds it last: this loop, or the generator once it has taken it.
+    const reader = processor.readable.getReader();
+    const writer = generator.writable.getWriter();
+    let stopped = false;
+    (async () => {
+      while (!stopped) {
+        const { value: frame, done } = await reader.read().catch(() => ({ done: true }));
+        if (done) break;
+        if (stopped) { frame.close(); break; }
         const width = frame.codedWidth / 2;
         const rect = { x: half.index * width, y: 0, width, height: frame.codedHeight };
-        controller.enqueue(new VideoFrame(frame, { visibleRect: rect }));
+        const cropped = new VideoFrame(frame, { visibleRect: rect });
         frame.close();
-      },
-    });
-    processor.readable.pipeThrough(crop).pipeTo(generator.writable).catch(() => {});
+        try {
+          await writer.write(cropped);
+        } catch (error) {
+          cropped.close(); // the generator stopped before taking it
+          break;
+        }
+      }
+      reader.cancel().catch(() => {});
+    })();
     const stop = generator.stop.bind(generator);
-    generator.stop = () => { stop(); track.stop(); };
+    generator.stop = () => { stopped = true; stop(); track.stop(); };
     return new MediaStream([generator]);
   };
 })();
