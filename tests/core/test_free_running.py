@@ -1,9 +1,14 @@
 """Acceptance of issue 11: free-running cameras measured to lab-rig accuracy, end to end.
 
-10-s 1920x1080 60-fps H.264 recordings from the simulator (the truth is exact),
-each simulated and measured by ``analyze_recording`` (as a user would) once
-per test run, shared by the tests and the xdist workers (``run_once``).
-Bounds are the issue's acceptance table.
+1920x1080 60-fps H.264 recordings from the simulator (the truth is exact), each
+simulated and measured by ``analyze_recording`` (as a user would) once per test
+run, shared by the tests and the xdist workers (``run_once``). Bounds are the
+issue's acceptance table. The issue's recordings last 10 s, as
+``bench/bench_free_running.py``'s do; here the drift case (the drift is found
+from the whole take) and the lost-frame case (its last loss, at 7.6 s, is not
+found in an 8-s take) do, and the others last as long as their events need
+(:data:`TEST_SECONDS`: the halt at tap 14 ends at 6.2 s), which keeps the suite
+inside CI's 20 minutes on a slow machine.
 
 The H.264 is x264's ``ultrafast`` preset at CRF 18: about 16 Mbit/s, a phone's rate.
 The simulator's default, ``superfast``, keeps the simulated sensor noise at about
@@ -70,6 +75,13 @@ SCENARIOS: dict[str, dict[str, Any]] = {
 
 #: The tests' H.264 encoder options (see above); ``bench/bench_free_running.py`` passes ().
 FAST_H264 = (("preset", "ultrafast"),)
+#: How long each case's recording lasts in the tests (s; the bench's last 10 s).
+TEST_SECONDS = {"drift": 10.0, "drops": 10.0, "vfr": 7.0, "rolling": 7.0, "fps120": 7.0}
+
+
+def tapping(name: str, duration_s: float = TAPPING.duration_s) -> TappingScenario:
+    """The tapping of case ``name`` (its frame rate), lasting ``duration_s``."""
+    return replace(TAPPING, fps=SCENARIOS[name].get("fps", 60.0), duration_s=duration_s)
 
 
 def _simulate_and_analyze(
@@ -77,13 +89,15 @@ def _simulate_and_analyze(
     out: Path,
     encoder_options: tuple[tuple[str, str], ...] = FAST_H264,
     detector: Any = None,
+    duration_s: float | None = None,
 ) -> tuple[SimulatedSession, Analysis]:
+    """Case ``name`` simulated into ``out`` and analysed; ``duration_s`` by default the
+    tests' (:data:`TEST_SECONDS`)."""
     spec = SCENARIOS[name]
-    tapping = replace(TAPPING, fps=spec.get("fps", 60.0))
     session = simulate_session(
         out,
         seed=11,
-        tapping=tapping,
+        tapping=tapping(name, TEST_SECONDS[name] if duration_s is None else duration_s),
         imaging=ImagingScenario(
             image_size=SIZE,
             codec="h264",
@@ -197,7 +211,8 @@ def test_metrics_are_measured_at_the_real_frame_times(free_running):
     session, analysis = free_running["get"]("vfr")
     assert analysis.metrics is not None
     got = analysis.metrics
-    reference = compute_metrics(simulate_tapping(TAPPING, seed=11).positions_mm[:, :2], TAPPING.fps)
+    even = tapping("vfr", TEST_SECONDS["vfr"])
+    reference = compute_metrics(simulate_tapping(even, seed=11).positions_mm[:, :2], even.fps)
     assert got.metrics["frequency_hz"] == pytest.approx(session.truth["frequency_hz"], rel=0.01)
     assert len(got.taps) == len(reference.taps) == session.truth["tap_count"]
     for key in ("opening_velocity_mm_s_max", "closing_velocity_mm_s_max"):
@@ -207,4 +222,4 @@ def test_metrics_are_measured_at_the_real_frame_times(free_running):
         assert np.max(np.abs(per_tap / per_tap_ref - 1)) <= 0.03, key
     start = np.array([t.t_start_s for t in got.taps])
     start_true = np.array([t["t_start_s"] for t in session.truth["taps"]])
-    assert np.max(np.abs(start - start_true)) * TAPPING.fps <= 0.5  # frames
+    assert np.max(np.abs(start - start_true)) * even.fps <= 0.5  # frames
