@@ -223,7 +223,9 @@ def test_review_view(browser, served, recording, screenshot_dir):
 
 @pytest.fixture(scope="module")
 def wide_recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
-    """A 1280x1024 recording: its browser proxies are reduced to 640x512."""
+    """A 1280x1024 recording: its browser proxies are reduced to 640x512. MPEG-4 (the lab
+    rig's), not the simulator's lossless FFV1, which takes several times the CPU to write
+    and read and changes nothing the test looks at."""
     from core.camera import ImageSize
     from core.simulation.kinematics import TappingScenario
     from core.simulation.session import ImagingScenario, simulate_session
@@ -232,7 +234,7 @@ def wide_recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
         tmp_path_factory.mktemp("wide-recording"),
         seed=8,
         tapping=TappingScenario(duration_s=2.0, amplitude_mm=45.0, frequency_hz=3.0),
-        imaging=ImagingScenario(image_size=ImageSize(1280, 1024)),
+        imaging=ImagingScenario(image_size=ImageSize(1280, 1024), codec="mp4v"),
     )
     return Recording(sim.left_video, sim.right_video, sim.rig_path, sim.truth)
 
