@@ -400,6 +400,18 @@ def _wait_recording(page) -> None:
 # --------------------------------------------------------------------------- acceptance
 
 
+def _markers_in_view_while_recording(gate: str) -> bool:
+    """The recording gate's sentence says both views see the 2 markers, or notes nothing
+    but frames lost (it says that instead)."""
+    if gate == "Recording: both cameras see the 2 markers.":
+        return True
+    check = "Recording, but check: "
+    notes = gate.removeprefix(check).removesuffix(".").split("; ")
+    return gate.startswith(check) and all(
+        re.fullmatch(r"the (left|right) camera lost \d+ frames in the last 2 s", n) for n in notes
+    )
+
+
 def test_record_a_trial_with_two_cameras_upload_and_measure(
     file_cameras, served, api, side_by_side
 ) -> None:
@@ -442,7 +454,9 @@ def test_record_a_trial_with_two_cameras_upload_and_measure(
     page.evaluate(GATE_LOG_JS)
     p.record_until_stored(RECORD_S)
     recording = [g for g in gates if g.startswith("Recording")]
-    assert "Recording: both cameras see the 2 markers." in recording, gates
+    # Markers in view all along; on a loaded machine the fake cameras may also lose frames,
+    # which the gate says instead of "both cameras see" (it failed CI once that way).
+    assert any(_markers_in_view_while_recording(g) for g in recording), gates
     assert not any("not seen" in g for g in recording), recording
     verdict = page.locator("[data-take-verdict]").inner_text()
     assert "did not see" not in verdict, verdict  # (frames lost on a loaded machine may be)
