@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 from api_support import Api, api, video_pair  # noqa: F401 - fixtures
+from pdf_head_checks import head_after_made, head_before_made
 from sqlalchemy import select
 from test_revisions import _trial
 
@@ -54,36 +55,12 @@ def test_head_of_a_report_not_made_yet_does_not_make_it(
     api: Api, measured: int, renders: list[int]
 ) -> None:
     url = f"/api/v1/trials/{measured}/report.pdf"
-    head = api.client.head(url, headers=api.headers)
-    assert head.status_code == 200, head.text
-    assert renders == []  # not made for a HEAD
-    assert head.content == b""
-    assert head.headers["content-type"] == "application/pdf"
-    # Its length is known only once made: none is sent rather than a wrong one (0).
-    assert "content-length" not in head.headers
-    assert _exports(api, measured) == 1  # audited as the GET is
-
-    got = api.client.get(url, headers=api.headers)
-    assert got.status_code == 200 and got.content.startswith(b"%PDF")
-    assert renders == [measured]  # the GET made it: it was not in the cache before
-    assert head.headers["content-disposition"] == got.headers["content-disposition"]
+    head_before_made(api, url, measured, renders, lambda: _exports(api, measured))
 
 
 def test_head_of_a_report_made_gives_the_gets_headers(
     api: Api, measured: int, renders: list[int]
 ) -> None:
     url = f"/api/v1/trials/{measured}/report.pdf"
-    got = api.client.get(url, headers=api.headers)
-    assert got.status_code == 200, got.text
-    head = api.client.head(url, headers=api.headers)
-    assert head.status_code == 200, head.text
-    assert renders == [measured]  # made once, by the GET
-    assert head.content == b""
-    for header in ("content-type", "content-length", "content-disposition"):
-        assert head.headers[header] == got.headers[header], header
-    assert int(head.headers["content-length"]) == len(got.content)
-    # As the GET: credentials first, then the trial; nothing made for either refusal.
-    assert api.client.head(url).status_code == 401
-    other = api.client.head(f"/api/v1/trials/{measured + 1}/report.pdf", headers=api.headers)
-    assert other.status_code == 404
-    assert renders == [measured]
+    other = f"/api/v1/trials/{measured + 1}/report.pdf"
+    head_after_made(api, url, measured, renders, lambda: _exports(api, measured), other)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 from api_support import Api, api  # noqa: F401 - fixtures
+from pdf_head_checks import head_after_made, head_before_made
 from test_pages import client, login, seeded  # noqa: F401 - fixtures
 from test_visit_api import _visit
 
@@ -51,40 +52,15 @@ def test_head_of_a_visit_report_not_made_yet_does_not_make_it(
     api: Api, visit: int, renders: list[int]
 ) -> None:
     url = f"/api/v1/sessions/{visit}/report.pdf"
-    head = api.client.head(url, headers=api.headers)
-    assert head.status_code == 200, head.text
-    assert renders == []  # not made for a HEAD
-    assert head.content == b""
-    assert head.headers["content-type"] == "application/pdf"
-    # Its length is known only once made: none is sent rather than a wrong one (0).
-    assert "content-length" not in head.headers
-    assert _exports(api, visit) == 1  # audited as the GET is
-
-    got = api.client.get(url, headers=api.headers)
-    assert got.status_code == 200 and got.content.startswith(b"%PDF")
-    assert renders == [visit]  # the GET made it: it was not in the cache before
-    assert head.headers["content-disposition"] == got.headers["content-disposition"]
+    head_before_made(api, url, visit, renders, lambda: _exports(api, visit))
 
 
 def test_head_of_a_visit_report_made_gives_the_gets_headers(
     api: Api, visit: int, renders: list[int]
 ) -> None:
     url = f"/api/v1/sessions/{visit}/report.pdf"
-    got = api.client.get(url, headers=api.headers)
-    assert got.status_code == 200, got.text
-    head = api.client.head(url, headers=api.headers)
-    assert head.status_code == 200, head.text
-    assert renders == [visit]  # made once, by the GET
-    assert head.content == b""
-    for header in ("content-type", "content-length", "content-disposition"):
-        assert head.headers[header] == got.headers[header], header
-    assert int(head.headers["content-length"]) == len(got.content)
-    assert _exports(api, visit) == 2
-    # As the GET: credentials first, then the session; nothing made for either refusal.
-    assert api.client.head(url).status_code == 401
-    other = api.client.head("/api/v1/sessions/999999/report.pdf", headers=api.headers)
-    assert other.status_code == 404
-    assert renders == [visit]
+    other = "/api/v1/sessions/999999/report.pdf"
+    head_after_made(api, url, visit, renders, lambda: _exports(api, visit), other)
 
 
 def test_head_on_the_pages_visit_report_does_not_make_it(
