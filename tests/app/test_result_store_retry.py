@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (the small_recording fixture imported from test_worker is a parameter here)
 """A job's computed result survives a database outage while it is stored.
 
 :meth:`app.job_context.JobContext.finish` tries its transaction again, after
@@ -11,7 +12,6 @@ through a TCP proxy (tests/app/tcp_proxy.py).
 
 from __future__ import annotations
 
-import json
 import logging
 import sqlite3
 from collections.abc import Callable, Iterator
@@ -22,13 +22,13 @@ import pytest
 from sqlalchemy import event, select, update
 from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
+from test_worker import _trial_with_videos, small_recording  # noqa: F401 - a fixture
 
 from app import handlers, jobs
 from app.db import get_sessionmaker
 from app.job_context import JobContext, store_retry_waits
-from app.models import Calibration, Job, Patient, RecordingSession, Result, Rig, Trial, Video
+from app.models import Job, Patient, RecordingSession, Result, Rig, Trial
 from app.settings import Settings
-from app.storage import Storage
 from app.worker import UNEXPECTED_RETRY_MESSAGE, run_job, run_worker
 
 PATIENT_FILE = "pacient_Novak_Jan.sqlite3"
@@ -332,72 +332,6 @@ def test_errors_other_than_an_outage_are_not_tried_again(
 # --------------------------------------------------------------------------- a real analysis
 
 
-@pytest.fixture(scope="module")
-def small_recording(simulated_session):
-    from core.camera import ImageSize
-    from core.simulation.kinematics import TappingScenario
-    from core.simulation.session import ImagingScenario
-
-    return simulated_session(  # as tests/app/test_worker.py's: the same files, made once
-        seed=11,
-        tapping=TappingScenario(duration_s=2.5),
-        imaging=ImagingScenario(image_size=ImageSize(640, 512)),
-    )
-
-
-def _store_video(storage: Storage, db: Session, path, *, side: str, trial_id: int) -> None:
-    from app.services.videos import container_frame_times
-    from core.video import probe_video
-
-    info = probe_video(path)
-    with storage.receive("videos", path.suffix) as incoming:
-        incoming.write(path.read_bytes())
-        stored = incoming.commit()
-    db.add(
-        Video(
-            trial_id=trial_id,
-            side=side,
-            path=stored.path,
-            size_bytes=stored.size_bytes,
-            sha256=stored.sha256,
-            fps=container_frame_times(info).fps,
-            frame_count=info.frame_count,
-            width=info.image_size.width,
-            height=info.image_size.height,
-            codec=info.fourcc,
-        )
-    )
-
-
-def _recorded_trial(db: Session, storage: Storage, recording) -> tuple[int, int]:
-    """(trial id, job id): a calibrated rig's trial of ``recording`` and its analysis."""
-    rig, patient = Rig(name="sim-rig"), Patient(code="PD-SIM")
-    db.add_all([rig, patient])
-    db.flush()
-    db.add(
-        Calibration(
-            rig_id=rig.id,
-            version=1,
-            valid_from=datetime(2026, 1, 1, tzinfo=UTC),
-            rig_json=json.loads(recording.rig_path.read_text()),
-            rms_px=0.1,
-            source="rig_file",
-            status="ready",
-        )
-    )
-    session = RecordingSession(
-        patient_id=patient.id, rig_id=rig.id, recorded_at=datetime(2026, 2, 1, tzinfo=UTC)
-    )
-    db.add(session)
-    db.flush()
-    trial = Trial(session_id=session.id, hand="right")
-    db.add(trial)
-    db.flush()
-    _store_video(storage, db, recording.left_video, side="left", trial_id=trial.id)
-    _store_video(storage, db, recording.right_video, side="right", trial_id=trial.id)
-    return trial.id, jobs.enqueue(db, "analyze_trial", trial_id=trial.id).id
-
-
 @pytest.mark.slow
 def test_an_analysis_stored_through_an_outage_is_measured_once_and_keeps_its_files(
     app_settings, db_sessionmaker, storage, small_recording, finish_commits, monkeypatch
@@ -414,7 +348,7 @@ def test_an_analysis_stored_through_an_outage_is_measured_once_and_keeps_its_fil
 
     monkeypatch.setattr(handlers, "analyze_recording", counting)
     with db_sessionmaker() as db, db.begin():
-        trial_id, job_id = _recorded_trial(db, storage, small_recording)
+        trial_id, job_id = _trial_with_videos(db, storage, small_recording, calibrated=True)
     faults = finish_commits(2, OUTAGES["postgresql-refused"])
     run_worker(app_settings, once=True, max_jobs=1)
     job = _job(db_sessionmaker, job_id)
