@@ -5,8 +5,9 @@ Usage::
     python bench/bench_browser_take.py                 # simulate the take into a temporary folder
     python bench/bench_browser_take.py --dir DIR       # keep (or reuse) the simulated take in DIR
 
-The take is the one of ``tests/app/test_browser_recordings.py``: two VP9 WebM files
-(1920x1080, 60 fps, 10 s) whose timestamps are rounded to 1 ms, as Chromium's
+The take is of the kind ``tests/app/test_browser_recordings.py`` measures (whose take
+lasts 7 s, its frames lost earlier): two VP9 WebM files (1920x1080, 60 fps, 10 s) whose
+timestamps are rounded to 1 ms, as Chromium's
 MediaRecorder writes them, from two cameras with capture jitter (1 ms), lost frames in
 both and two clocks (the right one 43 ms later, 250 ppm fast). The capture page's
 timestamps files (``frame,time_s``: each frame's capture time, µs, on its camera's
