@@ -23,12 +23,12 @@ from pathlib import Path
 import httpx
 import pytest
 from api_support import Api, api, make_api_key, make_user  # noqa: F401
+from cli_support import admin_cli
 from fastapi.testclient import TestClient
 from sqlalchemy import select, update
 
 from app import login, throttle
 from app.actors import Actor
-from app.cli import main
 from app.db import get_sessionmaker
 from app.errors import (
     AuthenticationError,
@@ -56,15 +56,6 @@ WRONG = "wrong horse battery"
 
 def _login(client: TestClient, email: str, password: str) -> httpx.Response:
     return client.post("/api/v1/auth/login", json={"email": email, "password": password})
-
-
-def _cli(settings: Settings, monkeypatch: pytest.MonkeyPatch, *args: str) -> int:
-    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(settings.data_dir))
-    if settings.database_url:
-        monkeypatch.setenv("BRADYSCOPE_DATABASE_URL", settings.database_url)
-    else:
-        monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
-    return main(["admin", *args])
 
 
 # --------------------------------------------------------------------------- finding 1
@@ -201,9 +192,9 @@ def test_admin_unlock_and_set_password_lift_a_lock(
     for _ in range(5):
         _login(api.client, "doc@example.org", WRONG)
     assert _login(api.client, "doc@example.org", PASSWORD).status_code == 429
-    assert _cli(api.settings, monkeypatch, "list-users") == 0
+    assert admin_cli(api.settings, monkeypatch, "list-users") == 0
     assert "5 failures" in capsys.readouterr().out
-    assert _cli(api.settings, monkeypatch, "unlock", "doc@example.org") == 0
+    assert admin_cli(api.settings, monkeypatch, "unlock", "doc@example.org") == 0
     assert "lifted" in capsys.readouterr().err
     assert _login(api.client, "doc@example.org", PASSWORD).status_code == 200
 
@@ -212,7 +203,7 @@ def test_admin_unlock_and_set_password_lift_a_lock(
     assert _login(api.client, "doc@example.org", PASSWORD).status_code == 429
     new_password = "a fresh mahogany teapot"
     monkeypatch.setenv("BRADYSCOPE_PASSWORD", new_password)
-    assert _cli(api.settings, monkeypatch, "set-password", "doc@example.org") == 0
+    assert admin_cli(api.settings, monkeypatch, "set-password", "doc@example.org") == 0
     # before: still 429 after set-password
     assert _login(api.client, "doc@example.org", new_password).status_code == 200
     actions = [(e.actor_type, e.action) for e in api.audit_events() if e.resource_type == "user"]
@@ -334,7 +325,9 @@ def test_the_cli_refuses_the_probed_passwords(
 ) -> None:
     monkeypatch.setenv("BRADYSCOPE_PASSWORD", password)
     assert (
-        _cli(app_settings, monkeypatch, "create-user", "doc@example.org", "--role", "clinician")
+        admin_cli(
+            app_settings, monkeypatch, "create-user", "doc@example.org", "--role", "clinician"
+        )
         == 2
     )
     err = capsys.readouterr().err
@@ -351,27 +344,30 @@ def test_account_lifecycle_on_the_command_line(
     browser = TestClient(api.app)
     assert _login(browser, "doc@example.org", PASSWORD).status_code == 200
     assert browser.get("/api/v1/auth/me").json()["role"] == "clinician"
-    assert _cli(api.settings, monkeypatch, "list-users") == 0
+    assert admin_cli(api.settings, monkeypatch, "list-users") == 0
     out = capsys.readouterr().out
     assert "doc@example.org\tclinician\tactive\t" in out
 
-    assert _cli(api.settings, monkeypatch, "set-role", "doc@example.org", "admin") == 0
+    assert admin_cli(api.settings, monkeypatch, "set-role", "doc@example.org", "admin") == 0
     assert browser.get("/api/v1/auth/me").status_code == 401  # logged out: scopes changed
     assert _login(browser, "doc@example.org", PASSWORD).status_code == 200
     assert "admin" in browser.get("/api/v1/auth/me").json()["scopes"]
 
-    assert _cli(api.settings, monkeypatch, "deactivate-user", "doc@example.org") == 0
+    assert admin_cli(api.settings, monkeypatch, "deactivate-user", "doc@example.org") == 0
     assert browser.get("/api/v1/auth/me").status_code == 401
     assert _login(browser, "doc@example.org", PASSWORD).status_code == 401
-    assert _cli(api.settings, monkeypatch, "list-users") == 0
+    assert admin_cli(api.settings, monkeypatch, "list-users") == 0
     assert "doc@example.org\tadmin\tdeactivated" in capsys.readouterr().out
-    assert _cli(api.settings, monkeypatch, "deactivate-user", "nobody@example.org") == 2
+    assert admin_cli(api.settings, monkeypatch, "deactivate-user", "nobody@example.org") == 2
     actions = [e.action for e in api.audit_events() if e.resource_type == "user"]
     assert "set_role:admin" in actions and "deactivate" in actions
     # A new account, an admin's above all, is in the trail too (a security review found
     # create-user the one account change that was not).
     monkeypatch.setenv("BRADYSCOPE_PASSWORD", PASSWORD)
-    assert _cli(api.settings, monkeypatch, "create-user", "it@example.org", "--role", "admin") == 0
+    assert (
+        admin_cli(api.settings, monkeypatch, "create-user", "it@example.org", "--role", "admin")
+        == 0
+    )
     created = [
         (e.actor_type, e.action, e.outcome)
         for e in api.audit_events()
@@ -397,7 +393,7 @@ def test_api_keys_have_an_owner_an_expiry_and_a_last_use(
 ) -> None:
     make_user(api.sessions, "it@example.org", PASSWORD, role="admin")
     assert (
-        _cli(
+        admin_cli(
             api.settings,
             monkeypatch,
             "create-api-key",
@@ -418,7 +414,7 @@ def test_api_keys_have_an_owner_an_expiry_and_a_last_use(
         assert abs((client.expires_at - utcnow()) - timedelta(days=30)) < timedelta(minutes=1)
     h = {"Authorization": f"Bearer {key}"}
     assert api.client.get("/api/v1/patients", headers=h).status_code == 200
-    assert _cli(api.settings, monkeypatch, "list-api-keys") == 0
+    assert admin_cli(api.settings, monkeypatch, "list-api-keys") == 0
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("ris\t"))
     _, _, state, owner_text, expires, used, _ = line.split("\t")
     assert (state, owner_text) == ("active", "it@example.org")
@@ -437,10 +433,13 @@ def test_api_keys_have_an_owner_an_expiry_and_a_last_use(
         db.execute(update(ApiClient).where(ApiClient.name == "ris").values(expires_at=None))
         db.commit()
     assert api.client.get("/api/v1/patients", headers=h).status_code == 200
-    assert _cli(api.settings, monkeypatch, "deactivate-user", "it@example.org") == 0
+    assert admin_cli(api.settings, monkeypatch, "deactivate-user", "it@example.org") == 0
     r = api.client.get("/api/v1/patients", headers=h)
     assert r.status_code == 401 and "owner" in r.json()["detail"]
-    assert _cli(api.settings, monkeypatch, "create-api-key", "x", "--owner", "no@example.org") == 2
+    assert (
+        admin_cli(api.settings, monkeypatch, "create-api-key", "x", "--owner", "no@example.org")
+        == 2
+    )
 
 
 def test_an_owned_key_does_no_more_than_its_owners_role(
@@ -452,30 +451,33 @@ def test_an_owned_key_does_no_more_than_its_owners_role(
     make_user(api.sessions, "doc@example.org", PASSWORD)
     make_user(api.sessions, "dpo@example.org", PASSWORD, role="auditor")
     assert (
-        _cli(api.settings, monkeypatch, "create-api-key", "owned", "--owner", "doc@example.org")
+        admin_cli(
+            api.settings, monkeypatch, "create-api-key", "owned", "--owner", "doc@example.org"
+        )
         == 0
     )
     key = capsys.readouterr().out.strip()
     h = {"Authorization": f"Bearer {key}"}
     assert api.client.get("/api/v1/patients", headers=h).status_code == 200
-    assert _cli(api.settings, monkeypatch, "set-role", "doc@example.org", "auditor") == 0
+    assert admin_cli(api.settings, monkeypatch, "set-role", "doc@example.org", "auditor") == 0
     assert "works without patients:read" in capsys.readouterr().err
     assert api.client.get("/api/v1/patients", headers=h).status_code == 403  # at once
     r = api.client.post("/api/v1/patients", json={"code": "OWNED-1"}, headers=h)
     assert r.status_code == 403 and api.count(Patient) == 0
-    assert _cli(api.settings, monkeypatch, "set-role", "doc@example.org", "clinician") == 0
+    assert admin_cli(api.settings, monkeypatch, "set-role", "doc@example.org", "clinician") == 0
     assert api.client.get("/api/v1/patients", headers=h).status_code == 200  # stored scopes kept
 
     # creation: the role's scopes only; asked for beyond them, refused with the reason
     assert (
-        _cli(api.settings, monkeypatch, "create-api-key", "a1", "--owner", "dpo@example.org") == 2
+        admin_cli(api.settings, monkeypatch, "create-api-key", "a1", "--owner", "dpo@example.org")
+        == 2
     )
     assert "--scopes audit:read" in capsys.readouterr().err
     args = ("create-api-key", "a2", "--owner", "dpo@example.org", "--scopes", "audit:read",
             "patients:read")  # fmt: skip
-    assert _cli(api.settings, monkeypatch, *args) == 2
+    assert admin_cli(api.settings, monkeypatch, *args) == 2
     assert "lacks patients:read" in capsys.readouterr().err
-    assert _cli(api.settings, monkeypatch, *args[:-1]) == 0
+    assert admin_cli(api.settings, monkeypatch, *args[:-1]) == 0
     auditor_key = capsys.readouterr().out.strip()
     a = {"Authorization": f"Bearer {auditor_key}"}
     assert api.client.get("/api/v1/audit", headers=a).status_code == 200

@@ -26,13 +26,13 @@ from api_support import (
     trial_files,
     video_pair,  # noqa: F401
 )
+from cli_support import admin_cli
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.audit import audit
 from app.chain import verify_chain
-from app.cli import main
 from app.db import get_sessionmaker
 from app.models import (
     AuditEvent,
@@ -49,20 +49,6 @@ from app.models import (
 from app.settings import Settings
 
 PASSWORD = "correct horse battery"
-
-
-def _cli(settings: Settings, monkeypatch: pytest.MonkeyPatch, *args: str) -> int:
-    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(settings.data_dir))
-    if settings.database_url:
-        monkeypatch.setenv("BRADYSCOPE_DATABASE_URL", settings.database_url)
-    else:
-        monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
-    for name, value in (("BRADYSCOPE_RETENTION_DAYS", settings.retention_days),):
-        if value is None:
-            monkeypatch.delenv(name, raising=False)
-        else:
-            monkeypatch.setenv(name, str(value))
-    return main(["admin", *args])
 
 
 def _login(client: TestClient, email: str) -> str:
@@ -122,10 +108,10 @@ def test_verify_audit_finds_tampering_sqlite(
 ) -> None:
     sessions = get_sessionmaker(app_settings)
     _some_events(sessions)
-    assert _cli(app_settings, monkeypatch, "verify-audit") == 0
+    assert admin_cli(app_settings, monkeypatch, "verify-audit") == 0
     assert "intact: 6 chained events" in capsys.readouterr().out
     _tamper(sessions, how)
-    assert _cli(app_settings, monkeypatch, "verify-audit") == 2
+    assert admin_cli(app_settings, monkeypatch, "verify-audit") == 2
     err = capsys.readouterr().err
     assert "tampered with" in err, err
 
@@ -345,14 +331,14 @@ def test_the_admin_page_shows_what_changed_and_whom_a_list_returned(api: Api) ->
 
 def test_export_audit_writes_json_lines(api: Api, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     api.client.post("/api/v1/patients", json={"code": "PD-8"}, headers=api.headers)
-    assert _cli(api.settings, monkeypatch, "export-audit") == 0
+    assert admin_cli(api.settings, monkeypatch, "export-audit") == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert [e["action"] for e in lines][:1] == ["create"] and lines[0]["seq"] == 1
     assert set(lines[0]) >= {"at", "actor_type", "action", "resource_type", "patient_id", "hash"}
     later = (utcnow() + timedelta(minutes=5)).isoformat()
-    assert _cli(api.settings, monkeypatch, "export-audit", "--since", later) == 0
+    assert admin_cli(api.settings, monkeypatch, "export-audit", "--since", later) == 0
     assert capsys.readouterr().out == ""
-    assert _cli(api.settings, monkeypatch, "export-audit", "--since", "yesterday") == 2
+    assert admin_cli(api.settings, monkeypatch, "export-audit", "--since", "yesterday") == 2
 
 
 def test_comparing_two_trials_audits_both(api: Api, video_pair) -> None:
@@ -453,7 +439,7 @@ def test_delete_keeps_files_and_erasure_removes_them(
     events_before = api.audit_events()
     assert api.count(FieldChange) == 1
 
-    assert _cli(api.settings, monkeypatch, "erase-patient", "PD-0042") == 0
+    assert admin_cli(api.settings, monkeypatch, "erase-patient", "PD-0042") == 0
     assert "erased" in capsys.readouterr().err
     assert not any(f.exists() for f in files)
     assert api.count(Trial) == api.count(Video) == api.count(Result) == api.count(Job) == 0
@@ -478,7 +464,7 @@ def test_delete_keeps_files_and_erasure_removes_them(
     # the code stays reserved, and nobody can read it back from the database
     r = api.client.post("/api/v1/patients", json={"code": "pd-0042"}, headers=api.headers)
     assert r.status_code == 409 and "erased" in r.json()["detail"]
-    assert _cli(api.settings, monkeypatch, "erase-patient", "PD-0042") == 2
+    assert admin_cli(api.settings, monkeypatch, "erase-patient", "PD-0042") == 2
     assert "erased already" in capsys.readouterr().err
 
 
@@ -503,17 +489,17 @@ def test_retention_erases_only_patients_past_the_period(
         db.execute(update(Patient).where(Patient.id == patient_id).values(created_at=long_ago))
         db.commit()
     settings = api.settings.model_copy(update={"retention_days": 3650})
-    assert _cli(settings, monkeypatch, "apply-retention", "--dry-run") == 0
+    assert admin_cli(settings, monkeypatch, "apply-retention", "--dry-run") == 0
     assert "1 patient(s) would be erased" in capsys.readouterr().err
     assert all(f.is_file() for f in files)
-    assert _cli(settings, monkeypatch, "apply-retention") == 0
+    assert admin_cli(settings, monkeypatch, "apply-retention") == 0
     assert not any(f.exists() for f in files)
     with api.sessions() as db:
         assert db.get(Patient, patient_id).erased_at is not None
         assert db.get(Patient, recent.json()["id"]).erased_at is None
         kinds = [e.action for e in db.scalars(select(AuditEvent).order_by(AuditEvent.id))]
     assert kinds[-1] == "erase_retention"
-    assert _cli(api.settings, monkeypatch, "apply-retention") == 2  # no period configured
+    assert admin_cli(api.settings, monkeypatch, "apply-retention") == 2  # no period configured
 
 
 # --------------------------------------------------------------------------- migration

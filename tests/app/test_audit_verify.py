@@ -10,12 +10,12 @@ a patient, which removes their values by design, does not. SQLite and PostgreSQL
 from __future__ import annotations
 
 import pytest
+from cli_support import admin_cli
 from sqlalchemy import select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.audit import audit_listed
 from app.audit_check import verify_trail
-from app.cli import main
 from app.db import get_sessionmaker
 from app.models import FieldChange, Patient
 from app.services.changes import audit_update
@@ -28,15 +28,6 @@ from app.storage import Storage
 def settings(request: pytest.FixtureRequest) -> Settings:
     name = "app_settings" if request.param == "sqlite" else "pg_settings"
     return request.getfixturevalue(name)
-
-
-def _cli(settings: Settings, monkeypatch: pytest.MonkeyPatch) -> int:
-    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(settings.data_dir))
-    if settings.database_url:
-        monkeypatch.setenv("BRADYSCOPE_DATABASE_URL", settings.database_url)
-    else:
-        monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
-    return main(["admin", "verify-audit"])
 
 
 def _trail(sessions: sessionmaker[Session]) -> dict[str, int]:
@@ -70,7 +61,7 @@ def test_an_altered_value_is_reported(
 ) -> None:
     sessions = get_sessionmaker(settings)
     ids = _trail(sessions)
-    assert _cli(settings, monkeypatch) == 0
+    assert admin_cli(settings, monkeypatch, "verify-audit") == 0
     assert "their kept values and listed patients match" in capsys.readouterr().out
     with sessions() as db:
         db.execute(
@@ -82,7 +73,7 @@ def test_an_altered_value_is_reported(
     problems = _problems(sessions)
     assert len(problems) == 1, problems
     assert f"(id {ids['update1']})" in problems[0] and "altered" in problems[0]
-    assert _cli(settings, monkeypatch) == 2
+    assert admin_cli(settings, monkeypatch, "verify-audit") == 2
     err = capsys.readouterr().err
     assert "tampered with" in err and f"(id {ids['update1']})" in err, err
 
@@ -141,5 +132,5 @@ def test_erasing_a_patient_reports_nothing(
         kept = set(db.scalars(select(FieldChange.event_id)))
     assert kept == {ids["update0"], ids["update2"]}  # the erased patient's values are gone
     assert _problems(sessions) == []
-    assert _cli(settings, monkeypatch) == 0
+    assert admin_cli(settings, monkeypatch, "verify-audit") == 0
     assert "intact" in capsys.readouterr().out

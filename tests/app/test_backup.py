@@ -25,25 +25,16 @@ from api_support import (
     trial_files,
     video_pair,  # noqa: F401
 )
+from cli_support import admin_cli
 from conftest import PG_SERVER, create_pg_database, drop_pg_database
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, select, text
 
 from app.chain import verify_chain
-from app.cli import main
 from app.db import dispose_engines, get_sessionmaker
 from app.main import create_app
 from app.models import Base
 from app.settings import Settings
-
-
-def _cli(settings: Settings, monkeypatch: pytest.MonkeyPatch, *args: str) -> int:
-    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(settings.data_dir))
-    if settings.database_url:
-        monkeypatch.setenv("BRADYSCOPE_DATABASE_URL", settings.database_url)
-    else:
-        monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
-    return main(["admin", *args])
 
 
 def _fill(settings: Settings, video_pair: tuple[Path, Path]) -> None:
@@ -96,7 +87,7 @@ def _round_trip(
     assert rows_before["trials"] and rows_before["videos"] and rows_before["results"]
     assert rows_before["audit_events"] and len(files_before) == 3
     key_before = settings.audit_key_path.read_bytes()
-    assert _cli(settings, monkeypatch, "backup", str(backup_dir)) == 0
+    assert admin_cli(settings, monkeypatch, "backup", str(backup_dir)) == 0
     manifest = json.loads((backup_dir / "manifest.json").read_text())
     assert manifest["format"] == "bradyscope.backup/1"
     listed = {e["path"]: e["sha256"] for e in manifest["files"]}
@@ -108,7 +99,7 @@ def _round_trip(
     dispose_engines()
     wipe()
     assert not (settings.data_dir / "files").exists()
-    assert _cli(settings, monkeypatch, "restore", str(backup_dir)) == 0
+    assert admin_cli(settings, monkeypatch, "restore", str(backup_dir)) == 0
     rows_after, files_after = _snapshot(settings)
     restore_event = rows_after["audit_events"].pop()  # the restore audits itself
     assert restore_event[4] == "restore"
@@ -123,27 +114,27 @@ def _round_trip(
         assert verify_chain(db).ok  # the chain goes on across the restore
     # restoring again over data is refused without --force
     capsys.readouterr()
-    assert _cli(settings, monkeypatch, "restore", str(backup_dir)) == 2
+    assert admin_cli(settings, monkeypatch, "restore", str(backup_dir)) == 2
     assert "already holds data" in capsys.readouterr().err
     # ... and with --force, while the service runs (an operations review replaced the
     # database under two workers; one failed a trial on a file not yet copied back)
     from app.storage import hold_service_lock
 
     running = hold_service_lock(settings.data_dir)  # what a serve or a worker holds
-    assert _cli(settings, monkeypatch, "restore", "--force", str(backup_dir)) == 2
+    assert admin_cli(settings, monkeypatch, "restore", "--force", str(backup_dir)) == 2
     assert "bradyscope is running on" in capsys.readouterr().err
     running.close()
     if not settings.is_sqlite:  # a worker on another machine: its connection
         elsewhere = create_engine(str(settings.database_url))
         try:
             with elsewhere.connect():
-                assert _cli(settings, monkeypatch, "restore", "--force", str(backup_dir)) == 2
+                assert admin_cli(settings, monkeypatch, "restore", "--force", str(backup_dir)) == 2
             assert "other connection(s) to the database are open" in capsys.readouterr().err
         finally:
             elsewhere.dispose()
     dispose_engines()
     capsys.readouterr()
-    status = _cli(settings, monkeypatch, "restore", "--force", str(backup_dir))
+    status = admin_cli(settings, monkeypatch, "restore", "--force", str(backup_dir))
     assert status == 0, capsys.readouterr().err
 
 
@@ -198,18 +189,18 @@ def test_a_damaged_backup_is_refused_before_anything_changes(
 ) -> None:
     _fill(app_settings, video_pair)
     backup_dir = tmp_path / "backup"
-    assert _cli(app_settings, monkeypatch, "backup", str(backup_dir)) == 0
+    assert admin_cli(app_settings, monkeypatch, "backup", str(backup_dir)) == 0
     victim = next((backup_dir / "files").rglob("*.csv"))
     victim.write_bytes(victim.read_bytes()[:-1] + b"X")
     dispose_engines()
     shutil.rmtree(app_settings.data_dir)
     capsys.readouterr()
-    assert _cli(app_settings, monkeypatch, "restore", str(backup_dir)) == 2
+    assert admin_cli(app_settings, monkeypatch, "restore", str(backup_dir)) == 2
     assert "damaged" in capsys.readouterr().err
     assert not (app_settings.data_dir / "bradyscope.sqlite3").exists()
     # a backup into a directory that holds something, or into the data directory, is refused
-    assert _cli(app_settings, monkeypatch, "backup", str(backup_dir)) == 2
-    assert _cli(app_settings, monkeypatch, "backup", str(app_settings.data_dir / "b")) == 2
+    assert admin_cli(app_settings, monkeypatch, "backup", str(backup_dir)) == 2
+    assert admin_cli(app_settings, monkeypatch, "backup", str(app_settings.data_dir / "b")) == 2
 
 
 def test_pg_tools_older_than_the_server_are_refused(
@@ -248,10 +239,10 @@ def test_a_backup_that_does_not_fit_leaves_nothing_and_says_so(
 
     monkeypatch.setattr(backup, "_copy", copy_until_full)
     target = tmp_path / "backup"
-    assert _cli(app_settings, monkeypatch, "backup", str(target)) == 2
+    assert admin_cli(app_settings, monkeypatch, "backup", str(target)) == 2
     err = capsys.readouterr().err
     assert "No space left on device" in err and "nothing was kept there" in err
     assert "Traceback" not in err and "\n" not in err.strip()
     assert target.is_dir() and list(target.iterdir()) == []
     monkeypatch.setattr(backup, "_copy", real_copy)
-    assert _cli(app_settings, monkeypatch, "backup", str(target)) == 0  # the same place again
+    assert admin_cli(app_settings, monkeypatch, "backup", str(target)) == 0  # the same place again

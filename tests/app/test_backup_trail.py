@@ -13,11 +13,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from cli_support import admin_cli
 from sqlalchemy import select, text, update
 
 from app import backup as backup_module
 from app.audit import audit_listed
-from app.cli import main
 from app.db import dispose_engines, get_sessionmaker
 from app.models import FieldChange, Patient
 from app.services.changes import audit_update
@@ -32,15 +32,6 @@ ALTERED = "no tremor at all"
 def settings(request: pytest.FixtureRequest) -> Settings:
     name = "app_settings" if request.param == "sqlite" else "pg_settings"
     return request.getfixturevalue(name)
-
-
-def _cli(settings: Settings, monkeypatch: pytest.MonkeyPatch, *args: str) -> int:
-    monkeypatch.setenv("BRADYSCOPE_DATA_DIR", str(settings.data_dir))
-    if settings.database_url:
-        monkeypatch.setenv("BRADYSCOPE_DATABASE_URL", settings.database_url)
-    else:
-        monkeypatch.delenv("BRADYSCOPE_DATABASE_URL", raising=False)
-    return main(["admin", *args])
 
 
 def _patients_with_an_update(settings: Settings) -> dict[str, int]:
@@ -87,11 +78,11 @@ def test_a_backup_of_a_tampered_trail_is_refused(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     ids = _patients_with_an_update(settings)
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "before")) == 0
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "before")) == 0
     _tamper(settings, ids, how)
     capsys.readouterr()
     target = tmp_path / "after"
-    assert _cli(settings, monkeypatch, "backup", str(target)) == 2
+    assert admin_cli(settings, monkeypatch, "backup", str(target)) == 2
     err = capsys.readouterr().err
     assert "no backup was made: the audit trail does not verify (1 problem)" in err, err
     assert "bradyscope admin verify-audit" in err and "nothing was written" in err
@@ -99,7 +90,7 @@ def test_a_backup_of_a_tampered_trail_is_refused(
     _no_patient_data(err)
     assert not target.exists()
     # what verify-audit says of the same database, which the message sends the reader to
-    assert _cli(settings, monkeypatch, "verify-audit") == 2
+    assert admin_cli(settings, monkeypatch, "verify-audit") == 2
     assert f"(id {ids['list' if how == 'audit_event_patients' else 'update']})" in (
         capsys.readouterr().err
     )
@@ -116,11 +107,11 @@ def test_a_restored_trail_that_does_not_verify_fails_the_restore(
     # a backup made without the check (as before it existed) holds the altered values
     real_check = backup_module.trail_problems
     monkeypatch.setattr(backup_module, "trail_problems", lambda settings: None)
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "old")) == 0
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "old")) == 0
     monkeypatch.setattr(backup_module, "trail_problems", real_check)
     dispose_engines()
     capsys.readouterr()
-    assert _cli(settings, monkeypatch, "restore", "--force", str(tmp_path / "old")) == 2
+    assert admin_cli(settings, monkeypatch, "restore", "--force", str(tmp_path / "old")) == 2
     err = capsys.readouterr().err
     assert "the backup was restored, but its audit trail does not verify (1 problem)" in err, err
     assert "Do not start bradyscope on it" in err and "bradyscope admin verify-audit" in err
@@ -138,8 +129,8 @@ def test_an_intact_trail_is_backed_up_and_restored_without_a_word(
 ) -> None:
     _patients_with_an_update(settings)
     assert backup_module.trail_problems(settings) is None
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "good")) == 0
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "good")) == 0
     dispose_engines()
-    status = _cli(settings, monkeypatch, "restore", "--force", str(tmp_path / "good"))
+    status = admin_cli(settings, monkeypatch, "restore", "--force", str(tmp_path / "good"))
     assert status == 0, capsys.readouterr().err
     assert backup_module.trail_problems(settings) is None
