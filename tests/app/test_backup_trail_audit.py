@@ -12,12 +12,12 @@ import errno
 from pathlib import Path
 
 import pytest
+from cli_support import admin_cli
 from sqlalchemy import func, select
 from test_backup_trail import (
     ALTERED,
     CODE,
     NOTES,
-    _cli,
     _patients_with_an_update,
     _tamper,
     settings,  # noqa: F401 - fixture (SQLite, and PostgreSQL when available)
@@ -62,13 +62,13 @@ def test_a_backup_refused_for_the_trail_is_audited_as_an_error(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     ids = _patients_with_an_update(settings)
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "before")) == 0
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "before")) == 0
     assert [e.outcome for e in _events(settings, "backup")] == ["success"]
     _tamper(settings, ids, "field_changes")
     problems = _problems(settings)
     assert len(problems) == 1, problems
 
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "after")) == 2
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "after")) == 2
     events = _events(settings, "backup")
     assert [e.outcome for e in events] == ["success", "error"]
     _is_the_trails_failure(events[-1], "backup")
@@ -86,11 +86,13 @@ def test_a_restore_failed_for_the_trail_is_audited_in_the_restored_database(
         backed_up = db.scalar(select(func.max(AuditEvent.seq)))
     real_check = backup_module.trail_problems
     monkeypatch.setattr(backup_module, "trail_problems", lambda settings: None)
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "old")) == 0  # as before e368240
+    assert (
+        admin_cli(settings, monkeypatch, "backup", str(tmp_path / "old")) == 0
+    )  # as before e368240
     monkeypatch.setattr(backup_module, "trail_problems", real_check)
     dispose_engines()
 
-    assert _cli(settings, monkeypatch, "restore", "--force", str(tmp_path / "old")) == 2
+    assert admin_cli(settings, monkeypatch, "restore", "--force", str(tmp_path / "old")) == 2
     events = _events(settings, "restore")
     assert len(events) == 1, [(e.seq, e.outcome) for e in events]
     _is_the_trails_failure(events[0], "restore")
@@ -111,10 +113,10 @@ def test_a_backup_that_fails_for_another_reason_is_not_told_as_the_trails(
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(backup_module, "_write_backup", full)
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "full")) == 2
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "full")) == 2
     assert _events(settings, "backup") == []  # the trail verifies: no trail failure to record
     _tamper(settings, ids, "audit_event_patients")  # now it is the trail's
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "after")) == 2
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "after")) == 2
     assert [e.outcome for e in _events(settings, "backup")] == ["error"]
 
 
@@ -132,7 +134,7 @@ def test_a_trail_failure_that_cannot_be_recorded_still_says_its_own_message(
 
     monkeypatch.setattr(app.audit, "audit_failure", refused)
     capsys.readouterr()
-    assert _cli(settings, monkeypatch, "backup", str(tmp_path / "after")) == 2
+    assert admin_cli(settings, monkeypatch, "backup", str(tmp_path / "after")) == 2
     err = capsys.readouterr().err
     assert "no backup was made: the audit trail does not verify (1 problem)" in err, err
     note = "the failed backup could not be recorded in the audit trail (RuntimeError)"

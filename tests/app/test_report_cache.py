@@ -416,7 +416,7 @@ def test_a_hidden_trials_report_job_makes_nothing(api: Api, video_pair, made):
 
 def test_a_restore_empties_the_report_cache(api: Api, video_pair, tmp_path, monkeypatch):
     """And the trend plot cache (app.reports.trend_cache), derived the same way."""
-    from test_backup import _cli
+    from cli_support import admin_cli
 
     from app.reports.trend_cache import TrendSvgCache
 
@@ -425,10 +425,10 @@ def test_a_restore_empties_the_report_cache(api: Api, video_pair, tmp_path, monk
     assert len(_cache(api).files()) == 1
     trends = TrendSvgCache.of(Storage.from_settings(api.settings))
     trends.put(1, "a" * 64, "<svg>a trend</svg>")
-    assert _cli(api.settings, monkeypatch, "backup", str(tmp_path / "backup")) == 0
+    assert admin_cli(api.settings, monkeypatch, "backup", str(tmp_path / "backup")) == 0
     manifest = (tmp_path / "backup" / "manifest.json").read_text()
     assert "cache/" not in manifest  # derived: never backed up
     dispose_engines()
-    assert _cli(api.settings, monkeypatch, "restore", str(tmp_path / "backup"), "--force") == 0
+    assert admin_cli(api.settings, monkeypatch, "restore", str(tmp_path / "backup"), "--force") == 0
     assert _cache(api).files() == [] and trends.files() == []
     dispose_engines()

@@ -187,7 +187,7 @@ def test_a_stored_signed_report_that_was_damaged_is_refused(api: Api, video_pair
 def test_revisions_and_signatures_survive_backup_and_restore(
     api: Api, video_pair, tmp_path, monkeypatch, capsys
 ) -> None:
-    from test_backup import _cli
+    from cli_support import admin_cli
 
     from app.db import dispose_engines
 
@@ -213,10 +213,10 @@ def test_revisions_and_signatures_survive_backup_and_restore(
         ).json()
         for n in (1, 2)
     }
-    assert _cli(api.settings, monkeypatch, "backup", str(tmp_path / "backup")) == 0
+    assert admin_cli(api.settings, monkeypatch, "backup", str(tmp_path / "backup")) == 0
     dispose_engines()
     shutil.rmtree(api.settings.data_dir)
-    assert _cli(api.settings, monkeypatch, "restore", str(tmp_path / "backup")) == 0
+    assert admin_cli(api.settings, monkeypatch, "restore", str(tmp_path / "backup")) == 0
     with TestClient(create_app(api.settings)) as fresh:
         for n, body in signed.items():
             r = fresh.get(f"{pdf_url}{n}", headers=api.headers)
