@@ -35,9 +35,10 @@
     // A read-crop-write loop rather than pipeThrough: a stream's queue drops the frames it
     // holds when the track stops, and a VideoFrame dropped without close() makes Chromium
     // warn ("garbage collected without being closed"). Here every frame is closed by
-    // whoever holds it last: this loop, or the generator once it has taken it.
+    // whoever holds it last: this loop, the generator once it has taken it, or stop().
     const reader = processor.readable.getReader();
     const writer = generator.writable.getWriter();
+    const inflight = new Set(); // written, not yet taken by the generator
     let stopped = false;
     (async () => {
       while (!stopped) {
@@ -48,17 +49,29 @@
         const rect = { x: half.index * width, y: 0, width, height: frame.codedHeight };
         const cropped = new VideoFrame(frame, { visibleRect: rect });
         frame.close();
+        inflight.add(cropped);
         try {
           await writer.write(cropped);
         } catch (error) {
           cropped.close(); // the generator stopped before taking it
           break;
+        } finally {
+          inflight.delete(cropped);
         }
       }
       reader.cancel().catch(() => {});
     })();
     const stop = generator.stop.bind(generator);
-    generator.stop = () => { stopped = true; stop(); track.stop(); };
+    // On stop, a frame may wait in the writable's queue (its write never settles once the
+    // track has ended) and others in the processor's: close the one, cancel the other.
+    generator.stop = () => {
+      stopped = true;
+      inflight.forEach((frame) => frame.close());
+      inflight.clear();
+      reader.cancel().catch(() => {});
+      stop();
+      track.stop();
+    };
     return new MediaStream([generator]);
   };
 })();
